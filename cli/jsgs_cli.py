@@ -1,0 +1,22 @@
+"""``jsgs``: the trainer (``jsgs train MANIFEST``) and its benchmarks."""
+
+from __future__ import annotations
+
+import click
+
+from jsgs import __version__
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="jsgs")
+def main() -> None:
+    """Train 3D Gaussian Splatting from mixed-quality JPEG views (JSGS) or the gsplat baseline."""
+
+
+def _register() -> None:
+    from cli import train
+
+    train.register(main)
+
+
+_register()

@@ -1,0 +1,116 @@
+"""IJG (libjpeg) quantization tables, quality scaling and its inverse.
+
+All tables are 8x8 in natural row-major order (entry [v, u]: v vertical, u horizontal frequency). The JPEG
+file stores them in zigzag order; ``ZIGZAG`` maps zigzag position k to the natural index.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# ITU-T T.81 Annex K, tables K.1 (luminance) and K.2 (chrominance), natural order.
+BASE_LUMA = np.array(
+    [
+        [16, 11, 10, 16, 24, 40, 51, 61],
+        [12, 12, 14, 19, 26, 58, 60, 55],
+        [14, 13, 16, 24, 40, 57, 69, 56],
+        [14, 17, 22, 29, 51, 87, 80, 62],
+        [18, 22, 37, 56, 68, 109, 103, 77],
+        [24, 35, 55, 64, 81, 104, 113, 92],
+        [49, 64, 78, 87, 103, 121, 120, 101],
+        [72, 92, 95, 98, 112, 100, 103, 99],
+    ],
+    dtype=np.int64,
+)
+BASE_CHROMA = np.array(
+    [
+        [17, 18, 24, 47, 99, 99, 99, 99],
+        [18, 21, 26, 66, 99, 99, 99, 99],
+        [24, 26, 56, 99, 99, 99, 99, 99],
+        [47, 66, 99, 99, 99, 99, 99, 99],
+        [99, 99, 99, 99, 99, 99, 99, 99],
+        [99, 99, 99, 99, 99, 99, 99, 99],
+        [99, 99, 99, 99, 99, 99, 99, 99],
+        [99, 99, 99, 99, 99, 99, 99, 99],
+    ],
+    dtype=np.int64,
+)
+
+
+def _zigzag() -> np.ndarray:
+    order: list[int] = []
+    for s in range(15):
+        diag = [(v, s - v) for v in range(8) if 0 <= s - v < 8]
+        # Even diagonals run bottom-left -> top-right, odd ones the other way (T.81 figure A.6).
+        if s % 2 == 0:
+            diag.reverse()
+        order.extend(v * 8 + u for v, u in diag)
+    return np.array(order, dtype=np.int64)
+
+
+#: ZIGZAG[k] = natural (row-major) index of the k-th coefficient in file order.
+ZIGZAG = _zigzag()
+
+
+def zigzag_to_natural(values: np.ndarray | list[int]) -> np.ndarray:
+    """64 values in file (zigzag) order -> 8x8 natural-order int64 array."""
+    out = np.empty(64, dtype=np.int64)
+    out[ZIGZAG] = np.asarray(values, dtype=np.int64)
+    return out.reshape(8, 8)
+
+
+def quality_scale(quality: int) -> int:
+    """libjpeg's ``jpeg_quality_scaling``: quality 1..100 -> percentage scale factor."""
+    if not 1 <= quality <= 100:
+        raise ValueError(f"quality must be in 1..100, got {quality}")
+    return 5000 // quality if quality < 50 else 200 - 2 * quality
+
+
+def ijg_table(base: np.ndarray, quality: int, force_baseline: bool = True) -> np.ndarray:
+    """The table libjpeg's ``jpeg_set_quality(quality, force_baseline)`` derives from ``base`` (8x8 natural)."""
+    t = (base.astype(np.int64) * quality_scale(quality) + 50) // 100
+    return np.clip(t, 1, 255 if force_baseline else 32767)
+
+
+def ijg_tables(quality: int) -> tuple[np.ndarray, np.ndarray]:
+    """(luma, chroma) 8x8 natural-order tables Pillow/libjpeg write for ``quality=``."""
+    return ijg_table(BASE_LUMA, quality), ijg_table(BASE_CHROMA, quality)
+
+
+@dataclass(frozen=True)
+class QualityEstimate:
+    """The IJG quality whose tables are nearest to a file's tables.
+
+    ``exact`` is True only when every given table equals IJG's at ``quality`` bit for bit; camera and phone
+    encoders use their own tables, for which ``quality`` is only the closest IJG level (``error`` is the mean
+    absolute difference per entry, in quantization steps).
+    """
+
+    quality: int
+    exact: bool
+    error: float
+
+
+_ALL_LUMA = np.stack([ijg_table(BASE_LUMA, q) for q in range(1, 101)]).astype(np.float64)
+_ALL_CHROMA = np.stack([ijg_table(BASE_CHROMA, q) for q in range(1, 101)]).astype(np.float64)
+
+
+def estimate_quality(luma: np.ndarray, chroma: np.ndarray | None = None) -> QualityEstimate:
+    """Invert libjpeg's quality scaling: the q in 1..100 whose IJG tables are closest (mean |diff|).
+
+    Ties go to the highest quality, because clamping at 1 makes every q >= 98 or so produce all-ones
+    luma tables and the encoder most likely used the highest of those. Pass ``chroma=None`` for grayscale.
+    """
+    luma = np.asarray(luma, dtype=np.float64).reshape(8, 8)
+    err = np.abs(_ALL_LUMA - luma).mean(axis=(1, 2))
+    exact = np.all(_ALL_LUMA == luma, axis=(1, 2))
+    if chroma is not None:
+        chroma = np.asarray(chroma, dtype=np.float64).reshape(8, 8)
+        err = (err + np.abs(_ALL_CHROMA - chroma).mean(axis=(1, 2))) / 2
+        exact &= np.all(_ALL_CHROMA == chroma, axis=(1, 2))
+    best = float(err.min())
+    # Highest quality among the minimisers.
+    q_index = int(np.flatnonzero(err == best)[-1])
+    return QualityEstimate(quality=q_index + 1, exact=bool(exact[q_index]), error=best)

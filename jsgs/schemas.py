@@ -1,0 +1,32 @@
+"""Load and apply the JSON Schemas in the top-level ``schemas/`` folder."""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from jsgs.errors import JsgsError
+
+SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
+
+
+@lru_cache(maxsize=None)
+def load_schema(name: str) -> dict[str, Any]:
+    """``name`` without extension, e.g. ``"manifest"`` -> schemas/manifest.schema.json."""
+    path = SCHEMA_DIR / f"{name}.schema.json"
+    return json.loads(path.read_text())
+
+
+def validate(doc: Any, name: str, where: str) -> None:
+    """Raise JsgsError (one line, naming ``where``) if ``doc`` does not satisfy schema ``name``."""
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(load_schema(name))
+    errors = sorted(validator.iter_errors(doc), key=lambda e: list(e.absolute_path))
+    if errors:
+        e = errors[0]
+        loc = "/".join(str(p) for p in e.absolute_path) or "(top level)"
+        more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+        raise JsgsError(f"{where}: not a valid {name} file: at {loc}: {e.message}{more}")
