@@ -24,9 +24,11 @@ def validate(doc: Any, name: str, where: str) -> None:
     import jsonschema
 
     validator = jsonschema.Draft202012Validator(load_schema(name))
-    errors = sorted(validator.iter_errors(doc), key=lambda e: list(e.absolute_path))
+    errors = list(validator.iter_errors(doc))
     if errors:
-        e = errors[0]
+        # best_match descends into oneOf/anyOf to the most specific failure instead of echoing the object.
+        e = jsonschema.exceptions.best_match(errors)
         loc = "/".join(str(p) for p in e.absolute_path) or "(top level)"
         more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
-        raise JsgsError(f"{where}: not a valid {name} file: at {loc}: {e.message}{more}")
+        msg = e.message if len(e.message) <= 200 else e.message[:197] + "..."
+        raise JsgsError(f"{where}: not a valid {name} file: at {loc}: {msg}{more}")

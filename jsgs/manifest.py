@@ -1,0 +1,287 @@
+"""Reading a training manifest (``schemas/manifest.schema.json``) into typed, numpy-backed objects.
+
+The trainer's only view of a dataset. Imports numpy, json and (lazily) jsonschema — never pycolmap, OpenCV or
+Pillow — so a GPU machine needs none of the dataset tools.
+
+Conventions: extrinsics are world-to-camera, OpenCV axes (x right, y down, z forward):
+``x_cam = R @ x_world + t``. Intrinsics in pixels with COLMAP's pixel convention (the top-left corner of the
+image is (0, 0), so pixel (0, 0) is centred at (0.5, 0.5)). Quantization tables 8x8 in natural row-major
+order, entry [v][u]. Image paths are relative to the manifest's folder (absolute paths are taken as they are).
+
+Every manifest is validated against the schema on read (and by ``jsgstools`` on write). The bulky ``points``
+arrays are checked with a direct, equivalent test instead of element-by-element schema validation, which would
+take seconds for a real scene's tens of thousands of points.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from jsgs.errors import JsgsError
+
+
+@dataclass(frozen=True)
+class JpegState:
+    """The JPEG state of one view, read from its file header."""
+
+    luma_table: np.ndarray  # (8, 8) int32, natural order [v][u]
+    chroma_table: np.ndarray | None  # (8, 8) int32, or None (grayscale)
+    sampling: str  # "4:2:0", "4:4:4", ...
+    quality: int  # closest IJG quality
+    quality_exact: bool  # tables are exactly IJG's at ``quality``
+    precision: int  # 8 or 16 (bits per table entry)
+    frame: str | None  # "baseline", "progressive", ...
+
+
+@dataclass(frozen=True)
+class Distortion:
+    model: str  # COLMAP model name
+    params: tuple[float, ...]  # COLMAP's extra parameters, in COLMAP's order
+
+
+@dataclass(frozen=True)
+class Camera:
+    model: str
+    width: int  # pixels
+    height: int
+    fx: float  # pixels
+    fy: float
+    cx: float  # pixels, COLMAP convention
+    cy: float
+    distortion: Distortion | None
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) float64 intrinsic matrix (COLMAP pixel convention: the same as gsplat's)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class View:
+    name: str  # image name in the COLMAP model
+    image: Path  # the observed image, resolved against the manifest's folder
+    split: str  # "train" | "test"
+    camera: Camera
+    R: np.ndarray  # (3, 3) float64 world-to-camera rotation
+    t: np.ndarray  # (3,) float64 world-to-camera translation
+    jpeg: JpegState | None  # None for a lossless image
+    reference: Path | None  # lossless reference, resolved; None when there is none
+
+    @property
+    def world_to_camera(self) -> np.ndarray:
+        """(4, 4) float64 homogeneous world-to-camera matrix."""
+        m = np.eye(4)
+        m[:3, :3] = self.R
+        m[:3, 3] = self.t
+        return m
+
+    @property
+    def camera_center(self) -> np.ndarray:
+        """(3,) camera centre in world coordinates: -R^T t."""
+        return -self.R.T @ self.t
+
+
+@dataclass(frozen=True)
+class SceneInfo:
+    name: str
+    source: str
+    schedule: str | None
+    quality: int | None
+    seed: int | None
+    test_every: int
+    subsampling: str | None
+    downscale: float | None
+    undistorted: bool
+
+
+@dataclass(frozen=True)
+class Manifest:
+    path: Path
+    producer: dict[str, Any]
+    scene: SceneInfo
+    views: tuple[View, ...]
+    points_xyz: np.ndarray  # (N, 3) float64 world coordinates
+    points_rgb: np.ndarray  # (N, 3) uint8
+
+    @property
+    def train_views(self) -> tuple[View, ...]:
+        return tuple(v for v in self.views if v.split == "train")
+
+    @property
+    def test_views(self) -> tuple[View, ...]:
+        return tuple(v for v in self.views if v.split == "test")
+
+
+# ----------------------------------------------------------------------------------------------------
+# Validation
+
+
+def _is_num(x: Any) -> bool:
+    return type(x) in (int, float)  # bool is not a JSON number here
+
+
+def _check_points(points: Any, where: str) -> None:
+    """What the schema requires of ``points`` (+ finiteness and matching lengths), without per-element schema
+    validation."""
+    if not isinstance(points, dict):
+        return  # the schema check reports it
+    xyz, rgb, count = points.get("xyz"), points.get("rgb"), points.get("count")
+    if isinstance(xyz, list):
+        for i, p in enumerate(xyz):
+            if not (isinstance(p, list) and len(p) == 3 and all(_is_num(c) and math.isfinite(c) for c in p)):
+                raise JsgsError(
+                    f"{where}: not a valid manifest file: at points/xyz/{i}: {p!r} is not 3 finite numbers"
+                )
+    if isinstance(rgb, list):
+        for i, c in enumerate(rgb):
+            if not (isinstance(c, list) and len(c) == 3 and all(type(v) is int and 0 <= v <= 255 for v in c)):
+                raise JsgsError(
+                    f"{where}: not a valid manifest file: at points/rgb/{i}: {c!r} is not 3 integers "
+                    "in 0..255"
+                )
+    if isinstance(xyz, list) and isinstance(rgb, list) and type(count) is int:
+        if not len(xyz) == len(rgb) == count:
+            raise JsgsError(
+                f"{where}: not a valid manifest file: at points: count {count}, {len(xyz)} xyz, "
+                f"{len(rgb)} rgb (must all be equal)"
+            )
+
+
+def _finite(x: Any) -> bool:
+    if isinstance(x, list):
+        return all(_finite(v) for v in x)
+    return not isinstance(x, float) or math.isfinite(x)
+
+
+def validate_document(doc: Any, where: str) -> None:
+    """Raise JsgsError (one line naming ``where``) unless ``doc`` is a valid manifest: the schema, plus what a
+    schema cannot say — finite numbers, matching point counts, unique view names, rotations that are
+    rotations."""
+    from jsgs.schemas import validate
+
+    if isinstance(doc, dict) and isinstance(doc.get("points"), dict):
+        pts = doc["points"]
+        light = {**pts}
+        for key in ("xyz", "rgb"):
+            if isinstance(pts.get(key), list):
+                light[key] = []  # checked by _check_points
+        validate({**doc, "points": light}, "manifest", where)
+        _check_points(pts, where)
+    else:
+        validate(doc, "manifest", where)
+    names: set[str] = set()
+    for i, v in enumerate(doc["views"]):
+        loc = f"{where}: not a valid manifest file: at views/{i}"
+        if v["name"] in names:
+            raise JsgsError(f"{loc}: view name {v['name']!r} is repeated")
+        names.add(v["name"])
+        cam = v["camera"]
+        if not _finite([v["R"], v["t"], cam["fx"], cam["fy"], cam["cx"], cam["cy"]]):
+            raise JsgsError(f"{loc}: non-finite camera or pose")
+        R = np.asarray(v["R"], dtype=np.float64)
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-5 or np.linalg.det(R) < 0:
+            raise JsgsError(f"{loc}/R: not a rotation matrix (R R^T != I or det < 0)")
+
+
+# ----------------------------------------------------------------------------------------------------
+# Reading
+
+
+def _jpeg(d: dict[str, Any] | None) -> JpegState | None:
+    if d is None:
+        return None
+    chroma = d["chroma_table"]
+    return JpegState(
+        luma_table=np.asarray(d["luma_table"], dtype=np.int32),
+        chroma_table=None if chroma is None else np.asarray(chroma, dtype=np.int32),
+        sampling=d["sampling"],
+        quality=int(d["quality"]),
+        quality_exact=bool(d["quality_exact"]),
+        precision=int(d["precision"]),
+        frame=d.get("frame"),
+    )
+
+
+def _camera(d: dict[str, Any]) -> Camera:
+    dist = d["distortion"]
+    return Camera(
+        model=d["model"],
+        width=int(d["width"]),
+        height=int(d["height"]),
+        fx=float(d["fx"]),
+        fy=float(d["fy"]),
+        cx=float(d["cx"]),
+        cy=float(d["cy"]),
+        distortion=None
+        if dist is None
+        else Distortion(dist["model"], tuple(float(p) for p in dist["params"])),
+    )
+
+
+def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
+    """Read, validate and type ``path``. Image and reference paths are resolved against the manifest's folder
+    (absolute paths are taken as they are); with ``check_files`` each must exist. Any defect raises one
+    JsgsError naming the file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise JsgsError(f"{path}: manifest not found") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise JsgsError(f"{path}: cannot read the manifest: {e}") from None
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise JsgsError(f"{path}: not JSON: {e.msg} at line {e.lineno}, column {e.colno}") from None
+    validate_document(doc, str(path))
+
+    base = path.parent
+    views = []
+    for v in doc["views"]:
+        image = base / v["image"]
+        ref = None if v["reference"] is None else base / v["reference"]
+        if check_files:
+            if not image.is_file():
+                raise JsgsError(
+                    f"{path}: view {v['name']!r}: image {v['image']} not found (looked for {image})"
+                )
+            if ref is not None and not ref.is_file():
+                raise JsgsError(
+                    f"{path}: view {v['name']!r}: reference {v['reference']} not found (looked for {ref})"
+                )
+        views.append(
+            View(
+                name=v["name"],
+                image=image,
+                split=v["split"],
+                camera=_camera(v["camera"]),
+                R=np.asarray(v["R"], dtype=np.float64),
+                t=np.asarray(v["t"], dtype=np.float64),
+                jpeg=_jpeg(v["jpeg"]),
+                reference=ref,
+            )
+        )
+    s = doc["scene"]
+    scene = SceneInfo(
+        name=s["name"],
+        source=s["source"],
+        schedule=s["schedule"],
+        quality=s.get("quality"),
+        seed=s["seed"],
+        test_every=int(s["test_every"]),
+        subsampling=s.get("subsampling"),
+        downscale=None if s.get("downscale") is None else float(s["downscale"]),
+        undistorted=bool(s.get("undistorted", False)),
+    )
+    pts = doc["points"]
+    xyz = np.asarray(pts["xyz"], dtype=np.float64).reshape(-1, 3)
+    rgb = np.asarray(pts["rgb"], dtype=np.uint8).reshape(-1, 3)
+    return Manifest(
+        path=path, producer=doc["producer"], scene=scene, views=tuple(views), points_xyz=xyz, points_rgb=rgb
+    )

@@ -1,0 +1,550 @@
+"""Loading a COLMAP scene (``SCENE/sparse/0`` or ``SCENE/sparse``, binary or text, plus ``SCENE/images``) and
+the camera geometry the dataset tools share: downscale-factor detection, intrinsics scaling and undistortion.
+
+Conventions (the same as COLMAP's, and the manifest's):
+
+- Extrinsics are world-to-camera, OpenCV axes (x right, y down, z forward): ``x_cam = R @ x_world + t``.
+- Pixel coordinates follow COLMAP: the top-left *corner* of the image is (0, 0), so the centre of pixel (0, 0)
+  is (0.5, 0.5) and a centred principal point is (W/2, H/2). OpenCV puts pixel centres on integers; every call
+  into OpenCV below shifts by 0.5 on the way in and out.
+- An image name in the model (``IMG_4026.JPG``) is found as ``images/IMG_4026.JPG`` or, failing that, as the
+  only file ``images/IMG_4026.<ext>`` with the same stem: lossless copies of a capture are usually re-saved
+  under another extension (``../shared/scenes`` holds ``IMG_4026.png`` for ``IMG_4026.JPG``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from jsgs.errors import JsgsError
+
+if TYPE_CHECKING:  # pragma: no cover
+    import pycolmap
+
+#: Camera models that need no undistortion.
+PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
+#: Distorted models that ``compress`` undistorts to PINHOLE with OpenCV (same formulas, same parameter order).
+UNDISTORTABLE_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+#: Image formats read by the tools. JPEG is the observed (lossy) format; the others are lossless.
+LOSSLESS_FORMATS = ("PNG", "BMP", "PPM")
+JPEG_FORMATS = ("JPEG", "MPO")
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".ppm")
+
+# A downscale factor this close to an integer is that integer (4000 px / 1333 px = 3.0008 is a factor of 3).
+_FACTOR_SNAP = 5e-3
+
+
+@dataclass(frozen=True)
+class Camera:
+    """One COLMAP camera. ``params`` in COLMAP's order for ``model`` (pixels for focal lengths and principal
+    point, COLMAP pixel convention; distortion coefficients are dimensionless)."""
+
+    camera_id: int
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+
+    @property
+    def is_pinhole(self) -> bool:
+        return self.model in PINHOLE_MODELS
+
+    def _colmap(self) -> pycolmap.Camera:
+        import pycolmap
+
+        cam = pycolmap.Camera.create_from_model_name(self.camera_id, self.model, 1.0, self.width, self.height)
+        cam.params = list(self.params)
+        return cam
+
+    @property
+    def focal(self) -> tuple[float, float]:
+        """(fx, fy) in pixels; models with one focal length give it twice."""
+        idx = list(self._colmap().focal_length_idxs())
+        return float(self.params[idx[0]]), float(self.params[idx[-1]])
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        """(cx, cy) in pixels, COLMAP convention."""
+        ix, iy = self._colmap().principal_point_idxs()
+        return float(self.params[ix]), float(self.params[iy])
+
+    @property
+    def distortion(self) -> tuple[float, ...]:
+        """The model's extra (distortion) parameters, in COLMAP's order; empty for pinhole models."""
+        return tuple(float(self.params[i]) for i in self._colmap().extra_params_idxs())
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix, COLMAP pixel convention."""
+        fx, fy = self.focal
+        cx, cy = self.principal_point
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, width: int, height: int) -> Camera:
+        """This camera for an image resized to ``width`` x ``height``: the same as COLMAP's
+        ``Camera::Rescale`` (focal lengths and principal point times width/height ratios; a single focal
+        length times their mean; distortion unchanged because it acts on normalized coordinates)."""
+        if (width, height) == (self.width, self.height):
+            return self
+        sx, sy = width / self.width, height / self.height
+        cam = self._colmap()
+        p = list(self.params)
+        focal = list(cam.focal_length_idxs())
+        if len(focal) == 1:
+            p[focal[0]] *= (sx + sy) / 2
+        else:
+            p[focal[0]] *= sx
+            p[focal[1]] *= sy
+        ix, iy = cam.principal_point_idxs()
+        p[ix] *= sx
+        p[iy] *= sy
+        return replace(self, width=width, height=height, params=tuple(float(v) for v in p))
+
+    def as_pinhole(self) -> Camera:
+        """The same intrinsics as a PINHOLE camera; only for models without distortion."""
+        if not self.is_pinhole:
+            raise ValueError(f"camera {self.camera_id} ({self.model}) is distorted")
+        fx, fy = self.focal
+        cx, cy = self.principal_point
+        return replace(self, model="PINHOLE", params=(fx, fy, cx, cy))
+
+    def describe(self) -> str:
+        return f"{self.model} {self.width}x{self.height}"
+
+
+@dataclass(frozen=True)
+class SceneView:
+    """One registered image of the model and the file that holds it."""
+
+    image_id: int
+    name: str
+    camera_id: int
+    R: np.ndarray  # (3, 3) world-to-camera rotation
+    t: np.ndarray  # (3,) world-to-camera translation
+    path: Path | None  # the image file; None when not found
+    size: tuple[int, int] | None  # (width, height) of the file in pixels; None when missing or unreadable
+    format: str | None  # Pillow's format name ("PNG", "JPEG", ...)
+    read_error: str | None = None  # why the file could not be opened
+
+
+@dataclass
+class ColmapScene:
+    """A COLMAP model with its image files. ``views`` are the registered images sorted by name (Python string
+    order), which is the order the train/test split counts in."""
+
+    root: Path
+    model_dir: Path
+    model_format: str  # "binary" | "text"
+    images_dir: Path
+    cameras: dict[int, Camera]
+    views: list[SceneView]
+    unregistered: list[str]
+    points_xyz: np.ndarray  # (N, 3) float64, world coordinates
+    points_rgb: np.ndarray  # (N, 3) uint8
+    duplicate_names: dict[str, list[int]] = field(default_factory=dict)  # name -> image ids, when repeated
+    reconstruction: Any = None  # the pycolmap.Reconstruction it was read from
+
+    @property
+    def name(self) -> str:
+        return self.root.resolve().name
+
+    def rel(self, path: Path) -> str:
+        """``path`` as shown to the user: paths are built on ``root`` as the user gave it, so they read the
+        same way (``data/images/x.png``)."""
+        return str(path)
+
+
+def find_model_dir(root: Path) -> tuple[Path, str]:
+    """The COLMAP model folder of a scene and its format: ``sparse/0`` first, then ``sparse``; binary
+    (``cameras.bin``, ``images.bin``, ``points3D.bin``) or text (``.txt``). Raises JsgsError naming what was
+    looked for."""
+    if not root.is_dir():
+        raise JsgsError(f"{root}: not a folder")
+    for sub in ("sparse/0", "sparse"):
+        d = root / sub
+        for fmt, ext in (("binary", ".bin"), ("text", ".txt")):
+            if all((d / f"{n}{ext}").is_file() for n in ("cameras", "images", "points3D")):
+                return d, fmt
+    raise JsgsError(
+        f"{root}: no COLMAP model (looked for cameras, images and points3D .bin or .txt "
+        "in sparse/0/ and sparse/)"
+    )
+
+
+def read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
+    import pycolmap
+
+    try:
+        return pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # pycolmap raises ValueError/RuntimeError with a C++ check message
+        msg = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+        raise JsgsError(f"{model_dir}: cannot read the COLMAP model: {msg}") from None
+
+
+def resolve_image(images_dir: Path, name: str) -> Path | None:
+    """The file holding model image ``name``: the exact name, else the only same-stem file with a known
+    image extension (case-insensitive). None when there is none or several."""
+    exact = images_dir / name
+    if exact.is_file():
+        return exact
+    rel = Path(name)
+    folder = images_dir / rel.parent
+    if not folder.is_dir():
+        return None
+    stem = rel.stem if rel.suffix else rel.name
+    hits = [
+        p
+        for p in folder.glob(_glob_escape(stem) + ".*")
+        if p.stem == stem and p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
+    ]
+    return hits[0] if len(hits) == 1 else None
+
+
+def _glob_escape(s: str) -> str:
+    return "".join(f"[{c}]" if c in "*?[]" else c for c in s)
+
+
+def image_stem(name: str) -> str:
+    """Model image name without its extension, sub-folders kept (``a/IMG_1.JPG`` -> ``a/IMG_1``)."""
+    rel = Path(name)
+    return (rel.parent / rel.stem).as_posix() if rel.suffix else rel.as_posix()
+
+
+def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | None]:
+    """(size, format, error) from the file header; Pillow opens lazily, so no pixels are decoded."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return (int(im.width), int(im.height)), str(im.format), None
+    except (UnidentifiedImageError, OSError, ValueError) as e:
+        return None, None, f"cannot read image: {e}"
+
+
+def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
+    """Read the model and probe every registered image's file (header only). Raises JsgsError only when
+    the model cannot be found or read; every other defect is left for :mod:`jsgstools.validate`."""
+    root = Path(root)
+    model_dir, fmt = find_model_dir(root)
+    rec = read_reconstruction(model_dir)
+    cameras = {
+        int(cid): Camera(
+            int(cid), str(c.model_name), int(c.width), int(c.height), tuple(float(v) for v in c.params)
+        )
+        for cid, c in rec.cameras.items()
+    }
+    images_dir = root / images
+    have_dir = images_dir.is_dir()
+    views: list[SceneView] = []
+    unregistered: list[str] = []
+    by_name: dict[str, list[int]] = {}
+    for iid, im in rec.images.items():
+        by_name.setdefault(str(im.name), []).append(int(iid))
+        if not im.has_pose:
+            unregistered.append(str(im.name))
+            continue
+        pose = im.cam_from_world()
+        R = np.asarray(pose.rotation.matrix(), dtype=np.float64)
+        t = np.asarray(pose.translation, dtype=np.float64).reshape(3)
+        path = resolve_image(images_dir, str(im.name)) if have_dir else None
+        size = fmt_name = err = None
+        if path is not None:
+            size, fmt_name, err = _probe_image(path)
+        views.append(SceneView(int(iid), str(im.name), int(im.camera_id), R, t, path, size, fmt_name, err))
+    views.sort(key=lambda v: (v.name, v.image_id))
+    n = len(rec.points3D)
+    xyz = np.zeros((n, 3), dtype=np.float64)
+    rgb = np.zeros((n, 3), dtype=np.uint8)
+    for i, pid in enumerate(sorted(rec.points3D)):
+        p = rec.points3D[pid]
+        xyz[i] = p.xyz
+        rgb[i] = p.color
+    return ColmapScene(
+        root=root,
+        model_dir=model_dir,
+        model_format=fmt,
+        images_dir=images_dir,
+        cameras=cameras,
+        views=views,
+        unregistered=sorted(unregistered),
+        points_xyz=xyz,
+        points_rgb=rgb,
+        duplicate_names={k: sorted(v) for k, v in by_name.items() if len(v) > 1},
+        reconstruction=rec,
+    )
+
+
+# ----------------------------------------------------------------------------------------------------
+# Downscale factor
+
+
+@dataclass(frozen=True)
+class Downscale:
+    """The one factor between the COLMAP cameras and the image files (camera size / file size), and the
+    per-view problems that contradict it (``(view name, message)``)."""
+
+    factor: float | None  # None when no image could be measured
+    problems: tuple[tuple[str, str], ...]
+
+
+def _snap(f: float) -> float:
+    r = round(f)
+    return float(r) if r >= 1 and abs(f - r) <= _FACTOR_SNAP * r else f
+
+
+def detect_downscale(scene: ColmapScene) -> Downscale:
+    """Find the factor F with file size = camera size / F for every view.
+
+    Rule: each view's own factor is camera width / file width, and its file height must be camera height /
+    that factor to within one pixel (rounding of the resize) — otherwise its size does not match its camera at
+    all. The scene's factor is the median of the views' factors, snapped to an integer when within 0.5 % of
+    one; every view must match it to within one pixel in both directions. Views whose camera is unknown or
+    whose file is missing are skipped here (they are reported elsewhere)."""
+    measured: list[tuple[SceneView, Camera, float]] = []
+    problems: list[tuple[str, str]] = []
+    for v in scene.views:
+        cam = scene.cameras.get(v.camera_id)
+        if cam is None or v.size is None:
+            continue
+        w, h = v.size
+        fw = cam.width / w
+        if abs(cam.height / fw - h) > 1.0:
+            problems.append(
+                (
+                    v.name,
+                    f"size {w}x{h} does not match its camera {v.camera_id} "
+                    f"({cam.width}x{cam.height}) at any one factor (width ratio {cam.width / w:.4g}, "
+                    f"height ratio {cam.height / h:.4g})",
+                )
+            )
+            continue
+        measured.append((v, cam, fw))
+    if not measured:
+        return Downscale(None, tuple(problems))
+    factor = _snap(float(np.median([f for _, _, f in measured])))
+    for v, cam, fw in measured:
+        w, h = v.size  # type: ignore[misc]
+        if abs(cam.width / factor - w) > 1.0 or abs(cam.height / factor - h) > 1.0:
+            problems.append(
+                (
+                    v.name,
+                    f"downscale factor {_snap(fw):.4g} ({w}x{h} from camera {v.camera_id} "
+                    f"{cam.width}x{cam.height}) differs from the scene's {factor:.4g}",
+                )
+            )
+    return Downscale(factor, tuple(problems))
+
+
+def view_camera(scene: ColmapScene, view: SceneView) -> Camera:
+    """The view's camera scaled to the size of its file (COLMAP's rescale semantics)."""
+    cam = scene.cameras[view.camera_id]
+    if view.size is None:
+        return cam
+    return cam.scaled(*view.size)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Undistortion (OpenCV)
+
+
+def opencv_intrinsics(cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(K, dist) for OpenCV: K with OpenCV's integer pixel centres (principal point - 0.5), and the distortion
+    vector for ``cv2.initUndistortRectifyMap``/``cv2.projectPoints``. COLMAP's SIMPLE_RADIAL (k), RADIAL
+    (k1, k2), OPENCV (k1, k2, p1, p2) and FULL_OPENCV (k1, k2, p1, p2, k3, k4, k5, k6) use OpenCV's formulas
+    with OpenCV's coefficient order, so they map one to one."""
+    K = cam.K.copy()
+    K[0, 2] -= 0.5
+    K[1, 2] -= 0.5
+    d = cam.distortion
+    if cam.model in PINHOLE_MODELS:
+        dist = np.zeros(4)
+    elif cam.model == "SIMPLE_RADIAL":
+        dist = np.array([d[0], 0.0, 0.0, 0.0])
+    elif cam.model == "RADIAL":
+        dist = np.array([d[0], d[1], 0.0, 0.0])
+    elif cam.model in ("OPENCV", "FULL_OPENCV"):
+        dist = np.array(d, dtype=np.float64)
+    else:
+        raise JsgsError(
+            f"camera {cam.camera_id}: model {cam.model} cannot be undistorted "
+            f"(supported: {', '.join(UNDISTORTABLE_MODELS)})"
+        )
+    return K, dist
+
+
+def _source_coords(cam: Camera, new: Camera, pts: np.ndarray) -> np.ndarray:
+    """Where output pixels ``pts`` ((N, 2), OpenCV convention, of pinhole ``new``) sample the distorted image
+    of ``cam`` ((N, 2), OpenCV convention)."""
+    import cv2
+
+    K, dist = opencv_intrinsics(cam)
+    Kn, _ = opencv_intrinsics(new)
+    xn = (pts[:, 0] - Kn[0, 2]) / Kn[0, 0]
+    yn = (pts[:, 1] - Kn[1, 2]) / Kn[1, 1]
+    obj = np.stack([xn, yn, np.ones_like(xn)], axis=1).reshape(-1, 1, 3)
+    img, _ = cv2.projectPoints(obj, np.zeros(3), np.zeros(3), K, dist)
+    return img.reshape(-1, 2)
+
+
+def _probe_points(w: int, h: int) -> np.ndarray:
+    """The border pixels plus a coarse interior grid (OpenCV convention): enough to bound the sampling of a
+    smooth distortion without mapping every pixel of a large image."""
+    xs = np.arange(w, dtype=np.float64)
+    ys = np.arange(h, dtype=np.float64)
+    border = [
+        np.stack([xs, np.zeros_like(xs)], 1),
+        np.stack([xs, np.full_like(xs, h - 1)], 1),
+        np.stack([np.zeros_like(ys), ys], 1),
+        np.stack([np.full_like(ys, w - 1), ys], 1),
+    ]
+    gx, gy = np.meshgrid(np.linspace(0, w - 1, 33), np.linspace(0, h - 1, 33))
+    return np.concatenate(border + [np.stack([gx.ravel(), gy.ravel()], 1)])
+
+
+def undistorted_camera(cam: Camera) -> tuple[Camera, float]:
+    """The PINHOLE camera the undistorted image is resampled into, and its zoom.
+
+    Choice: same image size and principal point, focal lengths times the smallest zoom ``s`` for which every
+    output pixel samples inside the source image — so there are no black borders (for the usual pincushion
+    k1 > 0, s > 1 and a sliver of the field of view at the edges is lost; for barrel distortion s < 1 keeps
+    more of it). Pinhole models come back unchanged (as PINHOLE) with zoom 1."""
+    if cam.is_pinhole:
+        return cam.as_pinhole(), 1.0
+    opencv_intrinsics(cam)  # raises for unsupported models
+    fx, fy = cam.focal
+    cx, cy = cam.principal_point
+    pts = _probe_points(cam.width, cam.height)
+
+    def pinhole(s: float) -> Camera:
+        return replace(cam, model="PINHOLE", params=(fx * s, fy * s, cx, cy))
+
+    def inside(s: float) -> bool:
+        src = _source_coords(cam, pinhole(s), pts)
+        return bool(
+            np.all(np.isfinite(src))
+            and src[:, 0].min() >= 0
+            and src[:, 1].min() >= 0
+            and src[:, 0].max() <= cam.width - 1
+            and src[:, 1].max() <= cam.height - 1
+        )
+
+    lo, hi = 0.5, 1.0
+    while not inside(hi):
+        lo, hi = hi, hi * 2
+        if hi > 16:
+            raise JsgsError(
+                f"camera {cam.camera_id} ({cam.model}, distortion {cam.distortion}): "
+                "cannot find a pinhole view without black borders"
+            )
+    if inside(lo):  # extreme barrel distortion: do not zoom out further than 2x
+        hi = lo
+    else:
+        for _ in range(50):
+            mid = (lo + hi) / 2
+            lo, hi = (lo, mid) if inside(mid) else (mid, hi)
+    return pinhole(hi), hi
+
+
+def undistort_maps(cam: Camera, new: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps (each (H, W) float32, OpenCV convention) from the distorted image of ``cam`` to the
+    pinhole image of ``new`` (same size)."""
+    import cv2
+
+    K, dist = opencv_intrinsics(cam)
+    Kn, _ = opencv_intrinsics(new)
+    return cv2.initUndistortRectifyMap(K, dist, None, Kn, (new.width, new.height), cv2.CV_32FC1)
+
+
+def undistort_image(img: np.ndarray, cam: Camera, new: Camera) -> np.ndarray:
+    """Resample ``img`` ((H, W, C) uint8, taken with ``cam``) to the pinhole camera ``new``. Lanczos-4 keeps
+    the high frequencies that the JPEG study is about; samples are inside the image by construction of
+    ``new`` (border replication only absorbs rounding)."""
+    import cv2
+
+    if img.shape[1] != cam.width or img.shape[0] != cam.height:
+        raise ValueError(f"image {img.shape[1]}x{img.shape[0]} is not camera {cam.describe()}")
+    mx, my = undistort_maps(cam, new)
+    return cv2.remap(img, mx, my, interpolation=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
+
+
+def undistort_points(xy: np.ndarray, cam: Camera, new: Camera) -> np.ndarray:
+    """Keypoints ((N, 2), COLMAP pixel convention) of ``cam`` moved to the pinhole camera ``new``: through
+    OpenCV's iterative undistortion for distorted models, by the intrinsics alone for pinhole ones."""
+    import cv2
+
+    if len(xy) == 0:
+        return np.zeros((0, 2))
+    K, dist = opencv_intrinsics(cam)
+    Kn, _ = opencv_intrinsics(new)
+    pts = (np.asarray(xy, dtype=np.float64) - 0.5).reshape(-1, 1, 2)
+    # COUNT + EPS, many iterations: OpenCV's default (5 iterations) leaves errors of 1e-3 px and more.
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+    out = cv2.undistortPoints(pts, K, dist, None, None, Kn, crit)
+    return out.reshape(-1, 2) + 0.5
+
+
+def finite(a: np.ndarray) -> bool:
+    return bool(np.all(np.isfinite(a)))
+
+
+def fmt_factor(f: float | None) -> str:
+    if f is None:
+        return "unknown"
+    return str(int(f)) if float(f).is_integer() else f"{f:.4g}"
+
+
+def is_identity_factor(f: float | None) -> bool:
+    return f is None or math.isclose(f, 1.0)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Output folders
+
+
+def prepare_output_dir(out: Path, force: bool, owned: tuple[str, ...], protect: Path | None = None) -> None:
+    """Make ``out`` ready for a tool's output: refuse a non-empty folder unless ``force``; with ``force``
+    remove only the entries the tool itself writes (``owned``, relative names), so nothing stale survives and
+    nothing else is touched. ``protect`` (the input scene) must neither contain ``out`` nor lie inside it."""
+    import shutil
+
+    if out.exists() and not out.is_dir():
+        raise JsgsError(f"{out}: exists and is not a folder")
+    if protect is not None:
+        a, b = out.resolve(), protect.resolve()
+        if a == b or b in a.parents:
+            raise JsgsError(f"{out}: is inside the input scene {protect}; the tools never write into a scene")
+        if a in b.parents:
+            raise JsgsError(f"{out}: contains the input scene {protect}; choose another output folder")
+    if out.is_dir() and any(out.iterdir()):
+        if not force:
+            raise JsgsError(f"{out}: folder is not empty (use --force to replace its contents)")
+        for name in owned:
+            p = out / name
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            elif p.exists() or p.is_symlink():
+                p.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def write_model_atomic(rec: pycolmap.Reconstruction, dest: Path) -> None:
+    """Write ``rec`` as a binary COLMAP model into ``dest`` (e.g. ``OUT/sparse/0``) via a temporary sibling
+    folder renamed into place, so a crash never leaves a partial model under the final name."""
+    import shutil
+    import tempfile
+
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".part", dir=dest.parent))
+    try:
+        rec.write_binary(str(tmp))
+        if dest.exists():
+            shutil.rmtree(dest)
+        tmp.rename(dest)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)

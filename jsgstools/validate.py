@@ -1,0 +1,274 @@
+"""``jsgstools validate``: check that a COLMAP scene can be used, and list every problem.
+
+Problems (each one line, naming the file; any problem means exit code 1):
+
+- no COLMAP model in ``sparse/0/`` or ``sparse/`` (binary or text), or a model pycolmap cannot read;
+- no ``images/`` folder; a registered image whose file is missing (exact name, or the only same-stem file),
+  unreadable, or in a format other than JPEG, PNG, BMP, PPM;
+- an image whose size matches its camera at no single scale factor, or at a factor other than the scene's
+  (see :func:`jsgstools.scene.detect_downscale`); a camera shared by images of different sizes;
+- a camera model other than the pinhole ones (SIMPLE_PINHOLE, PINHOLE) and the distorted ones ``compress`` can
+  undistort (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV); non-finite or non-positive intrinsics;
+- a non-finite pose; an image name used twice; no registered image; no points3D, or non-finite points.
+
+Warnings (reported, exit code still 0): distorted cameras — they need undistortion, which ``compress`` does
+before encoding (``manifest`` records the distortion as is, and the trainer refuses distorted views);
+images in the model without a pose (ignored by every tool).
+"""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from jsgs.errors import JsgsError
+
+from .scene import (
+    JPEG_FORMATS,
+    LOSSLESS_FORMATS,
+    PINHOLE_MODELS,
+    UNDISTORTABLE_MODELS,
+    ColmapScene,
+    detect_downscale,
+    finite,
+    fmt_factor,
+    load_scene,
+)
+
+#: Problem kinds. ``manifest`` accepts scenes whose only problems are of kind ``camera_model`` (it records any
+#: model with its parameters); ``compress`` accepts none.
+KINDS = ("model", "images", "image", "size", "camera", "camera_model", "pose", "names", "points")
+
+
+@dataclass(frozen=True)
+class Problem:
+    kind: str
+    message: str  # "<file or item>: <what is wrong>"
+
+
+@dataclass
+class ValidationReport:
+    root: Path
+    scene: ColmapScene | None
+    problems: list[Problem] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    downscale: float | None = None
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def blocking(self, allow: tuple[str, ...] = ()) -> list[Problem]:
+        return [p for p in self.problems if p.kind not in allow]
+
+    def summary_rows(self, test_every: int = 8) -> list[tuple[str, str]]:
+        """(field, value) rows of the summary table."""
+        s = self.scene
+        if s is None:
+            return [("scene", str(self.root))]
+        models = Counter(c.model for c in s.cameras.values())
+        sizes = Counter(v.size for v in s.views if v.size is not None)
+        formats = Counter(v.format for v in s.views if v.format is not None)
+        cam_sizes = Counter((c.width, c.height) for c in s.cameras.values())
+        n = len(s.views)
+        n_test = len(range(0, n, test_every))
+        rows = [
+            ("scene", str(self.root)),
+            ("model", f"{s.rel(s.model_dir)}/ ({s.model_format})"),
+            (
+                "cameras",
+                f"{len(s.cameras)} (" + ", ".join(f"{k} x{v}" for k, v in sorted(models.items())) + ")",
+            ),
+            ("camera size", ", ".join(f"{w}x{h}" for (w, h), _ in sorted(cam_sizes.items()))),
+            (
+                "images",
+                f"{n} registered, {sum(v.path is not None for v in s.views)} found in "
+                f"{s.rel(s.images_dir)}/ ("
+                + ", ".join(f"{k} x{v}" for k, v in sorted(formats.items()))
+                + ")",
+            ),
+            ("image size", ", ".join(f"{w}x{h} x{c}" for (w, h), c in sorted(sizes.items()))),
+            (
+                "downscale",
+                fmt_factor(self.downscale)
+                + ("" if self.downscale in (None, 1.0) else " (intrinsics are scaled by 1/factor)"),
+            ),
+            ("points3D", str(len(s.points_xyz))),
+            (
+                "split",
+                f"every {test_every}th view by sorted name is test (index % {test_every} == 0): "
+                f"{n - n_test} train / {n_test} test",
+            ),
+        ]
+        record = s.root / "compress.json"
+        if record.is_file():
+            try:
+                import json
+
+                rec = json.loads(record.read_text())
+                st = rec["settings"]
+                n_train = sum(v["split"] == "train" for v in rec["views"])
+                rows[-1] = (
+                    "split",
+                    f"from compress.json (test every {st['test_every']}): {n_train} train / "
+                    f"{len(rec['views']) - n_train} test; schedule {st['schedule']}, seed "
+                    f"{st['seed']}",
+                )
+            except (OSError, ValueError, KeyError, TypeError):
+                rows.append(("compress.json", "unreadable (manifest will report why)"))
+        return rows
+
+    def format_summary(self, test_every: int = 8) -> str:
+        rows = self.summary_rows(test_every)
+        width = max(len(k) for k, _ in rows)
+        return "\n".join(f"{k.ljust(width)}  {v}" for k, v in rows)
+
+
+def validate_scene(root: str | Path) -> ValidationReport:
+    """Load ``root`` and check everything listed in the module docstring. Never raises for a bad scene."""
+    root = Path(root)
+    report = ValidationReport(root=root, scene=None)
+    try:
+        scene = load_scene(root)
+    except JsgsError as e:
+        report.problems.append(Problem("model", str(e)))
+        return report
+    report.scene = scene
+    P = report.problems
+
+    # Cameras.
+    for cid, cam in sorted(scene.cameras.items()):
+        where = f"{scene.rel(scene.model_dir)}: camera {cid}"
+        if cam.model in UNDISTORTABLE_MODELS:
+            report.warnings.append(
+                f"{where}: {cam.model} with distortion {list(cam.distortion)} needs "
+                "undistortion (compress undistorts it to PINHOLE before encoding)"
+            )
+        elif cam.model not in PINHOLE_MODELS:
+            P.append(
+                Problem(
+                    "camera_model",
+                    f"{where}: camera model {cam.model} is not supported (supported: "
+                    f"{', '.join(PINHOLE_MODELS)}; undistorted by compress: "
+                    f"{', '.join(UNDISTORTABLE_MODELS)})",
+                )
+            )
+        if cam.width < 1 or cam.height < 1:
+            P.append(Problem("camera", f"{where}: size {cam.width}x{cam.height} is empty"))
+        if not finite(np.array(cam.params)):
+            P.append(Problem("camera", f"{where}: non-finite parameters {list(cam.params)}"))
+        elif cam.model in PINHOLE_MODELS + UNDISTORTABLE_MODELS and min(cam.focal) <= 0:
+            P.append(Problem("camera", f"{where}: focal length {cam.focal} is not positive"))
+
+    # Names.
+    for name, ids in sorted(scene.duplicate_names.items()):
+        P.append(
+            Problem(
+                "names",
+                f"{scene.rel(scene.model_dir)}: image name {name!r} is used by "
+                f"{len(ids)} images (ids {', '.join(map(str, ids))})",
+            )
+        )
+    if scene.unregistered:
+        report.warnings.append(
+            f"{scene.rel(scene.model_dir)}: {len(scene.unregistered)} image(s) without a pose "
+            f"are ignored (e.g. {scene.unregistered[0]})"
+        )
+    if not scene.views:
+        P.append(Problem("model", f"{scene.rel(scene.model_dir)}: no registered images"))
+
+    # Images.
+    have_images = scene.images_dir.is_dir()
+    if not have_images:
+        P.append(Problem("images", f"{scene.images_dir}: images folder not found"))
+    for v in scene.views:
+        if v.camera_id not in scene.cameras:
+            P.append(
+                Problem(
+                    "camera",
+                    f"{scene.rel(scene.model_dir)}: image {v.name!r} uses camera "
+                    f"{v.camera_id}, which is not in the model",
+                )
+            )
+        if not (finite(v.R) and finite(v.t)):
+            P.append(
+                Problem(
+                    "pose",
+                    f"{scene.rel(scene.model_dir)}: image {v.name!r} has a non-finite pose "
+                    f"(R={v.R.tolist()}, t={v.t.tolist()})",
+                )
+            )
+        if not have_images:
+            continue
+        if v.path is None:
+            P.append(
+                Problem(
+                    "image",
+                    f"{scene.rel(scene.images_dir / v.name)}: registered image not found "
+                    "(nor a unique file with the same stem)",
+                )
+            )
+        elif v.read_error is not None:
+            P.append(Problem("image", f"{scene.rel(v.path)}: {v.read_error}"))
+        elif v.format not in JPEG_FORMATS + LOSSLESS_FORMATS:
+            P.append(
+                Problem(
+                    "image",
+                    f"{scene.rel(v.path)}: format {v.format} is not supported "
+                    f"(JPEG, or lossless {', '.join(LOSSLESS_FORMATS)})",
+                )
+            )
+
+    # Sizes: one factor for the scene, one size per camera.
+    ds = detect_downscale(scene)
+    report.downscale = ds.factor
+    by_name = {v.name: v for v in scene.views}
+    for name, msg in ds.problems:
+        v = by_name[name]
+        P.append(Problem("size", f"{scene.rel(v.path) if v.path else name}: {msg}"))
+    per_cam: dict[int, set[tuple[int, int]]] = defaultdict(set)
+    flagged = {name for name, _ in ds.problems}  # already reported once
+    for v in scene.views:
+        if v.size is not None and v.name not in flagged:
+            per_cam[v.camera_id].add(v.size)
+    for cid, sizes in sorted(per_cam.items()):
+        if len(sizes) > 1:
+            P.append(
+                Problem(
+                    "size",
+                    f"{scene.rel(scene.model_dir)}: camera {cid} is shared by images of "
+                    f"different sizes ({', '.join(f'{w}x{h}' for w, h in sorted(sizes))})",
+                )
+            )
+
+    # Points.
+    if len(scene.points_xyz) == 0:
+        P.append(
+            Problem(
+                "points", f"{scene.rel(scene.model_dir)}: points3D is empty (the trainer initializes from it)"
+            )
+        )
+    else:
+        bad = int((~np.isfinite(scene.points_xyz).all(axis=1)).sum())
+        if bad:
+            P.append(
+                Problem("points", f"{scene.rel(scene.model_dir)}: {bad} points3D have non-finite coordinates")
+            )
+    return report
+
+
+def require_valid(root: str | Path, allow: tuple[str, ...] = ()) -> ValidationReport:
+    """Validate and raise one JsgsError (one line) when any problem outside ``allow`` remains."""
+    report = validate_scene(root)
+    bad = report.blocking(allow)
+    if bad:
+        more = (
+            f" (and {len(bad) - 1} more; run `jsgstools validate {root}` for the list)"
+            if len(bad) > 1
+            else ""
+        )
+        raise JsgsError(f"{bad[0].message}{more}")
+    return report

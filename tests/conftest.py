@@ -1,0 +1,39 @@
+"""Shared fixtures. Dataset side: a small synthetic scene and its compressed dataset, built once per session
+(read-only: tests that modify a scene copy it first), and access to ``../shared/scenes``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+#: ``../shared`` beside the checkout (real scenes, the paper, LPIPS weights); tests that need it skip without.
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+@pytest.fixture(scope="session")
+def synth_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 12-view, 64x48 synthetic COLMAP scene (``jsgstools synth``, seed 0). Do not modify."""
+    from jsgstools.synth import synth
+
+    out = tmp_path_factory.mktemp("dataset") / "scene"
+    synth(out, views=12, size=(64, 48), seed=0)
+    return out
+
+
+@pytest.fixture(scope="session")
+def compressed_scene(synth_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``synth_scene`` compressed with the gaussian schedule, seed 0, default settings. Do not modify."""
+    from jsgstools.compress import compress
+
+    out = tmp_path_factory.mktemp("dataset") / "data"
+    compress(synth_scene, out, "gaussian", seed=0, jobs=1)
+    return out
+
+
+def shared_scene(name: str) -> Path:
+    """``../shared/scenes/<name>``, or skip the test with the reason."""
+    path = SHARED / "scenes" / name
+    if not (path / "sparse" / "0").is_dir():
+        pytest.skip(f"needs the shared scene {path} (../shared beside the checkout), which is absent")
+    return path
