@@ -1,0 +1,39 @@
+"""Rasterisers: gsplat 1.5.3's semantics on CUDA (gsplat) and anywhere (pure-torch reference).
+
+``rasterize`` is the entry point (``backend="auto"|"torch"|"gsplat"``); ``jsgs.render.pool`` pools
+per-pixel maps per Gaussian for the Gaussian Controller; ``jsgs.render.bruteforce`` is the per-pixel ground
+truth used by the tests.
+"""
+
+from .backend import rasterize, resolve_backend
+from .pool import PooledSums, pool_direct, pool_from_grad, pool_now, probe_objective
+from .reference import (
+    ALPHA_MAX,
+    ALPHA_THRESHOLD,
+    T_STOP,
+    TILE_SIZE,
+    Projected,
+    project_gaussians,
+    quat_to_rotmat,
+    sh_colors,
+    spherical_harmonics,
+)
+
+__all__ = [
+    "ALPHA_MAX",
+    "ALPHA_THRESHOLD",
+    "T_STOP",
+    "TILE_SIZE",
+    "PooledSums",
+    "Projected",
+    "pool_direct",
+    "pool_from_grad",
+    "pool_now",
+    "probe_objective",
+    "project_gaussians",
+    "quat_to_rotmat",
+    "rasterize",
+    "resolve_backend",
+    "sh_colors",
+    "spherical_harmonics",
+]

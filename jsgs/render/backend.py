@@ -1,0 +1,218 @@
+"""``rasterize``: one entry point for the reference rasterizer (any device) and gsplat's CUDA rasterizer.
+
+Both backends take gsplat 1.5.3 ``rasterization``'s arguments (a subset: pinhole, classic mode, no batch
+dimensions) and return the same three things, so that the trainer and gsplat's ``DefaultStrategy`` see no
+difference. ``pool_probe=True`` adds two zero-valued feature channels per Gaussian whose gradients carry
+the Gaussian Controller's pooled sums (see ``jsgs.render.pool``).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from . import reference
+
+Backend = Literal["auto", "torch", "gsplat"]
+RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
+_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+
+
+def resolve_backend(backend: str, device: torch.device) -> str:
+    """ "auto" → "gsplat" on CUDA tensors, "torch" elsewhere; anything else is returned checked."""
+    if backend == "auto":
+        return "gsplat" if device.type == "cuda" else "torch"
+    if backend not in ("torch", "gsplat"):
+        raise ValueError(f"backend must be 'auto', 'torch' or 'gsplat', got {backend!r}")
+    if backend == "gsplat" and device.type != "cuda":
+        raise ValueError("backend 'gsplat' needs CUDA tensors (its kernels do not run on CPU)")
+    return backend
+
+
+def _check(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    sh_degree: int | None,
+    backgrounds: Tensor | None,
+    render_mode: str,
+) -> None:
+    N, C = means.shape[0], viewmats.shape[0]
+    if means.shape != (N, 3) or quats.shape != (N, 4) or scales.shape != (N, 3) or opacities.shape != (N,):
+        raise ValueError(
+            f"expected means [N,3], quats [N,4], scales [N,3], opacities [N]; got {tuple(means.shape)}, "
+            f"{tuple(quats.shape)}, {tuple(scales.shape)}, {tuple(opacities.shape)}"
+        )
+    if viewmats.shape != (C, 4, 4) or Ks.shape != (C, 3, 3):
+        raise ValueError(
+            f"expected viewmats [C,4,4] and Ks [C,3,3]; got {tuple(viewmats.shape)}, {tuple(Ks.shape)}"
+        )
+    if sh_degree is None:
+        ok = (colors.dim() == 2 and colors.shape[0] == N) or (
+            colors.dim() == 3 and colors.shape[:2] == (C, N)
+        )
+        if not ok:
+            raise ValueError(f"colors must be [N,D] or [C,N,D] without sh_degree; got {tuple(colors.shape)}")
+    else:
+        ok = (colors.dim() == 3 and colors.shape[0] == N) or (
+            colors.dim() == 4 and colors.shape[:2] == (C, N)
+        )
+        if not ok or colors.shape[-1] != 3 or (sh_degree + 1) ** 2 > colors.shape[-2]:
+            raise ValueError(
+                "SH colors must be [N,K,3] or [C,N,K,3] with K >= (sh_degree+1)^2; "
+                f"got {tuple(colors.shape)} for sh_degree={sh_degree}"
+            )
+    if render_mode not in _MODES:
+        raise ValueError(f"render_mode must be one of {_MODES}, got {render_mode!r}")
+    if backgrounds is not None and (backgrounds.dim() != 2 or backgrounds.shape[0] != C):
+        raise ValueError(f"backgrounds must be [C, D]; got {tuple(backgrounds.shape)}")
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    *,
+    sh_degree: int | None = None,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    backgrounds: Tensor | None = None,
+    eps2d: float = 0.3,
+    radius_clip: float = 0.0,
+    backend: Backend = "auto",
+    packed: bool = False,
+    absgrad: bool = False,
+    render_mode: RenderMode = "RGB",
+    pool_probe: bool = False,
+) -> tuple[Tensor, Tensor, dict]:
+    """Rasterise N 3D Gaussians into C pinhole cameras (gsplat 1.5.3 ``rasterization`` semantics).
+
+    Args:
+        means: [N, 3] world positions. quats: [N, 4] rotations (w, x, y, z), any norm.
+        scales: [N, 3] activated (exp) standard deviations, world units. opacities: [N] activated, [0, 1].
+        colors: [N, D] or [C, N, D] features when ``sh_degree`` is None, else SH coefficients [N, K, 3] or
+            [C, N, K, 3] evaluated up to ``sh_degree`` along camera-centre→mean, then ``max(sh + 0.5, 0)``.
+        viewmats: [C, 4, 4] world-to-camera (OpenCV axes: x right, y down, z forward).
+        Ks: [C, 3, 3] intrinsics in pixels (principal point in the convention where pixel (i, j) has its
+            centre at (j + 0.5, i + 0.5)). width, height: image size in pixels.
+        near_plane, far_plane: camera-z culling range. eps2d: px² added to the projected covariance's
+            diagonal. radius_clip: cull Gaussians whose radii are both <= this (px).
+        backgrounds: [C, D] colour behind everything (added as T_final·bg); None = black.
+        backend: "torch" (reference, any device/dtype), "gsplat" (CUDA kernels), "auto" (gsplat on CUDA).
+        packed: gsplat's packed layout (gsplat backend only). absgrad: also accumulate
+            ``info["means2d"].absgrad`` = Σ_pixels |∂L/∂means2d| during backward (AbsGS).
+        render_mode: "RGB", "D" (accumulated depth), "ED" (expected depth), "RGB+D", "RGB+ED".
+        pool_probe: add the Gaussian Controller's probe (``info["pool_probe"]`` [C, N, 2] leaf,
+            ``info["pool_channels"]`` [C, H, W, 2], ``info["pool_opacities"]`` [N]); see ``jsgs.render.pool``.
+            Rendered colours and all other gradients are unchanged by it.
+
+    Returns:
+        render_colors [C, H, W, D(+1 with depth)], render_alphas [C, H, W, 1], info: gsplat's meta keys
+        ("means2d" [C, N, 2] in pixels — a non-leaf whose ``.grad`` DefaultStrategy reads after
+        ``retain_grad()`` —, "radii" [C, N, 2] int32, "depths" [C, N], "conics" [C, N, 3], "opacities" [C, N],
+        "width", "height", "n_cameras", "gaussian_ids" (None unless packed), tile data...) plus "backend".
+    """
+    _check(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, backgrounds, render_mode)
+    which = resolve_backend(backend, means.device)
+    if pool_probe and render_mode in ("D", "ED"):
+        raise ValueError("pool_probe needs a colour render_mode ('RGB', 'RGB+D' or 'RGB+ED')")
+    C, N = viewmats.shape[0], means.shape[0]
+    probe = None
+    if pool_probe:
+        probe = torch.zeros(C, N, 2, dtype=means.dtype, device=means.device, requires_grad=True)
+
+    if which == "torch":
+        if packed:
+            raise ValueError("the reference rasterizer implements the non-packed layout only (packed=False)")
+        img, alpha, info = reference.rasterize_torch(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+            sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, backgrounds=backgrounds,
+            eps2d=eps2d, radius_clip=radius_clip, absgrad=absgrad, render_mode=render_mode,
+            extra_channels=probe,
+        )  # fmt: skip
+        if probe is not None:
+            info["pool_channels"] = info.pop("extra")
+    else:
+        img, alpha, info = _rasterize_gsplat(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+            sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, backgrounds=backgrounds,
+            eps2d=eps2d, radius_clip=radius_clip, packed=packed, absgrad=absgrad, render_mode=render_mode,
+            probe=probe,
+        )  # fmt: skip
+    info["backend"] = which
+    if probe is not None:
+        info["pool_probe"] = probe
+        info["pool_opacities"] = opacities.detach()
+    return img, alpha, info
+
+
+def _rasterize_gsplat(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    *,
+    sh_degree: int | None,
+    near_plane: float,
+    far_plane: float,
+    backgrounds: Tensor | None,
+    eps2d: float,
+    radius_clip: float,
+    packed: bool,
+    absgrad: bool,
+    render_mode: str,
+    probe: Tensor | None,
+) -> tuple[Tensor, Tensor, dict]:
+    """gsplat.rasterization in classic mode; with a probe, SH are evaluated here (gsplat's own CUDA op) so
+    that the two probe channels can be appended to the colour features."""
+    import gsplat  # imported lazily: the package imports on CPU, but only this path needs it
+
+    kw = dict(
+        near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d, packed=packed,
+        tile_size=reference.TILE_SIZE, absgrad=absgrad, rasterize_mode="classic",
+    )  # fmt: skip
+    if probe is None:
+        return gsplat.rasterization(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+            sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode, **kw,
+        )  # fmt: skip
+
+    C = viewmats.shape[0]
+    if sh_degree is not None:
+        from gsplat.cuda._wrapper import spherical_harmonics
+
+        campos = torch.inverse(viewmats)[:, :3, 3]
+        dirs = means[None, :, :] - campos[:, None, :]
+        coeffs = colors if colors.dim() == 4 else colors[None].expand(C, -1, -1, -1)
+        rgb = torch.clamp_min(spherical_harmonics(sh_degree, dirs, coeffs) + 0.5, 0.0)
+    else:
+        rgb = colors if colors.dim() == 3 else colors[None].expand(C, -1, -1)
+    n_col = rgb.shape[-1]
+    bg = backgrounds if backgrounds is not None else rgb.new_zeros(C, n_col)
+    feats = [rgb, probe]
+    bgs = [bg, probe.new_zeros(C, 2)]
+    # gsplat appends the depth channel after our features in "RGB+D"/"RGB+ED"
+    img, alpha, info = gsplat.rasterization(
+        means, quats, scales, opacities, torch.cat(feats, dim=-1), viewmats, Ks, width, height,
+        sh_degree=None, backgrounds=torch.cat(bgs, dim=-1), render_mode=render_mode, **kw,
+    )  # fmt: skip
+    info["pool_channels"] = img[..., n_col : n_col + 2]
+    img = torch.cat([img[..., :n_col], img[..., n_col + 2 :]], dim=-1)
+    return img, alpha, info

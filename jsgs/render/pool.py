@@ -1,0 +1,140 @@
+"""Per-Gaussian pooling of a per-pixel map for the Gaussian Controller (paper eq. gaussian_risk).
+
+For camera i, Gaussian j and a per-pixel map r_i(p) (block scores, stop-gradient):
+
+    S_r = Σ_p κ(p)·r(p),   S_1 = Σ_p κ(p),   ν = Σ_p t(p)·α(p),   κ(p) = t(p)·a(p),
+
+over the pixels p where j actually contributes in this rasterisation pass (gsplat's skip and stop rules),
+t the transmittance in front of j, α(p) = min(0.999, o_j·exp(−σ)) the composited alpha and a(p) = α(p)/o_j
+the footprint without opacity (= exp(−σ) except in the rare core where α hit gsplat's 0.999 clamp; this
+definition makes ν = o_j·S_1 the rendered contribution mass exactly). r̄ = S_r / (S_1 + ε_proj).
+
+Three ways to get them, all equal to ``jsgs.render.bruteforce.pool_bruteforce``:
+
+* ``pool_direct`` — the reference rasterizer's tiles evaluated again without autograd (any device; the
+  brute-force-checked definition; a second pass).
+* The probe (``rasterize(..., pool_probe=True)``) — two extra feature channels per (camera, Gaussian),
+  ``info["pool_probe"]`` [C, N, 2], all zero. Because a rendered channel is Σ_j t·α·c_j, its gradient with
+  respect to c_j is Σ_p t·α·g(p) for an upstream gradient g; with g = r for channel 0 and g = 1 for
+  channel 1 the probe's gradient is (o·S_r, ν). Works for both backends (gsplat: no second rasterisation).
+  - ``pool_now(info, r)`` runs that backward at once (``torch.autograd.grad`` through the rasteriser's
+    backward only, graph retained) — use it when the loss needs r̄ before the main backward (L_fro does).
+  - or add ``probe_objective(info, r)`` (value exactly 0) to the loss and call ``pool_from_grad(info)``
+    after ``loss.backward()`` — no extra pass at all, for a caller that can apply its r̄-dependent terms
+    after the backward (for instance L_fro's closed-form gradient into opacity and scale).
+
+Gradient contamination. Adding Σ_p r(p)·C(p) for a *rendered* channel C to the loss would also push
+gradients into means2d, conics and opacities (∂C/∂α ≠ 0), and DefaultStrategy would densify on r's
+gradient as well as the photometric one. The probe avoids this: its colours are zero, so the extra
+channels render to exactly 0 and every derivative they send to means2d, conics and opacities carries a
+factor c_j or Σ_behind α·T·c (both 0). Measured: gsplat's means2d/parameter gradients with the probe are
+equal to those without it within gsplat's own run-to-run atomic-add noise (tests/test_render_gpu.py); the
+reference's agree to 1e-14 (tests/test_render_reference.py). Do not use a non-zero probe colour (say r
+itself). ``probe_objective`` must enter the loss unscaled (no loss weight, no AMP scaler), or the factor
+must be divided out of the gradient.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from . import reference
+
+EPS_PROJ = 1e-6  # the paper's ε_proj
+
+
+@dataclass
+class PooledSums:
+    """Pooled sums per (camera, Gaussian), each [C, N] (see the module docstring)."""
+
+    s_r: Tensor  # Σ_p t·a·r
+    s_1: Tensor  # Σ_p t·a
+    nu: Tensor  # Σ_p t·α (contribution mass)
+
+    def rbar(self, eps: float = EPS_PROJ) -> Tensor:
+        """r̄ = S_r / (S_1 + ε_proj), [C, N] (0 where the Gaussian does not contribute)."""
+        return self.s_r / (self.s_1 + eps)
+
+    @property
+    def contributors(self) -> Tensor:
+        """[C, N] bool: V_i = {j : ν_ij > 0}."""
+        return self.nu > 0
+
+
+def _sums_from_probe_grad(grad: Tensor, info: dict) -> PooledSums:
+    g = grad.detach()
+    nu = g[..., 1]
+    o = info["pool_opacities"].to(g.dtype)[None, :].expand_as(nu)
+    # Contributors have o >= 1/255 (others are culled); ν == 0 ⇔ no contribution: sums are 0 there.
+    o_safe = torch.where(nu > 0, o, torch.ones_like(o))
+    return PooledSums(s_r=g[..., 0] / o_safe, s_1=nu / o_safe, nu=nu)
+
+
+def _upstream(info: dict, r: Tensor) -> Tensor:
+    ch = info.get("pool_channels")
+    if ch is None or "pool_probe" not in info:
+        raise ValueError("rasterize(..., pool_probe=True) is needed for probe pooling")
+    C, H, W, _ = ch.shape
+    if r.shape != (C, H, W):
+        raise ValueError(f"r must be [C, H, W] = {(C, H, W)}, got {tuple(r.shape)}")
+    r = r.detach().to(ch.dtype)
+    return torch.stack([r, torch.ones_like(r)], dim=-1)
+
+
+def probe_objective(info: dict, r: Tensor) -> Tensor:
+    """Scalar Σ_p r(p)·probe₀(p) + Σ_p probe₁(p) (value exactly 0) to add, unscaled, to the loss.
+
+    After ``backward`` read the sums with ``pool_from_grad(info)``.
+    """
+    return (info["pool_channels"] * _upstream(info, r)).sum()
+
+
+def pool_from_grad(info: dict) -> PooledSums:
+    """Pooled sums from ``info["pool_probe"].grad`` after a backward that included ``probe_objective``."""
+    g = info["pool_probe"].grad
+    if g is None:
+        raise ValueError("pool_probe has no gradient: add probe_objective(info, r) to the loss first")
+    return _sums_from_probe_grad(g, info)
+
+
+def pool_now(info: dict, r: Tensor) -> PooledSums:
+    """Pooled sums right away: one backward through the rasteriser only (graph retained for the loss).
+
+    Call it before ``loss.backward()``: gsplat *assigns* ``means2d.absgrad`` in every rasteriser backward,
+    so a later call would overwrite the loss's absgrad with this backward's (zero) one."""
+    (g,) = torch.autograd.grad(
+        info["pool_channels"], info["pool_probe"], grad_outputs=_upstream(info, r), retain_graph=True
+    )
+    return _sums_from_probe_grad(g, info)
+
+
+@torch.no_grad()
+def pool_direct(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    r: Tensor,
+    *,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    radius_clip: float = 0.0,
+) -> PooledSums:
+    """Pooled sums by evaluating the reference rasterizer's weights directly (no autograd, any device).
+
+    Same arguments as ``rasterize`` (colours are not needed); r: [C, H, W]."""
+    proj = reference.project_gaussians(
+        means, quats, scales, opacities, viewmats, Ks, width, height,
+        eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+    )  # fmt: skip
+    bins = reference.bin_tiles(proj.means2d, proj.radii, proj.depths, width, height)
+    s_r, s_1, nu = reference.pooled_sums(proj, bins, opacities, r, width, height)
+    return PooledSums(s_r, s_1, nu)
