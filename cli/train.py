@@ -1,9 +1,179 @@
-"""Commands of this module (placeholder until implemented)."""
+"""``jsgs train MANIFEST --out RUN``: a thin wrapper over :func:`jsgs.train.loop.train`."""
 
 from __future__ import annotations
 
+import shlex
+from pathlib import Path
+from typing import Any
+
 import click
+
+from cli._common import user_errors
+from jsgs.errors import JsgsError
+
+
+def _parse_steps(text: str) -> list[int]:
+    text = text.strip()
+    if not text:
+        return []
+    try:
+        return [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise JsgsError(
+            f"--eval-at: expected comma-separated step counts like 3000,7000,10000 (got {text!r})"
+        ) from None
+
+
+def _command_line(ctx: click.Context) -> str:
+    """The command as the user could type it again (canonical order, given options only)."""
+    parts = ["jsgs", "train", str(ctx.params["manifest"])]
+    for name, value in ctx.params.items():
+        if name == "manifest" or value is None or value is False:
+            continue
+        flag = "--" + name.replace("_", "-")
+        if name == "config_file":
+            flag = "--config"
+        parts += [flag] if value is True else [flag, str(value)]
+    return shlex.join(parts)
+
+
+@click.command("train")
+@click.argument("manifest", type=click.Path(path_type=Path, dir_okay=False))
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(path_type=Path, file_okay=False),
+    help="Run folder (config.json, metrics.json, point_cloud.ply, renders/, checkpoints/).",
+)
+@click.option(
+    "--method", default=None, help="gsplat (baseline, default) or a registered method such as jsgs."
+)
+@click.option("--iterations", type=int, default=None, help="Training steps [default: 10000].")
+@click.option(
+    "--eval-at",
+    "eval_at",
+    default=None,
+    help="Comma-separated steps to evaluate and checkpoint at [default: 3000,7000,10000; with "
+    "--iterations N: those below N, and N]. '' for none.",
+)
+@click.option(
+    "--config",
+    "config_file",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="JSON settings (partial, over the defaults) or an earlier RUN/config.json.",
+)
+@click.option(
+    "--device",
+    type=click.Choice(["auto", "cuda", "cpu"]),
+    default=None,
+    help="cuda renders with gsplat, cpu with the torch reference rasterizer [default: auto].",
+)
+@click.option(
+    "--jpeg-mode",
+    "jpeg_mode",
+    type=click.Choice(["exact", "paper", "float"]),
+    default=None,
+    help="--method jsgs: forward of the JPEG observation operator (method_options.jpeg_mode) "
+    "[default: paper].",
+)
+@click.option(
+    "--no-jo",
+    "no_jo",
+    is_flag=True,
+    help="--method jsgs: no JPEG observation operator (needs --no-ds --no-gc).",
+)
+@click.option("--no-ds", "no_ds", is_flag=True, help="--method jsgs: no DCT supervision (L_low, L_mid).")
+@click.option("--no-gc", "no_gc", is_flag=True, help="--method jsgs: no Gaussian Controller (L_fro).")
+@click.option("--resume", is_flag=True, help="Continue RUN from its last checkpoint, bit for bit.")
+@click.option("--force", is_flag=True, help="Overwrite the outputs of an earlier run in RUN.")
+@click.option("--seed", type=int, default=None, help="Random seed [default: 42].")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@click.option("--profile", is_flag=True, help="Record per-phase times (synchronises the device; slower).")
+@click.option(
+    "--stop-at",
+    "stop_at",
+    type=int,
+    default=None,
+    hidden=True,
+    help="Stop with a checkpoint after this many steps (as an interruption would).",
+)
+@user_errors
+def train_command(
+    manifest: Path,
+    out: Path,
+    method: str | None,
+    iterations: int | None,
+    eval_at: str | None,
+    config_file: Path | None,
+    device: str | None,
+    jpeg_mode: str | None,
+    no_jo: bool,
+    no_ds: bool,
+    no_gc: bool,
+    resume: bool,
+    force: bool,
+    seed: int | None,
+    quiet: bool,
+    profile: bool,
+    stop_at: int | None,
+) -> None:
+    """Train Gaussians on the views of MANIFEST (a jsgs manifest; see `jsgstools manifest`)."""
+    from jsgs.train.config import TrainConfig, from_dict, load_config_file
+    from jsgs.train.loop import load_run_settings, train
+
+    if resume and force:
+        raise JsgsError("--resume and --force exclude each other")
+    overrides: dict[str, Any] = {}
+    for key, value in (("method", method), ("iterations", iterations), ("device", device), ("seed", seed)):
+        if value is not None:
+            overrides[key] = value
+    if eval_at is not None:
+        overrides["eval_at"] = _parse_steps(eval_at)
+
+    if config_file is not None:
+        base = load_config_file(config_file)
+    elif resume:
+        base = load_run_settings(out)
+    else:
+        base = TrainConfig()
+    cfg = from_dict(overrides, "command line", base=base)
+    # --method jsgs switches: merged over the config's method_options (the rest of them stay)
+    method_flags: dict[str, Any] = {}
+    if jpeg_mode is not None:
+        method_flags["jpeg_mode"] = jpeg_mode
+    for key, off in (("jo", no_jo), ("ds", no_ds), ("gc", no_gc)):
+        if off:
+            method_flags[key] = False
+    if method_flags:
+        if cfg.method != "jsgs":
+            raise JsgsError(
+                f"--jpeg-mode, --no-jo, --no-ds and --no-gc apply to --method jsgs (method is {cfg.method!r})"
+            )
+        cfg.method_options = {**cfg.method_options, **method_flags}
+    if iterations is not None and eval_at is None and any(s > cfg.iterations for s in cfg.eval_at):
+        # the default schedule (or the config's) cut at the requested length, which is always evaluated
+        cfg.eval_at = [s for s in cfg.eval_at if s < cfg.iterations] + [cfg.iterations]
+
+    ctx = click.get_current_context()
+    doc = train(
+        manifest, out, cfg, resume=resume, force=force, stop_at=stop_at, progress=not quiet, profile=profile,
+        command=_command_line(ctx),
+    )  # fmt: skip
+    last = doc["evals"][-1] if doc["evals"] else None
+    summary = f"{doc['status']}: {doc['step']}/{doc['iterations']} steps, {doc['num_gaussians']} Gaussians"
+    if last is not None:
+        parts = [
+            f"PSNR {last['psnr']:.3f}" if last["psnr"] is not None else "PSNR n/a",
+            f"SSIM {last['ssim']:.4f}" if last["ssim"] is not None else "SSIM n/a",
+            f"LPIPS {last['lpips']:.4f}" if last["lpips"] is not None else "LPIPS n/a",
+        ]
+        summary += f"; at step {last['step']}: " + ", ".join(parts)
+    click.echo(summary)
+    click.echo(f"outputs in {out}/ (metrics.json, config.json, point_cloud.ply, renders/, checkpoints/)")
 
 
 def register(group: click.Group) -> None:
     """Add this module's commands to ``group``."""
+    group.add_command(train_command)

@@ -1,0 +1,1 @@
+"""The trainer: gsplat-recipe backbone, evaluation, checkpoints; methods plug in through hooks."""

@@ -1,0 +1,486 @@
+"""Every setting of a training run, with gsplat 1.5.3's ``examples/simple_trainer.py`` defaults.
+
+A run is reproducible from ``RUN/config.json`` alone: it holds these settings in full (``settings``), the
+values derived from the manifest (scene scale, normalisation transform, ...) and the software versions.
+
+Sources of the defaults (gsplat tag v1.5.3):
+
+- ``examples/simple_trainer.py`` ``Config`` and ``create_splats_with_optimizers``: SfM initialisation, scales
+  from the mean squared distance to the 3 nearest neighbours, opacity 0.1, Adam learning rates (means
+  1.6e-4 x scene scale with an exponential decay to 0.01x over the run, scales 5e-3, quats 1e-3, opacities
+  5e-2, sh0 2.5e-3, shN 2.5e-3/20), Adam eps 1e-15, SH degree 3 raised every 1000 steps, ssim_lambda 0.2 with
+  ``fused_ssim(..., padding="valid")``,
+  near/far planes 0.01 / 1e10, random background off, packed off, seed 42 (classic rasterisation: the
+  antialiased mode is not implemented by our rasterizers);
+- ``gsplat/strategy/default.py`` ``DefaultStrategy``: the densification and pruning thresholds;
+- ``examples/datasets/colmap.py`` ``Parser``: world normalisation on, scene scale = 1.1 x the largest
+  camera distance from the cameras' mean (times ``global_scale``).
+
+Only what our trainer implements is here (no pose/appearance optimisation, bilateral grid, depth loss,
+batch size > 1, MCMC strategy): a setting that exists is a setting that is honoured.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, get_args, get_origin
+
+from jsgs.errors import JsgsError
+
+RUN_CONFIG_FORMAT = "jsgs-run-config"
+RUN_CONFIG_VERSION = 1
+
+
+def _f(default: Any = dataclasses.MISSING, help: str = "", **kw: Any) -> Any:
+    """A dataclass field with a ``help`` text (used for the JSON Schema and the README)."""
+    if "default_factory" in kw:
+        return field(default_factory=kw.pop("default_factory"), metadata={"help": help}, **kw)
+    return field(default=default, metadata={"help": help}, **kw)
+
+
+@dataclass
+class InitConfig:
+    """Initial Gaussians (gsplat ``create_splats_with_optimizers``)."""
+
+    type: Literal["sfm", "random"] = _f(
+        "sfm", "sfm: one Gaussian per manifest point; random: uniform in a cube."
+    )
+    num_points: int = _f(100_000, "Number of Gaussians for type=random (ignored for sfm).")
+    extent: float = _f(3.0, "Half-side of the random cube, as a multiple of the scene scale (type=random).")
+    opacity: float = _f(0.1, "Initial opacity (after the sigmoid).")
+    scale: float = _f(1.0, "Multiplier on the kNN scale.")
+    knn_neighbors: int = _f(
+        3, "Initial scale = sqrt(mean of squared distances to this many nearest other points)."
+    )
+    min_distance: float = _f(
+        1e-7,
+        "Floor on that kNN distance (world units, normalised world): duplicated SfM points would otherwise "
+        "give log(0) = -inf scales (gsplat has no floor; it only matters for exact duplicates).",
+    )
+
+
+@dataclass
+class OptimConfig:
+    """Adam, one optimizer per parameter group, as gsplat (batch size 1)."""
+
+    means_lr: float = _f(1.6e-4, "Means learning rate, multiplied by the scene scale.")
+    means_lr_final_factor: float = _f(
+        0.01, "The means' learning rate decays exponentially to this fraction of its start over the run."
+    )
+    scales_lr: float = _f(5e-3, "Log-scales learning rate.")
+    quats_lr: float = _f(1e-3, "Quaternions learning rate.")
+    opacities_lr: float = _f(5e-2, "Opacity-logits learning rate.")
+    sh0_lr: float = _f(2.5e-3, "SH band 0 learning rate.")
+    shN_lr: float = _f(2.5e-3 / 20, "Higher SH bands learning rate.")
+    eps: float = _f(1e-15, "Adam epsilon.")
+    beta1: float = _f(0.9, "Adam beta1.")
+    beta2: float = _f(0.999, "Adam beta2.")
+
+
+@dataclass
+class StrategyConfig:
+    """gsplat's ``DefaultStrategy`` (densify by screen-space gradient, prune by opacity and size)."""
+
+    prune_opa: float = _f(0.005, "Prune Gaussians with opacity below this.")
+    grow_grad2d: float = _f(
+        0.0002, "Duplicate/split Gaussians whose mean screen-space gradient exceeds this."
+    )
+    grow_scale3d: float = _f(0.01, "Duplicate if max scale <= this x scene scale, else split.")
+    grow_scale2d: float = _f(0.05, "Split if the screen radius (fraction of image size) exceeds this.")
+    prune_scale3d: float = _f(0.1, "Prune Gaussians larger than this x scene scale (after reset_every).")
+    prune_scale2d: float = _f(0.15, "Prune by screen radius (only before refine_scale2d_stop_iter).")
+    refine_scale2d_stop_iter: int = _f(0, "Use the 2D-radius criteria before this step (0: never).")
+    refine_start_iter: int = _f(500, "Refine only after this step.")
+    refine_stop_iter: int = _f(15_000, "Stop refining at this step.")
+    reset_every: int = _f(3000, "Opacity reset period (see DefaultStrategy).")
+    refine_every: int = _f(100, "Refine every this many steps.")
+    pause_refine_after_reset: int = _f(0, "Pause refinement this many steps after a reset.")
+    absgrad: bool = _f(False, "Use absolute screen-space gradients (AbsGS).")
+    revised_opacity: bool = _f(False, "Revised opacity heuristic of arXiv:2404.06109 when splitting.")
+
+
+@dataclass
+class SceneConfig:
+    """How manifest cameras and points become the training world."""
+
+    normalize_world: bool = _f(
+        True, "Similarity transform of gsplat's Parser (up axis, recentre, unit camera distance, PCA axes)."
+    )
+    global_scale: float = _f(1.0, "Multiplier on the scene scale.")
+    scene_scale_margin: float = _f(
+        1.1, "Scene scale = this x largest camera distance from the cameras' mean."
+    )
+    require_lossless_reference: bool = _f(
+        True,
+        "Refuse test views whose only image is a JPEG (metrics are against uncompressed references).",
+    )
+
+
+@dataclass
+class RenderConfig:
+    """Rasterisation settings."""
+
+    backend: Literal["auto", "torch", "gsplat"] = _f(
+        "auto", "auto: gsplat on CUDA, the torch reference rasterizer on CPU."
+    )
+    sh_degree: int = _f(3, "Final spherical-harmonics degree.")
+    sh_degree_interval: int = _f(1000, "Raise the SH degree by one every this many steps.")
+    near_plane: float = _f(0.01, "Near clipping plane (normalised world units).")
+    far_plane: float = _f(1e10, "Far clipping plane.")
+    packed: bool = _f(False, "gsplat packed mode.")
+    random_background: bool = _f(False, "Composite renders over a random colour while training.")
+
+
+@dataclass
+class LossConfig:
+    """l_ph = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM), and gsplat's optional regularisers."""
+
+    ssim_lambda: float = _f(0.2, "Weight of 1 - SSIM in l_ph.")
+    ssim_padding: Literal["valid", "same"] = _f(
+        "valid",
+        "SSIM window padding in l_ph: valid (gsplat simple_trainer's fused_ssim call) or same (zero padding, "
+        "the original 3DGS).",
+    )
+    base_weight: float = _f(1.0, "lambda_base: weight of l_ph in the total loss (JSGS exposes it).")
+    opacity_reg: float = _f(0.0, "Weight of mean(opacity) (gsplat opacity_reg).")
+    scale_reg: float = _f(0.0, "Weight of mean(exp(scales)) (gsplat scale_reg).")
+
+
+@dataclass
+class EvalConfig:
+    """Evaluation at the --eval-at steps."""
+
+    lpips_weights: str | None = _f(
+        None, "AlexNet backbone for LPIPS (else $JSGS_LPIPS_WEIGHTS; none: LPIPS is null)."
+    )
+    fps_passes: int = _f(5, "Timed rendering passes over the test views (FPS = views / median pass time).")
+    fps_warmup: int = _f(1, "Untimed passes before those.")
+    save_renders: bool = _f(True, "Write the test renders as PNG.")
+
+
+@dataclass
+class TrainConfig:
+    """All settings of a run. Nested sections mirror the JSON (``RUN/config.json`` ``settings``)."""
+
+    method: str = _f("gsplat", "Training method: gsplat (baseline) or a registered method (e.g. jsgs).")
+    iterations: int = _f(10_000, "Training steps (one view each).")
+    eval_at: list[int] = _f(
+        default_factory=lambda: [3000, 7000, 10_000],
+        help="Evaluate and checkpoint after these steps (1-based: 3000 = after 3000 steps).",
+    )
+    checkpoint_every: int = _f(
+        0, "Also checkpoint every this many steps (0: only at eval steps and the end)."
+    )
+    seed: int = _f(42, "Seed of every random number generator.")
+    device: Literal["auto", "cpu", "cuda"] = _f("auto", "auto: cuda when available, else cpu.")
+    log_every: int = _f(10, "Refresh the progress bar every this many steps.")
+    init: InitConfig = _f(default_factory=InitConfig, help="Initial Gaussians.")
+    optim: OptimConfig = _f(default_factory=OptimConfig, help="Optimizer.")
+    strategy: StrategyConfig = _f(default_factory=StrategyConfig, help="Densification (DefaultStrategy).")
+    scene: SceneConfig = _f(default_factory=SceneConfig, help="World normalisation.")
+    render: RenderConfig = _f(default_factory=RenderConfig, help="Rasterisation.")
+    loss: LossConfig = _f(default_factory=LossConfig, help="Loss weights.")
+    eval: EvalConfig = _f(default_factory=EvalConfig, help="Evaluation.")
+    method_options: dict[str, Any] = _f(
+        default_factory=dict,
+        help="Settings of the chosen method (validated by the method; empty for gsplat).",
+    )
+
+    def check(self, where: str = "config") -> None:
+        """Raise JsgsError (one line) on inconsistent settings."""
+        if self.iterations < 1:
+            raise JsgsError(f"{where}: iterations must be >= 1 (got {self.iterations})")
+        bad = [s for s in self.eval_at if s < 1 or s > self.iterations]
+        if bad:
+            raise JsgsError(f"{where}: eval_at steps must lie in 1..iterations={self.iterations} (got {bad})")
+        if list(self.eval_at) != sorted(set(self.eval_at)):
+            raise JsgsError(f"{where}: eval_at must be increasing without repeats (got {self.eval_at})")
+        for name, value in (
+            ("checkpoint_every", self.checkpoint_every),
+            ("log_every", self.log_every - 1),
+            ("render.sh_degree", self.render.sh_degree),
+            ("eval.fps_warmup", self.eval.fps_warmup),
+        ):
+            if value < 0:
+                raise JsgsError(f"{where}: {name} must not be negative")
+        if self.render.sh_degree > 4:
+            raise JsgsError(f"{where}: render.sh_degree must be 0..4 (got {self.render.sh_degree})")
+        if self.render.sh_degree_interval < 1:
+            raise JsgsError(f"{where}: render.sh_degree_interval must be >= 1")
+        if self.eval.fps_passes < 1:
+            raise JsgsError(f"{where}: eval.fps_passes must be >= 1")
+        if self.init.knn_neighbors < 1:
+            raise JsgsError(f"{where}: init.knn_neighbors must be >= 1")
+        if not 0.0 < self.init.opacity < 1.0:
+            raise JsgsError(f"{where}: init.opacity must lie in (0, 1) (got {self.init.opacity})")
+        if self.strategy.refine_every < 1 or self.strategy.reset_every < 1:
+            raise JsgsError(f"{where}: strategy.refine_every and strategy.reset_every must be >= 1")
+        if not 0.0 < self.optim.means_lr_final_factor:
+            raise JsgsError(f"{where}: optim.means_lr_final_factor must be > 0")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# dict <-> dataclass, with one-line errors naming the offending key
+
+
+def _is_dataclass_type(tp: Any) -> bool:
+    return isinstance(tp, type) and dataclasses.is_dataclass(tp)
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain JSON-able dict of a config dataclass (nested sections become nested objects)."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+
+
+def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
+    origin = get_origin(tp)
+    if _is_dataclass_type(tp):
+        if not isinstance(value, dict):
+            raise JsgsError(f"{where}: {key} must be an object")
+        return _from_dict(tp, value, where, prefix=key + ".", base=None)
+    if origin is Literal:
+        if value not in get_args(tp):
+            raise JsgsError(f"{where}: {key} must be one of {list(get_args(tp))} (got {value!r})")
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, key, where)
+            except JsgsError as e:
+                errors.append(str(e))
+        raise JsgsError(errors[0] if errors else f"{where}: {key}: bad value {value!r}")
+    if origin is list:
+        (item,) = get_args(tp)
+        if not isinstance(value, list):
+            raise JsgsError(f"{where}: {key} must be a list")
+        return [_coerce(v, item, f"{key}[{i}]", where) for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise JsgsError(f"{where}: {key} must be an object")
+        return dict(value)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise JsgsError(f"{where}: {key} must be true or false (got {value!r})")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise JsgsError(f"{where}: {key} must be an integer (got {value!r})")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise JsgsError(f"{where}: {key} must be a number (got {value!r})")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise JsgsError(f"{where}: {key} must be a string (got {value!r})")
+        return value
+    if tp is Any:
+        return value
+    raise TypeError(f"unsupported config type {tp!r} for {key}")
+
+
+def _from_dict(cls: type, doc: dict[str, Any], where: str, prefix: str, base: Any) -> Any:
+    hints = _hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(doc) - set(names))
+    if unknown:
+        raise JsgsError(f"{where}: unknown setting {prefix}{unknown[0]} (known: {', '.join(names)})")
+    obj = base if base is not None else cls()
+    for name in names:
+        if name not in doc:
+            continue
+        tp = hints[name]
+        if _is_dataclass_type(tp):
+            if not isinstance(doc[name], dict):
+                raise JsgsError(f"{where}: {prefix}{name} must be an object")
+            setattr(obj, name, _from_dict(tp, doc[name], where, prefix + name + ".", getattr(obj, name)))
+        else:
+            setattr(obj, name, _coerce(doc[name], tp, prefix + name, where))
+    return obj
+
+
+def from_dict(doc: dict[str, Any], where: str = "config", base: TrainConfig | None = None) -> TrainConfig:
+    """Settings from a (possibly partial) nested dict over ``base`` (defaults when None)."""
+    if not isinstance(doc, dict):
+        raise JsgsError(f"{where}: settings must be a JSON object")
+    base = from_dict(to_dict(base), where) if base is not None else TrainConfig()
+    cfg = _from_dict(TrainConfig, doc, where, prefix="", base=base)
+    return cfg
+
+
+def load_config_file(path: str | Path) -> TrainConfig:
+    """Read ``--config FILE``: either a ``RUN/config.json`` of an earlier run (validated against the schema;
+    its ``settings`` are taken whole) or a JSON object of (partial) settings over the defaults."""
+    from jsgs.schemas import validate
+
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise JsgsError(f"{path}: no such config file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise JsgsError(f"{path}: not a JSON config file ({e})") from None
+    if isinstance(doc, dict) and "format" in doc:
+        validate(doc, "config", str(path))
+        settings = doc["settings"]
+    else:
+        # a bare settings object: from_dict checks names, types and choices with one-line messages
+        settings = doc
+    cfg = from_dict(settings, str(path))
+    cfg.check(str(path))
+    return cfg
+
+
+# ---------------------------------------------------------------------------------------------------------
+# JSON Schema of the settings, generated from the dataclasses (schemas/config.schema.json holds the result;
+# a test checks that the file is up to date).
+
+
+def _schema_of(tp: Any, help_text: str) -> dict[str, Any]:
+    origin = get_origin(tp)
+    out: dict[str, Any]
+    if _is_dataclass_type(tp):
+        out = _section_schema(tp)
+    elif origin is Literal:
+        out = {"enum": list(get_args(tp))}
+    elif origin in (typing.Union, types.UnionType):
+        subs = [_schema_of(a, "") for a in get_args(tp) if a is not type(None)]
+        types_ = [s["type"] for s in subs]
+        out = {"type": [*types_, "null"]}
+    elif origin is list:
+        (item,) = get_args(tp)
+        out = {"type": "array", "items": _schema_of(item, "")}
+    elif origin is dict:
+        out = {"type": "object"}
+    elif tp is bool:
+        out = {"type": "boolean"}
+    elif tp is int:
+        out = {"type": "integer"}
+    elif tp is float:
+        out = {"type": "number"}
+    elif tp is str:
+        out = {"type": "string"}
+    else:  # pragma: no cover - guarded by the schema test
+        raise TypeError(tp)
+    if help_text:
+        out = {"description": help_text, **out}
+    return out
+
+
+def _section_schema(cls: type) -> dict[str, Any]:
+    hints = _hints(cls)
+    props = {}
+    for f in dataclasses.fields(cls):
+        props[f.name] = _schema_of(hints[f.name], f.metadata.get("help", ""))
+    return {
+        "type": "object",
+        "description": (cls.__doc__ or "").strip().splitlines()[0],
+        "additionalProperties": False,
+        "properties": props,
+    }
+
+
+def config_schema() -> dict[str, Any]:
+    """The JSON Schema of ``RUN/config.json`` (and of ``--config`` files, whose settings may be partial)."""
+    settings = _section_schema(TrainConfig)
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": "https://jsgs.dev/schemas/config.schema.json",
+        "title": "JSGS training run configuration",
+        "description": (
+            "RUN/config.json: every setting of a run (`settings`, complete) plus what was derived from the "
+            "manifest and the software versions, so that the run can be reproduced from this file and the "
+            "manifest (`jsgs train MANIFEST --config RUN/config.json --out NEW`). A `--config` file is "
+            "either "
+            "such a document or a bare, possibly partial, settings object ($defs/settings). Generated by "
+            "jsgs.train.config.config_schema: regenerate with "
+            "`python -m jsgs.train.config > schemas/config.schema.json`."
+        ),
+        "type": "object",
+        "required": ["format", "format_version", "versions", "command", "manifest", "settings", "derived"],
+        "additionalProperties": False,
+        "properties": {
+            "format": {"const": RUN_CONFIG_FORMAT},
+            "format_version": {"const": RUN_CONFIG_VERSION},
+            "versions": {
+                "type": "object",
+                "required": ["jsgs", "torch", "gsplat", "python"],
+                "properties": {
+                    "jsgs": {"type": "string"},
+                    "torch": {"type": "string"},
+                    "gsplat": {"type": ["string", "null"]},
+                    "python": {"type": "string"},
+                },
+            },
+            "command": {"type": "string", "description": "The command line that started the run."},
+            "created": {"type": "string"},
+            "manifest": {
+                "type": "object",
+                "required": ["path", "sha256"],
+                "properties": {"path": {"type": "string"}, "sha256": {"type": "string"}},
+            },
+            "settings": {"allOf": [{"$ref": "#/$defs/settings"}, {"required": _all_names()}]},
+            "derived": {
+                "type": "object",
+                "description": "Values computed from the manifest and the settings.",
+                "required": [
+                    "device",
+                    "backend",
+                    "scene_scale",
+                    "normalization",
+                    "num_train_views",
+                    "num_test_views",
+                    "initial_gaussians",
+                ],
+                "properties": {
+                    "device": {"type": "string"},
+                    "backend": {"enum": ["torch", "gsplat"]},
+                    "scene_scale": {
+                        "type": "number",
+                        "description": "camera_extent x margin x global_scale (what the lrs use).",
+                    },
+                    "camera_extent": {"type": "number"},
+                    "normalization": {
+                        "description": "4x4 world-to-training-world similarity (row-major); the PLY and "
+                        "checkpoints are in the training world.",
+                        "type": "array",
+                        "minItems": 4,
+                        "maxItems": 4,
+                        "items": {"type": "array", "minItems": 4, "maxItems": 4, "items": {"type": "number"}},
+                    },
+                    "num_train_views": {"type": "integer"},
+                    "num_test_views": {"type": "integer"},
+                    "initial_gaussians": {"type": "integer"},
+                    "notes": {"type": "array", "items": {"type": "string"}},
+                },
+            },
+        },
+        "$defs": {"settings": settings},
+    }
+
+
+def _all_names() -> list[str]:
+    return [f.name for f in dataclasses.fields(TrainConfig)]
+
+
+def main() -> None:  # pragma: no cover - a one-line generator
+    print(json.dumps(config_schema(), indent=1))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

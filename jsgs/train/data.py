@@ -1,0 +1,255 @@
+"""Manifest -> training scene: cameras in the normalised world, images as tensors, the initial point cloud.
+
+Only the manifest is read (through :func:`jsgs.manifest.load_manifest`, which validates it); images are the
+files it names, decoded with Pillow and never resampled: an image whose size differs from its camera's is an
+error, and so is a camera with lens distortion (undistorting would resample a JPEG and move its 8x8 blocks).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from jsgs.errors import JsgsError
+from jsgs.manifest import JpegState
+from jsgs.train.config import TrainConfig
+from jsgs.train.normalize import camera_extent, normalize_world
+
+
+@dataclass
+class View:
+    """One view of the manifest.
+
+    ``K`` 3x3 pinhole intrinsics in pixels (COLMAP convention: pixel centres at integer + 0.5);
+    ``camtoworld`` 4x4 in the *training* (normalised) world, OpenCV axes; ``viewmat`` its inverse
+    (world-to-camera, what the rasterizer takes). ``jpeg``: the manifest's JPEG state
+    (:class:`jsgs.manifest.JpegState`: luma_table, chroma_table 8x8 natural order, sampling, quality,
+    quality_exact, precision, frame) or None for a lossless image.
+    ``image``: the observed/training image; ``reference``: the lossless reference or None."""
+
+    index: int
+    name: str
+    split: str
+    image: Path
+    reference: Path | None
+    jpeg: JpegState | None
+    width: int
+    height: int
+    K: np.ndarray
+    camtoworld: np.ndarray
+    viewmat: np.ndarray
+
+    def K_tensor(self, device: torch.device) -> Tensor:
+        """[1, 3, 3] float32."""
+        return torch.from_numpy(self.K).float().to(device)[None]
+
+    def viewmat_tensor(self, device: torch.device) -> Tensor:
+        """[1, 4, 4] float32 world-to-camera."""
+        return torch.from_numpy(self.viewmat).float().to(device)[None]
+
+    def eval_image_path(self) -> Path:
+        """The uncompressed image to evaluate against: the reference, else the image itself (lossless)."""
+        return self.reference if self.reference is not None else self.image
+
+
+@dataclass
+class Scene:
+    """The manifest as the trainer uses it.
+
+    ``points`` P x 3 float32 (normalised world), ``points_rgb`` P x 3 uint8. ``transform``: 4x4
+    world-to-normalised similarity (identity when normalisation is off). ``camera_extent``: gsplat Parser's
+    scene_scale (largest camera distance from the cameras' mean, normalised world); ``scene_scale``: that
+    x ``scene_scale_margin`` x ``global_scale`` (what the learning rates and DefaultStrategy use)."""
+
+    manifest_path: Path
+    manifest_sha256: str
+    name: str
+    views: list[View]
+    points: np.ndarray
+    points_rgb: np.ndarray
+    transform: np.ndarray
+    camera_extent: float
+    scene_scale: float
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def train_views(self) -> list[View]:
+        return [v for v in self.views if v.split == "train"]
+
+    @property
+    def test_views(self) -> list[View]:
+        return [v for v in self.views if v.split == "test"]
+
+
+def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
+    """Read and check the manifest, normalise the world (gsplat's Parser), and compute the scene scale.
+
+    :func:`jsgs.manifest.load_manifest` validates the document (schema, rotations, unique names, point
+    counts, files present). Raises JsgsError (one line, naming the manifest and the view) on what the
+    trainer additionally refuses: distorted cameras, no training views, evaluation steps with no test
+    views, test views without a lossless image (when ``scene.require_lossless_reference``), too few points
+    for SfM initialisation."""
+    from jsgs.manifest import load_manifest
+
+    manifest_path = Path(manifest_path)
+    where = str(manifest_path)
+    manifest = load_manifest(manifest_path)
+    try:
+        sha = hashlib.sha256(manifest_path.read_bytes()).hexdigest()
+    except OSError as e:
+        raise JsgsError(f"{where}: {e.strerror}") from None
+
+    notes: list[str] = []
+    c2ws, metas = [], []
+    for i, v in enumerate(manifest.views):
+        cam = v.camera
+        dist = cam.distortion
+        if dist is not None and any(p != 0.0 for p in dist.params):
+            raise JsgsError(
+                f"{where}: view {v.name!r}: camera has lens distortion ({dist.model}); the trainer never "
+                "resamples images: undistort the clean images before compressing them and write a PINHOLE "
+                "manifest"
+            )
+        c2ws.append(np.linalg.inv(v.world_to_camera))
+        metas.append(
+            dict(
+                index=i,
+                name=v.name,
+                split=v.split,
+                image=v.image,
+                reference=v.reference,
+                jpeg=v.jpeg,
+                width=cam.width,
+                height=cam.height,
+                K=cam.K,
+            )
+        )
+    xyz = np.asarray(manifest.points_xyz, dtype=np.float64).reshape(-1, 3)
+    rgb = np.asarray(manifest.points_rgb, dtype=np.uint8).reshape(-1, 3)
+
+    train = [m for m in metas if m["split"] == "train"]
+    test = [m for m in metas if m["split"] == "test"]
+    if not train:
+        raise JsgsError(f"{where}: no training views (every view has split 'test')")
+    if cfg.eval_at and not test:
+        raise JsgsError(f"{where}: no test views to evaluate at steps {cfg.eval_at} (pass --eval-at '')")
+    if cfg.scene.require_lossless_reference:
+        for m in test:
+            if m["reference"] is None and m["jpeg"] is not None:
+                raise JsgsError(
+                    f"{where}: test view {m['name']!r} has only a JPEG image and no lossless reference; "
+                    "metrics are against uncompressed references (set scene.require_lossless_reference "
+                    "to false to evaluate against the JPEG)"
+                )
+    if cfg.init.type == "sfm" and len(xyz) <= cfg.init.knn_neighbors:
+        raise JsgsError(
+            f"{where}: {len(xyz)} points: SfM initialisation needs more than {cfg.init.knn_neighbors} "
+            "(set init.type to random to start without them)"
+        )
+
+    c2w = np.stack(c2ws)
+    if cfg.scene.normalize_world:
+        c2w, xyz_n, transform = normalize_world(c2w, xyz)
+        if not (np.isfinite(transform).all() and np.isfinite(c2w).all()):
+            raise JsgsError(
+                f"{where}: world normalisation failed (degenerate cameras); "
+                "set scene.normalize_world to false"
+            )
+    else:
+        xyz_n, transform = xyz, np.eye(4)
+    extent = camera_extent(c2w)
+    if not extent > 1e-12:
+        notes.append("all cameras at one position: camera extent 0 replaced by 1")
+        extent = 1.0
+    scene_scale = extent * cfg.scene.scene_scale_margin * cfg.scene.global_scale
+
+    views = []
+    for m, cw in zip(metas, c2w, strict=True):
+        views.append(View(camtoworld=cw, viewmat=np.linalg.inv(cw), **m))
+    return Scene(
+        manifest_path=manifest_path.resolve(),
+        manifest_sha256=sha,
+        name=manifest.scene.name,
+        views=views,
+        points=xyz_n.astype(np.float32),
+        points_rgb=rgb,
+        transform=transform,
+        camera_extent=extent,
+        scene_scale=scene_scale,
+        notes=notes,
+    )
+
+
+def load_image(path: Path, width: int, height: int, what: str) -> Tensor:
+    """Decode an image with Pillow to [H, W, 3] uint8 (RGB; greyscale is replicated, alpha dropped).
+    Raises JsgsError if it is missing, unreadable or not ``width`` x ``height``."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            im.load()
+            size = im.size
+            if size != (width, height):
+                raise JsgsError(
+                    f"{path}: {what} is {size[0]}x{size[1]} but its camera is {width}x{height} "
+                    "(the trainer never resamples images)"
+                )
+            rgb = im.convert("RGB")
+            arr = np.asarray(rgb, dtype=np.uint8).copy()
+    except FileNotFoundError:
+        raise JsgsError(f"{path}: {what} not found") from None
+    except (UnidentifiedImageError, OSError) as e:
+        raise JsgsError(f"{path}: cannot read {what} ({e})") from None
+    return torch.from_numpy(arr)
+
+
+def load_train_images(scene: Scene, device: torch.device) -> dict[int, Tensor]:
+    """view index -> [H, W, 3] uint8 on ``device`` for every training view (observed images)."""
+    return {
+        v.index: load_image(v.image, v.width, v.height, f"training image of view {v.name!r}").to(device)
+        for v in scene.train_views
+    }
+
+
+def load_eval_images(scene: Scene, device: torch.device) -> dict[int, Tensor]:
+    """view index -> [H, W, 3] uint8 on ``device``: the uncompressed reference of every test view."""
+    return {
+        v.index: load_image(v.eval_image_path(), v.width, v.height, f"reference image of view {v.name!r}").to(
+            device
+        )
+        for v in scene.test_views
+    }
+
+
+class ViewSampler:
+    """Uniform stochastic view sampling without replacement per epoch (gsplat's shuffled DataLoader with batch
+    size 1), from its own torch generator so that the sequence is reproducible and resumable."""
+
+    def __init__(self, num_views: int, seed: int) -> None:
+        self.num_views = num_views
+        self.generator = torch.Generator().manual_seed(seed)
+        self.perm: list[int] = []
+        self.pos = 0
+
+    def next(self) -> int:
+        """Index into the training views of the next sample."""
+        if self.pos >= len(self.perm):
+            self.perm = torch.randperm(self.num_views, generator=self.generator).tolist()
+            self.pos = 0
+        i = self.perm[self.pos]
+        self.pos += 1
+        return i
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"generator": self.generator.get_state(), "perm": list(self.perm), "pos": self.pos}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.generator.set_state(state["generator"])
+        self.perm = list(state["perm"])
+        self.pos = int(state["pos"])

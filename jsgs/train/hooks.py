@@ -1,0 +1,161 @@
+"""The extension point for extra loss terms (the JSGS method plugs in here).
+
+Each training step the trainer renders the sampled view, computes the baseline photometric loss
+l_ph = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM) and then calls the method's :class:`LossHook` with a
+:class:`StepContext` (the render, the observed image, the view's JPEG state, the rasterizer's ``info``, the
+parameters). The hook returns a :class:`HookOutput`: named *unweighted* scalar terms with their weights, and
+statistics to log. The total loss is::
+
+    loss = loss.base_weight * l_ph + sum_k weights[k] * terms[k] (+ gsplat's optional regularisers)
+
+Every term (base ones included) is checked for NaN/Inf each step; a bad one stops the run naming the term and
+the step. Term values and stats are shown on the progress bar and averaged into ``RUN/metrics.json`` between
+evaluations (``train`` of each entry of ``evals``).
+
+A hook may also ask for extra rasterised channels (:meth:`LossHook.extra_channels`): per-Gaussian features
+[N, E] that are composited with the same weights t * alpha * a as the colours, in the *same* rasterisation
+pass; the trainer then evaluates the SH colours itself, renders RGB + E channels and hands the E channels to
+the hook as ``StepContext.extra`` [1, H, W, E]. Gradients of a loss on ``extra`` with respect to the features
+are the per-Gaussian pooled sums sum_p t alpha a dL/dextra(p) (how a Gaussian Controller can pool block scores
+without a second pass).
+
+Hooks with state (running statistics, schedules) implement ``state_dict``/``load_state_dict`` so that
+``--resume`` stays bit-exact.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+from jsgs.errors import JsgsError
+
+if TYPE_CHECKING:
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.data import Scene, View
+
+
+@dataclass
+class StepContext:
+    """What a loss hook sees at one training step (batch of one view, C = 1 camera).
+
+    - ``step``: 0-based step index (the step being taken).
+    - ``view``: the sampled training view (name, camera, ``jpeg`` state dict from the manifest or None for a
+      lossless image; see :class:`jsgs.train.data.View`).
+    - ``render``: [1, H, W, 3] rendered RGB in linear [0, 1]-ish range (not clamped), differentiable; the
+      same tensor l_ph was computed on (after random-background compositing, when enabled).
+    - ``alpha``: [1, H, W, 1] accumulated opacity.
+    - ``target``: [1, H, W, 3] the observed (decoded) training image in [0, 1], float32.
+    - ``info``: the rasterizer's info dict (gsplat semantics: means2d, radii, conics, opacities, ...).
+    - ``splats``: the parameters (``jsgs.train.model``'s ParameterDict: means, scales (log), quats,
+      opacities (logit), sh0, shN).
+    - ``extra``: [1, H, W, E] extra channels asked for by :meth:`LossHook.extra_channels`, else None.
+    - ``base_terms``: the baseline's unweighted terms {"l1", "ssim" (= 1 - SSIM), "photometric" (= l_ph)}.
+    - ``sh_degree``: the SH degree used at this step.
+    """
+
+    step: int
+    view: View
+    render: Tensor
+    alpha: Tensor
+    target: Tensor
+    info: dict[str, Any]
+    splats: torch.nn.ParameterDict
+    extra: Tensor | None
+    base_terms: dict[str, Tensor]
+    sh_degree: int
+
+
+@dataclass
+class HookOutput:
+    """A hook's contribution: ``terms`` (name -> scalar tensor, unweighted, differentiable), ``weights``
+    (name -> float; every term needs one, 0 logs a term without optimising it) and ``stats`` (name -> float or
+    0-dim tensor; logged only, never differentiated)."""
+
+    terms: dict[str, Tensor] = field(default_factory=dict)
+    weights: dict[str, float] = field(default_factory=dict)
+    stats: dict[str, float | Tensor] = field(default_factory=dict)
+
+    def check(self, hook_name: str) -> None:
+        missing = sorted(set(self.terms) - set(self.weights))
+        if missing:
+            raise JsgsError(f"method {hook_name}: loss term {missing[0]!r} has no weight")
+        clash = sorted(set(self.terms) & RESERVED_TERMS)
+        if clash:
+            raise JsgsError(f"method {hook_name}: loss term name {clash[0]!r} is reserved")
+
+
+RESERVED_TERMS = frozenset({"l1", "ssim", "photometric", "loss", "opacity_reg", "scale_reg"})
+
+
+class LossHook:
+    """Base class of a method's per-step extension. Subclasses override :meth:`losses` (required) and, when
+    needed, :meth:`extra_channels`, :meth:`render_kwargs`, :meth:`state_dict`, :meth:`load_state_dict`."""
+
+    name: str = "hook"
+
+    def extra_channels(self, step: int, view: View, splats: torch.nn.ParameterDict) -> Tensor | None:
+        """Per-Gaussian features [N, E] to rasterise alongside RGB in this step's pass, or None."""
+        return None
+
+    def render_kwargs(self, step: int, view: View) -> dict[str, Any]:
+        """Extra keyword arguments for this step's ``jsgs.render.rasterize`` call (e.g. ``pool_probe=True``;
+        what it adds to ``info`` reaches :meth:`losses` through ``StepContext.info``)."""
+        return {}
+
+    def losses(self, ctx: StepContext) -> HookOutput:
+        """Extra loss terms and statistics for this step."""
+        raise NotImplementedError
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if state:
+            raise JsgsError(f"method {self.name}: the checkpoint holds hook state this hook does not take")
+
+
+# A method is a factory (config, scene, device) -> LossHook or None (None: the plain gsplat baseline).
+MethodFactory = Callable[["TrainConfig", "Scene", torch.device], "LossHook | None"]
+
+_METHODS: dict[str, MethodFactory] = {}
+
+
+def register_method(name: str, factory: MethodFactory) -> None:
+    """Make ``--method name`` available."""
+    _METHODS[name] = factory
+
+
+def available_methods() -> list[str]:
+    _load_builtin_methods()
+    return sorted(_METHODS)
+
+
+def make_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
+    """The hook of ``cfg.method`` (JsgsError naming the available methods when unknown)."""
+    _load_builtin_methods()
+    factory = _METHODS.get(cfg.method)
+    if factory is None:
+        raise JsgsError(f"unknown method {cfg.method!r} (available: {', '.join(sorted(_METHODS))})")
+    return factory(cfg, scene, device)
+
+
+def _gsplat_baseline(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
+    if cfg.method_options:
+        key = sorted(cfg.method_options)[0]
+        raise JsgsError(f"config: method gsplat takes no method_options (got {key!r})")
+    return None
+
+
+def _load_builtin_methods() -> None:
+    register_method("gsplat", _gsplat_baseline)
+    # Methods living in other modules register themselves on import; a missing module is simply absent.
+    try:
+        import jsgs.train.jsgs_method  # noqa: F401
+    except ModuleNotFoundError as e:
+        if e.name != "jsgs.train.jsgs_method":
+            raise

@@ -1,0 +1,434 @@
+"""The trainer backbone (jsgs.train): gsplat 1.5.3 defaults, initialisation, world normalisation, an
+end-to-end run on a tiny scene, densification as DefaultStrategy specifies, bit-exact resume, NaN handling,
+the loss hook.
+
+CPU only, small: scenes of 32x24 px with a few dozen Gaussians."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from _train_scene import make_scene
+
+from jsgs.errors import JsgsError
+from jsgs.train import checkpoint as ckpt
+from jsgs.train.config import TrainConfig, config_schema, from_dict, load_config_file, to_dict
+from jsgs.train.hooks import HookOutput, LossHook, StepContext
+from jsgs.train.loop import TrainingDiverged, train
+from jsgs.train.model import (
+    init_splats,
+    knn_sq_dists,
+    make_means_scheduler,
+    make_optimizers,
+    rgb_to_sh,
+    sh_degree_at,
+)
+from jsgs.train.normalize import normalize_world
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def tiny_config(**kw: Any) -> TrainConfig:
+    """Fast settings: no refinement unless asked, cheap FPS measurement."""
+    cfg = TrainConfig(iterations=kw.pop("iterations", 20), eval_at=kw.pop("eval_at", []), device="cpu")
+    cfg.strategy.refine_start_iter = 10_000
+    cfg.eval.fps_passes = 1
+    cfg.eval.fps_warmup = 0
+    cfg.log_every = 5
+    for k, v in kw.items():
+        section, _, name = k.partition("__")
+        if name:
+            setattr(getattr(cfg, section), name, v)
+        else:
+            setattr(cfg, k, v)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_scene(tmp_path_factory.mktemp("scene"))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# settings
+
+
+def test_defaults_are_gsplat_simple_trainer() -> None:
+    cfg = TrainConfig()
+    # examples/simple_trainer.py @ v1.5.3 (Config and create_splats_with_optimizers)
+    assert (cfg.init.type, cfg.init.opacity, cfg.init.scale, cfg.init.knn_neighbors) == ("sfm", 0.1, 1.0, 3)
+    o = cfg.optim
+    assert (o.means_lr, o.scales_lr, o.quats_lr, o.opacities_lr, o.sh0_lr) == (
+        1.6e-4,
+        5e-3,
+        1e-3,
+        5e-2,
+        2.5e-3,
+    )
+    assert o.shN_lr == 2.5e-3 / 20 and o.means_lr_final_factor == 0.01 and o.eps == 1e-15
+    assert (o.beta1, o.beta2) == (0.9, 0.999)
+    r = cfg.render
+    assert (r.sh_degree, r.sh_degree_interval, r.near_plane, r.far_plane) == (3, 1000, 0.01, 1e10)
+    assert not r.packed and not r.random_background
+    assert cfg.loss.ssim_lambda == 0.2 and cfg.loss.opacity_reg == 0.0 and cfg.loss.scale_reg == 0.0
+    assert cfg.loss.ssim_padding == "valid"  # fused_ssim(colors, pixels, padding="valid")
+    assert cfg.scene.normalize_world and cfg.scene.scene_scale_margin == 1.1 and cfg.scene.global_scale == 1.0
+    assert cfg.seed == 42
+    # the paper's protocol
+    assert cfg.iterations == 10_000 and cfg.eval_at == [3000, 7000, 10_000]
+    # DefaultStrategy: every field we expose has gsplat's own default
+    from gsplat.strategy import DefaultStrategy
+
+    ref = DefaultStrategy()
+    for f in dataclasses.fields(cfg.strategy):
+        assert getattr(cfg.strategy, f.name) == getattr(ref, f.name), f.name
+
+
+def test_config_schema_file_is_current() -> None:
+    on_disk = json.loads((ROOT / "schemas" / "config.schema.json").read_text())
+    assert on_disk == json.loads(json.dumps(config_schema())), "regenerate: python -m jsgs.train.config"
+
+
+def test_config_from_dict_and_errors(tmp_path: Path) -> None:
+    cfg = from_dict({"iterations": 50, "eval_at": [10, 50], "strategy": {"refine_every": 7}})
+    assert cfg.iterations == 50 and cfg.strategy.refine_every == 7 and cfg.strategy.reset_every == 3000
+    assert from_dict(to_dict(cfg)) == cfg
+    with pytest.raises(JsgsError, match="unknown setting strategy.refine_evry"):
+        from_dict({"strategy": {"refine_evry": 7}})
+    with pytest.raises(JsgsError, match="iterations must be an integer"):
+        from_dict({"iterations": "5"})
+    with pytest.raises(JsgsError, match="device must be one of"):
+        from_dict({"device": "tpu"})
+    bad = tmp_path / "c.json"
+    bad.write_text(json.dumps({"iterations": 5, "eval_at": [10]}))
+    with pytest.raises(JsgsError, match="eval_at steps must lie in 1..iterations=5"):
+        load_config_file(bad)
+    bad.write_text("{not json")
+    with pytest.raises(JsgsError, match="not a JSON config file"):
+        load_config_file(bad)
+
+
+def test_sh_degree_schedule_and_means_decay() -> None:
+    cfg = TrainConfig(iterations=100)
+    assert [sh_degree_at(s, cfg) for s in (0, 999, 1000, 2999, 3000, 9999)] == [0, 0, 1, 2, 3, 3]
+    p = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(2, 3))})
+    opt = torch.optim.Adam([{"params": p["means"], "lr": 1.0, "name": "means"}])
+    sched = make_means_scheduler(opt, cfg)
+    for _ in range(cfg.iterations):
+        opt.step()
+        sched.step()
+    assert math.isclose(opt.param_groups[0]["lr"], 0.01, rel_tol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# initialisation and normalisation
+
+
+def test_knn_matches_brute_force_with_duplicates() -> None:
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(300, 3, generator=g)
+    pts[5] = pts[7]  # an exact duplicate: its nearest other point is at distance 0
+    d = knn_sq_dists(pts, 3, chunk=64)
+    full = torch.cdist(pts.double(), pts.double()) ** 2
+    full.fill_diagonal_(float("inf"))
+    want = full.sort(dim=1).values[:, :3]
+    want[5] = torch.cat([torch.zeros(1, dtype=torch.float64), full[5].sort().values[1:3]])
+    want[7] = torch.cat([torch.zeros(1, dtype=torch.float64), full[7].sort().values[1:3]])
+    assert torch.allclose(d, want, atol=1e-12)
+
+
+def test_init_is_gsplat_recipe() -> None:
+    torch.manual_seed(0)
+    pts = torch.rand(50, 3)
+    rgb = torch.rand(50, 3)
+    cfg = TrainConfig()
+    s = init_splats(pts, rgb, cfg, scene_scale=2.0, device=torch.device("cpu"))
+    assert torch.equal(s["means"], pts)
+    d2 = (torch.cdist(pts.double(), pts.double()) ** 2).sort(dim=1).values[:, 1:4].mean(-1)
+    assert torch.allclose(s["scales"], torch.log(d2.sqrt()).float()[:, None].expand(-1, 3), atol=1e-6)
+    assert torch.allclose(torch.sigmoid(s["opacities"]), torch.full((50,), 0.1))
+    assert torch.allclose(s["sh0"][:, 0], rgb_to_sh(rgb))
+    assert s["shN"].shape == (50, 15, 3) and not s["shN"].any()
+    assert s["quats"].shape == (50, 4) and (s["quats"] >= 0).all()  # torch.rand, as gsplat
+    lrs = {n: o.param_groups[0]["lr"] for n, o in make_optimizers(s, cfg, 2.0).items()}
+    assert lrs == {"means": 3.2e-4, "scales": 5e-3, "quats": 1e-3, "opacities": 5e-2, "sh0": 2.5e-3,
+                   "shN": 2.5e-3 / 20}  # fmt: skip
+
+
+def test_normalisation_is_a_similarity_that_keeps_images() -> None:
+    rng = np.random.default_rng(1)
+    from _train_scene import look_at
+
+    c2w = []
+    for _ in range(7):
+        centre = rng.normal(size=3) * 3 + np.array([10.0, -4.0, 2.0])
+        R, t = look_at(
+            centre, np.array([10.0, -4.0, 0.0]) + rng.normal(size=3) * 0.2, np.array([0.3, 0.1, 1.0])
+        )
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, t
+        c2w.append(np.linalg.inv(w2c))
+    c2w = np.stack(c2w)
+    pts = rng.normal(size=(40, 3)) + np.array([10.0, -4.0, 0.0])
+    c2w_n, pts_n, T = normalize_world(c2w, pts)
+    # T is a similarity: s * rotation
+    s = np.cbrt(np.linalg.det(T[:3, :3]))
+    assert np.allclose(T[:3, :3] @ T[:3, :3].T, s * s * np.eye(3), atol=1e-9)
+    assert np.allclose(pts_n, pts @ T[:3, :3].T + T[:3, 3])
+    # every camera sees every point at the same pixel (and its rotation stays a rotation)
+    for a, b in zip(c2w, c2w_n, strict=True):
+        assert np.allclose(b[:3, :3] @ b[:3, :3].T, np.eye(3), atol=1e-9)
+        pa = (np.linalg.inv(a) @ np.c_[pts, np.ones(len(pts))].T)[:3]
+        pb = (np.linalg.inv(b) @ np.c_[pts_n, np.ones(len(pts))].T)[:3]
+        assert np.allclose(pa[:2] / pa[2], pb[:2] / pb[2], atol=1e-9)
+    # gsplat's choices: principal axes on x, y, z by decreasing variance; median below mean in z
+    cov = np.cov(pts_n, rowvar=False)
+    assert np.allclose(cov - np.diag(np.diag(cov)), 0, atol=1e-9)
+    assert cov[0, 0] >= cov[1, 1] >= cov[2, 2]
+    assert np.median(pts_n[:, 2]) <= np.mean(pts_n[:, 2])
+
+
+# ---------------------------------------------------------------------------------------------------------
+# training
+
+
+class Recorder(LossHook):
+    """Adds nothing; records what it sees each step."""
+
+    name = "recorder"
+
+    def __init__(self) -> None:
+        self.counts: list[int] = []
+        self.photometric: list[float] = []
+
+    def losses(self, ctx: StepContext) -> HookOutput:
+        self.counts.append(int(ctx.splats["means"].shape[0]))
+        self.photometric.append(float(ctx.base_terms["photometric"].detach()))
+        return HookOutput(stats={"n": float(ctx.splats["means"].shape[0])})
+
+
+def test_end_to_end_loss_decreases_and_outputs(scene: Path, tmp_path: Path) -> None:
+    from jsgs.ply import load_ply
+    from jsgs.schemas import validate
+
+    rec = Recorder()
+    run = tmp_path / "run"
+    doc = train(scene, run, tiny_config(iterations=24, eval_at=[8, 24]), hook=rec, progress=False)
+    first, last = np.mean(rec.photometric[:5]), np.mean(rec.photometric[-5:])
+    assert last < 0.9 * first, (first, last)
+    assert doc["status"] == "complete" and doc["step"] == 24
+    assert [e["step"] for e in doc["evals"]] == [8, 24]
+    e8, e24 = doc["evals"]
+    assert e24["psnr"] > e8["psnr"]
+    assert e24["train"]["steps"] == 16
+    assert e24["train"]["terms"]["photometric"] < e8["train"]["terms"]["photometric"]
+    assert e24["lpips"] is None and e24["lpips_note"]  # 32x24 is below LPIPS-alex's minimum size
+    assert e24["fps"] > 0 and e24["num_gaussians"] == 80 and e24["peak_memory_bytes"] > 0
+    assert 0 < e8["train_time_s"] < e24["train_time_s"] == doc["train_time_s"]
+    validate(json.loads((run / "metrics.json").read_text()), "metrics", "metrics.json")
+    conf = json.loads((run / "config.json").read_text())
+    validate(conf, "config", "config.json")
+    assert conf["settings"]["iterations"] == 24 and conf["derived"]["initial_gaussians"] == 80
+    assert conf["derived"]["backend"] == "torch" and conf["versions"]["gsplat"] == "1.5.3"
+    ply = load_ply(run / "point_cloud.ply")
+    assert ply["means"].shape == (80, 3) and ply["shN"].shape == (80, 15, 3)
+    pngs = sorted((run / "renders" / "step_000024").glob("*.png"))
+    assert len(pngs) == 2
+    from PIL import Image
+
+    assert Image.open(pngs[0]).size == (32, 24)
+    assert [s for s, _ in ckpt.list_checkpoints(run / "checkpoints")] == [8, 24]
+    # a finished run refuses to be overwritten, and resuming it is a no-op
+    with pytest.raises(JsgsError, match="not empty; pass --resume"):
+        train(scene, run, tiny_config(iterations=24, eval_at=[8, 24]), progress=False)
+    again = train(scene, run, None, resume=True, progress=False)
+    assert again["status"] == "complete" and again["evals"] == doc["evals"]
+
+
+def test_densification_as_default_strategy_says(scene: Path, tmp_path: Path) -> None:
+    """With refine_start_iter=4, refine_every=4, DefaultStrategy refines after 0-based steps 8, 12 (step >
+    start and step % every == 0): the count may change only there, and then by duplicates + splits - prunes
+    computed from its own criteria, which we recompute from the running state it kept."""
+    from gsplat.strategy import DefaultStrategy
+
+    counts_seen: list[tuple[int, int, int, int]] = []
+    orig = DefaultStrategy._grow_gs
+
+    def spy(self: DefaultStrategy, params: Any, optimizers: Any, state: Any, step: int) -> tuple[int, int]:
+        grads = state["grad2d"] / state["count"].clamp_min(1)
+        high = grads > self.grow_grad2d
+        small = torch.exp(params["scales"]).max(dim=-1).values <= self.grow_scale3d * state["scene_scale"]
+        n0 = len(params["means"])
+        nd, ns = orig(self, params, optimizers, state, step)
+        assert (nd, ns) == (int((high & small).sum()), int((high & ~small).sum()))
+        assert len(params["means"]) == n0 + nd + ns  # duplicate adds one, split replaces one by two
+        counts_seen.append((step, n0, nd, ns))
+        return nd, ns
+
+    rec = Recorder()
+    cfg = tiny_config(iterations=14, strategy__refine_start_iter=4, strategy__refine_every=4)
+    DefaultStrategy._grow_gs = spy  # type: ignore[method-assign]
+    try:
+        train(scene, tmp_path / "run", cfg, hook=rec, progress=False)
+    finally:
+        DefaultStrategy._grow_gs = orig  # type: ignore[method-assign]
+    assert [c[0] for c in counts_seen] == [8, 12]
+    # rec.counts[s] is the count at the start of step s: changes only right after the refine steps
+    changes = [s for s in range(1, len(rec.counts)) if rec.counts[s] != rec.counts[s - 1]]
+    assert set(changes) <= {9, 13} and changes, rec.counts
+    assert sum(nd + ns for _, _, nd, ns in counts_seen) > 0
+    # the Adam state follows the parameters
+    state = ckpt.load_checkpoint(tmp_path / "run" / "checkpoints" / "step_000014.pt")
+    n = state["splats"]["means"].shape[0]
+    assert n == rec.counts[-1]
+    assert state["optimizers"]["means"]["state"][0]["exp_avg"].shape == (n, 3)
+
+
+def test_resume_is_bit_exact(scene: Path, tmp_path: Path) -> None:
+    """A run split at step 5 and resumed equals the uninterrupted run exactly (parameters, Adam states,
+    densification state, metrics), with densification (and its random splits) before and after the cut
+    (refinements after 0-based steps 3 and 6) and a random background drawing from the global generator."""
+
+    def cfg() -> TrainConfig:
+        return tiny_config(iterations=9, eval_at=[5, 9], strategy__refine_start_iter=1,
+                           strategy__refine_every=3, render__random_background=True)  # fmt: skip
+
+    a = train(scene, tmp_path / "a", cfg(), progress=False)
+    b1 = train(scene, tmp_path / "b", cfg(), stop_at=5, progress=False)
+    assert b1["status"] == "stopped" and b1["step"] == 5
+    assert not (tmp_path / "b" / "point_cloud.ply").exists()
+    b = train(scene, tmp_path / "b", None, resume=True, progress=False)
+    assert b["status"] == "complete"
+    ca = ckpt.load_checkpoint(tmp_path / "a" / "checkpoints" / "step_000009.pt")
+    cb = ckpt.load_checkpoint(tmp_path / "b" / "checkpoints" / "step_000009.pt")
+    n5 = ckpt.load_checkpoint(tmp_path / "a" / "checkpoints" / "step_000005.pt")["splats"]["means"].shape[0]
+    assert n5 != 80, "densification should act before the cut"
+    assert ca["splats"]["means"].shape[0] != n5, "densification should act after the cut too"
+    for name, t in ca["splats"].items():
+        assert torch.equal(t, cb["splats"][name]), name
+    for name in ca["optimizers"]:
+        sa, sb = ca["optimizers"][name]["state"][0], cb["optimizers"][name]["state"][0]
+        for k in sa:
+            assert torch.equal(sa[k], sb[k]), (name, k)
+        assert ca["optimizers"][name]["param_groups"] == cb["optimizers"][name]["param_groups"]
+    for k in ("grad2d", "count"):
+        assert torch.equal(ca["strategy"][k], cb["strategy"][k])
+    assert torch.equal(ca["rng"]["torch"], cb["rng"]["torch"])
+    assert ca["sampler"]["perm"] == cb["sampler"]["perm"] and ca["sampler"]["pos"] == cb["sampler"]["pos"]
+    strip = ("fps", "render_ms", "eval_time_s", "train_time_s", "time_per_iteration_s", "peak_memory_bytes")
+    for ea, eb in zip(a["evals"], b["evals"], strict=True):
+        assert {k: v for k, v in ea.items() if k not in strip} == {
+            k: v for k, v in eb.items() if k not in strip
+        }
+
+
+def test_resume_refuses_changed_settings(scene: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    train(scene, run, tiny_config(iterations=6, eval_at=[3, 6]), stop_at=3, progress=False)
+    with pytest.raises(JsgsError, match=r"differs: iterations \(6 in the run, 8 now\)"):
+        train(scene, run, tiny_config(iterations=8, eval_at=[3, 6]), resume=True, progress=False)
+    with pytest.raises(JsgsError, match="nothing to resume"):
+        train(scene, tmp_path / "empty", None, resume=True, progress=False)
+
+
+class NanAt(LossHook):
+    name = "nan"
+
+    def __init__(self, step: int) -> None:
+        self.step = step
+
+    def losses(self, ctx: StepContext) -> HookOutput:
+        v = ctx.render.mean() * (float("nan") if ctx.step == self.step else 0.0)
+        return HookOutput(terms={"bad_term": v}, weights={"bad_term": 1.0})
+
+
+def test_nan_stops_with_the_term_and_step_and_keeps_checkpoint(scene: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    with pytest.raises(TrainingDiverged, match=r"iteration 6: loss term 'bad_term' is NaN.*step_000004\.pt"):
+        train(scene, run, tiny_config(iterations=10, eval_at=[4, 10]), hook=NanAt(5), progress=False)
+    assert [s for s, _ in ckpt.list_checkpoints(run / "checkpoints")] == [4]
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["status"] == "diverged" and "bad_term" in m["error"] and m["step"] == 5
+    good = ckpt.load_checkpoint(run / "checkpoints" / "step_000004.pt")
+    assert all(torch.isfinite(t).all() for t in good["splats"].values())
+
+
+class ExtraTerms(LossHook):
+    """A JSGS-like hook: one weighted term, an extra rasterised channel, a statistic."""
+
+    name = "extra"
+
+    def __init__(self) -> None:
+        self.max_err = 0.0
+        self.saw_jpeg: list[bool] = []
+
+    def extra_channels(self, step: int, view: Any, splats: torch.nn.ParameterDict) -> torch.Tensor:
+        return torch.ones(splats["means"].shape[0], 1)
+
+    def losses(self, ctx: StepContext) -> HookOutput:
+        assert ctx.extra is not None and ctx.extra.shape == ctx.alpha.shape
+        # compositing a constant 1 gives the accumulated opacity
+        self.max_err = max(self.max_err, float((ctx.extra - ctx.alpha).detach().abs().max()))
+        self.saw_jpeg.append(ctx.view.jpeg is not None)
+        opac = torch.sigmoid(ctx.splats["opacities"]).mean()
+        return HookOutput(terms={"opac": opac}, weights={"opac": 0.5}, stats={"alpha_mean": ctx.alpha.mean()})
+
+
+def test_hook_terms_extra_channels_and_logging(tmp_path: Path) -> None:
+    manifest = make_scene(tmp_path / "jpeg_scene", jpeg_train=True)
+    hook = ExtraTerms()
+    doc = train(manifest, tmp_path / "run", tiny_config(iterations=6, eval_at=[6]), hook=hook, progress=False)
+    assert hook.max_err < 1e-5
+    assert all(hook.saw_jpeg) and len(hook.saw_jpeg) == 6  # every training view is a JPEG here
+    tr = doc["evals"][-1]["train"]
+    assert set(tr["terms"]) == {"l1", "ssim", "photometric", "opac"} and set(tr["stats"]) == {"alpha_mean"}
+    assert math.isclose(tr["loss"], tr["terms"]["photometric"] + 0.5 * tr["terms"]["opac"], rel_tol=1e-5)
+
+
+def test_bad_hook_output_is_refused(scene: Path, tmp_path: Path) -> None:
+    class NoWeight(LossHook):
+        name = "noweight"
+
+        def losses(self, ctx: StepContext) -> HookOutput:
+            return HookOutput(terms={"x": ctx.render.mean()})
+
+    with pytest.raises(JsgsError, match="loss term 'x' has no weight"):
+        train(scene, tmp_path / "run", tiny_config(iterations=2), hook=NoWeight(), progress=False)
+
+
+def test_unknown_method(scene: Path, tmp_path: Path) -> None:
+    with pytest.raises(JsgsError, match=r"unknown method 'nope' \(available: .*gsplat"):
+        train(scene, tmp_path / "run", tiny_config(iterations=2, method="nope"), progress=False)
+
+
+def test_trainer_imports_without_dataset_tools() -> None:
+    """A GPU machine needs torch, gsplat and small wheels only: no pycolmap, OpenCV or jsgstools."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "sys.modules['pycolmap'] = None; sys.modules['cv2'] = None\n"
+        "import jsgs.train.loop, cli.train, cli.jsgs_cli\n"
+        "assert 'jsgstools' not in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_lpips_from_config_weights(tmp_path: Path) -> None:
+    """eval.lpips_weights reaches the metric (uses ../shared/lpips; skipped without it)."""
+    weights = ROOT.parent / "shared" / "lpips" / "alexnet_features.pth"
+    if not weights.is_file():
+        pytest.skip(f"needs {weights} (../shared beside the checkout), which is absent")
+    manifest = make_scene(tmp_path / "scene40", width=40, height=32, n_views=3)
+    cfg = tiny_config(iterations=2, eval_at=[2], eval__lpips_weights=str(weights))
+    e = train(manifest, tmp_path / "run", cfg, progress=False)["evals"][-1]
+    assert e["lpips"] is not None and 0.0 < e["lpips"] < 1.0 and e["lpips_note"] is None
+    assert e["views"][0]["lpips"] == pytest.approx(e["lpips"])  # one test view

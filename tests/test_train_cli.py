@@ -1,0 +1,167 @@
+"""``jsgs train`` on the command line: a short run end to end, and one-line errors (exit 1, no traceback) for
+bad or mismatched manifests and refused operations."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+from _train_scene import edit_manifest, make_scene
+from click.testing import CliRunner
+
+from cli.jsgs_cli import main
+
+FAST = {"eval": {"fps_passes": 1, "fps_warmup": 0}, "strategy": {"refine_start_iter": 10_000}}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_scene(tmp_path_factory.mktemp("cli_scene"))
+
+
+@pytest.fixture()
+def fast_config(tmp_path: Path) -> Path:
+    p = tmp_path / "fast.json"
+    p.write_text(json.dumps(FAST))
+    return p
+
+
+def run(*args: str) -> Any:
+    return CliRunner().invoke(main, ["train", *args], catch_exceptions=False)
+
+
+def one_line_error(result: Any, pattern: str) -> None:
+    assert result.exit_code == 1, (result.exit_code, result.output, result.stderr)
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert "Traceback" not in result.output + result.stderr
+    import re
+
+    assert re.search(pattern, lines[0]), lines[0]
+
+
+def test_cli_trains_and_resumes(scene: Path, tmp_path: Path, fast_config: Path) -> None:
+    out = tmp_path / "run"
+    base = [str(scene), "--out", str(out), "--device", "cpu", "--config", str(fast_config), "--quiet"]
+    r = run(*base, "--iterations", "4", "--eval-at", "2,4", "--stop-at", "2", "--seed", "3")
+    assert r.exit_code == 0, r.output + r.stderr
+    assert "stopped: 2/4 steps" in r.output
+    conf = json.loads((out / "config.json").read_text())
+    assert conf["settings"]["seed"] == 3 and conf["settings"]["eval_at"] == [2, 4]
+    assert conf["command"].startswith("jsgs train ") and "--stop-at 2" in conf["command"]
+    # resuming with the run's own settings (flags repeated identically are accepted)
+    r = run(str(scene), "--out", str(out), "--resume", "--quiet", "--iterations", "4")
+    assert r.exit_code == 0, r.output + r.stderr
+    assert "complete: 4/4 steps" in r.output and "PSNR" in r.output
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["status"] == "complete" and [e["step"] for e in m["evals"]] == [2, 4]
+    # a flag that would change the run is refused on resume
+    one_line_error(
+        run(str(scene), "--out", str(out), "--resume", "--seed", "4"),
+        r"differs: seed \(3 in the run, 4 now\)",
+    )
+    one_line_error(run(*base, "--iterations", "4"), "folder is not empty; pass --resume")
+    one_line_error(run(*base, "--resume", "--force"), "exclude each other")
+    # --force with a manifest that fails its checks leaves the earlier run untouched
+    one_line_error(run(str(tmp_path / "missing.json"), *base[1:], "--force"), "manifest not found")
+    assert (out / "metrics.json").exists() and (out / "checkpoints").is_dir()
+    # --force starts over; the default schedule is cut at --iterations
+    r = run(*base, "--iterations", "3", "--force")
+    assert r.exit_code == 0, r.output + r.stderr
+    assert json.loads((out / "config.json").read_text())["settings"]["eval_at"] == [3]
+
+
+def test_cli_reproduces_from_run_config(scene: Path, tmp_path: Path, fast_config: Path) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    common = ["--device", "cpu", "--quiet"]
+    r = run(str(scene), "--out", str(a), "--config", str(fast_config), "--iterations", "3", *common)
+    assert r.exit_code == 0, r.stderr
+    r = run(str(scene), "--out", str(b), "--config", str(a / "config.json"), *common)
+    assert r.exit_code == 0, r.stderr
+    ma, mb = (json.loads((d / "metrics.json").read_text()) for d in (a, b))
+    assert ma["evals"][-1]["psnr"] == mb["evals"][-1]["psnr"]
+    assert ma["evals"][-1]["views"] == mb["evals"][-1]["views"]
+
+
+def _copy(scene: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "scene"
+    shutil.copytree(scene.parent, dst)
+    return dst / scene.name
+
+
+def _set_view(i: int, key: str, value: Any) -> Callable[[dict[str, Any]], None]:
+    def f(doc: dict[str, Any]) -> None:
+        doc["views"][i][key] = value
+
+    return f
+
+
+def _set_cam(i: int, key: str, value: Any) -> Callable[[dict[str, Any]], None]:
+    def f(doc: dict[str, Any]) -> None:
+        doc["views"][i]["camera"][key] = value
+
+    return f
+
+
+def _all_split(split: str) -> Callable[[dict[str, Any]], None]:
+    def f(doc: dict[str, Any]) -> None:
+        for v in doc["views"]:
+            v["split"] = split
+
+    return f
+
+
+def _no_points(doc: dict[str, Any]) -> None:
+    doc["points"] = {"count": 0, "xyz": [], "rgb": []}
+
+
+def _jpeg_test_view(doc: dict[str, Any]) -> None:
+    from _train_scene import jpeg_state
+
+    doc["views"][0]["jpeg"] = jpeg_state(50)  # view 0 is a test view with no reference
+
+
+BAD: list[tuple[str, Callable[[dict[str, Any]], None] | None, str]] = [
+    ("distorted", _set_cam(1, "distortion", {"model": "SIMPLE_RADIAL", "params": [0.02]}),
+     r"view 'view_001.png': camera has lens distortion \(SIMPLE_RADIAL\)"),
+    ("size", _set_cam(1, "width", 40), r"is 32x24 but its camera is 40x24 \(the trainer never resamples"),
+    ("missing image", _set_view(2, "image", "images/nope.png"), r"image images/nope.png not found"),
+    ("not a rotation", _set_view(1, "R", [[1, 0, 0], [0, 1, 0], [0, 0, 2]]), "not a rotation matrix"),
+    ("schema", _set_view(1, "split", "val"), r"not a valid manifest file: at views/1/split"),
+    ("no train", _all_split("test"), "no training views"),
+    ("no test", _all_split("train"), r"no test views to evaluate at steps \[2\]"),
+    ("no points", _no_points, "0 points: SfM initialisation needs more than 3"),
+    ("jpeg test view", _jpeg_test_view, "test view 'view_000.png' has only a JPEG image and no lossless"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("edit,pattern", [b[1:] for b in BAD], ids=[b[0] for b in BAD])
+def test_cli_bad_manifests_fail_in_one_line(
+    scene: Path, tmp_path: Path, edit: Callable[[dict[str, Any]], None], pattern: str
+) -> None:
+    manifest = _copy(scene, tmp_path)
+    edit_manifest(manifest, edit)
+    r = run(str(manifest), "--out", str(tmp_path / "run"), "--device", "cpu", "--iterations", "2", "--quiet")
+    one_line_error(r, pattern)
+
+
+def test_cli_other_one_line_errors(scene: Path, tmp_path: Path) -> None:
+    out = str(tmp_path / "run")
+    one_line_error(run(str(tmp_path / "none.json"), "--out", out), "manifest not found")
+    notjson = tmp_path / "m.json"
+    notjson.write_text("{")
+    one_line_error(run(str(notjson), "--out", out), "not JSON")
+    one_line_error(run(str(scene), "--out", out, "--eval-at", "a,b"), "--eval-at: expected comma-separated")
+    one_line_error(
+        run(str(scene), "--out", out, "--iterations", "5", "--eval-at", "9"), "eval_at steps must lie"
+    )
+    cfg = tmp_path / "c.json"
+    cfg.write_text(json.dumps({"optim": {"means_lrr": 1}}))
+    one_line_error(run(str(scene), "--out", out, "--config", str(cfg)), "unknown setting optim.means_lrr")
+    one_line_error(run(str(scene), "--out", out, "--method", "nope", "--iterations", "1", "--device", "cpu"),
+                   "unknown method 'nope'")  # fmt: skip
+    one_line_error(run(str(scene), "--out", str(tmp_path / "x"), "--resume"), "nothing to resume")
