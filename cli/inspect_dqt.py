@@ -1,9 +1,67 @@
-"""Commands of this module (placeholder until implemented)."""
+"""``jsgstools inspect-dqt``: the JPEG header report; its logic lives in ``jsgstools.dqt``."""
 
 from __future__ import annotations
 
+import os
+import sys
+from pathlib import Path
+
 import click
+
+from cli._common import user_errors
+
+
+def _emit(text: str, err: bool = False) -> None:
+    """Echo that survives a closed pipe (``inspect-dqt *.jpg | head``) without a traceback."""
+    try:
+        click.echo(text, err=err)
+    except BrokenPipeError:
+        # Point stdout at /dev/null so the interpreter's final flush does not raise again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        sys.exit(1)
+
+
+@click.command("inspect-dqt")
+@click.argument("images", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option(
+    "--json",
+    "as_json",
+    is_flag=True,
+    help="Print one JSON document (schemas/dqt_report.schema.json) instead of the table; tables in natural "
+    "row-major order.",
+)
+@click.option("--tables", "show_tables", is_flag=True, help="Also print every 8x8 table below the summary.")
+@user_errors
+def inspect_dqt(images: tuple[Path, ...], as_json: bool, show_tables: bool) -> None:
+    """Report the JPEG header of each IMG without decoding it.
+
+    Per file: every quantization table (DQT: id, 8- or 16-bit, 64 values), which component (Y, Cb, Cr,
+    ...) uses which table, frame type (baseline / extended / progressive / lossless, Huffman or
+    arithmetic), size, sampling factors and their name (4:4:4, 4:2:2, 4:2:0, 4:4:0, 4:1:1, gray, other),
+    restart interval, and the IJG (libjpeg) quality whose tables are closest: "75" when the tables are
+    exactly IJG's at 75, "~75" when 75 is only the nearest (camera/phone encoders use their own tables).
+
+    All tables, with --tables and in --json, are 8x8 in NATURAL ROW-MAJOR order: values[v][u], v = vertical
+    frequency (row), u = horizontal frequency (column); files store them in zigzag order.
+
+    Only the header is read (markers up to the first scan); APPn segments such as EXIF are skipped by
+    length, so an EXIF thumbnail's tables are never mistaken for the image's. Hierarchical (SOF5-7,
+    SOF13-15) and JPEG-LS files are refused. A bad file gets "error: FILE: what" on stderr, the other
+    files are still reported, and the exit code is 1.
+    """
+    from jsgstools.dqt import dumps_json, format_table, inspect_files
+
+    result = inspect_files(images)
+    if as_json:
+        _emit(dumps_json(result.to_json()))
+    else:
+        _emit(format_table(result, show_tables=show_tables))
+    for err in result.errors:  # after the report, so they are the last lines a terminal shows
+        _emit(f"error: {err}", err=True)
+    if result.errors:
+        sys.exit(1)
 
 
 def register(group: click.Group) -> None:
     """Add this module's commands to ``group``."""
+    group.add_command(inspect_dqt)

@@ -100,8 +100,8 @@ _ALL_CHROMA = np.stack([ijg_table(BASE_CHROMA, q) for q in range(1, 101)]).astyp
 def estimate_quality(luma: np.ndarray, chroma: np.ndarray | None = None) -> QualityEstimate:
     """Invert libjpeg's quality scaling: the q in 1..100 whose IJG tables are closest (mean |diff|).
 
-    Ties go to the highest quality, because clamping at 1 makes every q >= 98 or so produce all-ones
-    luma tables and the encoder most likely used the highest of those. Pass ``chroma=None`` for grayscale.
+    Ties (possible for non-IJG tables, whose distance can be equal to two neighbouring levels) go to the
+    highest quality. Pass ``chroma=None`` for grayscale.
     """
     luma = np.asarray(luma, dtype=np.float64).reshape(8, 8)
     err = np.abs(_ALL_LUMA - luma).mean(axis=(1, 2))
