@@ -30,9 +30,17 @@ def _command_line() -> str:
 @click.option("--size", default="160x120", show_default=True, help="Image size WIDTHxHEIGHT in pixels.")
 @click.option("--seed", default=0, show_default=True, help="Seed of the textures and the camera jitter.")
 @click.option("--supersample", default=2, show_default=True, help="Rays per pixel side (2 = 2x2 per pixel).")
+@click.option(
+    "--point-density",
+    default=1.0,
+    show_default=True,
+    help="Scale of the number of points3D (one initial Gaussian each; 0.3 for a quick CPU demo).",
+)
 @click.option("--force", is_flag=True, help="Replace images/ and sparse/ of a non-empty OUT.")
 @user_errors
-def synth_cmd(out: Path, views: int, size: str, seed: int, supersample: int, force: bool) -> None:
+def synth_cmd(
+    out: Path, views: int, size: str, seed: int, supersample: int, point_density: float, force: bool
+) -> None:
     """Write a small synthetic COLMAP scene into OUT: a textured room with three boxes (checkers, stripes,
     random mosaics: the high frequencies JPEG destroys), rendered exactly with numpy from VIEWS cameras on a
     ring looking at the centre. OUT/images/*.png (lossless), OUT/sparse/0/ (binary model, one PINHOLE camera,
@@ -47,6 +55,7 @@ def synth_cmd(out: Path, views: int, size: str, seed: int, supersample: int, for
         supersample=supersample,
         force=force,
         progress=sys.stderr.isatty(),
+        point_density=point_density,
     )
     c = res.camera
     click.echo(

@@ -413,13 +413,15 @@ def synth(
     progress: bool = False,
     k1: float = 0.0,
     camera_scale: int = 1,
+    point_density: float = 1.0,
 ) -> SynthResult:
     """Write the synthetic scene into ``out`` (see the module docstring). ``size`` = (width, height) pixels;
     the focal length is 0.85 x width (a 61 degree horizontal field of view at 4:3).
 
     For tests of the real-scene paths (library only): ``k1`` renders through a SIMPLE_RADIAL camera, and
     ``camera_scale`` writes the model's camera at that many times the image size (like LLFF's cameras at
-    4032x3024 for 504x378 images)."""
+    4032x3024 for 504x378 images). ``point_density`` scales the number of points3D (the trainer starts from
+    one Gaussian per point, so fewer points make a quicker CPU run)."""
     import pycolmap
     from PIL import Image
     from tqdm import tqdm
@@ -434,7 +436,9 @@ def synth(
     rng = np.random.default_rng(seed)
     boxes = default_scene(rng)
     poses = camera_ring(views, rng)
-    xyz, rgb = sample_points(boxes, rng)
+    if not 0.01 <= point_density <= 100:
+        raise JsgsError(f"--point-density {point_density}: must be within 0.01..100")
+    xyz, rgb = sample_points(boxes, rng, (6.0 * point_density, 120.0 * point_density))
     cam = SynthCamera(w, h, 0.85 * w, 0.85 * w, w / 2, h / 2, k1)
     if camera_scale < 1:
         raise JsgsError(f"camera_scale {camera_scale}: must be at least 1")

@@ -69,7 +69,7 @@ def quality_scale(quality: int) -> int:
 
 
 def ijg_table(base: np.ndarray, quality: int, force_baseline: bool = True) -> np.ndarray:
-    """The table libjpeg's ``jpeg_set_quality(quality, force_baseline)`` derives from ``base`` (8x8 natural)."""
+    """The table libjpeg's ``jpeg_set_quality(quality, force_baseline)`` derives from ``base`` (8x8)."""
     t = (base.astype(np.int64) * quality_scale(quality) + 50) // 100
     return np.clip(t, 1, 255 if force_baseline else 32767)
 

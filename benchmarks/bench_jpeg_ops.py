@@ -1,0 +1,216 @@
+"""Speed and fidelity of the JPEG observation operator (JO) and DCT supervision (DS).
+
+Speed (default): times one training-step's worth of JPEG work for one view, forward + backward:
+    JO (each mode) -> L_obs (L1 + D-SSIM) + DS (L_low, L_mid, block scores)
+at 1297 x 840 (the paper's Mip-NeRF 360 training size), beside, on CUDA with gsplat installed, one gsplat
+``rasterization`` forward + backward at the same size with ~500k random Gaussians, and prints the ratios.
+
+    .venv/bin/python benchmarks/bench_jpeg_ops.py                      # CPU
+    .venv/bin/python benchmarks/bench_jpeg_ops.py --device cuda --compile
+    .venv/bin/python benchmarks/bench_jpeg_ops.py --fidelity           # PSNR vs Pillow, per mode and q
+
+Fidelity: PSNR of each mode's output against Pillow's (libjpeg-turbo's) decode of Pillow's encode, on
+photographs from ../shared/scenes, per quality and sampling; for mode "exact" also the share of bit-exact
+images. Prints a markdown table (the README's).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from jsgs.jpeg.losses import photometric_loss  # noqa: E402
+from jsgs.jpeg.observe import MODES, jpeg_observe  # noqa: E402
+from jsgs.jpeg.supervision import dct_supervision  # noqa: E402
+from jsgs.jpeg.tables import ijg_tables  # noqa: E402
+
+SCENES = ROOT.parent / "shared" / "scenes"
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def time_it(fn: Callable[[], None], device: torch.device, repeats: int, warmup: int) -> float:
+    """Median wall time of ``fn`` in milliseconds."""
+    for _ in range(warmup):
+        fn()
+    _sync(device)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append(1000 * (time.perf_counter() - t0))
+    return statistics.median(times)
+
+
+def jpeg_step(mode: str, sampling: str, with_obs_loss: bool = True) -> Callable[..., torch.Tensor]:
+    """JO + DS losses (+ L_obs, whose D-SSIM is most of its cost) for a batch of views, with the paper's
+    weights: the scalar to backprop."""
+
+    def step(rendered: torch.Tensor, target: torch.Tensor, luma: torch.Tensor,
+             chroma: torch.Tensor) -> torch.Tensor:
+        obs = jpeg_observe(rendered, luma, chroma, sampling, mode)
+        ds = dct_supervision(obs, target, luma)
+        loss = 0.02 * ds.loss_low.mean() + 0.03 * ds.loss_mid.mean()
+        return loss + 0.2 * photometric_loss(obs, target) if with_obs_loss else loss
+
+    return step
+
+
+def gsplat_step(n: int, width: int, height: int, device: torch.device) -> Callable[[], None] | None:
+    """One gsplat rasterization forward + backward with ``n`` random Gaussians in front of the camera."""
+    if device.type != "cuda":
+        return None
+    try:
+        from gsplat import rasterization
+    except Exception as exc:  # noqa: BLE001 - any import problem means "no gsplat"
+        print(f"gsplat not usable: {exc}")
+        return None
+    g = torch.Generator(device=device).manual_seed(0)
+    means = torch.randn(n, 3, device=device, generator=g) * torch.tensor([2.0, 1.5, 1.0], device=device)
+    means[:, 2] += 5.0
+    quats = torch.randn(n, 4, device=device, generator=g)
+    scales = torch.log(0.02 + 0.03 * torch.rand(n, 3, device=device, generator=g))
+    opac = torch.logit(0.1 + 0.8 * torch.rand(n, device=device, generator=g))
+    colors = torch.rand(n, 3, device=device, generator=g)
+    params = [p.requires_grad_() for p in (means, quats, scales, opac, colors)]
+    f = 0.9 * width
+    K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], device=device)[None]
+    view = torch.eye(4, device=device)[None]
+
+    def step() -> None:
+        m, q, s, o, c = params
+        img, _, _ = rasterization(m, q, torch.exp(s), torch.sigmoid(o), c, view, K, width, height)
+        img.sum().backward()
+
+    return step
+
+
+def run_speed(args: argparse.Namespace) -> None:
+    device = torch.device(args.device)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    h, w = args.height, args.width
+    gen = torch.Generator().manual_seed(0)
+    rendered = torch.rand(1, 3, h, w, generator=gen).to(device)
+    target = torch.rand(1, 3, h, w, generator=gen).to(device)
+    luma, chroma = (torch.tensor(t, dtype=torch.float32, device=device)[None]
+                    for t in ijg_tables(args.quality))
+    print(f"device {device} ({torch.cuda.get_device_name(device) if device.type == 'cuda' else 'cpu'}), "
+          f"{torch.get_num_threads()} threads, torch {torch.__version__}, view {w}x{h}, q={args.quality}, "
+          f"{args.sampling}, compile={args.compile} ({args.compile_mode})")
+    gs = gsplat_step(args.gaussians, w, h, device) if args.gaussians > 0 else None
+    t_gs = time_it(gs, device, args.repeats, args.warmup) if gs else None
+    if t_gs:
+        print(f"gsplat rasterization fwd + bwd, {args.gaussians} Gaussians: {t_gs:.2f} ms")
+    print()
+    head = "| mode | JO fwd (ms) | JO + DS, fwd + bwd (ms) | JO + DS + L_obs, fwd + bwd (ms) |"
+    print(head + (" ratios to gsplat |" if t_gs else ""))
+    print("|---|---|---|---|" + ("---|" if t_gs else ""), flush=True)
+    for mode in MODES:
+        steps = [jpeg_step(mode, args.sampling, False), jpeg_step(mode, args.sampling, True)]
+        observe = lambda x, m=mode: jpeg_observe(x, luma, chroma, args.sampling, m)  # noqa: E731
+        if args.compile:
+            steps = [torch.compile(s, dynamic=False, mode=args.compile_mode) for s in steps]
+            observe = torch.compile(observe, dynamic=False, mode=args.compile_mode)
+
+        def fwd_only(observe=observe) -> None:
+            with torch.no_grad():
+                observe(rendered)
+
+        def fwd_bwd(step) -> None:
+            x = rendered.detach().requires_grad_()
+            step(x, target, luma, chroma).backward()
+
+        t_fwd = time_it(fwd_only, device, args.repeats, args.warmup)
+        t_ds, t_all = (time_it(lambda s=s: fwd_bwd(s), device, args.repeats, args.warmup) for s in steps)
+        ratio = f" {100 * t_ds / t_gs:.0f} % / {100 * t_all / t_gs:.0f} % |" if t_gs else ""
+        print(f"| {mode} | {t_fwd:.2f} | {t_ds:.2f} | {t_all:.2f} |{ratio}", flush=True)
+
+
+def _photos(n: int) -> list[np.ndarray]:
+    from PIL import Image
+
+    files = sorted(SCENES.glob("*/images/*.png")) if SCENES.is_dir() else []
+    if not files:
+        raise SystemExit(f"no photographs under {SCENES}")
+    step = max(1, len(files) // n)
+    return [np.asarray(Image.open(f).convert("RGB")) for f in files[::step][:n]]
+
+
+def run_fidelity(args: argparse.Namespace) -> None:
+    from PIL import Image
+
+    torch.set_num_threads(args.threads or 1)
+    photos = _photos(args.photos)
+    sub = {"4:4:4": 0, "4:2:2": 1, "4:2:0": 2}
+    qualities = [int(q) for q in args.qualities.split(",")]
+    sizes = ", ".join(f"{p.shape[1]}x{p.shape[0]}" for p in photos)
+    print(f"{len(photos)} photographs from {SCENES} ({sizes}); "
+          "PSNR in dB against Pillow's decode, min / mean over the photographs")
+    for sampling in args.samplings.split(","):
+        print(f"\n{sampling}\n")
+        print("| q | exact: bit-exact | float: min / mean | paper: min / mean |")
+        print("|---|---|---|---|")
+        for q in qualities:
+            exact_ok = 0
+            psnrs: dict[str, list[float]] = {"float": [], "paper": []}
+            for arr in photos:
+                buf = io.BytesIO()
+                Image.fromarray(arr).save(buf, "JPEG", quality=q, subsampling=sub[sampling])
+                buf.seek(0)
+                im = Image.open(buf)
+                ref = np.asarray(im.convert("RGB")).astype(np.float64)
+                luma = np.array(im.quantization[0]).reshape(8, 8)
+                chroma = np.array(im.quantization[1]).reshape(8, 8)
+                x = torch.from_numpy(arr.copy()).permute(2, 0, 1)[None].float() / 255
+                for mode in MODES:
+                    with torch.no_grad():
+                        out = jpeg_observe(x, luma, chroma, sampling, mode)[0]
+                    out = out.permute(1, 2, 0).double().numpy() * 255
+                    if mode == "exact":
+                        exact_ok += int(np.array_equal(np.round(out), ref))
+                    else:
+                        mse = float(((out - ref) ** 2).mean())
+                        psnrs[mode].append(99.0 if mse == 0 else 10 * np.log10(255**2 / mse))
+            cells = [f"{min(v):.1f} / {np.mean(v):.1f}" for v in psnrs.values()]
+            print(f"| {q} | {exact_ok}/{len(photos)} | {cells[0]} | {cells[1]} |")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--compile", action="store_true", help="torch.compile the JO + DS step")
+    p.add_argument("--compile-mode", default="default", help="torch.compile mode, e.g. reduce-overhead")
+    p.add_argument("--height", type=int, default=840)
+    p.add_argument("--width", type=int, default=1297)
+    p.add_argument("--quality", type=int, default=50)
+    p.add_argument("--sampling", default="4:2:0")
+    p.add_argument("--gaussians", type=int, default=500_000, help="0: skip gsplat")
+    p.add_argument("--repeats", type=int, default=10)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument("--fidelity", action="store_true", help="PSNR vs Pillow instead of speed")
+    p.add_argument("--photos", type=int, default=8)
+    p.add_argument("--qualities", default="1,5,10,20,30,40,50,60,70,80,90,95,100")
+    p.add_argument("--samplings", default="4:2:0,4:2:2,4:4:4")
+    args = p.parse_args()
+    run_fidelity(args) if args.fidelity else run_speed(args)
+
+
+if __name__ == "__main__":
+    main()

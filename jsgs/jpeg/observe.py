@@ -1,0 +1,192 @@
+"""The JPEG observation operator (JO, paper eq. jpeg_operator): encode and decode a rendered image with a
+view's own quantization tables, differentiably.
+
+``jpeg_observe(rgb, luma_table, chroma_table, sampling, mode)`` maps ``rgb`` (B x 3 x H x W in [0, 1]) to the
+image a JPEG decoder would show for it, B x 3 x H x W in [0, 1]. Every view of the batch carries its own
+tables; the sampling is one per call (views of one batch share an image size anyway; split batches by
+sampling).
+
+Stages (libjpeg-turbo 3, as Pillow writes and reads JPEG):
+  RGB -> YCbCr -> edge replication -> chroma down-sampling -> level shift -> 8x8 DCT -> quantize -> dequantize
+  -> IDCT -> +128, range limit -> crop -> chroma "fancy" up-sampling -> YCbCr -> RGB, clamp.
+
+Edge rules (what makes real photos, whose sizes are not multiples of 16, come out bit-exact): each plane is
+extended by replicating its last column / row. Chroma is down-sampled from the full-resolution planes
+replicated to ``ceil(W / 8h) 8h`` columns and ``ceil(H / v) v`` rows; the down-sampled rows are then
+replicated to a multiple of 8. On decoding only the real chroma samples (``ceil(H / v)`` x ``ceil(W / h)``)
+feed the up-sampler, whose edge context is the edge sample itself. Blocks that only pad an MCU are never
+visible and are not computed.
+
+Modes (all three share one backward: the gradient of the float stages, with the soft-round derivative
+``3 (z - round z)^2`` at the quantizer, zero outside the clamps):
+  - ``"exact"``: the forward value is libjpeg-turbo's integer pipeline, bit for bit (8-bit input
+    ``floor(255 x + 1/2)``, integer colour conversion, down-sampling bias, islow DCT, quantizer rounding
+    ``sign(t) floor((|t| + 4Q) / 8Q)``, islow IDCT and range limit, integer fancy up-sampling, integer YCbCr
+    -> RGB). Each stage is straight-through: value of the integer stage, gradient of its float version
+    evaluated at the integer input.
+  - ``"float"``: the same integer pipeline computed in the working dtype (float32) instead of float64: the
+    islow forward DCT as float32 matrix products with its rounding shifts (exact while partial sums stay
+    below 2^24, otherwise off by one unit in a rare coefficient), and the float orthonormal IDCT rounded to
+    the nearest integer instead of the islow IDCT. The cheap approximation (PSNR against libjpeg in the
+    README). A plain float forward DCT would lose ~10 dB: the encoder side decides quantization bins, and
+    islow's own rounding moves coefficients by up to ~1/8 of a unit.
+  - ``"paper"``: the float operator of the paper: no sample rounding anywhere, float DCT, soft rounding
+    ``round(z) + (z - round z)^3`` (eq. soft_round) in the forward, triangular up-sampling, clipping. Its
+    forward value under-states the JPEG error (the cubic term keeps up to 1/8 of a step).
+In every mode the input is clamped to [0, 1] first (the encoder can only see 8-bit samples; pixels outside
+get no gradient from this operator) and the IDCT output is clamped to [0, 255] as every decoder does.
+
+No data-dependent Python control flow and no host synchronisation: shapes, the sampling and the mode are
+static, so ``torch.compile`` can trace the whole operator.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .color import rgb_to_ycbcr, rgb_to_ycbcr_libjpeg, ycbcr_to_rgb, ycbcr_to_rgb_libjpeg
+from .dct import block_dct, block_idct, blockify, fdct_islow, idct_islow, range_limit, unblockify
+from .rounding import quantize_libjpeg, round_soft_grad, round_ste, soft_round
+from .sampling import downsample, downsample_libjpeg, pad_replicate, upsample, upsample_libjpeg
+
+Mode = Literal["paper", "float", "exact"]
+Sampling = Literal["4:4:4", "4:2:2", "4:2:0"]
+
+MODES: tuple[str, ...] = ("paper", "float", "exact")
+#: sampling string -> (h, v): luma-to-chroma ratio horizontally and vertically.
+SAMPLING_FACTORS: dict[str, tuple[int, int]] = {"4:4:4": (1, 1), "4:2:2": (2, 1), "4:2:0": (2, 2)}
+
+
+def _ceil_div(a: int, b: int) -> int:
+    return -(-a // b)
+
+
+def _through(exact: Tensor, smooth: Tensor) -> Tensor:
+    """Value of ``exact`` (detached, cast to ``smooth``'s dtype), gradient of ``smooth``.
+
+    Written as ``exact + (smooth - smooth.detach())`` so that the value is bit-for-bit ``exact``.
+    """
+    return exact.detach().to(smooth.dtype) + (smooth - smooth.detach())
+
+
+def as_tables(
+    table: Tensor | np.ndarray | list, batch: int, dtype: torch.dtype, device: torch.device
+) -> Tensor:
+    """Quantization table(s) -> ``(batch, 8, 8)`` tensor in natural order ``[v, u]``.
+
+    Accepts ``(8, 8)`` (shared by every view), ``(batch, 8, 8)``, or 64 values in natural order.
+    """
+    t = torch.as_tensor(np.asarray(table) if not isinstance(table, Tensor) else table)
+    t = t.to(dtype=dtype, device=device)
+    if t.shape[-2:] != (8, 8):
+        t = t.reshape(*t.shape[:-1], 8, 8)
+    if t.dim() == 2:
+        t = t.expand(batch, 8, 8)
+    if t.shape != (batch, 8, 8):
+        raise ValueError(f"quantization tables must be (8, 8) or ({batch}, 8, 8), got {tuple(t.shape)}")
+    return t
+
+
+def _code_planes(planes: Tensor, table: Tensor, mode: str) -> Tensor:
+    """Level shift, 8x8 DCT, quantize + dequantize, IDCT, +128 and range limit.
+
+    Args:
+        planes: ``(B, C, Hp, Wp)`` samples 0..255, Hp and Wp multiples of 8 (already edge-padded).
+        table: ``(B, 8, 8)`` quantization steps for these planes (one per view, shared by the C planes).
+    Returns:
+        ``(B, C, Hp, Wp)`` decoded samples 0..255 (integers except in mode "paper").
+    """
+    blocks = blockify(planes - 128.0)  # (B, C, nby, nbx, 8, 8)
+    q = table[:, None, None, None]
+    if mode == "paper":
+        deq = q * soft_round(block_dct(blocks) / q)
+        return unblockify((block_idct(deq) + 128.0).clamp(0.0, 255.0))
+    # Modes "exact" and "float": libjpeg's values, float gradients. islow leaves coefficients at 8x the
+    # orthonormal scale and its quantizer divides by 8Q.
+    exact = mode == "exact"
+    work = torch.float64 if exact else blocks.dtype
+    t_value = fdct_islow(blocks, work)
+    deq_value = quantize_libjpeg(t_value, q.to(work)) * q.to(work)
+    t = _through(t_value, 8.0 * block_dct(blocks))
+    deq = _through(deq_value, q * round_soft_grad(t / (8.0 * q)))
+    out = (block_idct(deq) + 128.0).clamp(0.0, 255.0)
+    if exact:
+        out = _through(range_limit(idct_islow(deq_value)), out)
+    else:
+        out = round_ste(out)
+    return unblockify(out)
+
+
+def jpeg_observe(
+    rgb: Tensor,
+    luma_table: Tensor | np.ndarray,
+    chroma_table: Tensor | np.ndarray,
+    sampling: str = "4:2:0",
+    mode: str = "paper",
+) -> Tensor:
+    """The JPEG observation of a rendered image, ``C_JPEG(rgb; T^Y, T^C)`` (paper eq. jpeg_operator).
+
+    Args:
+        rgb: ``(B, 3, H, W)`` float RGB in [0, 1] (values outside are clamped). Any H, W >= 1.
+        luma_table: quantization steps for Y, ``(8, 8)`` or ``(B, 8, 8)``, natural order ``[v, u]`` (as
+            Pillow's ``Image.quantization[0]`` reshaped to 8x8, or the manifest's ``luma_table``). Integers
+            >= 1; 16-bit tables are accepted.
+        chroma_table: the same for Cb and Cr.
+        sampling: ``"4:4:4"``, ``"4:2:2"`` (h2v1) or ``"4:2:0"`` (h2v2), as read from the file; one per call.
+        mode: ``"exact"``, ``"float"`` or ``"paper"`` (module docstring).
+    Returns:
+        ``(B, 3, H, W)`` decoded RGB in [0, 1], same dtype as ``rgb``. In modes "exact" and "float" the
+        values are exactly ``k / 255`` for integers k; in "exact" k equals libjpeg-turbo's decode of
+        libjpeg-turbo's encode.
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if sampling not in SAMPLING_FACTORS:
+        raise ValueError(f"sampling must be one of {tuple(SAMPLING_FACTORS)}, got {sampling!r}")
+    if rgb.dim() != 4 or rgb.shape[1] != 3:
+        raise ValueError(f"rgb must be (B, 3, H, W), got {tuple(rgb.shape)}")
+    if not rgb.is_floating_point():
+        rgb = rgb.float()
+    b, _, height, width = rgb.shape
+    h, v = SAMPLING_FACTORS[sampling]
+    tab_y = as_tables(luma_table, b, rgb.dtype, rgb.device)
+    tab_c = as_tables(chroma_table, b, rgb.dtype, rgb.device)
+    integer = mode != "paper"
+
+    x = 255.0 * rgb.clamp(0.0, 1.0)
+    if integer:
+        x = round_ste(x)  # the encoder sees 8-bit samples
+    ycc = rgb_to_ycbcr(x)
+    if integer:
+        ycc = _through(rgb_to_ycbcr_libjpeg(x), ycc)
+
+    # Encoder edges and chroma down-sampling (jcprepct.c / jcsample.c).
+    luma = pad_replicate(ycc[:, :1], 8 * _ceil_div(height, 8), 8 * _ceil_div(width, 8))
+    chroma = ycc[:, 1:]
+    ch, cw = _ceil_div(height, v), _ceil_div(width, h)  # real chroma samples
+    if h == 1 and v == 1:
+        chroma = pad_replicate(chroma, luma.shape[-2], luma.shape[-1])
+    else:
+        chroma = pad_replicate(chroma, v * ch, 8 * h * _ceil_div(width, 8 * h))
+        small = downsample(chroma, h, v)
+        chroma = _through(downsample_libjpeg(chroma, h, v), small) if integer else small
+        chroma = pad_replicate(chroma, 8 * _ceil_div(ch, 8), chroma.shape[-1])
+
+    luma = _code_planes(luma, tab_y, mode)[..., :height, :width]
+    chroma = _code_planes(chroma, tab_c, mode)[..., :ch, :cw]
+
+    # Decoder up-sampling (jdsample.c) from the real chroma samples only.
+    if not (h == 1 and v == 1):
+        big = upsample(chroma, h, v)
+        chroma = _through(upsample_libjpeg(chroma, h, v), big) if integer else big
+    chroma = chroma[..., :height, :width]
+
+    ycc = torch.cat([luma, chroma], dim=1)
+    out = ycbcr_to_rgb(ycc).clamp(0.0, 255.0)
+    if integer:
+        out = _through(ycbcr_to_rgb_libjpeg(ycc), out)
+    return out / 255.0

@@ -1,0 +1,202 @@
+"""jpeg_observe against the real thing: Pillow (libjpeg-turbo) encode + decode.
+
+Mode "exact" must reproduce Pillow's decode of Pillow's encode bit for bit for q = 1..100 (every quality at
+least once per sampling), 4:4:4 / 4:2:2 / 4:2:0, sizes from 1x1 to whole photographs that are not multiples of
+16; mode "float" must stay >= 49 dB PSNR against the same decodes. Each image is run as one batch whose views
+carry different tables (Pillow's own tables, as ``Image.quantization`` reports them, natural order).
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from jsgs.jpeg.observe import jpeg_observe
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+SCENES = SHARED / "scenes"
+SUBSAMPLING = {"4:4:4": 0, "4:2:2": 1, "4:2:0": 2}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Small tensors: intra-op threads only add synchronisation (10x slower on a busy 2-core machine)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def pillow_roundtrip(arr: np.ndarray, quality: int,
+                     sampling: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(decoded HxWx3 uint8, luma table 8x8, chroma table 8x8) of Pillow's JPEG of ``arr``."""
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, "JPEG", quality=quality, subsampling=SUBSAMPLING[sampling])
+    buf.seek(0)
+    im = Image.open(buf)
+    tables = im.quantization
+    decoded = np.asarray(im.convert("RGB"))
+    return decoded, np.array(tables[0]).reshape(8, 8), np.array(tables[1]).reshape(8, 8)
+
+
+def to_tensor(arr: np.ndarray, batch: int) -> torch.Tensor:
+    x = torch.from_numpy(np.array(arr, copy=True)).permute(2, 0, 1).float() / 255.0
+    return x[None].expand(batch, -1, -1, -1).contiguous()
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(((a.astype(np.float64) - b.astype(np.float64)) ** 2).mean())
+    return float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
+
+
+def synthetic_images() -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(1234)
+    yy, xx = np.mgrid[0:29, 0:43]
+    ramp = np.stack([(xx * 6) % 256, (yy * 9) % 256, ((xx + yy) * 4) % 256], -1).astype(np.uint8)
+    checker = (((yy + xx) % 2) * 255).astype(np.uint8)
+    return {
+        "noise_1x1": rng.integers(0, 256, (1, 1, 3), dtype=np.uint8),
+        "noise_7x9": rng.integers(0, 256, (7, 9, 3), dtype=np.uint8),
+        "noise_17x33": rng.integers(0, 256, (17, 33, 3), dtype=np.uint8),
+        "noise_1x1000": rng.integers(0, 256, (1, 1000, 3), dtype=np.uint8),
+        "noise_1000x1": rng.integers(0, 256, (1000, 1, 3), dtype=np.uint8),
+        "noise_5x4": rng.integers(0, 256, (5, 4, 3), dtype=np.uint8),
+        "saturated_23x41": (rng.integers(0, 2, (23, 41, 3)) * 255).astype(np.uint8),
+        "ramp_29x43": ramp,
+        "checker_29x43": np.repeat(checker[..., None], 3, -1),
+        "black_9x10": np.zeros((9, 10, 3), np.uint8),
+        "white_10x9": np.full((10, 9, 3), 255, np.uint8),
+        "constant_12x13": np.full((12, 13, 3), (200, 30, 90), np.uint8),
+    }
+
+
+def photo_images() -> dict[str, np.ndarray]:
+    """Odd crops and one whole photograph from ../shared/scenes (empty when it is absent)."""
+    files = sorted(SCENES.glob("*/images/*.png")) if SCENES.is_dir() else []
+    if not files:
+        return {}
+    out: dict[str, np.ndarray] = {}
+    rng = np.random.default_rng(7)
+    for k, (h, w) in enumerate([(61, 83), (37, 129), (101, 77), (45, 45)]):
+        f = files[(k * 37) % len(files)]
+        img = np.asarray(Image.open(f).convert("RGB"))
+        y = int(rng.integers(0, img.shape[0] - h))
+        x = int(rng.integers(0, img.shape[1] - w))
+        out[f"{f.parent.parent.name}_{f.stem}_{h}x{w}"] = img[y : y + h, x : x + w]
+    whole = next((f for f in files if "fern" in str(f)), files[0])
+    out[f"{whole.parent.parent.name}_{whole.stem}_whole"] = np.asarray(Image.open(whole).convert("RGB"))
+    return out
+
+
+def quality_plan(names: list[str], sampling: str) -> dict[str, list[int]]:
+    """Spread q = 1..100 over the images (every q once per sampling) plus q = 1, 50, 100 for each image; whole
+    photographs (the slow ones) get q = 1, 50, 100 only."""
+    offset = sum(map(ord, sampling))
+    plan: dict[str, list[int]] = {n: [1, 50, 100] for n in names}
+    spread = [n for n in names if not n.endswith("_whole")]
+    for q in range(1, 101):
+        name = spread[(q * 7 + offset) % len(spread)]
+        if q not in plan[name]:
+            plan[name].append(q)
+    return plan
+
+
+def run_image(arr: np.ndarray, refs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], sampling: str,
+              mode: str) -> np.ndarray:
+    """jpeg_observe of ``arr``, one batch, a view per Pillow reference (its tables): (B, H, W, 3) uint8."""
+    luma = torch.tensor(np.stack([r[1] for r in refs]), dtype=torch.float32)
+    chroma = torch.tensor(np.stack([r[2] for r in refs]), dtype=torch.float32)
+    out = jpeg_observe(to_tensor(arr, len(refs)), luma, chroma, sampling, mode)
+    return (out * 255).round().clamp(0, 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()
+
+
+def _images(kind: str) -> dict[str, np.ndarray]:
+    if kind == "photo":
+        photos = photo_images()
+        if not photos:
+            pytest.skip(f"no photographs: {SCENES} is absent (../shared not checked out beside the project)")
+        return photos
+    return synthetic_images()
+
+
+@pytest.mark.parametrize("kind", ["synthetic", "photo"])
+@pytest.mark.parametrize("sampling", ["4:4:4", "4:2:2", "4:2:0"])
+def test_exact_is_bit_exact_and_float_reaches_49_db(kind: str, sampling: str) -> None:
+    images = _images(kind)
+    plan = quality_plan(sorted(images), sampling)
+    failures = []
+    worst = (float("inf"), "")
+    for name, qualities in plan.items():
+        refs = [pillow_roundtrip(images[name], q, sampling) for q in qualities]
+        for mode in ("exact", "float"):
+            outs = run_image(images[name], refs, sampling, mode)
+            for q, got, ref in zip(qualities, outs, refs, strict=True):
+                if mode == "float":
+                    worst = min(worst, (psnr(got, ref[0]), f"{name} q={q}"))
+                elif not np.array_equal(got, ref[0]):
+                    diff = np.abs(got.astype(int) - ref[0].astype(int))
+                    failures.append(f"{name} q={q}: {int((diff > 0).sum())} samples differ, max {diff.max()}")
+    assert not failures, "exact mode:\n" + "\n".join(failures)
+    assert worst[0] >= 49.0, f"float mode: {worst[0]:.2f} dB on {worst[1]}"
+
+
+def test_every_quality_is_covered() -> None:
+    names = sorted(synthetic_images()) + ["some_photo_whole"]
+    for sampling in SUBSAMPLING:
+        covered = set().union(*quality_plan(names, sampling).values())
+        assert covered == set(range(1, 101))
+
+
+def test_custom_and_16bit_tables_match_pillow() -> None:
+    """Non-IJG tables, all-1 / all-255 tables and 16-bit tables (Pillow writes them with 16-bit precision)."""
+    rng = np.random.default_rng(5)
+    arr = rng.integers(0, 256, (19, 27, 3), dtype=np.uint8)
+    tables = {
+        "ones": (np.ones(64, int), np.ones(64, int)),
+        "all255": (np.full(64, 255), np.full(64, 255)),
+        "random": (rng.integers(1, 256, 64), rng.integers(1, 256, 64)),
+        "16bit": (rng.integers(1, 2000, 64), rng.integers(200, 8000, 64)),
+    }
+    for name, (luma, chroma) in tables.items():
+        for sampling in SUBSAMPLING:
+            buf = io.BytesIO()
+            # Pillow's qtables take natural order lists and write them zigzagged.
+            Image.fromarray(arr).save(buf, "JPEG", qtables=[list(luma), list(chroma)],
+                                      subsampling=SUBSAMPLING[sampling])
+            buf.seek(0)
+            im = Image.open(buf)
+            got_tables = im.quantization
+            assert list(got_tables[0]) == list(luma)
+            ref = np.asarray(im.convert("RGB"))
+            lt, ct = np.array(luma).reshape(8, 8), np.array(chroma).reshape(8, 8)
+            out = jpeg_observe(to_tensor(arr, 1), lt, ct, sampling, "exact")
+            got = (out[0] * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+            assert np.array_equal(got, ref), f"{name} {sampling}: max {np.abs(got.astype(int) - ref).max()}"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sampling", ["4:4:4", "4:2:2", "4:2:0"])
+def test_whole_photographs_every_quality(sampling: str) -> None:
+    """A whole photograph per sampling (the 480x640 portrait for 4:2:0, a 504x378 landscape otherwise, when
+    present), q = 1..100, exact."""
+    files = sorted(SCENES.glob("*/images/*.png")) if SCENES.is_dir() else []
+    if not files:
+        pytest.skip(f"no photographs: {SCENES} is absent (../shared not checked out beside the project)")
+    portrait = [f for f in files if Image.open(f).size[1] > Image.open(f).size[0]]
+    landscape = next((f for f in files if "fern" in str(f)), files[0])
+    picks = portrait[:1] if sampling == "4:2:0" and portrait else [landscape]
+    failures = []
+    for f in picks:
+        arr = np.asarray(Image.open(f).convert("RGB"))
+        for start in range(1, 101, 10):
+            qualities = list(range(start, start + 10))
+            refs = [pillow_roundtrip(arr, q, sampling) for q in qualities]
+            outs = run_image(arr, refs, sampling, "exact")
+            failures += [f"{f.name} q={q}" for q, got, ref in zip(qualities, outs, refs, strict=True)
+                         if not np.array_equal(got, ref[0])]
+    assert not failures, failures
