@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -12,7 +12,7 @@ from jsgs.errors import JsgsError
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_schema(name: str) -> dict[str, Any]:
     """``name`` without extension, e.g. ``"manifest"`` -> schemas/manifest.schema.json."""
     path = SCHEMA_DIR / f"{name}.schema.json"
