@@ -34,3 +34,23 @@ def user_errors(func: F) -> F:
             fail("interrupted", 130)
 
     return wrapper  # type: ignore[return-value]
+
+
+def invocation(ctx: click.Context, program: str) -> str:
+    """The command as the user could type it again, for provenance records: ``program``, the subcommand,
+    its arguments, then every option that was given a value (canonical order). Built from click's parsed
+    parameters rather than ``sys.argv`` so that it is right however the command was invoked."""
+    import shlex
+
+    args: list[str] = [program, ctx.info_name or ""]
+    opts: list[str] = []
+    for param in ctx.command.params:
+        value = ctx.params.get(param.name or "")
+        if value is None or value is False or value == ():
+            continue
+        if isinstance(param, click.Argument):
+            args += [str(v) for v in value] if isinstance(value, (list, tuple)) else [str(value)]
+            continue
+        flag = max(param.opts, key=len)
+        opts += [flag] if value is True else [flag, str(value)]
+    return shlex.join(args + opts)

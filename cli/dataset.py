@@ -9,19 +9,13 @@ from pathlib import Path
 
 import click
 
-from cli._common import user_errors
+from cli._common import invocation, user_errors
 
 SCHEDULE_HELP = (
     "uniform: the nine qualities 10..90 equally; gaussian: weights exp(-x^2/2) at x = -2..2 (q=10..90); "
     "descending: weights 9:8:...:1 from q=90 down to q=10; fixed: every training view at --quality; "
     "clean: training views stay lossless PNG (the ceiling baseline)."
 )
-
-
-def _command_line() -> str:
-    from jsgstools.compress import command_line
-
-    return command_line()
 
 
 @click.command("synth")
@@ -124,7 +118,7 @@ def compress_cmd(
         force=force,
         jobs=jobs,
         progress=sys.stderr.isatty(),
-        command=_command_line(),
+        command=invocation(click.get_current_context(), "jsgstools"),
     )
     rec = res.record
     st = rec["settings"]
@@ -213,7 +207,8 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, force: bool) ->
     the reference/<stem>.png path when it exists; points3D and provenance per scene."""
     from jsgstools.manifest import manifest
 
-    doc = manifest(scene, out, test_every=test_every, force=force, command=_command_line())
+    command = invocation(click.get_current_context(), "jsgstools")
+    doc = manifest(scene, out, test_every=test_every, force=force, command=command)
     views = doc["views"]
     n_jpeg = sum(v["jpeg"] is not None for v in views)
     n_train = sum(v["split"] == "train" for v in views)

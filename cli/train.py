@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import shlex
 from pathlib import Path
 from typing import Any
 
 import click
 
-from cli._common import user_errors
+from cli._common import invocation, user_errors
 from jsgs.errors import JsgsError
 
 
@@ -22,19 +21,6 @@ def _parse_steps(text: str) -> list[int]:
         raise JsgsError(
             f"--eval-at: expected comma-separated step counts like 3000,7000,10000 (got {text!r})"
         ) from None
-
-
-def _command_line(ctx: click.Context) -> str:
-    """The command as the user could type it again (canonical order, given options only)."""
-    parts = ["jsgs", "train", str(ctx.params["manifest"])]
-    for name, value in ctx.params.items():
-        if name == "manifest" or value is None or value is False:
-            continue
-        flag = "--" + name.replace("_", "-")
-        if name == "config_file":
-            flag = "--config"
-        parts += [flag] if value is True else [flag, str(value)]
-    return shlex.join(parts)
 
 
 @click.command("train")
@@ -159,7 +145,7 @@ def train_command(
     ctx = click.get_current_context()
     doc = train(
         manifest, out, cfg, resume=resume, force=force, stop_at=stop_at, progress=not quiet, profile=profile,
-        command=_command_line(ctx),
+        command=invocation(ctx, "jsgs"),
     )  # fmt: skip
     last = doc["evals"][-1] if doc["evals"] else None
     summary = f"{doc['status']}: {doc['step']}/{doc['iterations']} steps, {doc['num_gaussians']} Gaussians"

@@ -36,7 +36,6 @@ from __future__ import annotations
 import io
 import os
 import shlex
-import sys
 from collections.abc import Sequence
 from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
@@ -491,8 +490,3 @@ def _pillow_version() -> str:
     import PIL
 
     return str(PIL.__version__)
-
-
-def command_line() -> str:
-    """The command as typed (for provenance)."""
-    return " ".join(shlex.quote(a) for a in [Path(sys.argv[0]).name, *sys.argv[1:]])
