@@ -1,0 +1,176 @@
+"""The Gaussian Controller's math (paper eqs. gaussian_risk, controller_scale, fro), for one view.
+
+For view i and Gaussian j (all per-Gaussian tensors are [N], one camera):
+
+* ``r̄_j`` — the block score map r(p) pooled over the pixels j touches in this pass with the footprint weight
+  ``κ = t·a`` (opacity excluded), ``r̄ = sg[Σ κ r / (Σ κ + ε_proj)]``; ``V_i = {j : ν_j > 0}`` with
+  ``ν = Σ t·α·a``. The pooled sums come from the rasteriser (``jsgs.render.pool``); here they are inputs.
+* ``A_j = sg[J_j W R(q_j)]`` (2 x 3, pixels per world unit): W the rotation of the world-to-camera map,
+  R(q) the Gaussian's rotation, J the perspective Jacobian at the camera-space mean ``(x, y, z)``::
+
+      J = [[fx/z, 0, -fx·x'/z], [0, fy/z, -fy·y'/z]],   x' = clamp(x/z, ...), y' = clamp(y/z, ...)
+
+  with gsplat's clamp of x/z and y/z to the field of view widened by 30 % on each side (the same J the
+  rasteriser projects with, so that ``A diag(s)² Aᵀ`` is exactly the rasteriser's 2D covariance before its
+  0.3 px² dilation; the clamp only changes J for Gaussians whose centre lies far outside the image).
+* ``s̄_j = sqrt(½ tr(A diag(s)² Aᵀ)) = sqrt(½ Σ_k ‖A[:, k]‖² s_k²)`` — the projected RMS scale in pixels at
+  the training resolution, before the dilation; differentiable in the scales only (A is frozen).
+* ``L_fro = (1/|V|) Σ_{j∈V} r̄_j α_j² exp(−s̄_j/τ_s)``; 0 (with zero gradient) when V is empty.
+
+Units: scales are world units (activated, ``exp`` of the stored log-scales), s̄ and τ_s pixels, r̄ and
+L_fro unitless. Everything is vectorised over all N Gaussians with a contributor mask — no host
+synchronisation, no data-dependent shapes.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+TAU_S = 1.0  # τ_s, pixels at the training resolution
+EPS_PROJ = 1e-6  # ε_proj
+FOV_MARGIN = 0.3  # gsplat's widening of the FOV used to clamp x/z and y/z in J
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices [N, 3, 3] from quaternions [N, 4] (w, x, y, z), normalised first (as gsplat)."""
+    q = quats / quats.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    rows = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]  # fmt: skip
+    return torch.stack(rows, dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+@torch.no_grad()
+def controller_matrix(
+    means: Tensor,
+    quats: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+) -> Tensor:
+    """``A = J W R(q)`` [N, 2, 3] under stop-gradient (eq. controller_scale).
+
+    Args:
+        means: [N, 3] world positions; quats: [N, 4] (w, x, y, z), any norm.
+        viewmat: [4, 4] world-to-camera (OpenCV axes); K: [3, 3] intrinsics in pixels.
+        width, height: image size in pixels (for gsplat's FOV clamp of J).
+        near_plane: Gaussians nearer than this (or behind the camera) are culled by the rasteriser and never
+            in V; their J is evaluated at z = 1 only to stay finite.
+    """
+    means, quats, viewmat, K = means.detach(), quats.detach(), viewmat.detach(), K.detach()
+    Rw, tw = viewmat[:3, :3], viewmat[:3, 3]
+    xyz = means @ Rw.T + tw
+    x, y, z = xyz.unbind(-1)
+    z = torch.where(z >= near_plane, z, torch.ones_like(z))
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    u = torch.clamp(x / z, min=-(cx / fx + FOV_MARGIN * tan_x), max=(width - cx) / fx + FOV_MARGIN * tan_x)
+    v = torch.clamp(y / z, min=-(cy / fy + FOV_MARGIN * tan_y), max=(height - cy) / fy + FOV_MARGIN * tan_y)
+    zero = torch.zeros_like(z)
+    J = torch.stack([fx / z, zero, -fx * u / z, zero, fy / z, -fy * v / z], dim=-1).reshape(-1, 2, 3)
+    return J @ Rw @ quat_to_rotmat(quats)
+
+
+def projected_rms_scale_sq(A: Tensor, scales: Tensor) -> Tensor:
+    """``s̄² = ½ tr(A diag(s)² Aᵀ) = ½ Σ_k ‖A[:, k]‖² s_k²`` [N] in px². A [N, 2, 3] (frozen), scales [N, 3]
+    activated (world units), differentiable."""
+    col_sq = (A.detach() ** 2).sum(dim=-2)  # [N, 3]: ‖A[:, k]‖²
+    return 0.5 * (col_sq * scales * scales).sum(dim=-1)
+
+
+class ControllerStats(NamedTuple):
+    """Per-view GC statistics (0-dim tensors, detached).
+
+    visible: |V_i|. rbar_mean: mean of r̄ over V_i (0 when V_i is empty). damped: the number of Gaussians
+    the controller acts on appreciably — j ∈ V_i with r̄_j > 0 and s̄_j ≤ τ_s (their factor exp(−s̄/τ_s) is
+    at least 1/e; larger Gaussians are left nearly alone by the exponential)."""
+
+    visible: Tensor
+    rbar_mean: Tensor
+    damped: Tensor
+
+
+class FroTerms(NamedTuple):
+    """L_fro for one view and what it was made of. ``loss`` 0-dim (differentiable in the opacity logits and
+    log-scales when computed by :func:`fro_loss`); ``sbar`` [N] px and ``weight`` [N] = r̄ α² exp(−s̄/τ) m
+    (detached); ``stats``."""
+
+    loss: Tensor
+    sbar: Tensor
+    weight: Tensor
+    stats: ControllerStats
+
+
+def _stats(rbar: Tensor, mask: Tensor, sbar: Tensor, tau_s: float) -> ControllerStats:
+    m = mask.to(rbar.dtype)
+    count = m.sum()
+    rbar_mean = (rbar.detach() * m).sum() / count.clamp_min(1.0)
+    damped = (mask & (rbar.detach() > 0) & (sbar.detach() <= tau_s)).to(rbar.dtype).sum()
+    return ControllerStats(count.detach(), rbar_mean.detach(), damped)
+
+
+def fro_loss(
+    rbar: Tensor,
+    visible: Tensor,
+    opacity_logits: Tensor,
+    log_scales: Tensor,
+    A: Tensor,
+    tau_s: float = TAU_S,
+) -> FroTerms:
+    """``L_fro`` (eq. fro) by autograd: gradients reach ``opacity_logits`` [N] and ``log_scales`` [N, 3] only.
+
+    Args:
+        rbar: [N] pooled scores r̄ (detached here); visible: [N] bool, V_i.
+        opacity_logits: [N] stored opacity logits (α = sigmoid); log_scales: [N, 3] stored log-scales.
+        A: [N, 2, 3] from :func:`controller_matrix` (detached here).
+        tau_s: τ_s in pixels.
+    """
+    rbar = rbar.detach()
+    m = visible.to(rbar.dtype)
+    alpha = torch.sigmoid(opacity_logits)
+    s2 = projected_rms_scale_sq(A, torch.exp(log_scales))
+    # sqrt has an infinite slope at 0: evaluate it only where the term is used (non-contributors get s2 = 1,
+    # and torch.where gives them zero gradient)
+    sbar = torch.sqrt(torch.where(visible, s2, torch.ones_like(s2)))
+    per = rbar * alpha * alpha * torch.exp(-sbar / tau_s)
+    loss = torch.where(visible, per, torch.zeros_like(per)).sum() / m.sum().clamp_min(1.0)
+    return FroTerms(loss, sbar.detach(), (per * m).detach(), _stats(rbar, visible, sbar, tau_s))
+
+
+@torch.no_grad()
+def fro_loss_and_grads(
+    rbar: Tensor,
+    visible: Tensor,
+    opacity_logits: Tensor,
+    log_scales: Tensor,
+    A: Tensor,
+    tau_s: float = TAU_S,
+) -> tuple[FroTerms, Tensor, Tensor]:
+    """``L_fro`` and its gradient in closed form (same arguments as :func:`fro_loss`), for a caller that
+    applies it after the pooled sums are known inside the main backward.
+
+    With m the contributor mask, n = max(|V|, 1), e = exp(−s̄/τ) and c_k = ‖A[:, k]‖²:
+    ∂L/∂logit_j = m r̄ e · 2α²(1 − α) / n and ∂L/∂log s_jk = −m r̄ α² e / τ · c_k s_k² / (2 s̄) / n.
+    Returns (terms, grad of the logits [N], grad of the log-scales [N, 3])."""
+    m = visible.to(rbar.dtype)
+    n = m.sum().clamp_min(1.0)
+    alpha = torch.sigmoid(opacity_logits.detach())
+    s = torch.exp(log_scales.detach())
+    col_sq = (A.detach() ** 2).sum(dim=-2)
+    s2 = 0.5 * (col_sq * s * s).sum(dim=-1)
+    sbar = torch.sqrt(torch.where(visible, s2, torch.ones_like(s2)))
+    e = torch.exp(-sbar / tau_s)
+    coef = torch.where(visible, rbar.detach(), torch.zeros_like(rbar)) / n  # m r̄ / n
+    loss = (coef * alpha * alpha * e).sum()
+    g_logit = coef * e * 2.0 * alpha * alpha * (1.0 - alpha)
+    g_log_scale = -(coef * alpha * alpha * e / (tau_s * 2.0 * sbar))[:, None] * col_sq * s * s
+    per = rbar * alpha * alpha * e * m
+    return FroTerms(loss, sbar, per, _stats(rbar, visible, sbar, tau_s)), g_logit, g_log_scale

@@ -1,0 +1,384 @@
+"""``--method jsgs``: the gsplat backbone plus the JSGS terms (paper eq. overall), as a trainer loss hook.
+
+Per training step, for the sampled view i with its own JPEG state (manifest ``jpeg``: luma table T^Y,
+chroma table T^C, chroma sampling)::
+
+    L^i = λ_base ℓ_ph(Î, I)                      the trainer's baseline term (loss.base_weight, default 1)
+        + λ_obs ℓ_ph(C_JPEG(Î; T^Y, T^C), I)      JO: eq. obs_loss                           "obs"  (0.2)
+        + λ_low L_low + λ_mid L_mid               DS: eq. jsgs_dct_losses                    "low"  (0.02)
+                                                                                             "mid"  (0.03)
+        + λ_fro L_fro                             GC: eqs. gaussian_risk, controller_scale,  "fro"  (0.05)
+                                                      fro
+
+ℓ_ph is the trainer's own photometric loss (same λ_ssim and SSIM padding as the baseline term). A lossless
+view (``jpeg`` null) gets ℓ_ph only: its JSGS terms are logged as 0 and carry no gradient, so the logged
+means are each term's mean contribution per step.
+
+Ablations (paper Table 2): ``jo``, ``ds``, ``gc`` (method options; ``--no-jo``, ``--no-ds``, ``--no-gc``).
+DS and GC are defined on the JO output, so ``jo: false`` requires ``ds: false`` and ``gc: false``; with all
+three off the method is the baseline (the factory returns no hook). Without DS but with GC, the block scores
+are still computed (detached) because GC needs them; L_low and L_mid are then neither logged nor optimised.
+
+The Gaussian Controller pools the block-score map r(p) per Gaussian with the rasteriser's pool probe
+(``rasterize(..., pool_probe=True)``, ``jsgs.render.pool``), in the same rasterisation pass. Two routes, equal
+values and gradients (tested), chosen by ``gc_pooling``:
+
+* ``"deferred"`` (default): ``probe_objective`` (value exactly 0) rides in the ``fro`` term, so the main
+  backward itself pools ``(o·S_r, ν)`` into the probe's gradient; a post-accumulate hook on the probe then
+  computes r̄, V_i, L_fro and L_fro's closed-form gradient and adds ``λ_fro ∂L_fro/∂θ`` to the
+  opacity-logit and log-scale gradients. No extra rasteriser pass of any kind. The ``fro`` term's value
+  (and the GC statistics) are written in place during that backward: they are correct wherever the trainer
+  reads them after ``loss.backward()`` (progress bar, metrics.json), but the total ``loss`` the trainer sums
+  *before* the backward does not include ``λ_fro L_fro`` (its logged value; the gradient is complete).
+* ``"now"``: ``pool_now`` runs one extra rasteriser backward before the loss is formed; L_fro is an ordinary
+  autograd term (exact total loss too; costs that extra backward).
+
+With ``lambda_fro`` 0 the term is logged only; the ``"now"`` route is used for it (nothing rides in the
+loss).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Any, Literal
+
+import torch
+from torch import Tensor
+
+from jsgs.errors import JsgsError
+from jsgs.train.controller import EPS_PROJ, TAU_S, controller_matrix, fro_loss, fro_loss_and_grads
+from jsgs.train.hooks import HookOutput, LossHook, StepContext, register_method
+
+if TYPE_CHECKING:
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.data import Scene, View
+
+#: Term names in HookOutput.terms (and in metrics.json ``train.terms``).
+TERM_NAMES = ("obs", "low", "mid", "fro")
+#: GC statistics in HookOutput.stats (``train.stats``).
+STAT_NAMES = ("gc_visible", "gc_rbar", "gc_damped")
+SUPPORTED_SAMPLING = ("4:4:4", "4:2:2", "4:2:0")
+
+
+@dataclass
+class JsgsOptions:
+    """``method_options`` of ``--method jsgs`` (defaults: the paper's "Implementation details")."""
+
+    lambda_obs: float = 0.2
+    lambda_low: float = 0.02
+    lambda_mid: float = 0.03
+    lambda_fro: float = 0.05
+    jpeg_mode: Literal["paper", "float", "exact"] = "paper"
+    jo: bool = True
+    ds: bool = True
+    gc: bool = True
+    tau_s: float = TAU_S
+    eps_sm: float = 1e-3
+    eps_dct_loss: float = 1e-6
+    eps_dct_block: float = 1e-6
+    eps_proj: float = EPS_PROJ
+    gc_pooling: Literal["deferred", "now"] = "deferred"
+
+    @property
+    def any_active(self) -> bool:
+        return self.jo or self.ds or self.gc
+
+
+_CHOICES = {"jpeg_mode": ("paper", "float", "exact"), "gc_pooling": ("deferred", "now")}
+
+
+def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:
+    """``method_options`` -> :class:`JsgsOptions`; JsgsError (one line) on an unknown key, a wrong type or
+    value, or an ablation combination the paper does not define."""
+    opts = JsgsOptions()
+    known = [f.name for f in fields(JsgsOptions)]
+    for key, value in raw.items():
+        if key == "lambda_base":
+            raise JsgsError(
+                f"{where}: method_options.lambda_base: λ_base is the trainer's loss.base_weight "
+                "(set it there; default 1)"
+            )
+        if key not in known:
+            raise JsgsError(
+                f"{where}: unknown method_options.{key} for method jsgs (known: {', '.join(known)})"
+            )
+        default = getattr(opts, key)
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise JsgsError(f"{where}: method_options.{key} must be true or false (got {value!r})")
+        elif isinstance(default, float):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise JsgsError(f"{where}: method_options.{key} must be a finite number (got {value!r})")
+            value = float(value)
+            if key.startswith("lambda_") and value < 0:
+                raise JsgsError(f"{where}: method_options.{key} must be >= 0 (got {value})")
+            if not key.startswith("lambda_") and value <= 0:
+                raise JsgsError(f"{where}: method_options.{key} must be > 0 (got {value})")
+        elif key in _CHOICES and value not in _CHOICES[key]:
+            raise JsgsError(
+                f"{where}: method_options.{key} must be one of {list(_CHOICES[key])} (got {value!r})"
+            )
+        setattr(opts, key, value)
+    if not opts.jo and (opts.ds or opts.gc):
+        on = " and ".join(n for n, v in (("DS", opts.ds), ("GC", opts.gc)) if v)
+        raise JsgsError(
+            f"{where}: method jsgs: {on} operate on the JPEG observation (JO) output, so they need JO "
+            "(paper Table 2); without JO turn them off too (--no-jo --no-ds --no-gc, which is the baseline)"
+        )
+    return opts
+
+
+@dataclass
+class ViewJpeg:
+    """A training view's JPEG state on the training device: tables [8, 8] float32, natural order [v, u]."""
+
+    luma: Tensor
+    chroma: Tensor
+    sampling: str
+
+
+def view_tables(views: list[View], device: torch.device, where: str) -> dict[int, ViewJpeg]:
+    """view index -> its tables and sampling for every JPEG training view. JsgsError naming the view when
+    JO cannot represent its JPEG state (greyscale, or a chroma sampling other than 4:4:4 / 4:2:2 / 4:2:0)."""
+    out: dict[int, ViewJpeg] = {}
+    for v in views:
+        j = v.jpeg
+        if j is None:
+            continue
+        if j.chroma_table is None or j.sampling == "gray":
+            raise JsgsError(
+                f"{where}: view {v.name!r} is a greyscale JPEG; the JPEG observation operator handles colour "
+                "JPEGs only (train it with --method gsplat or --no-jo --no-ds --no-gc)"
+            )
+        if j.sampling not in SUPPORTED_SAMPLING:
+            raise JsgsError(
+                f"{where}: view {v.name!r} has chroma sampling {j.sampling}; the JPEG observation operator "
+                f"supports {', '.join(SUPPORTED_SAMPLING)} (re-encode it, or train with --method gsplat)"
+            )
+        out[v.index] = ViewJpeg(
+            torch.as_tensor(j.luma_table, dtype=torch.float32, device=device).reshape(8, 8),
+            torch.as_tensor(j.chroma_table, dtype=torch.float32, device=device).reshape(8, 8),
+            j.sampling,
+        )
+    return out
+
+
+def photometric(x: Tensor, y: Tensor, ssim_lambda: float, padding: str) -> Tensor:
+    """The trainer's ℓ_ph (eq. photometric): ``(1 − λ) mean|x − y| + λ (1 − SSIM(x, y))``; x, y
+    [B, 3, H, W] in [0, 1]; ``padding`` as ``loss.ssim_padding``."""
+    from jsgs.ssim import ssim
+
+    return (1.0 - ssim_lambda) * (x - y).abs().mean() + ssim_lambda * (1.0 - ssim(x, y, padding=padding))
+
+
+class JsgsHook(LossHook):
+    """The JSGS terms for the trainer (module docstring). ``profile = True`` (set by a benchmark) records
+    device-synchronised wall times of the JO, DS and GC parts in ``timings`` (seconds, summed over steps;
+    ``gc_backward``: the deferred GC work inside the main backward)."""
+
+    name = "jsgs"
+
+    def __init__(
+        self,
+        options: JsgsOptions,
+        tables: dict[int, ViewJpeg],
+        *,
+        ssim_lambda: float = 0.2,
+        ssim_padding: str = "valid",
+        near_plane: float = 0.01,
+        device: torch.device | None = None,
+    ) -> None:
+        self.opts = options
+        self.tables = tables
+        self.ssim_lambda = ssim_lambda
+        self.ssim_padding = ssim_padding
+        self.near_plane = near_plane
+        self.device = device or torch.device("cpu")
+        self.profile = False
+        self.timings: dict[str, float] = {}
+        # keep_last (tests, debugging): keep what the last step computed in ``last`` (observation, DS,
+        # pooled sums, r̄, V, GC terms); off in training so no step outlives its own backward
+        self.keep_last = False
+        self.last: dict[str, Any] = {}
+        self._cameras: dict[tuple[int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
+
+    # ------------------------------------------------------------------------------------------------
+    @property
+    def gc_route(self) -> str:
+        return "now" if self.opts.lambda_fro == 0.0 else self.opts.gc_pooling
+
+    def active_terms(self) -> list[str]:
+        o = self.opts
+        return [n for n, on in (("obs", o.jo), ("low", o.ds), ("mid", o.ds), ("fro", o.gc)) if on]
+
+    def weights(self) -> dict[str, float]:
+        o = self.opts
+        w = {"obs": o.lambda_obs, "low": o.lambda_low, "mid": o.lambda_mid, "fro": o.lambda_fro}
+        return {k: w[k] for k in self.active_terms()}
+
+    def render_kwargs(self, step: int, view: View) -> dict[str, Any]:
+        return {"pool_probe": True} if self.opts.gc and view.index in self.tables else {}
+
+    @contextmanager
+    def _phase(self, name: str) -> Iterator[None]:
+        if not self.profile:
+            yield
+            return
+        from jsgs.train.evaluate import synchronize
+
+        synchronize(self.device)
+        t0 = time.perf_counter()
+        yield
+        synchronize(self.device)
+        self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+
+    # ------------------------------------------------------------------------------------------------
+    def losses(self, ctx: StepContext) -> HookOutput:
+        o = self.opts
+        dev = ctx.render.device
+        zero = torch.zeros((), dtype=ctx.render.dtype, device=dev)
+        terms: dict[str, Tensor] = {k: zero.clone() for k in self.active_terms()}
+        stats: dict[str, float | Tensor] = {k: zero.clone() for k in STAT_NAMES} if o.gc else {}
+        self.last = {}
+        tab = self.tables.get(ctx.view.index)
+        if tab is None:  # lossless view: ℓ_ph only
+            return HookOutput(terms, self.weights(), stats)
+
+        x = ctx.render.permute(0, 3, 1, 2)
+        y = ctx.target.permute(0, 3, 1, 2)
+        with self._phase("jo"):
+            from jsgs.jpeg.observe import jpeg_observe
+
+            obs = jpeg_observe(x, tab.luma, tab.chroma, tab.sampling, o.jpeg_mode)
+            terms["obs"] = photometric(obs, y, self.ssim_lambda, self.ssim_padding)
+        if self.keep_last:
+            self.last["observation"] = obs.detach()
+        r_map = None
+        if o.ds or o.gc:
+            with self._phase("ds"):
+                from jsgs.jpeg.supervision import dct_supervision
+
+                # GC alone needs only the (stop-gradient) block scores: no graph through DS then
+                sup = dct_supervision(
+                    obs if o.ds else obs.detach(), y, tab.luma, o.eps_sm, o.eps_dct_loss, o.eps_dct_block
+                )
+                if o.ds:
+                    terms["low"] = sup.loss_low.sum()
+                    terms["mid"] = sup.loss_mid.sum()
+                r_map = sup.pixel_score  # [1, H, W], detached
+            if self.keep_last:
+                self.last["ds"] = sup
+        if o.gc:
+            assert r_map is not None
+            with self._phase("gc"):
+                if self.gc_route == "now":
+                    fro, gc_stats = self._gc_now(ctx, r_map)
+                    terms["fro"] = fro
+                else:
+                    terms["fro"], gc_stats = self._gc_deferred(ctx, r_map)
+                stats.update(gc_stats)
+        return HookOutput(terms, self.weights(), stats)
+
+    # ------------------------------------------------------------------------------------------------
+    def _camera(self, ctx: StepContext) -> tuple[Tensor, Tensor, int, int]:
+        """The view's world-to-camera [4, 4] and K [3, 3] in the parameters' dtype, width, height (cached
+        on the device: a host-to-device copy inside the backward would stall the GPU queue)."""
+        v = ctx.view
+        means = ctx.splats["means"]
+        key = (v.index, means.dtype, means.device)
+        cam = self._cameras.get(key)
+        if cam is None:
+            cam = (
+                torch.as_tensor(v.viewmat, dtype=means.dtype, device=means.device),
+                torch.as_tensor(v.K, dtype=means.dtype, device=means.device),
+            )
+            self._cameras[key] = cam
+        return cam[0], cam[1], v.width, v.height
+
+    def _gc_now(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        from jsgs.render.pool import pool_now
+
+        sums = pool_now(ctx.info, r_map)
+        rbar = sums.rbar(self.opts.eps_proj)[0]
+        vis = sums.contributors[0]
+        splats = ctx.splats
+        viewmat, K, w, h = self._camera(ctx)
+        A = controller_matrix(splats["means"], splats["quats"], viewmat, K, w, h, self.near_plane)
+        ft = fro_loss(rbar, vis, splats["opacities"], splats["scales"], A, self.opts.tau_s)
+        if self.keep_last:
+            self.last.update(sums=sums, rbar=rbar, visible=vis, fro=ft, A=A)
+        s = ft.stats
+        return ft.loss, {"gc_visible": s.visible, "gc_rbar": s.rbar_mean, "gc_damped": s.damped}
+
+    def _gc_deferred(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        from jsgs.render.pool import PooledSums, pool_from_grad, probe_objective
+
+        info = ctx.info
+        splats = ctx.splats
+        lam = self.opts.lambda_fro
+        # Σ_p r·probe₀ + Σ_p probe₁, exactly 0; weighted by λ_fro in the loss, so the probe's gradient is
+        # λ_fro·(o·S_r, ν), divided out below
+        term = probe_objective(info, r_map)
+        stat_t = {k: torch.zeros((), dtype=term.dtype, device=term.device) for k in STAT_NAMES}
+        viewmat, K, w, h = self._camera(ctx)
+        opts, near = self.opts, self.near_plane
+        last = self.last if self.keep_last else None
+
+        def on_probe_grad(probe: Tensor) -> None:
+            with self._phase("gc_backward"), torch.no_grad():
+                g = pool_from_grad(info)
+                sums = PooledSums(g.s_r / lam, g.s_1 / lam, g.nu / lam)
+                probe.grad = None  # served its purpose; keeps memory flat
+                rbar = sums.rbar(opts.eps_proj)[0]
+                vis = sums.contributors[0]
+                A = controller_matrix(splats["means"], splats["quats"], viewmat, K, w, h, near)
+                ft, g_logit, g_ls = fro_loss_and_grads(
+                    rbar, vis, splats["opacities"], splats["scales"], A, opts.tau_s
+                )
+                _add_grad(splats["opacities"], lam * g_logit)
+                _add_grad(splats["scales"], lam * g_ls)
+                # the term's value is known only now; the trainer reads it after the backward
+                term.copy_(ft.loss.to(term.dtype))
+                s = ft.stats
+                for k, v in zip(STAT_NAMES, (s.visible, s.rbar_mean, s.damped), strict=True):
+                    stat_t[k].copy_(v)
+                if last is not None:
+                    last.update(sums=sums, rbar=rbar, visible=vis, fro=ft, A=A)
+
+        info["pool_probe"].register_post_accumulate_grad_hook(on_probe_grad)
+        return term, stat_t
+
+
+def _add_grad(p: Tensor, g: Tensor) -> None:
+    """Accumulate ``g`` into ``p.grad`` as autograd would (the parameter's own AccumulateGrad may run before
+    or after this; both orders sum)."""
+    g = g.to(p.dtype)
+    p.grad = g.clone() if p.grad is None else p.grad + g
+
+
+def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> JsgsHook | None:
+    """The ``--method jsgs`` factory: options from ``cfg.method_options``, tables from the manifest."""
+    opts = parse_options(cfg.method_options)
+    if not opts.any_active:
+        return None  # --no-jo --no-ds --no-gc: Table 2's baseline row, the plain backbone
+    if opts.gc and cfg.render.packed:
+        raise JsgsError(
+            "config: method jsgs: the Gaussian Controller pools through the rasteriser's probe, which needs "
+            "render.packed false (or train with --no-gc)"
+        )
+    tables = view_tables(scene.train_views, device, str(scene.manifest_path))
+    return JsgsHook(
+        opts,
+        tables,
+        ssim_lambda=cfg.loss.ssim_lambda,
+        ssim_padding=cfg.loss.ssim_padding,
+        near_plane=cfg.render.near_plane,
+        device=device,
+    )
+
+
+register_method("jsgs", make_jsgs_hook)

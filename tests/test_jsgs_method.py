@@ -1,0 +1,679 @@
+"""``--method jsgs`` (jsgs.train.jsgs_method): every term against a float64 evaluation of its equation written
+here from the paper (independent of jsgs.jpeg / jsgs.render / jsgs.train.controller), r̄ from the training
+path against the brute-force rasteriser, L_fro's gradients, the ablation switches, the options, and a short
+``jsgs train --method jsgs`` run on the compressed synthetic scene.
+
+The tiny scene: 10 Gaussians (one behind the camera, one off-screen) seen by one 27 x 19 px camera, so that
+the last 3 rows and columns lie outside the valid 8x8 blocks. Everything is float64 except the end-to-end run.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from PIL import Image
+
+from jsgs.errors import JsgsError
+from jsgs.jpeg.tables import ijg_tables
+from jsgs.manifest import JpegState
+from jsgs.render.bruteforce import render_bruteforce
+from jsgs.train.config import TrainConfig
+from jsgs.train.data import View
+from jsgs.train.hooks import StepContext, make_hook
+from jsgs.train.jsgs_method import JsgsHook, make_jsgs_hook, parse_options, photometric, view_tables
+from jsgs.train.rendering import render_view
+
+D = torch.float64
+WIDTH, HEIGHT, FOCAL = 27, 19, 30.0
+
+
+@pytest.fixture(autouse=True)
+def _one_thread() -> Any:
+    """One torch thread: these tensors are tiny, and on a busy 2-core machine the intra-op thread pool's
+    wake-ups cost 10-25x more than the work itself (measured)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+SUBSAMPLING = {"4:4:4": 0, "4:2:2": 1, "4:2:0": 2}
+
+# ---------------------------------------------------------------------------------------------------------
+# float64 references, straight from the paper's equations (numpy)
+
+
+def _fix(c: float) -> float:
+    """libjpeg's 16-bit fixed-point colour constants, FIX(c) = round(c·2^16) / 2^16 (the JPEG convention
+    the observation operator follows)."""
+    return round(c * 65536) / 65536
+
+
+def ref_dct_matrix() -> np.ndarray:
+    """Orthonormal 8-point DCT-II: C = D X Dᵀ, D[k, n] = c_k cos((2n + 1) k π / 16)."""
+    k, n = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
+    d = np.sqrt(2 / 8) * np.cos((2 * n + 1) * k * np.pi / 16)
+    d[0] /= np.sqrt(2)
+    return d
+
+
+def ref_blocks(plane: np.ndarray) -> np.ndarray:
+    """[H, W] (multiples of 8) -> [H/8, W/8, 8, 8]."""
+    h, w = plane.shape
+    return plane.reshape(h // 8, 8, w // 8, 8).transpose(0, 2, 1, 3)
+
+
+def ref_unblocks(b: np.ndarray) -> np.ndarray:
+    nby, nbx = b.shape[:2]
+    return b.transpose(0, 2, 1, 3).reshape(nby * 8, nbx * 8)
+
+
+def ref_jo_paper_444(rgb: np.ndarray, luma: np.ndarray, chroma: np.ndarray) -> np.ndarray:
+    """Eq. jpeg_operator with eq. soft_round, 4:4:4: [H, W, 3] in [0, 1] -> [H, W, 3]."""
+    x = 255 * np.clip(rgb, 0, 1)
+    r, g, b = x[..., 0], x[..., 1], x[..., 2]
+    y = _fix(0.299) * r + _fix(0.587) * g + _fix(0.114) * b
+    cb = -_fix(0.16874) * r - _fix(0.33126) * g + _fix(0.5) * b + 128
+    cr = _fix(0.5) * r - _fix(0.41869) * g - _fix(0.08131) * b + 128
+    h, w = y.shape
+    hp, wp = 8 * math.ceil(h / 8), 8 * math.ceil(w / 8)
+    dm = ref_dct_matrix()
+    out = []
+    for plane, table in ((y, luma), (cb, chroma), (cr, chroma)):
+        p = np.pad(plane, ((0, hp - h), (0, wp - w)), mode="edge") - 128
+        c = dm @ ref_blocks(p) @ dm.T
+        z = c / table
+        zr = np.round(z)
+        deq = table * (zr + (z - zr) ** 3)
+        rec = np.clip(dm.T @ deq @ dm + 128, 0, 255)
+        out.append(ref_unblocks(rec)[:h, :w])
+    y, cb, cr = out[0], out[1] - 128, out[2] - 128
+    rr = y + _fix(1.402) * cr
+    gg = y - _fix(0.34414) * cb - _fix(0.71414) * cr
+    bb = y + _fix(1.772) * cb
+    return np.clip(np.stack([rr, gg, bb], -1), 0, 255) / 255
+
+
+def ref_pillow_jpeg(rgb: np.ndarray, luma: np.ndarray, chroma: np.ndarray, sampling: str) -> np.ndarray:
+    """Real JPEG (Pillow / libjpeg-turbo) encode + decode of the 8-bit image: [H, W, 3] -> same, in [0, 1]."""
+    arr = np.floor(255 * np.clip(rgb, 0, 1) + 0.5).astype(np.uint8)
+    buf = io.BytesIO()
+    # Pillow's qtables take natural-order tables
+    Image.fromarray(arr).save(
+        buf, "JPEG", qtables=[luma.astype(int).ravel().tolist(), chroma.astype(int).ravel().tolist()],
+        subsampling=SUBSAMPLING[sampling],
+    )  # fmt: skip
+    with Image.open(io.BytesIO(buf.getvalue())) as im:
+        return np.asarray(im.convert("RGB"), dtype=np.float64) / 255
+
+
+def ref_ssim_valid(x: np.ndarray, y: np.ndarray) -> float:
+    """Mean SSIM, 11 x 11 Gaussian window (σ 1.5) as a 2-D kernel, valid positions only; [H, W, 3]."""
+    t = np.arange(11) - 5
+    g = np.exp(-(t**2) / (2 * 1.5**2))
+    g /= g.sum()
+    win = np.outer(g, g)
+    h, w = x.shape[:2]
+    vals = []
+    for c in range(3):
+        for i in range(h - 10):
+            for j in range(w - 10):
+                a, b = x[i : i + 11, j : j + 11, c], y[i : i + 11, j : j + 11, c]
+                ma, mb = (win * a).sum(), (win * b).sum()
+                va, vb = (win * a * a).sum() - ma**2, (win * b * b).sum() - mb**2
+                cov = (win * a * b).sum() - ma * mb
+                c1, c2 = 0.01**2, 0.03**2
+                vals.append((2 * ma * mb + c1) * (2 * cov + c2) / ((ma**2 + mb**2 + c1) * (va + vb + c2)))
+    return float(np.mean(vals))
+
+
+def ref_photometric(x: np.ndarray, y: np.ndarray, lam: float = 0.2) -> float:
+    """Eq. photometric: (1 − λ) ‖X − Y‖₁ / (3HW) + λ (1 − SSIM)."""
+    return (1 - lam) * np.abs(x - y).mean() + lam * (1 - ref_ssim_valid(x, y))
+
+
+def ref_ds(obs: np.ndarray, target: np.ndarray, luma: np.ndarray, eps_sm: float = 1e-3) -> dict[str, Any]:
+    """Eqs. omega, jsgs_luminance … jsgs_dct_losses, jsgs_block_score; r(p) (0 outside the valid blocks)."""
+    dm = ref_dct_matrix()
+
+    def coeffs(img: np.ndarray) -> np.ndarray:
+        y8 = 255 * (0.299 * img[..., 0] + 0.587 * img[..., 1] + 0.114 * img[..., 2]) - 128
+        hb, wb = (y8.shape[0] // 8) * 8, (y8.shape[1] // 8) * 8
+        return dm @ ref_blocks(y8[:hb, :wb]) @ dm.T
+
+    delta = (coeffs(obs) - coeffs(target)) / 255
+    psi = np.sqrt(delta**2 + eps_sm**2) - eps_sm
+    v, u = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
+    f = u + v
+    omega = np.exp(-2 * (luma - 1) / 254 - f / 14)
+    m_low = (f <= 3).astype(float)
+    w_mid = ((f > 3) & (f <= 5)) * omega
+    nby, nbx = delta.shape[:2]
+    e = (w_mid * psi).sum(axis=(-1, -2))
+    low = (m_low * psi).sum() / (nby * nbx * m_low.sum() + 1e-6)
+    mid = e.sum() / (nby * nbx * w_mid.sum() + 1e-6)
+    rb = e / (w_mid.sum() + 1e-6)
+    r_pix = np.zeros(obs.shape[:2])
+    r_pix[: nby * 8, : nbx * 8] = np.kron(rb, np.ones((8, 8)))
+    return {"low": low, "mid": mid, "r_block": rb, "r": r_pix}
+
+
+def ref_sbar(mean: np.ndarray, q: np.ndarray, s: np.ndarray, viewmat: np.ndarray, K: np.ndarray) -> float:
+    """Eq. controller_scale: sqrt(½ tr(A diag(s)² Aᵀ)), A = J W R(q); J at the camera-space mean with gsplat's
+    FOV clamp of x/z, y/z (30 % margin)."""
+    W = viewmat[:3, :3]
+    x, y, z = W @ mean + viewmat[:3, 3]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    u = np.clip(x / z, -(cx / fx + 0.15 * WIDTH / fx), (WIDTH - cx) / fx + 0.15 * WIDTH / fx)
+    v = np.clip(y / z, -(cy / fy + 0.15 * HEIGHT / fy), (HEIGHT - cy) / fy + 0.15 * HEIGHT / fy)
+    J = np.array([[fx / z, 0, -fx * u / z], [0, fy / z, -fy * v / z]])
+    a, b, c, d = q / np.linalg.norm(q)
+    R = np.array(
+        [
+            [1 - 2 * (c * c + d * d), 2 * (b * c - a * d), 2 * (b * d + a * c)],
+            [2 * (b * c + a * d), 1 - 2 * (b * b + d * d), 2 * (c * d - a * b)],
+            [2 * (b * d - a * c), 2 * (c * d + a * b), 1 - 2 * (b * b + c * c)],
+        ]
+    )
+    A = J @ W @ R
+    return math.sqrt(0.5 * np.trace(A @ np.diag(s**2) @ A.T))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the tiny scene
+
+
+def make_splats(seed: int = 0) -> torch.nn.ParameterDict:
+    g = torch.Generator().manual_seed(seed)
+    n = 10
+    z = 3.0 + 3.0 * torch.rand(n, generator=g, dtype=D)
+    xy = (
+        (torch.rand(n, 2, generator=g, dtype=D) - 0.5)
+        * torch.tensor([WIDTH, HEIGHT], dtype=D)
+        / FOCAL
+        * z[:, None]
+    )
+    means = torch.cat([xy, z[:, None]], 1)
+    means[8] = torch.tensor([0.2, 0.1, -2.0], dtype=D)  # behind the camera: never in V
+    means[9] = torch.tensor([40.0, 0.0, 4.0], dtype=D)  # off-screen: never in V
+    means[7] = torch.tensor([1.53, 1.0, 4.0], dtype=D)  # over the bottom-right pixels without a block score
+    # projected RMS scales from ~0.5 px to ~3 px: the exponential matters, some are "damped"
+    scales = torch.log(z[:, None] / FOCAL * (0.1 + 2.0 * torch.rand(n, 3, generator=g, dtype=D)))
+    return torch.nn.ParameterDict(
+        {
+            "means": torch.nn.Parameter(means),
+            "scales": torch.nn.Parameter(scales),
+            "quats": torch.nn.Parameter(torch.randn(n, 4, generator=g, dtype=D)),
+            "opacities": torch.nn.Parameter(torch.randn(n, generator=g, dtype=D) + 1.0),
+            "sh0": torch.nn.Parameter(torch.randn(n, 1, 3, generator=g, dtype=D)),
+            "shN": torch.nn.Parameter(torch.zeros(n, 0, 3, dtype=D)),
+        }
+    )
+
+
+def camera() -> tuple[np.ndarray, np.ndarray]:
+    K = np.array([[FOCAL, 0, WIDTH / 2], [0, FOCAL, HEIGHT / 2], [0, 0, 1]])
+    viewmat = np.eye(4)
+    return viewmat, K
+
+
+def make_view(quality: int | None, sampling: str = "4:2:0", index: int = 0) -> View:
+    viewmat, K = camera()
+    jpeg = None
+    if quality is not None:
+        luma, chroma = ijg_tables(quality)
+        jpeg = JpegState(
+            np.asarray(luma, dtype=np.int32).reshape(8, 8), np.asarray(chroma, dtype=np.int32).reshape(8, 8),
+            sampling, quality, True, 8, "baseline",
+        )  # fmt: skip
+    c2w = np.linalg.inv(viewmat)
+    return View(index, f"v{index}", "train", Path("x.jpg"), None, jpeg, WIDTH, HEIGHT, K, c2w, viewmat)
+
+
+def render(splats: torch.nn.ParameterDict, kw: dict[str, Any]) -> Any:
+    viewmat, K = camera()
+    return render_view(
+        splats, torch.tensor(viewmat, dtype=D)[None], torch.tensor(K, dtype=D)[None], WIDTH, HEIGHT, 0,
+        TrainConfig(), "torch", None, kw,
+    )  # fmt: skip
+
+
+def target_for(view: View) -> torch.Tensor:
+    """The decoded training JPEG: a different scene (shifted colours and centres) through Pillow with the
+    view's own tables and sampling; [1, H, W, 3] float64."""
+    sp = make_splats(seed=0)
+    with torch.no_grad():
+        sp["sh0"].add_(
+            0.4 * torch.randn(sp["sh0"].shape, generator=torch.Generator().manual_seed(3), dtype=D)
+        )
+        sp["means"][:, 0] += 0.05
+        img = render(sp, {}).rgb[0].numpy() + 0.3
+    j = view.jpeg
+    if j is None:
+        return torch.tensor(np.clip(img, 0, 1), dtype=D)[None]
+    return torch.tensor(ref_pillow_jpeg(img, j.luma_table, j.chroma_table, j.sampling), dtype=D)[None]
+
+
+def new_hook(view: View, **options: Any) -> JsgsHook:
+    hook = JsgsHook(parse_options(options), view_tables([view], torch.device("cpu"), "test"))
+    hook.keep_last = True
+    return hook
+
+
+def train_step(hook: JsgsHook, view: View, splats: torch.nn.ParameterDict | None = None) -> dict[str, Any]:
+    """One step as the trainer takes it: render (training path), base ℓ_ph, the hook's terms, backward.
+    Returns term values (read after the backward, as the trainer does), stats, parameter gradients and
+    the screen-space means' gradient."""
+    splats = splats if splats is not None else make_splats()
+    target = target_for(view)
+    out = render(splats, hook.render_kwargs(0, view))
+    out.info["means2d"].retain_grad()
+    ctx = StepContext(0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0)
+    h = hook.losses(ctx)
+    h.check("jsgs")
+    x, y = out.rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
+    loss = photometric(x, y, 0.2, "valid")
+    for k, w in h.weights.items():
+        if w != 0.0:
+            loss = loss + w * h.terms[k]
+    loss.backward()
+    return {
+        "terms": {k: v.item() for k, v in h.terms.items()},
+        "weights": dict(h.weights),
+        "stats": {k: float(v) for k, v in h.stats.items()},
+        "grads": {k: p.grad.clone() for k, p in splats.items() if p.grad is not None},
+        "means2d": out.info["means2d"].grad.clone(),
+        "render": out.rgb.detach()[0].numpy(),
+        "target": target[0].numpy(),
+        "hook": hook,
+    }
+
+
+# ---------------------------------------------------------------------------------------------------------
+# every term against its equation
+
+
+@pytest.mark.parametrize("route", ["deferred", "now"])
+def test_terms_equal_float64_evaluation_of_the_equations(route: str) -> None:
+    view = make_view(50, "4:4:4")
+    res = train_step(new_hook(view, gc_pooling=route), view)
+    last = res["hook"].last
+    luma, chroma = view.jpeg.luma_table.astype(float), view.jpeg.chroma_table.astype(float)
+    # JO (eq. jpeg_operator, paper mode) and L_obs (eq. obs_loss)
+    obs_ref = ref_jo_paper_444(res["render"], luma, chroma)
+    obs = last["observation"][0].permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(obs, obs_ref, rtol=0, atol=1e-10)
+    assert math.isclose(res["terms"]["obs"], ref_photometric(obs_ref, res["target"]), rel_tol=1e-9)
+    # DS (eqs. jsgs_dct_losses) on (Î^J, I)
+    ds = ref_ds(obs, res["target"], luma)
+    assert math.isclose(res["terms"]["low"], ds["low"], rel_tol=1e-10)
+    assert math.isclose(res["terms"]["mid"], ds["mid"], rel_tol=1e-10)
+    np.testing.assert_allclose(last["ds"].block_score[0].detach().numpy(), ds["r_block"], rtol=1e-10)
+    np.testing.assert_allclose(last["ds"].pixel_score[0].numpy(), ds["r"], rtol=1e-10, atol=0)
+    # GC (eqs. gaussian_risk, controller_scale, fro): pooled by the brute-force per-pixel definition
+    sp = make_splats()
+    viewmat, K = camera()
+    with torch.no_grad():
+        _, _, _, pooled = render_bruteforce(
+            sp["means"], sp["quats"], torch.exp(sp["scales"]), torch.sigmoid(sp["opacities"]), sp["sh0"],
+            torch.tensor(viewmat, dtype=D)[None], torch.tensor(K, dtype=D)[None], WIDTH, HEIGHT, sh_degree=0,
+            r=torch.tensor(ds["r"], dtype=D)[None],
+        )  # fmt: skip
+    nu = pooled["nu"][0].numpy()
+    vis = nu > 0
+    rbar = pooled["s_r"][0].numpy() / (pooled["s_1"][0].numpy() + 1e-6)
+    assert not vis[8] and not vis[9] and vis[:8].all()
+    np.testing.assert_array_equal(last["visible"].numpy(), vis)
+    np.testing.assert_allclose(last["rbar"].numpy(), rbar, rtol=1e-9, atol=1e-15)
+    alpha = 1 / (1 + np.exp(-sp["opacities"].detach().numpy()))
+    s = np.exp(sp["scales"].detach().numpy())
+    means, quats = sp["means"].detach().numpy(), sp["quats"].detach().numpy()
+    sbar = np.array([ref_sbar(means[j], quats[j], s[j], viewmat, K) if vis[j] else 0.0 for j in range(10)])
+    per = rbar * alpha**2 * np.exp(-sbar / 1.0)
+    fro_ref = per[vis].sum() / vis.sum()
+    assert fro_ref > 1e-4  # the scene exercises the term
+    assert math.isclose(res["terms"]["fro"], fro_ref, rel_tol=1e-9)
+    np.testing.assert_allclose(last["fro"].sbar.numpy()[vis], sbar[vis], rtol=1e-12)
+    # statistics (definitions in jsgs.train.controller.ControllerStats)
+    assert res["stats"]["gc_visible"] == vis.sum()
+    assert math.isclose(res["stats"]["gc_rbar"], rbar[vis].mean(), rel_tol=1e-9)
+    assert res["stats"]["gc_damped"] == ((rbar > 0) & vis & (sbar <= 1.0)).sum()
+    # eq. overall: the paper's weights
+    assert res["weights"] == {"obs": 0.2, "low": 0.02, "mid": 0.03, "fro": 0.05}
+
+
+def test_obs_exact_mode_is_a_real_jpeg_of_the_render_with_the_views_tables() -> None:
+    view = make_view(30, "4:2:0")  # its own tables and sampling (not the other test's)
+    res = train_step(new_hook(view, jpeg_mode="exact"), view)
+    j = view.jpeg
+    ref = ref_pillow_jpeg(res["render"], j.luma_table, j.chroma_table, j.sampling)
+    obs = res["hook"].last["observation"][0].permute(1, 2, 0).numpy()
+    np.testing.assert_array_equal(np.round(obs * 255), np.round(ref * 255))
+    assert math.isclose(res["terms"]["obs"], ref_photometric(ref, res["target"]), rel_tol=1e-9)
+
+
+def test_rbar_of_the_training_path_equals_the_brute_force() -> None:
+    """r̄ and V from the probe inside the training render (both routes) against the per-pixel, per-Gaussian
+    brute force with the same r(p) (the library's own block scores here)."""
+    view = make_view(50, "4:2:0")
+    for route in ("deferred", "now"):
+        res = train_step(new_hook(view, gc_pooling=route), view)
+        last = res["hook"].last
+        sp = make_splats()
+        viewmat, K = camera()
+        with torch.no_grad():
+            _, _, _, pooled = render_bruteforce(
+                sp["means"], sp["quats"], torch.exp(sp["scales"]), torch.sigmoid(sp["opacities"]), sp["sh0"],
+                torch.tensor(viewmat, dtype=D)[None], torch.tensor(K, dtype=D)[None], WIDTH, HEIGHT,
+                sh_degree=0, r=last["ds"].pixel_score,
+            )  # fmt: skip
+        rbar = pooled["s_r"] / (pooled["s_1"] + 1e-6)
+        torch.testing.assert_close(last["rbar"], rbar[0], rtol=1e-10, atol=1e-16)
+        assert torch.equal(last["visible"], pooled["nu"][0] > 0)
+        torch.testing.assert_close(last["sums"].nu[0], pooled["nu"][0], rtol=1e-10, atol=1e-16)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# gradients
+
+
+def test_fro_gradients_reach_only_opacity_and_scale() -> None:
+    view = make_view(50, "4:2:0")
+    # the term alone, by autograd (route "now")
+    hook = new_hook(view, gc_pooling="now")
+    sp = make_splats()
+    out = render(sp, hook.render_kwargs(0, view))
+    ctx = StepContext(0, view, out.rgb, out.alpha, target_for(view), out.info, sp, None, {}, 0)
+    fro = hook.losses(ctx).terms["fro"]
+    names = list(sp.keys())
+    grads = dict(zip(names, torch.autograd.grad(fro, [sp[n] for n in names], allow_unused=True), strict=True))
+    for n in ("means", "quats", "sh0", "shN"):
+        assert grads[n] is None or not grads[n].any(), n
+    assert grads["opacities"].abs().sum() > 0 and grads["scales"].abs().sum() > 0
+    # and inside a full step, both routes: the whole difference λ_fro·∇L_fro sits in opacity and scale,
+    # equals that autograd gradient, and the densification signal (means2d) does not move
+    base = train_step(new_hook(view, gc=False), view)
+    for route in ("deferred", "now"):
+        full = train_step(new_hook(view, gc_pooling=route), view)
+        for n in ("means", "quats", "sh0"):
+            torch.testing.assert_close(full["grads"][n], base["grads"][n], rtol=0, atol=1e-15)
+        torch.testing.assert_close(full["means2d"], base["means2d"], rtol=0, atol=1e-15)
+        for n in ("opacities", "scales"):
+            torch.testing.assert_close(
+                full["grads"][n] - base["grads"][n], 0.05 * grads[n], rtol=1e-9, atol=1e-17
+            )
+
+
+def test_the_two_pooling_routes_agree() -> None:
+    view = make_view(50, "4:2:0")
+    a = train_step(new_hook(view, gc_pooling="deferred"), view)
+    b = train_step(new_hook(view, gc_pooling="now"), view)
+    assert a["terms"].keys() == b["terms"].keys()
+    for k in a["terms"]:
+        assert math.isclose(a["terms"][k], b["terms"][k], rel_tol=1e-12), k
+    assert a["stats"] == pytest.approx(b["stats"], rel=1e-12)
+    for n in a["grads"]:
+        torch.testing.assert_close(a["grads"][n], b["grads"][n], rtol=1e-10, atol=1e-16)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# ablations and options
+
+
+def test_ablation_switches_change_exactly_their_terms() -> None:
+    view = make_view(50, "4:2:0")
+    full = train_step(new_hook(view), view)
+    cases = {
+        "no_ds": ({"ds": False}, {"obs", "fro"}),
+        "no_gc": ({"gc": False}, {"obs", "low", "mid"}),
+        "jo_only": ({"ds": False, "gc": False}, {"obs"}),
+    }
+    for name, (opts, expected) in cases.items():
+        res = train_step(new_hook(view, **opts), view)
+        assert set(res["terms"]) == expected, name
+        assert set(res["weights"]) == expected, name
+        for k in expected:
+            assert math.isclose(res["terms"][k], full["terms"][k], rel_tol=1e-12), (name, k)
+            assert res["weights"][k] == full["weights"][k], (name, k)
+        assert bool(res["stats"]) == ("fro" in expected), name
+        if "fro" in expected:
+            assert res["stats"] == pytest.approx(full["stats"], rel=1e-12), name
+    # GC only touches opacity and scale (above); dropping DS changes the image-domain gradients
+    no_ds = train_step(new_hook(view, ds=False), view)
+    assert not torch.allclose(no_ds["grads"]["sh0"], full["grads"]["sh0"])
+
+
+def test_all_switches_off_is_the_baseline_and_no_jo_alone_is_refused(tmp_path: Path) -> None:
+    scene = SimpleNamespace(train_views=[make_view(50)], manifest_path=tmp_path / "m.json")
+    cfg = TrainConfig(method="jsgs", method_options={"jo": False, "ds": False, "gc": False})
+    assert make_hook(cfg, scene, torch.device("cpu")) is None
+    for opts in ({"jo": False}, {"jo": False, "ds": False}, {"jo": False, "gc": False}):
+        with pytest.raises(JsgsError, match="need JO"):
+            parse_options(opts)
+
+
+def test_lossless_views_get_the_photometric_loss_only() -> None:
+    view = make_view(None)
+    hook = new_hook(view)
+    assert hook.render_kwargs(0, view) == {}
+    res = train_step(hook, view)
+    assert res["terms"] == {"obs": 0.0, "low": 0.0, "mid": 0.0, "fro": 0.0}
+    assert res["stats"] == {"gc_visible": 0.0, "gc_rbar": 0.0, "gc_damped": 0.0}
+
+
+def test_options_are_validated() -> None:
+    o = parse_options({})
+    assert (o.lambda_obs, o.lambda_low, o.lambda_mid, o.lambda_fro) == (0.2, 0.02, 0.03, 0.05)
+    assert (o.tau_s, o.eps_sm, o.eps_dct_loss, o.eps_dct_block, o.eps_proj) == (1.0, 1e-3, 1e-6, 1e-6, 1e-6)
+    assert (o.jpeg_mode, o.jo, o.ds, o.gc, o.gc_pooling) == ("paper", True, True, True, "deferred")
+    bad = [
+        ({"lambda_obz": 1}, "unknown method_options.lambda_obz"),
+        ({"lambda_base": 2}, "loss.base_weight"),
+        ({"lambda_fro": -1}, "must be >= 0"),
+        ({"lambda_fro": "x"}, "finite number"),
+        ({"tau_s": 0}, "must be > 0"),
+        ({"jo": 1}, "true or false"),
+        ({"jpeg_mode": "fast"}, "one of"),
+        ({"gc_pooling": "later"}, "one of"),
+    ]
+    for opts, msg in bad:
+        with pytest.raises(JsgsError, match=msg):
+            parse_options(opts)
+
+
+@pytest.mark.parametrize(("sampling", "gray"), [("4:1:1", False), ("gray", True)])
+def test_unsupported_jpeg_states_are_refused_naming_the_view(
+    sampling: str, gray: bool, tmp_path: Path
+) -> None:
+    v = make_view(50, sampling, index=3)
+    if gray:
+        v.jpeg = JpegState(v.jpeg.luma_table, None, "gray", 50, True, 8, "baseline")
+    scene = SimpleNamespace(train_views=[make_view(50), v], manifest_path=tmp_path / "m.json")
+    with pytest.raises(JsgsError, match="'v3'"):
+        make_jsgs_hook(TrainConfig(method="jsgs"), scene, torch.device("cpu"))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# end to end
+
+
+def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path) -> None:
+    from cli.jsgs_cli import main
+
+    cfg = {
+        "init": {"type": "random", "num_points": 300, "scale": 0.3},
+        "eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False},
+        "log_every": 4,
+    }
+    cfg_path = tmp_path / "cfg.json"
+    cfg_path.write_text(json.dumps(cfg))
+    run = tmp_path / "run"
+    manifest = compressed_scene / "manifest.json"
+    args = [
+        "train", str(manifest), "--out", str(run), "--method", "jsgs", "--iterations", "24",
+        "--eval-at", "12,24", "--device", "cpu", "--config", str(cfg_path), "--quiet", "--jpeg-mode", "float",
+    ]  # fmt: skip
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    doc = json.loads((run / "metrics.json").read_text())
+    assert doc["status"] == "complete" and doc["method"] == "jsgs"
+    for e in doc["evals"]:
+        terms, stats = e["train"]["terms"], e["train"]["stats"]
+        assert {"obs", "low", "mid", "fro", "photometric"} <= set(terms)
+        assert set(stats) == {"gc_visible", "gc_rbar", "gc_damped"}
+        assert all(math.isfinite(v) for v in [*terms.values(), *stats.values(), e["train"]["loss"]])
+        assert terms["obs"] > 0 and terms["mid"] > 0 and stats["gc_visible"] > 0
+    settings = json.loads((run / "config.json").read_text())["settings"]
+    assert settings["method_options"] == {"jpeg_mode": "float"}
+    assert "--jpeg-mode float" in json.loads((run / "config.json").read_text())["command"]
+    # the switches are refused where they do not apply, and --no-jo alone is refused
+    r = CliRunner().invoke(main, ["train", str(manifest), "--out", str(tmp_path / "x"), "--no-gc"])
+    assert r.exit_code == 1 and "apply to --method jsgs" in r.output
+    r = CliRunner().invoke(
+        main,
+        [
+            "train",
+            str(manifest),
+            "--out",
+            str(tmp_path / "y"),
+            "--method",
+            "jsgs",
+            "--no-jo",
+            "--device",
+            "cpu",
+        ],
+    )
+    assert r.exit_code == 1 and "need JO" in r.output
+
+
+# ---------------------------------------------------------------------------------------------------------
+# r̄ of the training path against the reference rasteriser on real data (CPU: torch backend on the synthetic
+# compressed scene; GPU: the gsplat backend on a real scene — the number the README quotes)
+
+
+def rbar_parity(manifest: Path, backend: str, device: torch.device, n_views: int) -> dict[str, float]:
+    """r̄ and V of the JSGS training path (``render_view`` with the hook's probe, both GC routes, float32) on
+    the first training views at SfM initialisation, against the reference rasteriser's direct pooling
+    (``pool_direct``, float64) with the same r(p). Returns the worst figures over views and routes."""
+    from jsgs.render import pool_direct
+    from jsgs.train.data import load_image, load_scene
+    from jsgs.train.model import activated, init_splats
+
+    cfg = TrainConfig(method="jsgs", device=device.type)
+    scene = load_scene(manifest, cfg)
+    torch.manual_seed(0)
+    splats = init_splats(
+        torch.from_numpy(scene.points), torch.from_numpy(scene.points_rgb).float() / 255.0, cfg,
+        scene.scene_scale, device,
+    )  # fmt: skip
+    tables = view_tables(scene.train_views, device, str(manifest))
+    worst = {"contributor sets differ": 0.0, "rbar rel L2": 0.0, "rbar median rel": 0.0, "nu rel L2": 0.0}
+    sizes = []
+    for view in scene.train_views[:n_views]:
+        target = load_image(view.image, view.width, view.height, "image").to(device).float()[None] / 255.0
+        for route in ("deferred", "now"):
+            hook = JsgsHook(parse_options({"gc_pooling": route}), tables)
+            hook.keep_last = True
+            out = render_view(
+                splats, view.viewmat_tensor(device), view.K_tensor(device), view.width, view.height, 0, cfg,
+                backend, None, hook.render_kwargs(0, view),
+            )  # fmt: skip
+            ctx = StepContext(0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0)
+            h = hook.losses(ctx)
+            sum(w * h.terms[k] for k, w in h.weights.items()).backward()
+            for p in splats.values():
+                p.grad = None
+            last = hook.last
+            p64 = {k: v.detach().double() for k, v in activated(splats).items()}
+            direct = pool_direct(
+                p64["means"], p64["quats"], p64["scales"], p64["opacities"],
+                view.viewmat_tensor(device).double(), view.K_tensor(device).double(), view.width, view.height,
+                last["ds"].pixel_score.double(),
+            )  # fmt: skip
+            vis_ref = direct.contributors[0]
+            both = vis_ref & last["visible"]
+            rb, rr = last["rbar"][both].double(), direct.rbar()[0][both]
+            nu, nr = last["sums"].nu[0][both].double(), direct.nu[0][both]
+            sizes.append(int(both.sum()))
+            figures = {
+                "contributor sets differ": (vis_ref != last["visible"]).double().mean().item(),
+                "rbar rel L2": ((rb - rr).norm() / rr.norm()).item(),
+                "rbar median rel": ((rb - rr).abs() / rr.clamp_min(1e-30)).median().item(),
+                "nu rel L2": ((nu - nr).norm() / nr.norm()).item(),
+            }
+            worst = {k: max(worst[k], figures[k]) for k in worst}
+    worst["min |V|"] = float(min(sizes))
+    return worst
+
+
+def test_rbar_parity_helper_on_the_synthetic_scene(compressed_scene: Path) -> None:
+    rep = rbar_parity(compressed_scene / "manifest.json", "torch", torch.device("cpu"), n_views=1)
+    assert rep["min |V|"] > 100
+    assert rep["contributor sets differ"] < 1e-3 and rep["rbar rel L2"] < 1e-5 and rep["nu rel L2"] < 1e-5
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (gsplat's kernels do not run on CPU)")
+def test_gpu_rbar_of_the_gsplat_path_matches_the_reference_on_a_real_scene(tmp_path: Path) -> None:
+    from conftest import shared_scene
+
+    from jsgstools.compress import compress
+
+    src = shared_scene("custom_kwrous_cup")
+    compress(src, tmp_path / "data", "gaussian", seed=0)
+    rep = rbar_parity(tmp_path / "data" / "manifest.json", "gsplat", torch.device("cuda"), n_views=3)
+    print(
+        f"\nJSGS r̄, gsplat training path vs reference rasteriser ({src.name}, first 3 training views):", rep
+    )
+    assert rep["min |V|"] > 100
+    assert rep["contributor sets differ"] < 1e-3
+    assert rep["rbar rel L2"] < 1e-4 and rep["nu rel L2"] < 1e-4
+
+
+def test_jsgs_runs_resume_bit_exactly_with_densification(tmp_path: Path) -> None:
+    """The deferred GC gradient, densification (which swaps the parameters after a backward) and resuming:
+    a run split at step 4 equals the uninterrupted one exactly."""
+    from _train_scene import make_scene
+
+    from jsgs.train import checkpoint as ckpt
+    from jsgs.train.loop import train
+
+    manifest = make_scene(tmp_path / "scene", jpeg_train=True)
+
+    def cfg() -> TrainConfig:
+        c = TrainConfig(method="jsgs", iterations=8, eval_at=[4, 8], device="cpu")
+        c.strategy.refine_start_iter, c.strategy.refine_every = 1, 3
+        c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
+        return c
+
+    a = train(manifest, tmp_path / "a", cfg(), progress=False)
+    train(manifest, tmp_path / "b", cfg(), stop_at=4, progress=False)
+    train(manifest, tmp_path / "b", None, resume=True, progress=False)
+    ca = ckpt.load_checkpoint(tmp_path / "a" / "checkpoints" / "step_000008.pt")
+    cb = ckpt.load_checkpoint(tmp_path / "b" / "checkpoints" / "step_000008.pt")
+    n4 = ckpt.load_checkpoint(tmp_path / "a" / "checkpoints" / "step_000004.pt")["splats"]["means"].shape[0]
+    assert 80 != n4 != ca["splats"]["means"].shape[0], "densification should act before and after the cut"
+    for name, t in ca["splats"].items():
+        assert torch.equal(t, cb["splats"][name]), name
+    train_a = a["evals"][-1]["train"]
+    assert train_a["stats"]["gc_visible"] > 0 and train_a["terms"]["fro"] > 0
+    assert train_a == json.loads((tmp_path / "b" / "metrics.json").read_text())["evals"][-1]["train"]
+
+
+def test_packed_rendering_is_refused_with_gc(tmp_path: Path) -> None:
+    scene = SimpleNamespace(train_views=[make_view(50)], manifest_path=tmp_path / "m.json")
+    cfg = TrainConfig(method="jsgs")
+    cfg.render.packed = True
+    with pytest.raises(JsgsError, match="packed"):
+        make_jsgs_hook(cfg, scene, torch.device("cpu"))
+    cfg.method_options = {"gc": False}
+    assert make_jsgs_hook(cfg, scene, torch.device("cpu")) is not None
