@@ -532,6 +532,9 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
         assert set(stats) == {"gc_visible", "gc_rbar", "gc_damped"}
         assert all(math.isfinite(v) for v in [*terms.values(), *stats.values(), e["train"]["loss"]])
         assert terms["obs"] > 0 and terms["mid"] > 0 and stats["gc_visible"] > 0
+        # the logged total includes L_fro, whose value is only known inside the backward (deferred pooling)
+        w = {"photometric": 1.0, "obs": 0.2, "low": 0.02, "mid": 0.03, "fro": 0.05}
+        assert e["train"]["loss"] == pytest.approx(sum(w[k] * terms[k] for k in w), rel=1e-5)
     settings = json.loads((run / "config.json").read_text())["settings"]
     assert settings["method_options"] == {"jpeg_mode": "float"}
     assert "--jpeg-mode float" in json.loads((run / "config.json").read_text())["command"]

@@ -531,8 +531,10 @@ def train(
                 + [_stat_tensor(stats[k], device) for k in stats]
                 + [torch.isfinite(splats[n].grad).all().float() for n in grad_names]
             ).tolist()
-            loss_v = packed_vals[0]
             term_v = packed_vals[1 : 1 + len(names)]
+            # Summed from the term values read *after* the backward: a method may fill a term's value during
+            # the backward (JSGS's deferred L_fro), which the pre-backward total cannot include.
+            loss_v = packed_vals[0] if hook is None else _weighted_sum(names, term_v, weights)
             stat_v = packed_vals[1 + len(names) : 1 + len(names) + len(stats)]
             grad_ok = packed_vals[1 + len(names) + len(stats) :]
             _finite_check(step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_ok, last_ckpt)
@@ -643,6 +645,11 @@ def _base_terms(
         terms["scale_reg"] = torch.exp(splats["scales"]).mean()
         weights["scale_reg"] = cfg.loss.scale_reg
     return terms, weights
+
+
+def _weighted_sum(names: list[str], values: list[float], weights: dict[str, float]) -> float:
+    pairs = zip(names, values, strict=True)
+    return float(sum(weights[n] * v for n, v in pairs if weights.get(n, 0.0) != 0.0))
 
 
 def _eval_line(e: dict[str, Any]) -> str:
