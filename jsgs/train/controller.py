@@ -29,21 +29,11 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from jsgs.render.reference import quat_to_rotmat
+
 TAU_S = 1.0  # τ_s, pixels at the training resolution
 EPS_PROJ = 1e-6  # ε_proj
 FOV_MARGIN = 0.3  # gsplat's widening of the FOV used to clamp x/z and y/z in J
-
-
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices [N, 3, 3] from quaternions [N, 4] (w, x, y, z), normalised first (as gsplat)."""
-    q = quats / quats.norm(dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]  # fmt: skip
-    return torch.stack(rows, dim=-1).reshape(q.shape[:-1] + (3, 3))
 
 
 @torch.no_grad()

@@ -40,9 +40,6 @@ loss).
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -52,6 +49,7 @@ from torch import Tensor
 from jsgs.errors import JsgsError
 from jsgs.train.controller import EPS_PROJ, TAU_S, controller_matrix, fro_loss, fro_loss_and_grads
 from jsgs.train.hooks import HookOutput, LossHook, StepContext, register_method
+from jsgs.train.loop import Profiler
 
 if TYPE_CHECKING:
     from jsgs.train.config import TrainConfig
@@ -198,8 +196,8 @@ class JsgsHook(LossHook):
         self.ssim_padding = ssim_padding
         self.near_plane = near_plane
         self.device = device or torch.device("cpu")
-        self.profile = False
-        self.timings: dict[str, float] = {}
+        # the trainer's own Profiler; its totals are this hook's ``timings`` (JO, DS, GC phases)
+        self.profiler = Profiler(False, self.device)
         # keep_last (tests, debugging): keep what the last step computed in ``last`` (observation, DS,
         # pooled sums, r̄, V, GC terms); off in training so no step outlives its own backward
         self.keep_last = False
@@ -223,18 +221,18 @@ class JsgsHook(LossHook):
     def render_kwargs(self, step: int, view: View) -> dict[str, Any]:
         return {"pool_probe": True} if self.opts.gc and view.index in self.tables else {}
 
-    @contextmanager
-    def _phase(self, name: str) -> Iterator[None]:
-        if not self.profile:
-            yield
-            return
-        from jsgs.train.evaluate import synchronize
+    @property
+    def profile(self) -> bool:
+        return self.profiler.enabled
 
-        synchronize(self.device)
-        t0 = time.perf_counter()
-        yield
-        synchronize(self.device)
-        self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+    @profile.setter
+    def profile(self, on: bool) -> None:
+        self.profiler.enabled = on
+
+    @property
+    def timings(self) -> dict[str, float]:
+        """Device-synchronised seconds per phase, summed over steps (only while ``profile`` is on)."""
+        return self.profiler.totals
 
     # ------------------------------------------------------------------------------------------------
     def losses(self, ctx: StepContext) -> HookOutput:
@@ -250,7 +248,7 @@ class JsgsHook(LossHook):
 
         x = ctx.render.permute(0, 3, 1, 2)
         y = ctx.target.permute(0, 3, 1, 2)
-        with self._phase("jo"):
+        with self.profiler.phase("jo"):
             from jsgs.jpeg.observe import jpeg_observe
 
             obs = jpeg_observe(x, tab.luma, tab.chroma, tab.sampling, o.jpeg_mode)
@@ -259,7 +257,7 @@ class JsgsHook(LossHook):
             self.last["observation"] = obs.detach()
         r_map = None
         if o.ds or o.gc:
-            with self._phase("ds"):
+            with self.profiler.phase("ds"):
                 from jsgs.jpeg.supervision import dct_supervision
 
                 # GC alone needs only the (stop-gradient) block scores: no graph through DS then
@@ -274,7 +272,7 @@ class JsgsHook(LossHook):
                 self.last["ds"] = sup
         if o.gc:
             assert r_map is not None
-            with self._phase("gc"):
+            with self.profiler.phase("gc"):
                 if self.gc_route == "now":
                     fro, gc_stats = self._gc_now(ctx, r_map)
                     terms["fro"] = fro
@@ -329,7 +327,7 @@ class JsgsHook(LossHook):
         last = self.last if self.keep_last else None
 
         def on_probe_grad(probe: Tensor) -> None:
-            with self._phase("gc_backward"), torch.no_grad():
+            with self.profiler.phase("gc_backward"), torch.no_grad():
                 g = pool_from_grad(info)
                 sums = PooledSums(g.s_r / lam, g.s_1 / lam, g.nu / lam)
                 probe.grad = None  # served its purpose; keeps memory flat
