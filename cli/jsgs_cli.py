@@ -14,9 +14,10 @@ def main() -> None:
 
 
 def _register() -> None:
-    from cli import train
+    from cli import bench, train
 
     train.register(main)
+    bench.register(main)
 
 
 _register()
