@@ -1,0 +1,125 @@
+"""``jsgs bench SCENES... --out RESULTS``: a thin wrapper over :func:`jsgs.bench.bench`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from cli._common import invocation, user_errors
+
+
+@click.command("bench")
+@click.argument("scenes", nargs=-1, required=True, type=click.Path(path_type=Path, file_okay=False))
+@click.option(
+    "--out",
+    "out",
+    required=True,
+    type=click.Path(path_type=Path, file_okay=False),
+    help="Results folder (data/, runs/, logs/, results.csv, report.md, plots/, bench.json).",
+)
+@click.option(
+    "--schedules",
+    default="uniform,gaussian,descending,clean",
+    show_default=True,
+    help="Mixed-quality schedules (and clean: gsplat on the uncompressed views); '' for none.",
+)
+@click.option(
+    "--fixed", default="30,50", show_default=True, help="Fixed JPEG qualities (seed 0 only); '' none."
+)
+@click.option("--methods", default="gsplat,jsgs", show_default=True, help="gsplat and/or jsgs.")
+@click.option(
+    "--ablation", default=None, help="Scene (name or path) for Table 2's ablation (gaussian, seed 0)."
+)
+@click.option("--iterations", type=int, default=10_000, show_default=True, help="Training steps per run.")
+@click.option(
+    "--eval-at",
+    "eval_at",
+    default=None,
+    help="Evaluation steps [default: 3000,7000,10000 cut at --iterations, and --iterations].",
+)
+@click.option(
+    "--seeds",
+    default="0,1",
+    show_default=True,
+    help="Seeds (compress and train); fixed-quality and ablation runs use the first.",
+)
+@click.option(
+    "--jobs-per-gpu",
+    "jobs_per_gpu",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Concurrent trainings per GPU (on the CPU: in all).",
+)
+@click.option("--device", type=click.Choice(["auto", "cuda", "cpu"]), default="auto", show_default=True)
+@click.option(
+    "--config",
+    "config",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="JSON settings given to every `jsgs train` (--config).",
+)
+@click.option(
+    "--lpips-weights",
+    "lpips_weights",
+    default=None,
+    help="AlexNet backbone for LPIPS [default: $JSGS_LPIPS_WEIGHTS, else "
+    "../shared/lpips/alexnet_features.pth when present].",
+)
+@click.option(
+    "--time-limit",
+    "time_limit",
+    type=float,
+    default=None,
+    help="Seconds: start no run after this and stop those still going (a rerun resumes them).",
+)
+@click.option(
+    "--prepare-only",
+    is_flag=True,
+    help="Only compress the datasets into OUT/data (on a CPU machine with ../shared, pycolmap and OpenCV); a "
+    "GPU machine then runs the same command on them.",
+)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@user_errors
+def bench_command(
+    scenes: tuple[Path, ...], out: Path, schedules: str, fixed: str, methods: str, ablation: str | None,
+    iterations: int, eval_at: str | None, seeds: str, jobs_per_gpu: int, device: str, config: Path | None,
+    lpips_weights: str | None, time_limit: float | None, prepare_only: bool, quiet: bool,
+) -> None:  # fmt: skip
+    """Reproduce the paper's tables: compress every scene per schedule and seed, train gsplat and JSGS on the
+    same files (a pool of `jsgs train` subprocesses), then write results.csv, report.md and plots."""
+    import sys
+
+    from jsgs.bench import bench
+    from jsgs.bench.plan import parse_list
+
+    doc = bench(
+        list(scenes), out,
+        schedules=parse_list(schedules, "--schedules"), fixed=parse_list(fixed, "--fixed", int),
+        methods=parse_list(methods, "--methods"), ablation=ablation, seeds=parse_list(seeds, "--seeds", int),
+        iterations=iterations, eval_at=parse_list(eval_at, "--eval-at", int) if eval_at is not None else None,
+        jobs_per_gpu=jobs_per_gpu, device=device, config=config, lpips_weights=lpips_weights,
+        progress=not quiet, time_limit=time_limit, command=invocation(click.get_current_context(), "jsgs"),
+        prepare_only=prepare_only,
+    )  # fmt: skip
+    if prepare_only:
+        n = len(doc["datasets"])
+        click.echo(f"bench: {n} datasets ready in {out}/data (runs not started: --prepare-only)")
+        return
+    s = doc["summary"]
+    click.echo(
+        f"bench: {s['runs']} runs ({s['complete']} trained, {s['skipped']} already complete, {s['failed']} "
+        f"failed), {s['rows']} rows"
+    )
+    click.echo(f"wrote {out}/results.csv, {out}/report.md, {out}/plots/, {out}/bench.json")
+    if s["failed"]:
+        click.echo(
+            f"error: {s['failed']} run(s) failed; see {out}/report.md (Failed runs) and the logs", err=True
+        )
+        sys.exit(1)
+
+
+def register(group: click.Group) -> None:
+    """Add this module's commands to ``group``."""
+    group.add_command(bench_command)

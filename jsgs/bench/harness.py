@@ -1,0 +1,280 @@
+""":func:`bench`: plan -> datasets (``jsgstools.compress``) -> worker pool (``jsgs train`` subprocesses) ->
+``results.csv`` -> ``report.md`` + plots, recording everything in ``RESULTS/bench.json``
+(``schemas/bench.schema.json``)."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+from jsgs.bench import pool as pool_mod
+from jsgs.bench import report as report_mod
+from jsgs.bench import results as results_mod
+from jsgs.bench.plan import Dataset, Plan, build_plan, train_argv
+from jsgs.errors import JsgsError
+from jsgs.io import write_json_atomic
+
+BENCH_FORMAT = "jsgs-bench"
+BENCH_VERSION = 1
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def _cmd(args: list[str]) -> str | None:
+    try:
+        r = subprocess.run(args, capture_output=True, text=True, timeout=30, check=False)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return r.stdout.strip() if r.returncode == 0 else None
+
+
+def environment(device: str) -> dict[str, Any]:
+    """Software and hardware versions (GPU names from nvidia-smi, so the parent holds no CUDA context)."""
+    import torch
+
+    import jsgs
+
+    try:
+        import gsplat
+
+        gv: str | None = gsplat.__version__
+    except Exception:
+        gv = None
+    gpus = []
+    smi = _cmd(["nvidia-smi", "--query-gpu=name,memory.total,driver_version", "--format=csv,noheader"])
+    for line in (smi or "").splitlines():
+        parts = [p.strip() for p in line.split(",")]
+        if len(parts) == 3:
+            gpus.append({"name": parts[0], "memory": parts[1], "driver": parts[2]})
+    commit = _cmd(["git", "-C", str(REPO), "rev-parse", "HEAD"])
+    dirty = _cmd(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"])
+    return {
+        "jsgs": jsgs.__version__,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torch_cuda": torch.version.cuda,
+        "gsplat": gv,
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count() or 1,
+        "device": device,
+        "gpus": gpus,
+        "git_commit": commit,
+        "git_dirty": None if dirty is None else bool(dirty),
+    }
+
+
+def _dataset_ready(d: Dataset) -> bool:
+    try:
+        rec = json.loads((Path(d.out) / "compress.json").read_text())
+    except (OSError, ValueError):
+        return False
+    s = rec.get("settings", {})
+    return (
+        (Path(d.out) / "manifest.json").is_file()
+        and s.get("schedule") == d.compress_schedule
+        and s.get("seed") == d.seed
+        and s.get("quality") == d.quality
+    )
+
+
+def prepare_datasets(plan: Plan, progress: bool = True) -> dict[str, dict[str, Any]]:
+    """Compress every dataset not already there; ``{key: {"status": ..., "error"?: ...}}``."""
+    out: dict[str, dict[str, Any]] = {}
+    for d in plan.datasets:
+        if _dataset_ready(d):
+            out[d.key] = {"status": "skipped"}
+            continue
+        # imported only when needed: a GPU machine (no pycolmap/OpenCV) runs on prepared datasets
+        from jsgstools.compress import compress
+
+        if progress:
+            print(f"compress: {d.source} -> {d.out} ({d.schedule}, seed {d.seed})", file=sys.stderr)
+        try:
+            compress(d.source, d.out, d.compress_schedule, quality=d.quality, seed=d.seed, force=True)
+            out[d.key] = {"status": "complete"}
+        except Exception as e:  # noqa: BLE001 - reported per dataset; its runs fail, the others go on
+            out[d.key] = {"status": "failed", "error": str(e)}
+            print(f"failed: compress {d.key}: {e}", file=sys.stderr)
+    return out
+
+
+def _default_lpips_weights() -> str | None:
+    from jsgs.metrics.lpips import ENV_VAR
+
+    if os.environ.get(ENV_VAR):
+        return os.environ[ENV_VAR]
+    p = REPO.parent / "shared" / "lpips" / "alexnet_features.pth"
+    return str(p) if p.is_file() else None
+
+
+def write_bench_json(doc: dict[str, Any], path: Path) -> None:
+    from jsgs.schemas import validate
+
+    validate(doc, "bench", str(path))
+    write_json_atomic(path, doc)
+
+
+def bench(
+    scenes: list[str | Path],
+    out: str | Path,
+    schedules: list[str],
+    fixed: list[int],
+    methods: list[str],
+    ablation: str | None,
+    seeds: list[int],
+    iterations: int,
+    eval_at: list[int] | None = None,
+    jobs_per_gpu: int = 1,
+    device: str | None = None,
+    config: str | Path | None = None,
+    lpips_weights: str | None = None,
+    progress: bool = True,
+    command: str | None = None,
+    time_limit: float | None = None,
+    prepare_only: bool = False,
+) -> dict[str, Any]:
+    """Run the whole bench into ``out``; returns the final bench.json document. ``time_limit`` (seconds
+    from the call): no run starts after it and runs still going are stopped (they resume on a rerun)."""
+    import time
+
+    deadline = None if time_limit is None else time.time() + time_limit
+    from jsgs.bench.plan import default_eval_at
+
+    out = Path(out)
+    if jobs_per_gpu < 1:
+        raise JsgsError(f"--jobs-per-gpu {jobs_per_gpu}: must be at least 1")
+    if device in (None, "auto"):
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise JsgsError("--device cuda: no CUDA device is available")
+    eval_at = eval_at or default_eval_at(iterations)
+    config_path = str(Path(config).resolve()) if config is not None else None
+    config_doc = None
+    if config_path is not None:
+        try:
+            config_doc = json.loads(Path(config_path).read_text())
+        except (OSError, ValueError) as e:
+            raise JsgsError(f"{config}: cannot read the config: {e}") from None
+    plan = build_plan(scenes, out, schedules, fixed, methods, ablation, seeds, iterations, eval_at)
+    out.mkdir(parents=True, exist_ok=True)
+    lpips_weights = lpips_weights or _default_lpips_weights()
+    env_extra = {"JSGS_LPIPS_WEIGHTS": str(Path(lpips_weights).resolve())} if lpips_weights else {}
+    slots = pool_mod.detect_slots(device, jobs_per_gpu)
+    if not slots:
+        raise JsgsError("--device cuda: torch.cuda.device_count() found no GPU")
+    doc: dict[str, Any] = {
+        "format": BENCH_FORMAT,
+        "format_version": BENCH_VERSION,
+        "status": "running",
+        "started": _now(),
+        "finished": None,
+        "command": command,
+        "settings": {
+            "scenes": [str(s) for s in scenes],
+            "schedules": schedules,
+            "fixed": fixed,
+            "methods": methods,
+            "ablation": ablation,
+            "seeds": seeds,
+            "iterations": iterations,
+            "eval_at": eval_at,
+            "jobs_per_gpu": jobs_per_gpu,
+            "device": device,
+            "workers": len(slots),
+            "config": config_path,
+            "config_content": config_doc,
+            "lpips_weights": lpips_weights,
+        },  # fmt: skip
+        "environment": environment(device),
+        "datasets": [
+            {
+                "key": d.key,
+                "scene": d.scene,
+                "source": d.source,
+                "schedule": d.schedule,
+                "compress_schedule": d.compress_schedule,
+                "quality": d.quality,
+                "seed": d.seed,
+                "out": d.out,
+                "status": "pending",
+            }
+            for d in plan.datasets
+        ],  # fmt: skip
+        "runs": [
+            {
+                **r.to_json(),
+                "command": " ".join(train_argv(r, device, config_path, False)),
+                "status": "pending",
+            }
+            for r in plan.runs
+        ],
+        "summary": None,
+    }
+    bench_json = out / "bench.json"
+    write_bench_json(doc, bench_json)
+
+    ds_status = prepare_datasets(plan, progress)
+    for d in doc["datasets"]:
+        d.update(ds_status[d["key"]])
+    if prepare_only:
+        # The CPU half of a GPU session: compress here (pycolmap, OpenCV, ../shared), carry RESULTS/data.
+        doc["status"] = "prepared"
+        doc["finished"] = _now()
+        write_bench_json(doc, bench_json)
+        return doc
+    bad = {k for k, v in ds_status.items() if v["status"] == "failed"}
+    runnable = [r for r in plan.runs if r.data not in bad]
+    records = pool_mod.run_pool(
+        runnable, slots, device, config_path, env_extra, progress=progress, deadline=deadline
+    )
+    for r in plan.runs:
+        if r.data in bad:
+            records[r.id] = {"id": r.id, "status": "failed", "error": f"dataset {r.data} could not be built: "
+                             f"{ds_status[r.data].get('error')}", "stderr_tail": ""}  # fmt: skip
+    for rj in doc["runs"]:
+        rec = dict(records[rj["id"]])
+        rec.pop("id", None)
+        rj.update(rec)
+
+    rows = results_mod.collect(plan.runs)
+    header = results_mod.write_csv(rows, out / "results.csv")
+    failures = [records[r.id] | {"id": r.id} for r in plan.runs if records[r.id]["status"] == "failed"]
+    counts = {
+        s: sum(1 for r in records.values() if r["status"] == s) for s in ("complete", "skipped", "failed")
+    }
+    env = doc["environment"]
+    gpu_txt = ", ".join(g["name"] for g in env["gpus"]) or "none"
+    head = [
+        f"Generated {_now()} by jsgs {env['jsgs']} (git {env['git_commit'] or 'unknown'}"
+        f"{', uncommitted changes' if env['git_dirty'] else ''}); torch {env['torch']}, "
+        f"gsplat {env['gsplat']}, python {env['python']}; device {device}, GPUs: {gpu_txt}.",
+        "",
+        f"Command: `{command}`" if command else "Command: (library call)",
+        "",
+        f"{iterations} iterations, evaluations at {','.join(map(str, eval_at))}; seeds {seeds}; "
+        f"{len(slots)} concurrent workers ({jobs_per_gpu} per GPU on cuda). Runs: {len(plan.runs)} "
+        f"({counts['complete']} trained now, {counts['skipped']} already complete, "
+        f"{counts['failed']} failed). "
+        "Metrics are on the test views against their uncompressed references; settings and versions in "
+        "bench.json, every row in results.csv.",
+    ]  # fmt: skip
+    report_mod.write_report(rows, out, head, failures)
+    doc["status"] = "complete" if not failures else "failed_runs"
+    doc["finished"] = _now()
+    doc["summary"] = {**counts, "runs": len(plan.runs), "rows": len(rows), "csv_header": header}
+    write_bench_json(doc, bench_json)
+    return doc

@@ -1,0 +1,194 @@
+"""The worker pool: each training run is a ``jsgs train`` subprocess (a crash or an out-of-memory stays in
+its run), ``jobs_per_gpu`` of them at a time on each GPU (``CUDA_VISIBLE_DEVICES`` pins one GPU per
+process), or ``jobs`` at a time on the CPU. Finished runs are skipped; a failed run is recorded with the tail
+of its log and the others go on."""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import subprocess
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from jsgs.bench import plan as plan_mod
+from jsgs.bench.plan import Run
+
+TAIL_CHARS = 4000
+
+
+def run_state(run: Run) -> tuple[str, dict[str, Any] | None]:
+    """``("complete", metrics)`` when RUN/metrics.json says complete at the requested final step with an
+    evaluation there; ``("resumable", metrics)`` when it stopped or was interrupted with a checkpoint;
+    else ``("todo", metrics or None)``."""
+    path = Path(run.out) / "metrics.json"
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return "todo", None
+    evals = doc.get("evals") or []
+    if (
+        doc.get("status") == "complete"
+        and doc.get("step") == run.iterations
+        and doc.get("iterations") == run.iterations
+        and evals
+        and evals[-1].get("step") == run.iterations
+        and [e.get("step") for e in evals] == run.eval_at
+    ):
+        return "complete", doc
+    ckpts = Path(run.out) / "checkpoints"
+    if (
+        doc.get("status") in ("running", "stopped")
+        and doc.get("iterations") == run.iterations
+        and ckpts.is_dir()
+        and any(ckpts.glob("*.pt"))
+    ):
+        return "resumable", doc
+    return "todo", doc
+
+
+def detect_slots(device: str, jobs_per_gpu: int) -> list[str | None]:
+    """One entry per concurrent worker: the GPU index it pins (``CUDA_VISIBLE_DEVICES``), or None (CPU)."""
+    if device == "cuda":
+        import torch
+
+        n = torch.cuda.device_count()
+        return [str(g) for g in range(n) for _ in range(jobs_per_gpu)]
+    return [None] * jobs_per_gpu
+
+
+def _tail(path: Path, n: int = TAIL_CHARS) -> str:
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return ""
+    return data[-n:].decode("utf-8", "replace")
+
+
+def run_one(
+    run: Run,
+    gpu: str | None,
+    device: str,
+    config: str | None,
+    env_extra: dict[str, str],
+    deadline: float | None = None,
+) -> dict[str, Any]:
+    """Run (or resume) one training in a subprocess; returns its record for bench.json."""
+    state, _ = run_state(run)
+    resume = state == "resumable"
+    argv = plan_mod.train_argv(run, device, config, resume)
+    env = {**os.environ, **env_extra}
+    if gpu is not None:
+        env["CUDA_VISIBLE_DEVICES"] = gpu
+    elif device == "cpu":
+        env["CUDA_VISIBLE_DEVICES"] = ""
+    log = Path(run.log)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    Path(run.out).parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    with open(log, "wb") as f:
+        f.write(("$ " + " ".join(argv) + "\n").encode())
+        f.flush()
+        timed_out = False
+        try:
+            proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=env)
+            try:
+                rc = proc.wait(timeout=None if deadline is None else max(1.0, deadline - time.time()))
+            except subprocess.TimeoutExpired:  # --time-limit: stop it; it resumes from its last checkpoint
+                timed_out = True
+                proc.terminate()
+                try:
+                    rc = proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    rc = proc.wait()
+        except OSError as e:  # could not start at all
+            f.write(f"could not start: {e}\n".encode())
+            rc = -1
+    seconds = time.time() - t0
+    state, doc = run_state(run)
+    rec: dict[str, Any] = {
+        "id": run.id, "gpu": gpu, "resumed": resume, "returncode": rc, "seconds": round(seconds, 3),
+        "log": str(log),
+    }  # fmt: skip
+    if rc == 0 and state == "complete":
+        rec["status"] = "complete"
+    else:
+        rec["status"] = "failed"
+        why = f"exit code {rc}"
+        if rc == 0:
+            why = f"exit code 0 but metrics.json is not complete at step {run.iterations}"
+        if timed_out:
+            why = "stopped at the bench's --time-limit (rerun to resume it from its last checkpoint)"
+        if doc is not None and doc.get("status") == "diverged":
+            why = f"diverged: {doc.get('error')}"
+        rec["error"] = why
+        rec["stderr_tail"] = _tail(log)
+    return rec
+
+
+def run_pool(
+    runs: list[Run],
+    slots: list[str | None],
+    device: str,
+    config: str | None,
+    env_extra: dict[str, str] | None = None,
+    progress: bool = True,
+    on_done: Callable[[dict[str, Any]], None] | None = None,
+    deadline: float | None = None,
+) -> dict[str, dict[str, Any]]:
+    """Run every unfinished run of ``runs`` on the worker ``slots``; returns ``{run id: record}`` for all
+    of them (``status`` complete / skipped / failed)."""
+    from tqdm import tqdm
+
+    records: dict[str, dict[str, Any]] = {}
+    todo: list[Run] = []
+    for r in runs:
+        state, _ = run_state(r)
+        if state == "complete":
+            records[r.id] = {"id": r.id, "status": "skipped", "reason": "complete at the requested step"}
+        else:
+            todo.append(r)
+    if not slots:
+        slots = [None]
+    free: queue.Queue[str | None] = queue.Queue()
+    for s in slots:
+        free.put(s)
+    lock = threading.Lock()
+    bar = tqdm(
+        total=len(runs), initial=len(runs) - len(todo), desc="bench", unit="run", disable=not progress,
+        dynamic_ncols=True,
+    )  # fmt: skip
+    counts = {"failed": 0, "skipped": len(runs) - len(todo), "done": 0}
+
+    def work(run: Run) -> None:
+        slot = free.get()
+        try:
+            if deadline is not None and time.time() >= deadline:
+                rec = {"id": run.id, "status": "failed", "error": "not started: --time-limit reached",
+                       "stderr_tail": ""}  # fmt: skip
+            else:
+                rec = run_one(run, slot, device, config, env_extra or {}, deadline)
+        except Exception as e:  # a bug in the harness must not stop the other runs either
+            rec = {"id": run.id, "status": "failed", "error": f"harness error: {e!r}", "stderr_tail": ""}
+        finally:
+            free.put(slot)
+        with lock:
+            records[run.id] = rec
+            counts["failed" if rec["status"] == "failed" else "done"] += 1
+            bar.set_postfix(counts, refresh=False)
+            bar.update(1)
+            if rec["status"] == "failed":
+                bar.write(f"failed: {run.id}: {rec.get('error')} (log: {rec.get('log')})")
+            if on_done is not None:
+                on_done(rec)
+
+    with ThreadPoolExecutor(max_workers=len(slots)) as ex:
+        list(ex.map(work, todo))
+    bar.close()
+    return {r.id: records[r.id] for r in runs}

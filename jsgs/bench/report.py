@@ -1,0 +1,487 @@
+"""``RESULTS/report.md`` and ``RESULTS/plots/*.png`` from the rows of ``results.csv``.
+
+Numbers at the **last evaluation step** of each run; per scene x schedule x method the mean over seeds (and
+its spread: max - min over seeds, "sd" the sample standard deviation); tables over scenes are means of the
+per-scene means, over the scenes where every method of the table has a result (their count is shown).
+
+"Damage recovered" (issue 7), per scene x schedule, on seed means:
+``R_LPIPS = (baseline - JSGS) / (baseline - clean)``, ``R_PSNR = (JSGS - baseline) / (clean - baseline)``,
+where baseline = gsplat on the schedule and clean = gsplat on the uncompressed training views. The noise
+rule: when ``|baseline - clean|`` is not larger than the seed spread (the larger of the baseline's and the
+clean run's max - min over seeds), R is not computed and the table says "within noise"; with a single seed
+there is no spread, R is computed and marked "1 seed".
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from jsgs.bench.plan import ABLATION_ALIAS, ABLATION_PARTS, ABLATION_SCHEDULE, MIXED_SCHEDULES
+
+METRICS = ("psnr", "ssim", "lpips")
+HIGHER_BETTER = {"psnr": True, "ssim": True, "lpips": False}
+DIGITS = {"psnr": 2, "ssim": 4, "lpips": 4}
+NAMES = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓"}
+METHOD_NAMES = {"gsplat": "gsplat", "jsgs": "JSGS"}
+
+
+@dataclass
+class Agg:
+    """A quantity over seeds."""
+
+    values: list[float]
+
+    @property
+    def n(self) -> int:
+        return len(self.values)
+
+    @property
+    def mean(self) -> float | None:
+        return statistics.fmean(self.values) if self.values else None
+
+    @property
+    def sd(self) -> float | None:
+        return statistics.stdev(self.values) if len(self.values) > 1 else None
+
+    @property
+    def spread(self) -> float | None:
+        """max - min over seeds; None with fewer than two seeds."""
+        return max(self.values) - min(self.values) if len(self.values) > 1 else None
+
+
+def agg(values: list[Any]) -> Agg:
+    return Agg([float(v) for v in values if v is not None and math.isfinite(float(v))])
+
+
+def final_rows(rows: list[dict[str, Any]]) -> dict[tuple[str, str, str, int], dict[str, Any]]:
+    """(scene, schedule, method, seed) -> the row of the run's last evaluation."""
+    out: dict[tuple[str, str, str, int], dict[str, Any]] = {}
+    for r in rows:
+        k = (r["scene"], r["schedule"], r["method"], int(r["seed"]))
+        if k not in out or r["step"] > out[k]["step"]:
+            out[k] = r
+    return out
+
+
+def by_seed(rows: list[dict[str, Any]]) -> dict[tuple[str, str, str], list[dict[str, Any]]]:
+    """(scene, schedule, method) -> final rows of its seeds."""
+    out: dict[tuple[str, str, str], list[dict[str, Any]]] = defaultdict(list)
+    for (sc, sch, m, _), r in sorted(final_rows(rows).items()):
+        out[(sc, sch, m)].append(r)
+    return out
+
+
+@dataclass
+class Recovered:
+    value: float | None  # R, or None where not computed
+    gap: float | None  # clean's advantage over the baseline (positive: clean better)
+    spread: float | None
+    note: str  # "", "within noise", "1 seed", "no clean run", "clean no better"
+
+
+def damage_recovered(baseline: Agg, method: Agg, clean: Agg, higher_is_better: bool) -> Recovered:
+    """R for one scene x schedule and one metric (see the module docstring for the noise rule)."""
+    b, m, c = baseline.mean, method.mean, clean.mean
+    if b is None or m is None:
+        return Recovered(None, None, None, "missing runs")
+    if c is None:
+        return Recovered(None, None, None, "no clean run")
+    sign = 1.0 if higher_is_better else -1.0
+    gap = sign * (c - b)
+    spreads = [s for s in (baseline.spread, clean.spread) if s is not None]
+    spread = max(spreads) if spreads else None
+    if spread is not None and abs(gap) <= spread:
+        return Recovered(None, gap, spread, "within noise")
+    if gap == 0:
+        return Recovered(None, gap, spread, "within noise")
+    value = sign * (m - b) / gap
+    note = "1 seed" if spread is None else ""
+    if gap < 0:
+        note = (note + "; " if note else "") + "clean no better"
+    return Recovered(value, gap, spread, note)
+
+
+def worse_beyond_spread(baseline: Agg, method: Agg, higher_is_better: bool) -> bool | None:
+    """Is the method worse than the baseline by more than the seed spread? None: one seed (unknown)."""
+    b, m = baseline.mean, method.mean
+    if b is None or m is None:
+        return None
+    worse = (b - m) if higher_is_better else (m - b)
+    spreads = [s for s in (baseline.spread, method.spread) if s is not None]
+    if not spreads:
+        return None
+    return worse > max(spreads)
+
+
+def _f(v: float | None, digits: int, signed: bool = False) -> str:
+    if v is None:
+        return "n/a"
+    return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
+
+
+def _ms(a: Agg, digits: int) -> str:
+    """mean ± sd (sd only with several seeds)."""
+    if a.mean is None:
+        return "n/a"
+    return _f(a.mean, digits) + (f" ± {a.sd:.{digits}f}" if a.sd is not None else "")
+
+
+def _table(header: list[str], rows: list[list[str]], align: str | None = None) -> list[str]:
+    align = align or "l" + "r" * (len(header) - 1)
+    sep = ["---:" if a == "r" else "---" for a in align]
+    return ["| " + " | ".join(header) + " |", "| " + " | ".join(sep) + " |"] + [
+        "| " + " | ".join(r) + " |" for r in rows
+    ]
+
+
+def _mean(xs: list[float | None]) -> float | None:
+    ys = [x for x in xs if x is not None]
+    return statistics.fmean(ys) if ys else None
+
+
+class Report:
+    def __init__(self, rows: list[dict[str, Any]]):
+        self.rows = rows
+        self.seeds = by_seed(rows)
+        self.scenes = sorted({r["scene"] for r in rows})
+        self.schedules = sorted({r["schedule"] for r in rows})
+
+    def a(self, scene: str, schedule: str, method: str, key: str) -> Agg:
+        return agg([r.get(key) for r in self.seeds.get((scene, schedule, method), [])])
+
+    def common_scenes(self, schedule: str, methods: list[str]) -> list[str]:
+        return [s for s in self.scenes if all((s, schedule, m) in self.seeds for m in methods)]
+
+    def over_scenes(self, schedule: str, method: str, key: str, scenes: list[str]) -> float | None:
+        return _mean([self.a(s, schedule, method, key).mean for s in scenes])
+
+    # -------------------------------------------------------------------------------------------------
+    def table1(self) -> list[str]:
+        scheds = [s for s in (*MIXED_SCHEDULES, "clean") if s in self.schedules]
+        if not scheds:
+            return ["No mixed-quality runs."]
+        header = ["Method"] + [f"{s} {NAMES[k]}" for s in scheds for k in METRICS]
+        out_rows = []
+        for m in ("gsplat", "jsgs"):
+            cells = [METHOD_NAMES[m]]
+            for s in scheds:
+                sc = self.common_scenes(s, ["gsplat", "jsgs"] if s != "clean" else ["gsplat"])
+                for k in METRICS:
+                    cells.append(
+                        _f(self.over_scenes(s, m, k, sc), DIGITS[k]) if s != "clean" or m == "gsplat" else "—"
+                    )
+            out_rows.append(cells)
+        counts = ", ".join(
+            f"{s}: {len(self.common_scenes(s, ['gsplat', 'jsgs'] if s != 'clean' else ['gsplat']))}"
+            for s in scheds
+        )
+        return _table(header, out_rows) + [
+            "",
+            f"Scenes in each mean (those with both methods): {counts}. `clean` = gsplat on the uncompressed "
+            "training views (the ceiling).",
+        ]
+
+    def lpips_reduction(self, schedule: str, scenes: list[str]) -> tuple[float | None, float | None]:
+        """(mean over scenes of 100 (1 - JSGS/gsplat), 100 (1 - mean JSGS / mean gsplat)) for LPIPS."""
+        per = []
+        for s in scenes:
+            b, j = self.a(s, schedule, "gsplat", "lpips").mean, self.a(s, schedule, "jsgs", "lpips").mean
+            if b and j is not None:
+                per.append(100 * (1 - j / b))
+        mb = self.over_scenes(schedule, "gsplat", "lpips", scenes)
+        mj = self.over_scenes(schedule, "jsgs", "lpips", scenes)
+        of_means = 100 * (1 - mj / mb) if mb and mj is not None else None
+        return _mean(per), of_means
+
+    def damage(self) -> list[str]:
+        scheds = [s for s in MIXED_SCHEDULES if s in self.schedules]
+        lines: list[str] = []
+        header = [
+            "Scene", "Schedule", "LPIPS gsplat", "LPIPS JSGS", "LPIPS clean", "ΔLPIPS %", "R_LPIPS",
+            "PSNR gsplat", "PSNR JSGS", "PSNR clean", "R_PSNR", "JSGS worse beyond spread?",
+        ]  # fmt: skip
+        body = []
+        per_sched: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
+        notes: dict[str, dict[str, list[str]]] = defaultdict(lambda: defaultdict(list))
+        for sch in scheds:
+            for sc in self.common_scenes(sch, ["gsplat", "jsgs"]):
+                cells = [sc, sch]
+                worse = []
+                rs: dict[str, str] = {}
+                for k in ("lpips", "psnr"):
+                    b, j = self.a(sc, sch, "gsplat", k), self.a(sc, sch, "jsgs", k)
+                    c = self.a(sc, "clean", "gsplat", k)
+                    rec = damage_recovered(b, j, c, HIGHER_BETTER[k])
+                    if rec.value is not None:
+                        per_sched[sch][k].append(rec.value)
+                        rs[k] = f"{rec.value:.2f}" + (f" ({rec.note})" if rec.note else "")
+                    else:
+                        notes[sch][k].append(sc)
+                        gap = "" if rec.gap is None else f": gap {abs(rec.gap):.{DIGITS[k]}f}"
+                        spr = "" if rec.spread is None else f" ≤ spread {rec.spread:.{DIGITS[k]}f}"
+                        rs[k] = rec.note + gap + (spr if rec.note == "within noise" else "")
+                    w = worse_beyond_spread(b, j, HIGHER_BETTER[k])
+                    worse.append(f"{k}: " + ("unknown (1 seed)" if w is None else ("**yes**" if w else "no")))
+                    if k == "lpips":
+                        red = 100 * (1 - j.mean / b.mean) if b.mean and j.mean is not None else None
+                        cells += [_ms(b, 4), _ms(j, 4), _ms(c, 4), _f(red, 1), rs[k]]
+                    else:
+                        cells += [_ms(b, 2), _ms(j, 2), _ms(c, 2), rs[k]]
+                cells.append("; ".join(worse))
+                body.append(cells)
+        if not body:
+            return ["No scene has both methods on a mixed schedule."]
+        lines += _table(header, body, "ll" + "r" * 9 + "l")
+        lines += ["", "Per schedule (means over scenes; R only over the scenes where it is defined):", ""]
+        sh = ["Schedule", "LPIPS reduction % (mean of per-scene)", "LPIPS reduction % (of means)",
+              "mean R_LPIPS", "mean R_PSNR", "target: R ≥ 0.5 in both"]  # fmt: skip
+        sb = []
+        for sch in scheds:
+            sc = self.common_scenes(sch, ["gsplat", "jsgs"])
+            per, ofm = self.lpips_reduction(sch, sc)
+            cells = [sch, _f(per, 1), _f(ofm, 1)]
+            ok = []
+            for k in ("lpips", "psnr"):
+                vals = per_sched[sch][k]
+                mr = _mean(vals)
+                txt = _f(mr, 2) + f" (n = {len(vals)} of {len(sc)})"
+                if notes[sch][k]:
+                    txt += "; not computed for " + ", ".join(notes[sch][k])
+                cells.append(txt)
+                ok.append(mr is not None and mr >= 0.5)
+            cells.append("met" if all(ok) else "**not met**")
+            sb.append(cells)
+        lines += _table(sh, sb, "lrrlll")
+        return lines
+
+    def table3(self) -> list[str]:
+        fixed = sorted((s for s in self.schedules if s.startswith("fixed")), key=lambda s: int(s[5:]))
+        if not fixed:
+            return ["No fixed-quality runs."]
+        header = ["Method"] + [f"q={s[5:]} {NAMES[k]}" for s in fixed for k in METRICS]
+        body = []
+        for m in ("gsplat", "jsgs"):
+            cells = [METHOD_NAMES[m]]
+            for s in fixed:
+                sc = self.common_scenes(s, ["gsplat", "jsgs"])
+                cells += [_f(self.over_scenes(s, m, k, sc), DIGITS[k]) for k in METRICS]
+            body.append(cells)
+        red = []
+        for s in fixed:
+            sc = self.common_scenes(s, ["gsplat", "jsgs"])
+            per, ofm = self.lpips_reduction(s, sc)
+            red.append(f"q={s[5:]}: {_f(per, 1)} % (of means {_f(ofm, 1)} %, {len(sc)} scenes)")
+        return _table(header, body) + [
+            "",
+            "LPIPS reduction, JSGS vs gsplat (mean of per-scene): " + "; ".join(red),
+        ]
+
+    def table2(self) -> list[str]:
+        scenes = [
+            s
+            for s in self.scenes
+            if any((s, ABLATION_SCHEDULE, v) in self.seeds for v in ("jo", "jo_ds", "jo_gc"))
+        ]
+        if not scenes:
+            return ["No ablation runs."]
+        lines = []
+        names = {
+            "baseline": "Baseline",
+            "jo": "JO only",
+            "jo_ds": "JO + DS",
+            "jo_gc": "JO + GC",
+            "full": "Full JSGS",
+        }
+        for sc in scenes:
+            body = []
+            for v, parts in ABLATION_PARTS.items():
+                m = ABLATION_ALIAS.get(v, v)
+                cells = [names[v]] + ["✓" if p else "–" for p in parts]
+                for k in METRICS:
+                    a = self.a(sc, ABLATION_SCHEDULE, m, k)
+                    cells.append(_f(a.mean, DIGITS[k]))
+                body.append(cells)
+            lines += [
+                f"{sc}, {ABLATION_SCHEDULE} schedule, seed {self._first_seed(sc)} "
+                "(Baseline = the gsplat run, Full = the jsgs run):",
+                "",
+            ]
+            lines += _table(["Variant", "JO", "DS", "GC", *(NAMES[k] for k in METRICS)], body, "lcccrrr") + [
+                ""
+            ]
+        return lines
+
+    def _first_seed(self, scene: str) -> str:
+        rs = self.seeds.get((scene, ABLATION_SCHEDULE, "jo"), [])
+        return str(rs[0]["seed"]) if rs else "?"
+
+    def table4(self) -> list[str]:
+        scheds = [s for s in self.schedules if s in MIXED_SCHEDULES or s.startswith("fixed")]
+        header = ["Method", "train time (min)", "time / iteration (ms)", "render FPS", "#Gaussians",
+                  "peak memory (MiB)", "time / it × gsplat"]  # fmt: skip
+        body = []
+        pairs = [(sc, s) for s in scheds for sc in self.common_scenes(s, ["gsplat", "jsgs"])]
+        if not pairs:
+            return ["No runs with both methods."]
+        base_tpi = _mean([self.a(sc, s, "gsplat", "time_per_iteration_s").mean for sc, s in pairs])
+        for m in ("gsplat", "jsgs"):
+
+            def over(key: str, m: str = m) -> float | None:
+                return _mean([self.a(sc, s, m, key).mean for sc, s in pairs])
+
+            tpi = over("time_per_iteration_s")
+            t = over("train_seconds")
+            body.append([
+                METHOD_NAMES[m], _f(t / 60 if t is not None else None, 2), _f(tpi * 1000 if tpi else None, 2),
+                _f(over("fps"), 0), _f(over("num_gaussians"), 0), _f(over("peak_memory_mb"), 0),
+                _f(tpi / base_tpi if tpi and base_tpi else None, 3),
+            ])  # fmt: skip
+        ratios = [
+            self.a(sc, s, "jsgs", "time_per_iteration_s").mean / b
+            for sc, s in pairs
+            if (b := self.a(sc, s, "gsplat", "time_per_iteration_s").mean)
+        ]
+        return _table(header, body) + [
+            "",
+            f"Means over {len(pairs)} scene × schedule pairs (mixed and fixed schedules, last step). Per "
+            f"pair time/iteration ratio JSGS/gsplat: min {_f(min(ratios) if ratios else None, 3)}, max "
+            f"{_f(max(ratios) if ratios else None, 3)} (target ≤ 1.2). Concurrent runs share a GPU "
+            "(--jobs-per-gpu), which inflates every time alike.",
+        ]
+
+    def per_scene(self) -> list[str]:
+        lines: list[str] = []
+        for sc in self.scenes:
+            body = []
+            keys = sorted({(sch, m) for (s, sch, m) in self.seeds if s == sc})
+            for sch, m in keys:
+                cells = [sch, m, str(len(self.seeds[(sc, sch, m)]))]
+                cells += [_ms(self.a(sc, sch, m, k), DIGITS[k]) for k in METRICS]
+                cells += [
+                    _f(self.a(sc, sch, m, "num_gaussians").mean, 0),
+                    _f(self.a(sc, sch, m, "train_seconds").mean, 1),
+                    _f(self.a(sc, sch, m, "fps").mean, 0),
+                ]
+                body.append(cells)
+            lines += [f"### {sc}", ""]
+            lines += _table(["Schedule", "Method", "seeds", *(NAMES[k] for k in METRICS), "#Gaussians",
+                             "train s", "FPS"], body, "llrrrrrrr") + [""]  # fmt: skip
+        return lines
+
+    def terms(self) -> list[str]:
+        keys = sorted({k for r in self.rows for k in r if k.startswith(("loss_", "stat_"))})
+        keys = [k for k in keys if any(r.get(k) is not None for r in self.rows if r["method"] != "gsplat")]
+        if not keys:
+            return ["No method terms recorded."]
+        body = []
+        for (sc, sch, m), rs in sorted(self.seeds.items()):
+            if m == "gsplat":
+                continue
+            body.append([sc, sch, m] + [_f(agg([r.get(k) for r in rs]).mean, 5) for k in keys])
+        return _table(["Scene", "Schedule", "Method", *keys], body, "lll" + "r" * len(keys))
+
+    def plots(self, outdir: Path) -> list[Path]:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        outdir.mkdir(parents=True, exist_ok=True)
+        written = []
+        colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
+        styles = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
+        for sc in self.scenes:
+            fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+            any_line = False
+            for (s, sch, m), _ in sorted(self.seeds.items()):
+                if s != sc or m not in colors:
+                    continue
+                steps: dict[int, list[dict[str, Any]]] = defaultdict(list)
+                for r in self.rows:
+                    if r["scene"] == sc and r["schedule"] == sch and r["method"] == m:
+                        steps[r["step"]].append(r)
+                pts = sorted(steps)
+
+                def series(key: str, steps: dict[int, list[dict[str, Any]]] = steps, pts: list[int] = pts):
+                    return [agg([r.get(key) for r in steps[p]]).mean for p in pts]
+
+                color = "gray" if sch == "clean" else colors[m]
+                style = styles.get(sch, "-")
+                label = f"{m} {sch}"
+                for ax, (xk, yk) in zip(
+                    axes.flat,
+                    [("train_seconds", "lpips"), ("train_seconds", "psnr"), ("num_gaussians", "lpips"),
+                     ("num_gaussians", "psnr")],
+                    strict=True,
+                ):  # fmt: skip
+                    xs, ys = series(xk), series(yk)
+                    xy = [(x, y) for x, y in zip(xs, ys, strict=True) if x is not None and y is not None]
+                    if xy:
+                        ax.plot(*zip(*xy, strict=True), style, marker="o", ms=3, color=color, label=label)
+                        any_line = True
+            if not any_line:
+                plt.close(fig)
+                continue
+            for ax, (xl, yl) in zip(
+                axes.flat,
+                [("training time (s)", "LPIPS"), ("training time (s)", "PSNR (dB)"), ("#Gaussians", "LPIPS"),
+                 ("#Gaussians", "PSNR (dB)")],
+                strict=True,
+            ):  # fmt: skip
+                ax.set_xlabel(xl)
+                ax.set_ylabel(yl)
+                ax.grid(alpha=0.3)
+            axes[0, 0].legend(fontsize=7)
+            fig.suptitle(f"{sc}: test metrics at each evaluation step (means over seeds)")
+            fig.tight_layout()
+            path = outdir / f"{sc}.png"
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            written.append(path)
+        return written
+
+
+def write_report(
+    rows: list[dict[str, Any]],
+    results_dir: str | Path,
+    header_lines: list[str],
+    failures: list[dict[str, Any]],
+    plots: bool = True,
+) -> Path:
+    """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path."""
+    results_dir = Path(results_dir)
+    rep = Report(rows)
+    pngs = rep.plots(results_dir / "plots") if plots and rows else []
+    md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
+    md += ["## Table 1: mixed-quality schedules (means over scenes, last step)", "", *rep.table1(), ""]
+    md += ["## Damage recovered and relative LPIPS reduction (issue 7)", "",
+           "R_LPIPS = (gsplat − JSGS) / (gsplat − clean), R_PSNR = (JSGS − gsplat) / (clean − gsplat), on "
+           "seed means; ΔLPIPS % = 100 (1 − JSGS / gsplat), the paper's relative reduction. Where |gsplat − "
+           "clean| is not larger than the seed spread (max − min over seeds, the larger of gsplat's and "
+           "clean's), R is not computed: \"within noise\". Values are mean ± sd over seeds.", "",
+           *rep.damage(), ""]  # fmt: skip
+    md += ["## Table 2: ablation", "", *rep.table2(), ""]
+    md += ["## Table 3: fixed quality (means over scenes, last step)", "", *rep.table3(), ""]
+    md += ["## Table 4: training time and rendering speed", "", *rep.table4(), ""]
+    md += ["## Per-scene results (last step; mean ± sd over seeds)", "", *rep.per_scene()]
+    md += ["## Loss terms and GC statistics (means over the last evaluation interval, unweighted)", "",
+           *rep.terms(), ""]  # fmt: skip
+    md += ["## Plots", ""]
+    md += [f"![{p.stem}](plots/{p.name})" for p in pngs] or ["No plots (no results)."]
+    md += ["", "## Failed runs", ""]
+    if failures:
+        for f in failures:
+            md += [f"- `{f['id']}`: {f.get('error')} (log `{f.get('log')}`)", "", "```",
+                   *(f.get("stderr_tail") or "").strip().splitlines()[-15:], "```", ""]  # fmt: skip
+    else:
+        md += ["None."]
+    path = results_dir / "report.md"
+    tmp = path.with_suffix(".md.tmp")
+    tmp.write_text("\n".join(md) + "\n")
+    tmp.replace(path)
+    return path

@@ -1,0 +1,94 @@
+"""``RESULTS/results.csv``: one row per run and evaluation step, from each run's ``metrics.json``."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from jsgs.bench.plan import Run
+
+COLUMNS = [
+    "scene", "schedule", "method", "seed", "step", "psnr", "ssim", "lpips", "train_seconds", "fps",
+    "num_gaussians", "peak_memory_mb",
+]  # fmt: skip
+#: fixed extra columns right after the leading ones; then loss_<term> and stat_<name> in sorted order
+EXTRA = ["time_per_iteration_s", "loss", "peak_memory_kind", "backend", "device_name"]
+TEXT = {"scene", "schedule", "method", "peak_memory_kind", "backend", "device_name"}
+MB = 2**20
+
+
+def rows_for_run(run: Run) -> list[dict[str, Any]]:
+    """The run's rows (none when it has no metrics.json)."""
+    try:
+        doc = json.loads((Path(run.out) / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return []
+    out = []
+    for e in doc.get("evals", []):
+        row: dict[str, Any] = {
+            "scene": run.scene, "schedule": run.schedule, "method": run.method, "seed": run.seed,
+            "step": e["step"], "psnr": e["psnr"], "ssim": e["ssim"], "lpips": e["lpips"],
+            "train_seconds": e["train_time_s"], "fps": e["fps"], "num_gaussians": e["num_gaussians"],
+            "peak_memory_mb": e["peak_memory_bytes"] / MB,
+            "time_per_iteration_s": e["time_per_iteration_s"], "loss": e["train"]["loss"],
+            "peak_memory_kind": e["peak_memory_kind"], "backend": doc.get("backend"),
+            "device_name": doc.get("device_name"),
+        }  # fmt: skip
+        for k, v in e["train"]["terms"].items():
+            row[f"loss_{k}"] = v
+        for k, v in e["train"]["stats"].items():
+            row[f"stat_{k}"] = v
+        out.append(row)
+    return out
+
+
+def collect(runs: list[Run]) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    for r in runs:
+        rows += rows_for_run(r)
+    return rows
+
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "" if not math.isfinite(v) else repr(v)
+    return str(v)
+
+
+def write_csv(rows: list[dict[str, Any]], path: str | Path) -> list[str]:
+    """Write the CSV (atomically); returns its header."""
+    dynamic = sorted({k for r in rows for k in r} - set(COLUMNS) - set(EXTRA))
+    header = COLUMNS + EXTRA + dynamic
+    path = Path(path)
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        for r in rows:
+            w.writerow([_fmt(r.get(k)) for k in header])
+    tmp.replace(path)
+    return header
+
+
+def read_csv(path: str | Path) -> list[dict[str, Any]]:
+    """Rows back with numbers as float/int (empty cells: None)."""
+    out = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            row: dict[str, Any] = {}
+            for k, v in r.items():
+                if v == "":
+                    row[k] = None
+                elif k in TEXT:
+                    row[k] = v
+                elif k in ("seed", "step", "num_gaussians"):
+                    row[k] = int(v)
+                else:
+                    row[k] = float(v)
+            out.append(row)
+    return out

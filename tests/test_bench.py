@@ -1,0 +1,187 @@
+"""``jsgs bench`` (jsgs.bench): the harness end to end on a tiny synthetic scene on the CPU (1 scene x the
+gaussian schedule + clean x 2 methods, 6 iterations), rerun skipping, a failing run, and the damage-recovered
+arithmetic with its noise rule on hand-made numbers."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from jsgs.bench import plan as plan_mod
+from jsgs.bench.report import Agg, damage_recovered, worse_beyond_spread
+
+TINY = {
+    "init": {"type": "random", "num_points": 200, "scale": 0.3},
+    "eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False},
+}
+LEADING = (
+    "scene,schedule,method,seed,step,psnr,ssim,lpips,train_seconds,fps,num_gaussians,peak_memory_mb".split(
+        ","
+    )
+)
+
+
+def _bench(scene: Path, out: Path, cfg: Path) -> object:
+    from cli.jsgs_cli import main
+
+    args = [
+        "bench", str(scene), "--out", str(out), "--schedules", "gaussian,clean", "--fixed", "",
+        "--methods", "gsplat,jsgs", "--seeds", "0", "--iterations", "6", "--eval-at", "3,6",
+        "--jobs-per-gpu", "2", "--device", "cpu", "--config", str(cfg), "--quiet",
+    ]  # fmt: skip
+    return CliRunner().invoke(main, args, catch_exceptions=False)
+
+
+def test_bench_end_to_end(synth_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from jsgs.schemas import validate
+
+    cfg = tmp_path / "tiny.json"
+    cfg.write_text(json.dumps(TINY))
+    out = tmp_path / "results"
+    name = synth_scene.name
+    # one run is made to fail (a broken argument for jsgs on the gaussian schedule); the others complete
+    real = plan_mod.train_argv
+
+    def broken(run: plan_mod.Run, device: str, config: str | None, resume: bool) -> list[str]:
+        argv = real(run, device, config, resume)
+        return argv + ["--jpeg-mode", "nonsense"] if run.method == "jsgs" else argv
+
+    monkeypatch.setattr(plan_mod, "train_argv", broken)
+    r = _bench(synth_scene, out, cfg)
+    assert r.exit_code == 1, r.output
+    assert "1 failed" in r.output
+    doc = json.loads((out / "bench.json").read_text())
+    validate(doc, "bench", "bench.json")
+    status = {x["id"]: x["status"] for x in doc["runs"]}
+    assert status == {
+        f"{name}/gaussian/gsplat/s0": "complete",
+        f"{name}/gaussian/jsgs/s0": "failed",
+        f"{name}/clean/gsplat/s0": "complete",
+    }
+    failed = next(x for x in doc["runs"] if x["status"] == "failed")
+    assert "nonsense" in failed["stderr_tail"] and failed["returncode"] != 0
+    report = (out / "report.md").read_text()
+    assert "## Failed runs" in report and f"`{name}/gaussian/jsgs/s0`" in report
+
+    # the rerun trains only the failed run, skips the finished ones
+    monkeypatch.setattr(plan_mod, "train_argv", real)
+    r = _bench(synth_scene, out, cfg)
+    assert r.exit_code == 0, r.output
+    doc = json.loads((out / "bench.json").read_text())
+    validate(doc, "bench", "bench.json")
+    status = {x["id"]: x["status"] for x in doc["runs"]}
+    assert status[f"{name}/gaussian/jsgs/s0"] == "complete"
+    assert status[f"{name}/gaussian/gsplat/s0"] == status[f"{name}/clean/gsplat/s0"] == "skipped"
+    assert doc["summary"]["failed"] == 0 and doc["status"] == "complete"
+
+    # the same compressed files for both methods, in the documented layout
+    for m in ("gsplat", "jsgs"):
+        cfg_doc = json.loads((out / "runs" / name / "gaussian" / m / "s0" / "config.json").read_text())
+        assert str(out / "data" / name / "gaussian_s0" / "manifest.json") in json.dumps(cfg_doc)
+    rec = json.loads((out / "data" / name / "clean_s0" / "compress.json").read_text())
+    assert rec["settings"]["schedule"] == "clean"
+
+    with open(out / "results.csv", newline="") as f:
+        rows = list(csv.reader(f))
+    assert rows[0][: len(LEADING)] == LEADING
+    body = [dict(zip(rows[0], r, strict=True)) for r in rows[1:]]
+    got = sorted((b["schedule"], b["method"], b["seed"], b["step"]) for b in body)
+    assert got == sorted(
+        (s, m, "0", st) for s, m in [("gaussian", "gsplat"), ("gaussian", "jsgs"), ("clean", "gsplat")]
+        for st in ("3", "6")
+    )  # fmt: skip
+    for b in body:
+        assert float(b["psnr"]) > 0 and int(b["num_gaussians"]) > 0 and float(b["train_seconds"]) > 0
+    assert any(k.startswith("loss_obs") for k in rows[0])  # JSGS's per-term loss means as extra columns
+
+    report = (out / "report.md").read_text()
+    for section in (
+        "## Table 1", "## Damage recovered", "## Table 2", "## Table 3", "## Table 4", "## Per-scene results",
+        "## Plots", "## Failed runs",
+    ):  # fmt: skip
+        assert section in report, section
+    assert f"### {name}" in report and "R_LPIPS" in report
+    assert (out / "plots" / f"{name}.png").stat().st_size > 1000
+
+
+def _a(*v: float) -> Agg:
+    return Agg(list(v))
+
+
+def test_damage_recovered_and_noise_rule() -> None:
+    # LPIPS: baseline 0.10, clean 0.05, JSGS 0.075 -> half the damage recovered; spreads 0.002 << gap 0.05
+    r = damage_recovered(_a(0.099, 0.101), _a(0.074, 0.076), _a(0.049, 0.051), higher_is_better=False)
+    assert r.value == pytest.approx(0.5) and r.note == "" and r.spread == pytest.approx(0.002)
+    # PSNR: baseline 25.7, clean 26.7, JSGS 26.45 -> 0.75
+    r = damage_recovered(_a(25.6, 25.8), _a(26.4, 26.5), _a(26.6, 26.8), higher_is_better=True)
+    assert r.value == pytest.approx(0.75) and r.gap == pytest.approx(1.0)
+    # JSGS worse than the baseline: negative R
+    r = damage_recovered(_a(25.7, 25.7), _a(25.2, 25.2), _a(26.7, 26.7), higher_is_better=True)
+    assert r.value == pytest.approx(-0.5)
+    # baseline within noise of the ceiling: gap 0.05 dB, seed spread 0.3 dB -> not divided
+    r = damage_recovered(_a(25.6, 25.9), _a(26.0, 26.1), _a(25.75, 25.8), higher_is_better=True)
+    assert r.value is None and r.note == "within noise" and r.spread == pytest.approx(0.3)
+    # the clean run's spread counts too
+    r = damage_recovered(_a(0.10, 0.10), _a(0.09, 0.09), _a(0.08, 0.13), higher_is_better=False)
+    assert r.value is None and r.note == "within noise"
+    # one seed: no spread known, R computed and marked
+    r = damage_recovered(_a(0.10), _a(0.08), _a(0.06), higher_is_better=False)
+    assert r.value == pytest.approx(0.5) and r.note == "1 seed"
+    # identical baseline and clean with one seed: nothing to divide by
+    assert damage_recovered(_a(0.1), _a(0.08), _a(0.1), higher_is_better=False).value is None
+    # no clean run
+    assert damage_recovered(_a(0.1), _a(0.08), _a(), higher_is_better=False).note == "no clean run"
+    # worse beyond the spread
+    assert worse_beyond_spread(_a(0.10, 0.101), _a(0.11, 0.111), higher_is_better=False) is True
+    assert worse_beyond_spread(_a(0.10, 0.12), _a(0.11, 0.111), higher_is_better=False) is False
+    assert worse_beyond_spread(_a(0.10), _a(0.11), higher_is_better=False) is None
+
+
+def test_plan_layout_and_ablation(tmp_path: Path, synth_scene: Path) -> None:
+    p = plan_mod.build_plan(
+        [synth_scene], tmp_path, ["uniform", "gaussian", "clean"], [30, 50], ["gsplat", "jsgs"],
+        synth_scene.name, [0, 1], 100, [50, 100],
+    )  # fmt: skip
+    ids = [r.id for r in p.runs]
+    assert len(ids) == len(set(ids))
+    n = synth_scene.name
+    # 2 mixed x 2 seeds x 2 methods + clean x 2 seeds + 2 fixed x 2 methods + 3 ablation-only variants
+    assert len(ids) == 8 + 2 + 4 + 3
+    assert f"{n}/clean/jsgs/s0" not in ids and f"{n}/fixed30/jsgs/s1" not in ids
+    jo = next(r for r in p.runs if r.method == "jo")
+    assert jo.train_method == "jsgs" and jo.flags == ["--no-ds", "--no-gc"] and jo.schedule == "gaussian"
+    assert jo.manifest == next(r for r in p.runs if r.id == f"{n}/gaussian/gsplat/s0").manifest
+    fixed = next(d for d in p.datasets if d.schedule == "fixed30")
+    assert (fixed.compress_schedule, fixed.quality, fixed.seed) == ("fixed", 30, 0)
+    assert len(p.datasets) == 3 * 2 + 2
+    argv = plan_mod.train_argv(jo, "cuda", None, resume=False)
+    assert argv[-3:] == ["--no-ds", "--no-gc", "--force"] and "--seed" in argv
+    with pytest.raises(Exception, match="unknown schedule"):
+        plan_mod.build_plan([synth_scene], tmp_path, ["mixed"], [], ["gsplat"], None, [0], 10, [10])
+
+
+def test_prepare_only_then_plan_without_the_source(synth_scene: Path, tmp_path: Path) -> None:
+    """The CPU half of a GPU session compresses; the GPU machine (no ../shared) plans on the prepared data."""
+    from cli.jsgs_cli import main
+    from jsgs.errors import JsgsError
+
+    out = tmp_path / "results"
+    args = [
+        "bench", str(synth_scene), "--out", str(out), "--schedules", "gaussian", "--fixed", "",
+        "--methods", "gsplat", "--seeds", "0", "--iterations", "2", "--device", "cpu", "--prepare-only",
+        "--quiet",
+    ]  # fmt: skip
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    data = out / "data" / synth_scene.name / "gaussian_s0"
+    assert (data / "manifest.json").is_file() and not (out / "runs").exists()
+    assert json.loads((out / "bench.json").read_text())["status"] == "prepared"
+    gone = tmp_path / "elsewhere" / synth_scene.name
+    plan = plan_mod.build_plan([gone], out, ["gaussian"], [], ["gsplat"], None, [0], 2, [2])
+    assert [d.out for d in plan.datasets] == [str(data)]
+    with pytest.raises(JsgsError, match="scene folder not found"):
+        plan_mod.build_plan([tmp_path / "nope"], out, ["gaussian"], [], ["gsplat"], None, [0], 2, [2])
