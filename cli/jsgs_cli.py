@@ -21,3 +21,7 @@ def _register() -> None:
 
 
 _register()
+
+
+if __name__ == "__main__":  # python -m cli.<name>, where the console scripts are not installed (GPU machine)
+    main()

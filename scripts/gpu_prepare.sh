@@ -17,4 +17,5 @@ for scene in ${GPU_SCENES:-llff_flower}; do
             .venv/bin/jsgstools compress "../shared/scenes/$scene" --out "$d" --schedule "$schedule" --seed 0 --force
     done
 done
+cp -n ../shared/lpips/alexnet_features.pth .gpu/ 2>/dev/null || echo "no LPIPS weights: LPIPS will be null"
 du -sh .whl .gpu
