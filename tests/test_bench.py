@@ -185,3 +185,51 @@ def test_prepare_only_then_plan_without_the_source(synth_scene: Path, tmp_path: 
     assert [d.out for d in plan.datasets] == [str(data)]
     with pytest.raises(JsgsError, match="scene folder not found"):
         plan_mod.build_plan([tmp_path / "nope"], out, ["gaussian"], [], ["gsplat"], None, [0], 2, [2])
+
+
+def test_prepare_derives_from_the_clean_base(
+    synth_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A GPU machine carries only data/<scene>/clean_s0/{manifest.json,compress.json,reference/}: the other
+    datasets are derived from it with Pillow (no compress), and the clean base gets its images/ back."""
+    import shutil
+
+    import jsgstools.compress
+    from cli.jsgs_cli import main
+    from jsgs.bench.harness import prepare_datasets
+    from jsgs.manifest import load_manifest
+
+    out = tmp_path / "results"
+    args = [
+        "bench", str(synth_scene), "--out", str(out), "--schedules", "clean", "--fixed", "",
+        "--methods", "gsplat", "--seeds", "0", "--iterations", "2", "--device", "cpu", "--prepare-only",
+        "--quiet",
+    ]  # fmt: skip
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    base = out / "data" / synth_scene.name / "clean_s0"
+    shutil.rmtree(base / "images")  # not carried
+
+    def no_compress(*a: object, **k: object) -> None:
+        raise AssertionError("compress must not be called")
+
+    monkeypatch.setattr(jsgstools.compress, "compress", no_compress)
+    gone = tmp_path / "elsewhere" / synth_scene.name
+    plan = plan_mod.build_plan([gone], out, ["gaussian", "clean"], [30], ["gsplat"], None, [0], 2, [2])
+    status = prepare_datasets(plan, progress=False)
+    assert {k: v["status"] for k, v in status.items()} == {
+        f"{synth_scene.name}/gaussian_s0": "complete",
+        f"{synth_scene.name}/clean_s0": "skipped",
+        f"{synth_scene.name}/fixed30_s0": "complete",
+    }, status
+    for d in plan.datasets:
+        m = load_manifest(d.manifest)  # every image and reference resolves
+        train = m.train_views
+        if d.schedule == "clean":
+            assert all(v.jpeg is None and v.image.is_file() for v in train)
+        else:
+            assert all(v.jpeg is not None and v.image.suffix == ".jpg" for v in train)
+            if d.schedule == "fixed30":
+                assert all(v.jpeg is not None and v.jpeg.quality == 30 for v in train)
+            assert not (Path(d.out) / "reference").exists()
+    assert all(v["status"] == "skipped" for v in prepare_datasets(plan, progress=False).values())  # rerun

@@ -1,6 +1,6 @@
-""":func:`bench`: plan -> datasets (``jsgstools.compress``) -> worker pool (``jsgs train`` subprocesses) ->
-``results.csv`` -> ``report.md`` + plots, recording everything in ``RESULTS/bench.json``
-(``schemas/bench.schema.json``)."""
+""":func:`bench`: plan -> datasets (``jsgstools.compress``, or ``jsgstools.derive`` from a clean base) ->
+worker pool (``jsgs train`` subprocesses) -> ``results.csv`` -> ``report.md`` + plots, recording everything in
+``RESULTS/bench.json`` (``schemas/bench.schema.json``)."""
 
 from __future__ import annotations
 
@@ -73,11 +73,15 @@ def environment(device: str) -> dict[str, Any]:
 
 
 def _dataset_ready(d: Dataset) -> bool:
+    """The dataset's manifest exists and was made with ``d``'s settings (read from ``compress.json``, or from
+    the manifest's ``scene`` for a dataset made by :func:`jsgstools.derive.derive`)."""
     try:
-        rec = json.loads((Path(d.out) / "compress.json").read_text())
-    except (OSError, ValueError):
+        if (Path(d.out) / "compress.json").is_file():
+            s = json.loads((Path(d.out) / "compress.json").read_text()).get("settings", {})
+        else:
+            s = json.loads((Path(d.out) / "manifest.json").read_text()).get("scene", {})
+    except (OSError, ValueError, AttributeError):
         return False
-    s = rec.get("settings", {})
     return (
         (Path(d.out) / "manifest.json").is_file()
         and s.get("schedule") == d.compress_schedule
@@ -86,24 +90,50 @@ def _dataset_ready(d: Dataset) -> bool:
     )
 
 
+def clean_base(d: Dataset) -> Path:
+    """The scene's clean dataset ``RESULTS/data/<scene>/clean_s0/manifest.json``, the base that
+    :func:`jsgstools.derive.derive` makes the other datasets from where the source scene is absent."""
+    return Path(d.out).parent / "clean_s0" / "manifest.json"
+
+
 def prepare_datasets(plan: Plan, progress: bool = True) -> dict[str, dict[str, Any]]:
-    """Compress every dataset not already there; ``{key: {"status": ..., "error"?: ...}}``."""
+    """Build every dataset not already there; ``{key: {"status": ..., "error"?: ...}}``.
+
+    With the source scene present: ``jsgstools.compress`` (pycolmap, OpenCV). Without it (a GPU machine) but
+    with the scene's clean base ``data/<scene>/clean_s0/`` (its manifest.json, compress.json and reference/
+    PNGs): ``jsgstools.derive`` (Pillow only), same files bit for bit. A carried clean base without its
+    ``images/`` gets them back as copies of its references."""
     out: dict[str, dict[str, Any]] = {}
     for d in plan.datasets:
-        if _dataset_ready(d):
-            out[d.key] = {"status": "skipped"}
-            continue
-        # imported only when needed: a GPU machine (no pycolmap/OpenCV) runs on prepared datasets
-        from jsgstools.compress import compress
-
-        if progress:
-            print(f"compress: {d.source} -> {d.out} ({d.schedule}, seed {d.seed})", file=sys.stderr)
+        base = clean_base(d)
+        derived = not Path(d.source).is_dir() and base.is_file()
         try:
-            compress(d.source, d.out, d.compress_schedule, quality=d.quality, seed=d.seed, force=True)
+            if _dataset_ready(d):
+                if d.compress_schedule == "clean" and Path(d.out) == base.parent and derived:
+                    from jsgstools.derive import restore_clean_images
+
+                    n = restore_clean_images(d.out)
+                    if n and progress:
+                        print(f"restored {n} lossless images of {d.out} from reference/", file=sys.stderr)
+                out[d.key] = {"status": "skipped"}
+                continue
+            if derived:
+                from jsgstools.derive import derive
+
+                if progress:
+                    print(f"derive: {base.parent} -> {d.out} ({d.schedule}, seed {d.seed})", file=sys.stderr)
+                derive(base, d.out, d.compress_schedule, quality=d.quality, seed=d.seed, force=True)
+            else:
+                # imported only when needed: a GPU machine (no pycolmap/OpenCV) runs on prepared datasets
+                from jsgstools.compress import compress
+
+                if progress:
+                    print(f"compress: {d.source} -> {d.out} ({d.schedule}, seed {d.seed})", file=sys.stderr)
+                compress(d.source, d.out, d.compress_schedule, quality=d.quality, seed=d.seed, force=True)
             out[d.key] = {"status": "complete"}
         except Exception as e:  # noqa: BLE001 - reported per dataset; its runs fail, the others go on
             out[d.key] = {"status": "failed", "error": str(e)}
-            print(f"failed: compress {d.key}: {e}", file=sys.stderr)
+            print(f"failed: {'derive' if derived else 'compress'} {d.key}: {e}", file=sys.stderr)
     return out
 
 
