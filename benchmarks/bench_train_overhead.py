@@ -29,7 +29,6 @@ enough iterations (or lower it in ``--config``) to include it.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import tempfile
@@ -190,14 +189,23 @@ def main() -> None:
                 f"| {label} | " + " | ".join(f"{ph[p]:.2f}" for p in PHASES) + f" | {sum(ph.values()):.2f} |"
             )
     if args.out:
+        import jsgs
+        from jsgs.io import write_json_atomic
+        from jsgs.schemas import validate
+
         doc = {
+            "format": "jsgs-overhead",
+            "format_version": 1,
+            "version": jsgs.__version__,
+            "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
             "manifest": str(manifest),
             "iterations": iterations,
             "device": str(device),
             "torch": torch.__version__,
             "results": results,
         }
-        args.out.write_text(json.dumps(doc, indent=1))
+        validate(doc, "overhead", str(args.out))
+        write_json_atomic(args.out, doc)
 
 
 if __name__ == "__main__":
