@@ -23,7 +23,7 @@ python3 -c "import torch, gsplat; print('torch', torch.__version__, 'gsplat', gs
 python3 -c "import torch, gsplat; from gsplat.cuda._backend import _C; print('gsplat CUDA ready')" 2>&1 | tail -2
 for stage in $STAGES; do
     case $stage in
-    tests) python3 -m pytest -m gpu tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_lpips.py -q -s 2>&1 | tee "$OUT/gpu_tests.log" | tail -40 ;;
+    tests) JSGS_GPU_MANIFEST=$PWD/$M python3 -m pytest -m gpu tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_lpips.py -q -s 2>&1 | tee "$OUT/gpu_tests.log" | tail -40 ;;
     jpeg) python3 benchmarks/bench_jpeg_ops.py --device cuda --compile 2>&1 | tee "$OUT/bench_jpeg.txt" ;;
     overhead) python3 benchmarks/bench_train_overhead.py --manifest "$M" --iterations 2000 --device cuda \
         --jpeg-modes paper,float,exact --out "$OUT/overhead.json" 2>&1 | tee "$OUT/overhead.txt" | tail -30 ;;
