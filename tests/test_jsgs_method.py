@@ -24,13 +24,14 @@ from click.testing import CliRunner
 from PIL import Image
 
 from jsgs.errors import JsgsError
+from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.tables import ijg_tables
 from jsgs.manifest import JpegState
 from jsgs.render.bruteforce import render_bruteforce
 from jsgs.train.config import TrainConfig
 from jsgs.train.data import View
 from jsgs.train.hooks import StepContext, make_hook
-from jsgs.train.jsgs_method import JsgsHook, make_jsgs_hook, parse_options, photometric, view_tables
+from jsgs.train.jsgs_method import JsgsHook, make_jsgs_hook, parse_options, view_tables
 from jsgs.train.rendering import render_view
 
 D = torch.float64
@@ -282,7 +283,7 @@ def train_step(hook: JsgsHook, view: View, splats: torch.nn.ParameterDict | None
     h = hook.losses(ctx)
     h.check("jsgs")
     x, y = out.rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
-    loss = photometric(x, y, 0.2, "valid")
+    loss = photometric_loss(x, y, 0.2, padding="valid")
     for k, w in h.weights.items():
         if w != 0.0:
             loss = loss + w * h.terms[k]
@@ -686,3 +687,17 @@ def test_packed_rendering_is_refused_with_gc(tmp_path: Path) -> None:
         make_jsgs_hook(cfg, scene, torch.device("cpu"))
     cfg.method_options = {"gc": False}
     assert make_jsgs_hook(cfg, scene, torch.device("cpu")) is not None
+
+
+@pytest.mark.parametrize("mode", ["paper", "exact"])
+def test_compiled_jpeg_terms_equal_eager(mode: str) -> None:
+    """method_options.compile traces JO, L_obs's ℓ_ph and DS with torch.compile; "aot_eager" checks on the
+    CPU that the traced graphs (straight-through rounding included) give the eager values and gradients."""
+    view = make_view(50, "4:2:0")
+    eager = train_step(new_hook(view, jpeg_mode=mode), view)
+    traced = train_step(new_hook(view, jpeg_mode=mode, compile="aot_eager"), view)
+    assert set(traced["terms"]) == set(eager["terms"])
+    for k, v in eager["terms"].items():
+        assert traced["terms"][k] == pytest.approx(v, rel=1e-9, abs=1e-12), k
+    for k, g in eager["grads"].items():
+        assert torch.allclose(traced["grads"][k], g, rtol=1e-7, atol=1e-12), k

@@ -15,7 +15,7 @@ LAMBDA_SSIM = 0.2
 
 
 def photometric_loss(
-    x: Tensor, y: Tensor, lambda_ssim: float = LAMBDA_SSIM, reduction: str = "mean"
+    x: Tensor, y: Tensor, lambda_ssim: float = LAMBDA_SSIM, reduction: str = "mean", padding: str = "same"
 ) -> Tensor:
     """``l_ph(X, Y) = (1 - lambda) ||X - Y||_1 / (3HW) + lambda (1 - SSIM(X, Y))`` (eq. photometric).
 
@@ -24,6 +24,7 @@ def photometric_loss(
         lambda_ssim: D-SSIM weight (0.2 in the paper).
         reduction: "mean" -> scalar (mean over views of the per-view loss, equal to the mean over everything
             since views share H, W); "none" -> ``(B,)``.
+        padding: SSIM borders, "same" (zero-padded, the original 3DGS) or "valid" (gsplat's training loss).
     Returns:
         The loss (unitless).
     """
@@ -33,7 +34,7 @@ def photometric_loss(
         l1 = (x - y).abs().flatten(1).mean(1)
     else:
         raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
-    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(x, y, reduction=reduction))
+    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(x, y, padding=padding, reduction=reduction))
 
 
 class ObservationLoss(NamedTuple):

@@ -80,13 +80,25 @@ class JsgsOptions:
     eps_dct_block: float = 1e-6
     eps_proj: float = EPS_PROJ
     gc_pooling: Literal["deferred", "now"] = "deferred"
+    # torch.compile of JO, L_obs's photometric loss and DS (eager they are launch-bound on a GPU: hundreds of
+    # small kernels). "inductor" is torch's default code generator; "aot_eager" only traces (a check).
+    compile: Literal["off", "inductor", "aot_eager"] = "off"
 
     @property
     def any_active(self) -> bool:
         return self.jo or self.ds or self.gc
 
 
-_CHOICES = {"jpeg_mode": ("paper", "float", "exact"), "gc_pooling": ("deferred", "now")}
+_CHOICES = {
+    "jpeg_mode": ("paper", "float", "exact"),
+    "gc_pooling": ("deferred", "now"),
+    "compile": ("off", "inductor", "aot_eager"),
+}
+
+
+def _maybe_compile(fn: Any, backend: str) -> Any:
+    # dynamic=False: a scene has few image sizes, and static shapes let inductor fuse the 8x8 block math.
+    return fn if backend == "off" else torch.compile(fn, backend=backend, dynamic=False)
 
 
 def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:
@@ -165,14 +177,6 @@ def view_tables(views: list[View], device: torch.device, where: str) -> dict[int
     return out
 
 
-def photometric(x: Tensor, y: Tensor, ssim_lambda: float, padding: str) -> Tensor:
-    """The trainer's ℓ_ph (eq. photometric): ``(1 − λ) mean|x − y| + λ (1 − SSIM(x, y))``; x, y
-    [B, 3, H, W] in [0, 1]; ``padding`` as ``loss.ssim_padding``."""
-    from jsgs.ssim import ssim
-
-    return (1.0 - ssim_lambda) * (x - y).abs().mean() + ssim_lambda * (1.0 - ssim(x, y, padding=padding))
-
-
 class JsgsHook(LossHook):
     """The JSGS terms for the trainer (module docstring). ``profile = True`` (set by a benchmark) records
     device-synchronised wall times of the JO, DS and GC parts in ``timings`` (seconds, summed over steps;
@@ -203,6 +207,13 @@ class JsgsHook(LossHook):
         self.keep_last = False
         self.last: dict[str, Any] = {}
         self._cameras: dict[tuple[int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
+        from jsgs.jpeg.losses import photometric_loss
+        from jsgs.jpeg.observe import jpeg_observe
+        from jsgs.jpeg.supervision import dct_supervision
+
+        self._observe = _maybe_compile(jpeg_observe, options.compile)
+        self._photometric = _maybe_compile(photometric_loss, options.compile)
+        self._supervise = _maybe_compile(dct_supervision, options.compile)
 
     # ------------------------------------------------------------------------------------------------
     @property
@@ -249,19 +260,15 @@ class JsgsHook(LossHook):
         x = ctx.render.permute(0, 3, 1, 2)
         y = ctx.target.permute(0, 3, 1, 2)
         with self.profiler.phase("jo"):
-            from jsgs.jpeg.observe import jpeg_observe
-
-            obs = jpeg_observe(x, tab.luma, tab.chroma, tab.sampling, o.jpeg_mode)
-            terms["obs"] = photometric(obs, y, self.ssim_lambda, self.ssim_padding)
+            obs = self._observe(x, tab.luma, tab.chroma, tab.sampling, o.jpeg_mode)
+            terms["obs"] = self._photometric(obs, y, self.ssim_lambda, padding=self.ssim_padding)
         if self.keep_last:
             self.last["observation"] = obs.detach()
         r_map = None
         if o.ds or o.gc:
             with self.profiler.phase("ds"):
-                from jsgs.jpeg.supervision import dct_supervision
-
                 # GC alone needs only the (stop-gradient) block scores: no graph through DS then
-                sup = dct_supervision(
+                sup = self._supervise(
                     obs if o.ds else obs.detach(), y, tab.luma, o.eps_sm, o.eps_dct_loss, o.eps_dct_block
                 )
                 if o.ds:
