@@ -122,6 +122,9 @@ def main() -> None:
     ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     ap.add_argument("--jpeg-modes", default="paper", help="JSGS variants: comma-separated JO modes [paper]")
     ap.add_argument("--gc-pooling", default="deferred", help="JSGS variants: deferred,now [deferred]")
+    ap.add_argument(
+        "--compile", default="off", help="JSGS variants: method_options.compile, e.g. off,inductor [off]"
+    )
     ap.add_argument("--no-profile", action="store_true", help="skip the profiled runs (breakdown)")
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     ap.add_argument("--out", type=Path, help="write the results as JSON here")
@@ -139,8 +142,10 @@ def main() -> None:
     variants: list[tuple[str, str, dict[str, Any]]] = [("gsplat", "gsplat", {})]
     for mode in args.jpeg_modes.split(","):
         for pooling in args.gc_pooling.split(","):
-            label = f"jsgs ({mode}, {pooling})"
-            variants.append((label, "jsgs", {"jpeg_mode": mode, "gc_pooling": pooling}))
+            for comp in args.compile.split(","):
+                label = f"jsgs ({mode}, {pooling}" + ("" if comp == "off" else f", compile {comp}") + ")"
+                opts = {"jpeg_mode": mode, "gc_pooling": pooling, "compile": comp}
+                variants.append((label, "jsgs", opts))
 
     with tempfile.TemporaryDirectory() as tmp:
         work = args.workdir or Path(tmp)
