@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -29,6 +30,19 @@ def compressed_scene(synth_scene: Path, tmp_path_factory: pytest.TempPathFactory
     out = tmp_path_factory.mktemp("dataset") / "data"
     compress(synth_scene, out, "gaussian", seed=0, jobs=1)
     return out
+
+
+@pytest.fixture
+def one_torch_thread() -> Iterator[None]:
+    """One torch thread for a test (``pytestmark = pytest.mark.usefixtures("one_torch_thread")``): the
+    tensors of the JPEG and JSGS tests are tiny, and on a busy 2-core machine the intra-op thread pool's
+    wake-ups cost 10-25x more than the work itself (measured)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
 
 
 def shared_scene(name: str) -> Path:

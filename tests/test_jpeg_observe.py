@@ -18,12 +18,7 @@ SAMPLINGS = ("4:4:4", "4:2:2", "4:2:0")
 SIZES = ((1, 1), (7, 9), (17, 33), (1, 1000))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def hard_tables() -> tuple[torch.Tensor, torch.Tensor]:

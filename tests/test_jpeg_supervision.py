@@ -12,13 +12,7 @@ import torch
 from jsgs.jpeg import supervision as S
 from jsgs.jpeg.tables import ijg_tables
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def paper_reference(obs: np.ndarray, tgt: np.ndarray, table: np.ndarray, eps_sm=1e-3, eps=1e-6) -> dict:

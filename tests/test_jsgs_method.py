@@ -38,14 +38,7 @@ D = torch.float64
 WIDTH, HEIGHT, FOCAL = 27, 19, 30.0
 
 
-@pytest.fixture(autouse=True)
-def _one_thread() -> Any:
-    """One torch thread: these tensors are tiny, and on a busy 2-core machine the intra-op thread pool's
-    wake-ups cost 10-25x more than the work itself (measured)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 SUBSAMPLING = {"4:4:4": 0, "4:2:2": 1, "4:2:0": 2}

@@ -12,13 +12,7 @@ import torch
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.ssim import ssim, ssim_map
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def reference_ssim_map(x: np.ndarray, y: np.ndarray, valid: bool = False) -> np.ndarray:
