@@ -421,12 +421,7 @@ def compress(
         "seed": seed,
         "test_every": test_every,
         "subsampling": ss_name,
-        "qualities": list(QUALITIES)
-        if schedule not in ("fixed", "clean")
-        else ([quality] if schedule == "fixed" else []),
-        "weights": the_plan.weights,
-        "counts": {str(q): c for q, c in sorted(the_plan.counts.items())},
-        "encoder": f"Pillow {_pillow_version()} (libjpeg), baseline, optimize=False, subsampling {ss_name}",
+        **schedule_settings(the_plan, schedule, quality, ss_name),
         "split_rule": SPLIT_RULE,
         "count_rule": COUNT_RULE,
         "assignment_rule": ASSIGN_RULE,
@@ -484,6 +479,19 @@ def compress(
     doc = manifest_mod.build_manifest(out, out / "manifest.json", producer=producer)
     manifest_mod.write_manifest(doc, out / "manifest.json")
     return CompressResult(out, record, doc)
+
+
+def schedule_settings(the_plan: Plan, schedule: str, quality: int | None, ss_name: str) -> dict[str, Any]:
+    """What a dataset records of its quality schedule and encoder (shared by ``compress`` and ``derive``,
+    whose JPEGs are the same)."""
+    return {
+        "qualities": list(QUALITIES)
+        if schedule not in ("fixed", "clean")
+        else ([quality] if schedule == "fixed" else []),
+        "weights": the_plan.weights,
+        "counts": {str(q): c for q, c in sorted(the_plan.counts.items())},
+        "encoder": f"Pillow {_pillow_version()} (libjpeg), baseline, optimize=False, subsampling {ss_name}",
+    }
 
 
 def _pillow_version() -> str:

@@ -27,7 +27,7 @@ from jsgs import __version__
 from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
 
-from .compress import QUALITIES, SUBSAMPLING, jpeg_bytes, load_rgb, plan
+from .compress import SUBSAMPLING, jpeg_bytes, load_rgb, plan, schedule_settings
 from .scene import image_stem, prepare_output_dir
 
 #: What ``derive`` writes into OUT (and removes first with ``force``).
@@ -173,12 +173,7 @@ def derive(
         "seed": seed,
         "test_every": test_every,
         "subsampling": ss_name,
-        "qualities": list(QUALITIES)
-        if schedule not in ("fixed", "clean")
-        else ([quality] if schedule == "fixed" else []),
-        "weights": the_plan.weights,
-        "counts": {str(q): c for q, c in sorted(the_plan.counts.items())},
-        "encoder": f"Pillow (libjpeg), baseline, optimize=False, subsampling {ss_name}",
+        **schedule_settings(the_plan, schedule, quality, ss_name),
         "source": "the base's lossless reference PNGs; compress's split, counts, assignment and encoding",
         "bytes": {f"{image_stem(by_source[s]['name'])}.jpg": n for s, n in sorted(sizes.items())},
         "per_view_quality": per_view_quality,
