@@ -80,12 +80,28 @@ from cli._common import invocation, user_errors
     help="Only compress the datasets into OUT/data (on a CPU machine with ../shared, pycolmap and OpenCV); a "
     "GPU machine then runs the same command on them.",
 )
+@click.option(
+    "--compile",
+    "compile_backend",
+    type=click.Choice(["off", "inductor", "aot_eager"]),
+    default="off",
+    show_default=True,
+    help="--compile of every JSGS run (torch.compile of JO, L_obs and DS).",
+)
+@click.option(
+    "--report-only",
+    "report_only",
+    is_flag=True,
+    help="Train nothing: collect the runs already in OUT (e.g. copied back from GPU machines) into "
+    "results.csv, report.md and plots; missing runs are listed as not run.",
+)
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def bench_command(
     scenes: tuple[Path, ...], out: Path, schedules: str, fixed: str, methods: str, ablation: str | None,
     iterations: int, eval_at: str | None, seeds: str, jobs_per_gpu: int, device: str, config: Path | None,
-    lpips_weights: str | None, time_limit: float | None, prepare_only: bool, quiet: bool,
+    lpips_weights: str | None, time_limit: float | None, prepare_only: bool, compile_backend: str,
+    report_only: bool, quiet: bool,
 ) -> None:  # fmt: skip
     """Reproduce the paper's tables: compress every scene per schedule and seed, train gsplat and JSGS on the
     same files (a pool of `jsgs train` subprocesses), then write results.csv, report.md and plots."""
@@ -101,13 +117,18 @@ def bench_command(
         iterations=iterations, eval_at=parse_list(eval_at, "--eval-at", int) if eval_at is not None else None,
         jobs_per_gpu=jobs_per_gpu, device=device, config=config, lpips_weights=lpips_weights,
         progress=not quiet, time_limit=time_limit, command=invocation(click.get_current_context(), "jsgs"),
-        prepare_only=prepare_only,
+        prepare_only=prepare_only, compile_backend=compile_backend, report_only=report_only,
     )  # fmt: skip
     if prepare_only:
         n = len(doc["datasets"])
         click.echo(f"bench: {n} datasets ready in {out}/data (runs not started: --prepare-only)")
         return
     s = doc["summary"]
+    if report_only:
+        n = f"collected {s['skipped']} of {s['runs']} runs ({s['failed']} not run)"
+        click.echo(f"bench: {n}, {s['rows']} rows")
+        click.echo(f"wrote {out}/results.csv, {out}/report.md, {out}/plots/, {out}/bench.json")
+        return
     click.echo(
         f"bench: {s['runs']} runs ({s['complete']} trained, {s['skipped']} already complete, {s['failed']} "
         f"failed), {s['rows']} rows"

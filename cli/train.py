@@ -65,6 +65,13 @@ def _parse_steps(text: str) -> list[int]:
     "[default: paper].",
 )
 @click.option(
+    "--compile",
+    "compile_backend",
+    type=click.Choice(["off", "inductor", "aot_eager"]),
+    default=None,
+    help="--method jsgs: torch.compile JO, L_obs and DS (method_options.compile) [default: off].",
+)
+@click.option(
     "--no-jo",
     "no_jo",
     is_flag=True,
@@ -95,6 +102,7 @@ def train_command(
     config_file: Path | None,
     device: str | None,
     jpeg_mode: str | None,
+    compile_backend: str | None,
     no_jo: bool,
     no_ds: bool,
     no_gc: bool,
@@ -129,13 +137,16 @@ def train_command(
     method_flags: dict[str, Any] = {}
     if jpeg_mode is not None:
         method_flags["jpeg_mode"] = jpeg_mode
+    if compile_backend is not None:
+        method_flags["compile"] = compile_backend
     for key, off in (("jo", no_jo), ("ds", no_ds), ("gc", no_gc)):
         if off:
             method_flags[key] = False
     if method_flags:
         if cfg.method != "jsgs":
             raise JsgsError(
-                f"--jpeg-mode, --no-jo, --no-ds and --no-gc apply to --method jsgs (method is {cfg.method!r})"
+                "--jpeg-mode, --compile, --no-jo, --no-ds and --no-gc apply to --method jsgs "
+                f"(method is {cfg.method!r})"
             )
         cfg.method_options = {**cfg.method_options, **method_flags}
     if iterations is not None and eval_at is None and any(s > cfg.iterations for s in cfg.eval_at):

@@ -233,3 +233,74 @@ def test_prepare_derives_from_the_clean_base(
                 assert all(v.jpeg is not None and v.jpeg.quality == 30 for v in train)
             assert not (Path(d.out) / "reference").exists()
     assert all(v["status"] == "skipped" for v in prepare_datasets(plan, progress=False).values())  # rerun
+
+
+def test_report_only_collects_what_is_there(synth_scene: Path, tmp_path: Path) -> None:
+    """--report-only trains nothing: runs copied back from elsewhere are collected, the others listed as
+    not run (the way results from several GPU calls are merged into one report)."""
+    from cli.jsgs_cli import main
+    from jsgs.schemas import validate
+
+    cfg = tmp_path / "tiny.json"
+    cfg.write_text(json.dumps(TINY))
+    out = tmp_path / "results"
+    args = [
+        "bench", str(synth_scene), "--out", str(out), "--schedules", "gaussian", "--fixed", "",
+        "--methods", "gsplat", "--seeds", "0,1", "--iterations", "4", "--eval-at", "4",
+        "--device", "cpu", "--config", str(cfg), "--quiet",
+    ]  # fmt: skip
+    r = CliRunner().invoke(main, [*args, "--report-only"], catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    assert "collected 0 of 2 runs (2 not run)" in r.output
+    assert not (out / "data").exists() and not (out / "runs").exists()  # nothing compressed or trained
+    r = CliRunner().invoke(main, [*args, "--seeds", "0"], catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, [*args, "--report-only"], catch_exceptions=False)
+    assert r.exit_code == 0 and "collected 1 of 2 runs (1 not run)" in r.output
+    doc = json.loads((out / "bench.json").read_text())
+    validate(doc, "bench", "bench.json")
+    assert doc["settings"]["report_only"] is True
+    name = synth_scene.name
+    assert {x["id"]: x["status"] for x in doc["runs"]} == {
+        f"{name}/gaussian/gsplat/s0": "skipped",
+        f"{name}/gaussian/gsplat/s1": "failed",
+    }
+    with open(out / "results.csv", newline="") as f:
+        assert [row["seed"] for row in csv.DictReader(f)] == ["0"]
+    assert f"`{name}/gaussian/gsplat/s1`" in (out / "report.md").read_text()
+
+
+def test_slots_follow_cuda_visible_devices(monkeypatch: pytest.MonkeyPatch) -> None:
+    from jsgs.bench.pool import detect_slots
+
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1,3")
+    assert detect_slots("cuda", 2) == ["1", "1", "3", "3"]
+    assert detect_slots("cpu", 2) == [None, None]
+
+
+def test_no_run_starts_that_the_time_limit_would_cut(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Once a run of a scene and method took longer than what the --time-limit leaves, its like are not
+    started (a cut run is lost work on a machine that is given back); JSGS runs are queued first."""
+    import time
+
+    from jsgs.bench import pool
+
+    started: list[str] = []
+
+    def fake_run_one(run: plan_mod.Run, gpu: object, *a: object, **k: object) -> dict[str, object]:
+        started.append(run.id)
+        return {"id": run.id, "status": "complete", "seconds": 1000.0, "resumed": False}
+
+    monkeypatch.setattr(pool, "run_one", fake_run_one)
+
+    def mk(scene: str, method: str, seed: int) -> plan_mod.Run:
+        d = tmp_path / scene / method / str(seed)
+        return plan_mod.Run(scene, "gaussian", method, seed, method, [], "k", "m", str(d), str(d) + ".log",
+                            10, [10])  # fmt: skip
+
+    runs = [mk("a", "gsplat", 0), mk("a", "gsplat", 1), mk("a", "jsgs", 0), mk("b", "gsplat", 0)]
+    recs = pool.run_pool(runs, [None], "cpu", None, progress=False, deadline=time.time() + 500)
+    # jsgs first; then a/gsplat s0 (nothing known yet), not a/gsplat s1 (like runs took 1000 s > 500 s left)
+    assert started == ["a/gaussian/jsgs/s0", "a/gaussian/gsplat/s0", "b/gaussian/gsplat/s0"]
+    assert recs["a/gaussian/gsplat/s1"]["status"] == "failed"
+    assert "more than the --time-limit leaves" in str(recs["a/gaussian/gsplat/s1"]["error"])

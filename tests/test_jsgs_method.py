@@ -537,6 +537,10 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
     r = CliRunner().invoke(main, ["train", str(manifest), "--out", str(tmp_path / "x"), "--no-gc"])
     assert r.exit_code == 1 and "apply to --method jsgs" in r.output
     r = CliRunner().invoke(
+        main, ["train", str(manifest), "--out", str(tmp_path / "x"), "--compile", "inductor"]
+    )
+    assert r.exit_code == 1 and "apply to --method jsgs" in r.output
+    r = CliRunner().invoke(
         main,
         [
             "train",

@@ -171,9 +171,14 @@ def bench(
     command: str | None = None,
     time_limit: float | None = None,
     prepare_only: bool = False,
+    compile_backend: str = "off",
+    report_only: bool = False,
 ) -> dict[str, Any]:
     """Run the whole bench into ``out``; returns the final bench.json document. ``time_limit`` (seconds
-    from the call): no run starts after it and runs still going are stopped (they resume on a rerun)."""
+    from the call): no run starts after it (nor one that runs like it took longer than what is left) and runs
+    still going are stopped (they resume on a rerun). ``compile_backend``: ``--compile`` of the JSGS runs.
+    ``report_only``: train nothing, only collect the runs already in ``out`` (copied back from GPU machines,
+    say) into results.csv and report.md; runs without results are listed as not run."""
     import time
 
     deadline = None if time_limit is None else time.time() + time_limit
@@ -182,11 +187,17 @@ def bench(
     out = Path(out)
     if jobs_per_gpu < 1:
         raise JsgsError(f"--jobs-per-gpu {jobs_per_gpu}: must be at least 1")
-    if device in (None, "auto"):
+    if compile_backend not in ("off", "inductor", "aot_eager"):
+        raise JsgsError(f"--compile {compile_backend!r}: choose off, inductor or aot_eager")
+    if report_only and prepare_only:
+        raise JsgsError("--report-only and --prepare-only exclude each other")
+    if report_only:
+        device = "cpu" if device in (None, "auto") else device
+    elif device in (None, "auto"):
         import torch
 
         device = "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda":
+    if device == "cuda" and not report_only:
         import torch
 
         if not torch.cuda.is_available():
@@ -200,10 +211,14 @@ def bench(
         except (OSError, ValueError) as e:
             raise JsgsError(f"{config}: cannot read the config: {e}") from None
     plan = build_plan(scenes, out, schedules, fixed, methods, ablation, seeds, iterations, eval_at)
+    if compile_backend != "off":
+        for r in plan.runs:
+            if r.train_method == "jsgs":
+                r.flags = [*r.flags, "--compile", compile_backend]
     out.mkdir(parents=True, exist_ok=True)
     lpips_weights = lpips_weights or _default_lpips_weights()
     env_extra = {"JSGS_LPIPS_WEIGHTS": str(Path(lpips_weights).resolve())} if lpips_weights else {}
-    slots = pool_mod.detect_slots(device, jobs_per_gpu)
+    slots = [None] if report_only else pool_mod.detect_slots(device, jobs_per_gpu)
     if not slots:
         raise JsgsError("--device cuda: torch.cuda.device_count() found no GPU")
     doc: dict[str, Any] = {
@@ -225,6 +240,8 @@ def bench(
             "jobs_per_gpu": jobs_per_gpu,
             "device": device,
             "workers": len(slots),
+            "compile": compile_backend,
+            "report_only": report_only,
             "config": config_path,
             "config_content": config_doc,
             "lpips_weights": lpips_weights,
@@ -257,7 +274,10 @@ def bench(
     bench_json = out / "bench.json"
     write_bench_json(doc, bench_json)
 
-    ds_status = prepare_datasets(plan, progress)
+    if report_only:
+        ds_status = {d.key: {"status": "skipped"} for d in plan.datasets}
+    else:
+        ds_status = prepare_datasets(plan, progress)
     for d in doc["datasets"]:
         d.update(ds_status[d["key"]])
     if prepare_only:
@@ -268,9 +288,20 @@ def bench(
         return doc
     bad = {k for k, v in ds_status.items() if v["status"] == "failed"}
     runnable = [r for r in plan.runs if r.data not in bad]
-    records = pool_mod.run_pool(
-        runnable, slots, device, config_path, env_extra, progress=progress, deadline=deadline
-    )
+    if report_only:
+        records = {}
+        for r in runnable:
+            state, _ = pool_mod.run_state(r)
+            records[r.id] = (
+                {"id": r.id, "status": "skipped", "reason": "complete at the requested step"}
+                if state == "complete"
+                else {"id": r.id, "status": "failed", "stderr_tail": "",
+                      "error": f"not run: no complete metrics.json at step {r.iterations} in {r.out}"}
+            )  # fmt: skip
+    else:
+        records = pool_mod.run_pool(
+            runnable, slots, device, config_path, env_extra, progress=progress, deadline=deadline
+        )
     for r in plan.runs:
         if r.data in bad:
             records[r.id] = {"id": r.id, "status": "failed", "error": f"dataset {r.data} could not be built: "

@@ -55,11 +55,23 @@ def run_state(run: Run) -> tuple[str, dict[str, Any] | None]:
 def detect_slots(device: str, jobs_per_gpu: int) -> list[str | None]:
     """One entry per concurrent worker: the GPU index it pins (``CUDA_VISIBLE_DEVICES``), or None (CPU)."""
     if device == "cuda":
-        import torch
+        # A bench given CUDA_VISIBLE_DEVICES=1,2 must pin its workers to GPUs 1 and 2, not to 0 and 1.
+        visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+        if visible is not None and visible.strip():
+            gpus = [g.strip() for g in visible.split(",") if g.strip()]
+        else:
+            import torch
 
-        n = torch.cuda.device_count()
-        return [str(g) for g in range(n) for _ in range(jobs_per_gpu)]
+            gpus = [str(g) for g in range(torch.cuda.device_count())]
+        return [g for g in gpus for _ in range(jobs_per_gpu)]
     return [None] * jobs_per_gpu
+
+
+def expected_seconds(run: Run, finished: dict[str, list[float]]) -> float | None:
+    """The median wall time of the runs finished so far with the same scene and ``--method`` (None: none
+    finished yet), used to start no run that the --time-limit would cut short."""
+    times = sorted(finished.get(f"{run.scene}/{run.train_method}", []))
+    return times[len(times) // 2] if times else None
 
 
 def _tail(path: Path, n: int = TAIL_CHARS) -> str:
@@ -154,6 +166,9 @@ def run_pool(
             records[r.id] = {"id": r.id, "status": "skipped", "reason": "complete at the requested step"}
         else:
             todo.append(r)
+    # The longer JSGS runs go first so the short baselines fill the gaps at the end (and before a deadline).
+    todo.sort(key=lambda r: r.train_method != "jsgs")
+    finished: dict[str, list[float]] = {}
     if not slots:
         slots = [None]
     free: queue.Queue[str | None] = queue.Queue()
@@ -169,9 +184,14 @@ def run_pool(
     def work(run: Run) -> None:
         slot = free.get()
         try:
+            with lock:
+                need = expected_seconds(run, finished)
             if deadline is not None and time.time() >= deadline:
                 rec = {"id": run.id, "status": "failed", "error": "not started: --time-limit reached",
                        "stderr_tail": ""}  # fmt: skip
+            elif deadline is not None and need is not None and time.time() + need > deadline:
+                why = f"not started: like runs took {need:.0f} s, more than the --time-limit leaves"
+                rec = {"id": run.id, "status": "failed", "stderr_tail": "", "error": why}
             else:
                 rec = run_one(run, slot, device, config, env_extra or {}, deadline)
         except Exception as e:  # a bug in the harness must not stop the other runs either
@@ -180,6 +200,8 @@ def run_pool(
             free.put(slot)
         with lock:
             records[run.id] = rec
+            if rec["status"] == "complete" and not rec.get("resumed"):
+                finished.setdefault(f"{run.scene}/{run.train_method}", []).append(rec["seconds"])
             counts["failed" if rec["status"] == "failed" else "done"] += 1
             bar.set_postfix(counts, refresh=False)
             bar.update(1)
