@@ -10,10 +10,10 @@
 #
 # Two benches run side by side, each on its own GPUs: S0 (every scene carried so far, seed 0: the mixed
 # schedules, clean, fixed 30/50 and the ablation on llff_flower) and S1 (seed 1: mixed schedules and clean).
-# Knobs (environment): S0_GPUS / S1_GPUS (comma lists; empty: that bench does not run), JOBS_PER_GPU (4),
+# Knobs (environment): GPU_DIR (.gpu), WHL (.whl), S0_GPUS / S1_GPUS (comma lists; empty: that bench does not run), JOBS_PER_GPU (4),
 # END (seconds after the start by which the benches stop, 520), COMPILE (auto | off | inductor: auto trains
 # 300 JSGS steps with and without torch.compile first and takes the faster that works), PRE (stages on the
-# first GPU of S1_GPUS before its bench starts: "tests overhead").
+# PRE_GPU, by default the first of S1_GPUS, before S1 starts there: "tests overhead").
 set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/jsgs_gpu_out}
@@ -25,9 +25,10 @@ JOBS_PER_GPU=${JOBS_PER_GPU:-4}
 END=${END:-520}
 COMPILE=${COMPILE:-auto}
 PRE=${PRE:-}
+PRE_GPU=${PRE_GPU:-${S1_GPUS%%,*}}
 if [ ! -f /tmp/site/.jsgs_ok ]; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
-        .whl/*.whl && touch /tmp/site/.jsgs_ok || exit 1
+        "${WHL:-.whl}"/*.whl && touch /tmp/site/.jsgs_ok || exit 1
 fi
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 OMP_NUM_THREADS=4
 export TORCH_EXTENSIONS_DIR=$PWD/.torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16
@@ -35,14 +36,18 @@ R0=$PWD/.res/bench_s0
 R1=$PWD/.res/bench_s1
 mkdir -p "$R0/data" "$R1/data"
 # the carried clean bases join those of earlier calls
-for base in .gpu/bench/data/*/clean_s0; do
+G=${GPU_DIR:-.gpu}  # what gpu_prepare.sh made: clean bases, LPIPS weights, prior runs
+for base in "$G"/bench/data/*/clean_s0; do
     [ -d "$base" ] || continue
     s=$(basename "$(dirname "$base")")
     for r in "$R0" "$R1"; do
         [ -f "$r/data/$s/clean_s0/manifest.json" ] || { mkdir -p "$r/data/$s" && cp -r "$base" "$r/data/$s/"; }
     done
 done
-[ -f .gpu/alexnet_features.pth ] && cp -n .gpu/alexnet_features.pth .res/
+[ -f "$G/alexnet_features.pth" ] && [ ! -f .res/alexnet_features.pth ] && cp "$G/alexnet_features.pth" .res/
+# runs finished on an earlier machine (their metrics.json and config.json, from a results_<TAG>.tgz) count
+# as done: the bench skips them
+[ -d "$G/prior" ] && cp -rn "$G/prior/." .res/
 export JSGS_LPIPS_WEIGHTS=$PWD/.res/alexnet_features.pth
 SCENES=$(ls "$R0/data")
 echo "scenes: $SCENES" | tee "$OUT/log_$TAG.txt"
@@ -57,7 +62,7 @@ echo "gsplat build/load: $(($(date +%s) - t)) s" | tee -a "$OUT/log_$TAG.txt"
 JSGS="python3 -m cli.jsgs_cli"
 ABL=""
 [ -d "$R0/data/llff_flower" ] && ABL="--ablation llff_flower"
-S0_ARGS="--seeds 0 --schedules uniform,gaussian,descending,clean --fixed 30,50 $ABL"
+S0_ARGS="--seeds 0 --schedules uniform,gaussian,descending,clean --fixed=${S0_FIXED-30,50} $ABL"
 S1_ARGS="--seeds 1 --schedules uniform,gaussian,descending,clean --fixed="
 # shellcheck disable=SC2086
 $JSGS bench $(cd "$R0/data" && echo *) --out "$R0" $S0_ARGS --prepare-only --quiet 2>&1 | tail -1
@@ -98,21 +103,21 @@ if [ -n "$S0_GPUS" ]; then
         > "$OUT/bench_s0_$TAG.log" 2>&1 &
     pids+=($!)
 fi
-if [ -n "$S1_GPUS" ]; then
+if [ -n "$S1_GPUS$PRE" ]; then
     (
-        g=${S1_GPUS%%,*}
+        g=$PRE_GPU
         for stage in $PRE; do
             case $stage in
             tests) CUDA_VISIBLE_DEVICES=$g JSGS_GPU_MANIFEST=$M python3 -m pytest -m gpu -p no:cacheprovider \
                 tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_lpips.py -q -s > "$OUT/gpu_tests.log" 2>&1 ;;
             overhead) CUDA_VISIBLE_DEVICES=$g python3 benchmarks/bench_train_overhead.py --manifest "$M" \
-                --iterations 2000 --repeats 1 --device cuda --jpeg-modes paper,exact --compile off,inductor \
+                --iterations 2000 --repeats 1 --device cuda --jpeg-modes ${OVERHEAD_MODES:-paper} --compile off,inductor \
                 --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1 ;;
             esac
         done
         left=$((T0 + END - $(date +%s)))
         # shellcheck disable=SC2086
-        [ $left -gt 60 ] && CUDA_VISIBLE_DEVICES=$S1_GPUS $JSGS bench $(cd "$R1/data" && echo *) --out "$R1" \
+        [ -n "$S1_GPUS" ] && [ $left -gt 60 ] && CUDA_VISIBLE_DEVICES=$S1_GPUS $JSGS bench $(cd "$R1/data" && echo *) --out "$R1" \
             $S1_ARGS --jobs-per-gpu "$JOBS_PER_GPU" --device cuda --compile "$COMPILE" --time-limit "$left" \
             --quiet > "$OUT/bench_s1_$TAG.log" 2>&1
     ) &

@@ -207,6 +207,8 @@ class JsgsHook(LossHook):
         self.keep_last = False
         self.last: dict[str, Any] = {}
         self._cameras: dict[tuple[int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
+        # the rasterisation outputs of the step whose deferred GC waits for its backward
+        self._pending: dict[str, Any] = {}
         from jsgs.jpeg.losses import photometric_loss
         from jsgs.jpeg.observe import jpeg_observe
         from jsgs.jpeg.supervision import dct_supervision
@@ -322,20 +324,32 @@ class JsgsHook(LossHook):
     def _gc_deferred(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         from jsgs.render.pool import PooledSums, pool_from_grad, probe_objective
 
-        info = ctx.info
+        # The hook lives on the probe tensor, which ``info`` holds (and ``term``'s graph, through the probe's
+        # AccumulateGrad): a closure over either would make a reference cycle that keeps every step's
+        # rasterisation outputs (GBs on a GPU) alive until Python's cycle collector happens to run. The
+        # closure reaches them through ``pending`` instead, emptied by the hook itself (and by the next step,
+        # if a backward never came).
+        self._pending.clear()
+        pending = self._pending
+        pending["info"] = ctx.info
         splats = ctx.splats
         lam = self.opts.lambda_fro
         # Σ_p r·probe₀ + Σ_p probe₁, exactly 0; weighted by λ_fro in the loss, so the probe's gradient is
         # λ_fro·(o·S_r, ν), divided out below
-        term = probe_objective(info, r_map)
+        term = probe_objective(ctx.info, r_map)
         stat_t = {k: torch.zeros((), dtype=term.dtype, device=term.device) for k in STAT_NAMES}
+        pending["term"] = term
         viewmat, K, w, h = self._camera(ctx)
         opts, near = self.opts, self.near_plane
         last = self.last if self.keep_last else None
 
         def on_probe_grad(probe: Tensor) -> None:
+            info, term = pending.pop("info", None), pending.pop("term", None)
+            if info is None or term is None:
+                return
             with self.profiler.phase("gc_backward"), torch.no_grad():
                 g = pool_from_grad(info)
+                del info
                 sums = PooledSums(g.s_r / lam, g.s_1 / lam, g.nu / lam)
                 probe.grad = None  # served its purpose; keeps memory flat
                 rbar = sums.rbar(opts.eps_proj)[0]
@@ -354,7 +368,7 @@ class JsgsHook(LossHook):
                 if last is not None:
                     last.update(sums=sums, rbar=rbar, visible=vis, fro=ft, A=A)
 
-        info["pool_probe"].register_post_accumulate_grad_hook(on_probe_grad)
+        ctx.info["pool_probe"].register_post_accumulate_grad_hook(on_probe_grad)
         return term, stat_t
 
 
