@@ -304,3 +304,28 @@ def test_no_run_starts_that_the_time_limit_would_cut(tmp_path: Path, monkeypatch
     assert started == ["a/gaussian/jsgs/s0", "a/gaussian/gsplat/s0", "b/gaussian/gsplat/s0"]
     assert recs["a/gaussian/gsplat/s1"]["status"] == "failed"
     assert "more than the --time-limit leaves" in str(recs["a/gaussian/gsplat/s1"]["error"])
+
+
+def test_runs_that_stopped_early_are_kept_out_of_the_final_tables(tmp_path: Path) -> None:
+    """A run cut at step 7000 is not compared at 7000 with runs finished at 10000: it is listed apart, and
+    the tables are repeated at the last step every run reached."""
+    from jsgs.bench.report import common_step, final_rows, unfinished, write_report
+
+    def row(sc: str, m: str, step: int, lp: float) -> dict[str, object]:
+        return {"scene": sc, "schedule": "gaussian", "method": m, "seed": 0, "step": step, "psnr": 25.0,
+                "ssim": 0.8, "lpips": lp, "train_seconds": step / 100, "fps": 100.0,
+                "num_gaussians": 1000, "peak_memory_mb": 10.0}  # fmt: skip
+
+    rows = [row("a", "gsplat", 7000, 0.12), row("a", "gsplat", 10000, 0.11), row("a", "jsgs", 7000, 0.09),
+            row("b", "gsplat", 7000, 0.2), row("b", "gsplat", 10000, 0.19), row("b", "jsgs", 7000, 0.18),
+            row("b", "jsgs", 10000, 0.17)]  # fmt: skip
+    assert set(final_rows(rows)) == {("a", "gaussian", "gsplat", 0), ("b", "gaussian", "gsplat", 0),
+                                     ("b", "gaussian", "jsgs", 0)}  # fmt: skip
+    assert unfinished(rows) == [(("a", "gaussian", "jsgs", 0), 7000)]
+    assert common_step(rows) == 7000
+    report = write_report(rows, tmp_path, [], [], plots=False).read_text()
+    assert "`a/gaussian/jsgs/s0`: last evaluation at step 7000" in report
+    assert "## Table 1 and damage recovered at step 7000" in report
+    # scene a's JSGS enters only the step-7000 table: 0.09 there, never against gsplat's 0.11 at 10000
+    main, early = report.split("## Table 1 and damage recovered at step 7000")
+    assert "0.0900" not in main.split("## Runs that stopped")[0] and "0.0900" in early

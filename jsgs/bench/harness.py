@@ -319,10 +319,15 @@ def bench(
     }
     env = doc["environment"]
     gpu_txt = ", ".join(g["name"] for g in env["gpus"]) or "none"
+    if report_only:  # this machine only collected: the devices are those the runs themselves recorded
+        devices = sorted({str(r.get("device_name")) for r in rows if r.get("device_name")}) or ["unknown"]
+        where = f"collected (--report-only) from runs trained elsewhere, on: {', '.join(devices)}"
+    else:
+        where = f"device {device}, GPUs: {gpu_txt}"
     head = [
         f"Generated {_now()} by jsgs {env['jsgs']} (git {env['git_commit'] or 'unknown'}"
         f"{', uncommitted changes' if env['git_dirty'] else ''}); torch {env['torch']}, "
-        f"gsplat {env['gsplat']}, python {env['python']}; device {device}, GPUs: {gpu_txt}.",
+        f"gsplat {env['gsplat']}, python {env['python']}; {where}.",
         "",
         f"Command: `{command}`" if command else "Command: (library call)",
         "",

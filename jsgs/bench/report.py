@@ -1,8 +1,10 @@
 """``RESULTS/report.md`` and ``RESULTS/plots/*.png`` from the rows of ``results.csv``.
 
-Numbers at the **last evaluation step** of each run; per scene x schedule x method the mean over seeds (and
-its spread: max - min over seeds, "sd" the sample standard deviation); tables over scenes are means of the
-per-scene means, over the scenes where every method of the table has a result (their count is shown).
+Numbers at the bench's **final evaluation step** (runs that stopped earlier are listed apart, and the
+main tables are repeated at the last step every run reached); per scene x schedule x method the mean over
+seeds (and its spread: max - min over seeds, "sd" the sample standard deviation); tables over scenes are
+means of the per-scene means, over the scenes where every method of the table has a result (their count is
+shown).
 
 "Damage recovered" (issue 7), per scene x schedule, on seed means:
 ``R_LPIPS = (baseline - JSGS) / (baseline - clean)``, ``R_PSNR = (JSGS - baseline) / (clean - baseline)``,
@@ -58,20 +60,49 @@ def agg(values: list[Any]) -> Agg:
     return Agg([float(v) for v in values if v is not None and math.isfinite(float(v))])
 
 
-def final_rows(rows: list[dict[str, Any]]) -> dict[tuple[str, str, str, int], dict[str, Any]]:
-    """(scene, schedule, method, seed) -> the row of the run's last evaluation."""
-    out: dict[tuple[str, str, str, int], dict[str, Any]] = {}
+RunKey = tuple[str, str, str, int]
+
+
+def _key(r: dict[str, Any]) -> RunKey:
+    return (r["scene"], r["schedule"], r["method"], int(r["seed"]))
+
+
+def last_step(rows: list[dict[str, Any]]) -> int:
+    """The bench's final step: the largest evaluation step of any run."""
+    return max((int(r["step"]) for r in rows), default=0)
+
+
+def common_step(rows: list[dict[str, Any]]) -> int:
+    """The largest evaluation step that every run reached (0: none)."""
+    steps: dict[RunKey, set[int]] = defaultdict(set)
     for r in rows:
-        k = (r["scene"], r["schedule"], r["method"], int(r["seed"]))
-        if k not in out or r["step"] > out[k]["step"]:
-            out[k] = r
-    return out
+        steps[_key(r)].add(int(r["step"]))
+    shared = set.intersection(*steps.values()) if steps else set()
+    return max(shared, default=0)
 
 
-def by_seed(rows: list[dict[str, Any]]) -> dict[tuple[str, str, str], list[dict[str, Any]]]:
-    """(scene, schedule, method) -> final rows of its seeds."""
+def unfinished(rows: list[dict[str, Any]]) -> list[tuple[RunKey, int]]:
+    """Runs without an evaluation at the final step, with the last step they reached."""
+    final, reached = last_step(rows), {}
+    for r in rows:
+        reached[_key(r)] = max(reached.get(_key(r), 0), int(r["step"]))
+    return sorted((k, s) for k, s in reached.items() if s < final)
+
+
+def final_rows(rows: list[dict[str, Any]], step: int | None = None) -> dict[RunKey, dict[str, Any]]:
+    """(scene, schedule, method, seed) -> the run's row at ``step`` (default: the bench's final step). A run
+    that stopped earlier is left out: comparing it at its own last step with finished runs would mix
+    training lengths."""
+    step = last_step(rows) if step is None else step
+    return {_key(r): r for r in rows if int(r["step"]) == step}
+
+
+def by_seed(
+    rows: list[dict[str, Any]], step: int | None = None
+) -> dict[tuple[str, str, str], list[dict[str, Any]]]:
+    """(scene, schedule, method) -> the rows of its seeds at ``step`` (default: the final step)."""
     out: dict[tuple[str, str, str], list[dict[str, Any]]] = defaultdict(list)
-    for (sc, sch, m, _), r in sorted(final_rows(rows).items()):
+    for (sc, sch, m, _), r in sorted(final_rows(rows, step).items()):
         out[(sc, sch, m)].append(r)
     return out
 
@@ -145,9 +176,10 @@ def _mean(xs: list[float | None]) -> float | None:
 
 
 class Report:
-    def __init__(self, rows: list[dict[str, Any]]):
+    def __init__(self, rows: list[dict[str, Any]], step: int | None = None):
         self.rows = rows
-        self.seeds = by_seed(rows)
+        self.step = last_step(rows) if step is None else step
+        self.seeds = by_seed(rows, self.step)
         self.scenes = sorted({r["scene"] for r in rows})
         self.schedules = sorted({r["schedule"] for r in rows})
 
@@ -471,6 +503,17 @@ def write_report(
     md += ["## Per-scene results (last step; mean ± sd over seeds)", "", *rep.per_scene()]
     md += ["## Loss terms and GC statistics (means over the last evaluation interval, unweighted)", "",
            *rep.terms(), ""]  # fmt: skip
+    late = unfinished(rows)
+    if late:
+        at = common_step(rows)
+        md += [f"## Runs that stopped before step {rep.step} (not in the tables above)", ""]
+        md += [f"- `{sc}/{sch}/{m}/s{seed}`: last evaluation at step {st}" for (sc, sch, m, seed), st in late]
+        md += [""]
+        if at:
+            early = Report(rows, at)
+            md += [f"## Table 1 and damage recovered at step {at}, the last step every run reached", "",
+                   "The same tables with every run, compared at the same training length.", "",
+                   *early.table1(), "", *early.damage(), ""]  # fmt: skip
     md += ["## Plots", ""]
     md += [f"![{p.stem}](plots/{p.name})" for p in pngs] or ["No plots (no results)."]
     md += ["", "## Failed runs", ""]
