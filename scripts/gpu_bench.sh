@@ -13,7 +13,8 @@
 # Knobs (environment): GPU_DIR (.gpu), WHL (.whl), S0_GPUS / S1_GPUS (comma lists; empty: that bench does not run), JOBS_PER_GPU (4),
 # END (seconds after the start by which the benches stop, 520), COMPILE (auto | off | inductor: auto trains
 # 300 JSGS steps with and without torch.compile first and takes the faster that works), PRE (stages on the
-# PRE_GPU, by default the first of S1_GPUS, before S1 starts there: "tests overhead").
+# PRE_GPU, by default the first of S1_GPUS, before S1 starts there: "tests overhead"), SWEEP=1 (also the
+# loss-weight sweep on llff_flower, one run per benchmarks/weight_sweep/*.json, on SWEEP_GPUS).
 set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/jsgs_gpu_out}
@@ -96,6 +97,22 @@ fi
 
 LEFT=$((T0 + END - $(date +%s)))
 pids=()
+if [ -n "${SWEEP:-}" ]; then
+    # the loss-weight sweep: one `jsgs bench --methods jsgs` per config of benchmarks/weight_sweep/, spread
+    # round-robin over SWEEP_GPUS (summarise here with benchmarks/weight_sweep.py .res/sweep)
+    IFS=, read -r -a gl <<< "${SWEEP_GPUS:-0,1,2,3}"
+    i=0
+    for cfg in benchmarks/weight_sweep/*.json; do
+        name=$(basename "$cfg" .json)
+        mkdir -p ".res/sweep/$name/data"
+        [ -d ".res/sweep/$name/data/llff_flower" ] || cp -r "$R0/data/llff_flower" ".res/sweep/$name/data/"
+        CUDA_VISIBLE_DEVICES=${gl[$((i % ${#gl[@]}))]} $JSGS bench llff_flower --out ".res/sweep/$name" \
+            --methods jsgs --schedules gaussian --fixed= --seeds 0 --config "$cfg" --device cuda \
+            --jobs-per-gpu 1 --compile "$COMPILE" --time-limit "$LEFT" --quiet > "$OUT/sweep_$name.log" 2>&1 &
+        pids+=($!)
+        i=$((i + 1))
+    done
+fi
 if [ -n "$S0_GPUS" ]; then
     # shellcheck disable=SC2086
     CUDA_VISIBLE_DEVICES=$S0_GPUS $JSGS bench $(cd "$R0/data" && echo *) --out "$R0" $S0_ARGS \
@@ -129,7 +146,7 @@ tail -n 3 "$OUT"/bench_s*_"$TAG".log 2>/dev/null
 tail -n 3 "$OUT/gpu_tests.log" 2>/dev/null
 tail -n 25 "$OUT/overhead.txt" 2>/dev/null
 (cd .res && tar czf "$OUT/results_$TAG.tgz" --exclude='*.ply' --exclude='*.pt' --exclude='renders' \
-    --exclude='data' bench_s0 bench_s1)
+    --exclude='data' bench_s0 bench_s1 $([ -d sweep ] && echo sweep))
 python3 - <<'EOF'
 import json, pathlib
 for r in (".res/bench_s0", ".res/bench_s1"):

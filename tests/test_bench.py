@@ -329,3 +329,33 @@ def test_runs_that_stopped_early_are_kept_out_of_the_final_tables(tmp_path: Path
     # scene a's JSGS enters only the step-7000 table: 0.09 there, never against gsplat's 0.11 at 10000
     main, early = report.split("## Table 1 and damage recovered at step 7000")
     assert "0.0900" not in main.split("## Runs that stopped")[0] and "0.0900" in early
+
+
+def test_weight_sweep_configs_and_summary(tmp_path: Path) -> None:
+    """Every config of the loss-weight sweep loads as `jsgs train --config` for --method jsgs and differs
+    from the paper's weights; the summary reads the committed results (gsplat, clean, paper-weights JSGS)."""
+    import subprocess
+    import sys
+
+    from jsgs.train.config import load_config_file
+    from jsgs.train.jsgs_method import parse_options
+
+    root = Path(__file__).resolve().parents[1]
+    configs = sorted((root / "benchmarks" / "weight_sweep").glob("*.json"))
+    assert len(configs) >= 4
+    seen = set()
+    for c in configs:
+        cfg = load_config_file(c)
+        o = parse_options(cfg.method_options)
+        lam = (cfg.loss.base_weight, o.lambda_obs, o.lambda_low, o.lambda_mid, o.lambda_fro)
+        assert lam != (1.0, 0.2, 0.02, 0.03, 0.05) and lam not in seen, c.name
+        seen.add(lam)
+    ref = root / "docs" / "results" / "results.csv"
+    script = root / "benchmarks" / "weight_sweep.py"
+    r = subprocess.run(
+        [sys.executable, str(script), str(tmp_path), "--reference", str(ref)],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert "| gsplat (reference) |" in r.stdout
+    assert "| jsgs, paper weights (reference) | 1 | 0.2 |" in r.stdout
+    assert r.stdout.count("not run") == len(configs)
