@@ -187,8 +187,10 @@ def bench(
     out = Path(out)
     if jobs_per_gpu < 1:
         raise JsgsError(f"--jobs-per-gpu {jobs_per_gpu}: must be at least 1")
-    if compile_backend not in ("off", "inductor", "aot_eager"):
-        raise JsgsError(f"--compile {compile_backend!r}: choose off, inductor or aot_eager")
+    from jsgs.train.jsgs_method import COMPILE_BACKENDS
+
+    if compile_backend not in COMPILE_BACKENDS:
+        raise JsgsError(f"--compile {compile_backend!r}: choose one of {', '.join(COMPILE_BACKENDS)}")
     if report_only and prepare_only:
         raise JsgsError("--report-only and --prepare-only exclude each other")
     if report_only:
@@ -289,15 +291,12 @@ def bench(
     bad = {k for k, v in ds_status.items() if v["status"] == "failed"}
     runnable = [r for r in plan.runs if r.data not in bad]
     if report_only:
-        records = {}
-        for r in runnable:
-            state, _ = pool_mod.run_state(r)
-            records[r.id] = (
-                {"id": r.id, "status": "skipped", "reason": "complete at the requested step"}
-                if state == "complete"
-                else {"id": r.id, "status": "failed", "stderr_tail": "",
-                      "error": f"not run: no complete metrics.json at step {r.iterations} in {r.out}"}
-            )  # fmt: skip
+        records = {
+            r.id: pool_mod.skipped_record(r)
+            or {"id": r.id, "status": "failed", "stderr_tail": "",
+                "error": f"not run: no complete metrics.json at step {r.iterations} in {r.out}"}
+            for r in runnable
+        }  # fmt: skip
     else:
         records = pool_mod.run_pool(
             runnable, slots, device, config_path, env_extra, progress=progress, deadline=deadline

@@ -52,6 +52,13 @@ def run_state(run: Run) -> tuple[str, dict[str, Any] | None]:
     return "todo", doc
 
 
+def skipped_record(run: Run) -> dict[str, Any] | None:
+    """The bench.json record of a run already complete at the requested step (None: it is not)."""
+    if run_state(run)[0] != "complete":
+        return None
+    return {"id": run.id, "status": "skipped", "reason": "complete at the requested step"}
+
+
 def detect_slots(device: str, jobs_per_gpu: int) -> list[str | None]:
     """One entry per concurrent worker: the GPU index it pins (``CUDA_VISIBLE_DEVICES``), or None (CPU)."""
     if device == "cuda":
@@ -161,9 +168,9 @@ def run_pool(
     records: dict[str, dict[str, Any]] = {}
     todo: list[Run] = []
     for r in runs:
-        state, _ = run_state(r)
-        if state == "complete":
-            records[r.id] = {"id": r.id, "status": "skipped", "reason": "complete at the requested step"}
+        done = skipped_record(r)
+        if done is not None:
+            records[r.id] = done
         else:
             todo.append(r)
     # The longer JSGS runs go first so the short baselines fill the gaps at the end (and before a deadline).

@@ -72,21 +72,24 @@ def last_step(rows: list[dict[str, Any]]) -> int:
     return max((int(r["step"]) for r in rows), default=0)
 
 
-def common_step(rows: list[dict[str, Any]]) -> int:
-    """The largest evaluation step that every run reached (0: none)."""
+def steps_by_run(rows: list[dict[str, Any]]) -> dict[RunKey, set[int]]:
+    """(scene, schedule, method, seed) -> the steps it was evaluated at."""
     steps: dict[RunKey, set[int]] = defaultdict(set)
     for r in rows:
         steps[_key(r)].add(int(r["step"]))
-    shared = set.intersection(*steps.values()) if steps else set()
-    return max(shared, default=0)
+    return steps
+
+
+def common_step(rows: list[dict[str, Any]]) -> int:
+    """The largest evaluation step that every run reached (0: none)."""
+    steps = steps_by_run(rows)
+    return max(set.intersection(*steps.values()) if steps else set(), default=0)
 
 
 def unfinished(rows: list[dict[str, Any]]) -> list[tuple[RunKey, int]]:
     """Runs without an evaluation at the final step, with the last step they reached."""
-    final, reached = last_step(rows), {}
-    for r in rows:
-        reached[_key(r)] = max(reached.get(_key(r), 0), int(r["step"]))
-    return sorted((k, s) for k, s in reached.items() if s < final)
+    final = last_step(rows)
+    return sorted((k, max(s)) for k, s in steps_by_run(rows).items() if max(s) < final)
 
 
 def final_rows(rows: list[dict[str, Any]], step: int | None = None) -> dict[RunKey, dict[str, Any]]:

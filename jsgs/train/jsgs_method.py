@@ -89,10 +89,12 @@ class JsgsOptions:
         return self.jo or self.ds or self.gc
 
 
+#: ``method_options.compile`` (``jsgs train --compile``, ``jsgs bench --compile``)
+COMPILE_BACKENDS = ("off", "inductor", "aot_eager")
 _CHOICES = {
     "jpeg_mode": ("paper", "float", "exact"),
     "gc_pooling": ("deferred", "now"),
-    "compile": ("off", "inductor", "aot_eager"),
+    "compile": COMPILE_BACKENDS,
 }
 
 
@@ -255,6 +257,7 @@ class JsgsHook(LossHook):
         terms: dict[str, Tensor] = {k: zero.clone() for k in self.active_terms()}
         stats: dict[str, float | Tensor] = {k: zero.clone() for k in STAT_NAMES} if o.gc else {}
         self.last = {}
+        self._pending.clear()  # a step whose backward never came (see _gc_deferred)
         tab = self.tables.get(ctx.view.index)
         if tab is None:  # lossless view: ℓ_ph only
             return HookOutput(terms, self.weights(), stats)
@@ -329,7 +332,6 @@ class JsgsHook(LossHook):
         # rasterisation outputs (GBs on a GPU) alive until Python's cycle collector happens to run. The
         # closure reaches them through ``pending`` instead, emptied by the hook itself (and by the next step,
         # if a backward never came).
-        self._pending.clear()
         pending = self._pending
         pending["info"] = ctx.info
         splats = ctx.splats
