@@ -267,7 +267,10 @@ def test_report_only_collects_what_is_there(synth_scene: Path, tmp_path: Path) -
     }
     with open(out / "results.csv", newline="") as f:
         assert [row["seed"] for row in csv.DictReader(f)] == ["0"]
-    assert f"`{name}/gaussian/gsplat/s1`" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    # listed once, on one line, with no empty log excerpt after it
+    assert "Not run (1):" in report and f"- `{name}/gaussian/gsplat/s1`: not run" in report
+    assert "```\n```" not in report
 
 
 def test_slots_follow_cuda_visible_devices(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -520,11 +520,17 @@ def write_report(
     md += ["## Plots", ""]
     md += [f"![{p.stem}](plots/{p.name})" for p in pngs] or ["No plots (no results)."]
     md += ["", "## Failed runs", ""]
-    if failures:
-        for f in failures:
-            md += [f"- `{f['id']}`: {f.get('error')} (log `{f.get('log')}`)", "", "```",
-                   *(f.get("stderr_tail") or "").strip().splitlines()[-15:], "```", ""]  # fmt: skip
-    else:
+    # runs that never started (collected with --report-only, or stopped by --time-limit before they began)
+    # are listed in one line each, without the empty log excerpt of a real failure
+    not_run = [f for f in failures if str(f.get("error", "")).startswith("not ") and not f.get("stderr_tail")]
+    failed = [f for f in failures if f not in not_run]
+    for f in failed:
+        md += [f"- `{f['id']}`: {f.get('error')} (log `{f.get('log')}`)", "", "```",
+               *(f.get("stderr_tail") or "").strip().splitlines()[-15:], "```", ""]  # fmt: skip
+    if not_run:
+        md += [f"Not run ({len(not_run)}):", ""]
+        md += [f"- `{f['id']}`: {f.get('error')}" for f in not_run]
+    if not failures:
         md += ["None."]
     path = results_dir / "report.md"
     tmp = path.with_suffix(".md.tmp")
