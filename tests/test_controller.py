@@ -109,6 +109,9 @@ def test_closed_form_gradient_equals_autograd_and_reaches_opacity_and_scale_only
     torch.testing.assert_close(ft2.loss, ft.loss.detach(), rtol=1e-14, atol=0)
     torch.testing.assert_close(gl2, gl, rtol=1e-12, atol=1e-18)
     torch.testing.assert_close(gs2, gs, rtol=1e-12, atol=1e-18)
+    for a, b in zip(ft2.stats, ft.stats, strict=True):  # |V|, mean r̄, damped: the same from both forms
+        torch.testing.assert_close(a, b, rtol=1e-14, atol=0)
+    assert ft.stats.damped > 0
     assert (gl[~vis] == 0).all() and (gs[~vis] == 0).all()
     assert (gl[vis] > 0).all()  # more opacity, more loss: descent lowers α where disagreement remains
     assert (gs[vis] < 0).all()  # larger footprints are damped less

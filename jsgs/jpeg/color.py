@@ -9,6 +9,9 @@ observation operator uses.
 
 from __future__ import annotations
 
+from functools import cache
+
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -34,15 +37,37 @@ def _dot(x: Tensor, w: tuple[float, float, float]) -> Tensor:
     return w[0] * r + w[1] * g + w[2] * b
 
 
+@cache
+def _affine(name: str, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """(matrix^T [3, 3], offset [3]) of the float colour maps, per device (built once: no host-to-device copy
+    inside a training step)."""
+    fwd = np.array([_Y, _CB, _CR]) / _ONE
+    if name == "rgb2ycc":
+        m, off = fwd, np.array([0.0, _CENTER, _CENTER])
+    else:
+        m = np.array([[1.0, 0.0, _CR_R / _ONE], [1.0, _CB_G / _ONE, _CR_G / _ONE], [1.0, _CB_B / _ONE, 0.0]])
+        off = -m @ np.array([0.0, _CENTER, _CENTER])
+    return (
+        torch.as_tensor(m.T.copy(), dtype=dtype, device=device),
+        torch.as_tensor(off, dtype=dtype, device=device),
+    )
+
+
+def _apply_affine(x: Tensor, name: str) -> Tensor:
+    # one matrix product with the offset fused (addmm) over all pixels: the channel-by-channel form is ~20
+    # small kernels forward and as many backward, launch-bound on a GPU
+    mt, off = _affine(name, x.dtype, x.device)
+    pix = x.movedim(-3, -1)
+    out = torch.addmm(off, pix.reshape(-1, 3), mt).reshape(pix.shape)
+    return out.movedim(-1, -3)
+
+
 def rgb_to_ycbcr(rgb: Tensor) -> Tensor:
     """Float RGB -> YCbCr, ``(..., 3, H, W)`` in 0..255 -> ``(..., 3, H, W)`` (Cb, Cr centred at 128).
 
     ``Y = 0.29900 R + 0.58700 G + 0.11400 B`` etc. with libjpeg's 16-bit constants, without rounding.
     """
-    y = _dot(rgb, _Y) / _ONE
-    cb = _dot(rgb, _CB) / _ONE + _CENTER
-    cr = _dot(rgb, _CR) / _ONE + _CENTER
-    return torch.stack([y, cb, cr], dim=-3)
+    return _apply_affine(rgb, "rgb2ycc")
 
 
 def rgb_to_ycbcr_libjpeg(rgb: Tensor) -> Tensor:
@@ -60,14 +85,11 @@ def rgb_to_ycbcr_libjpeg(rgb: Tensor) -> Tensor:
 
 
 def ycbcr_to_rgb(ycc: Tensor) -> Tensor:
-    """Float YCbCr -> RGB (inverse of :func:`rgb_to_ycbcr` up to the fixed-point constants), not clamped."""
-    y, cb, cr = ycc.unbind(-3)
-    cb = cb - _CENTER
-    cr = cr - _CENTER
-    r = y + (_CR_R / _ONE) * cr
-    g = y + (_CB_G / _ONE) * cb + (_CR_G / _ONE) * cr
-    b = y + (_CB_B / _ONE) * cb
-    return torch.stack([r, g, b], dim=-3)
+    """Float YCbCr -> RGB (inverse of :func:`rgb_to_ycbcr` up to the fixed-point constants), not clamped.
+
+    ``R = Y + 1.40200 (Cr - 128)``, ``G = Y - 0.34414 (Cb - 128) - 0.71414 (Cr - 128)``, ``B = Y + 1.77200
+    (Cb - 128)`` with libjpeg's 16-bit constants."""
+    return _apply_affine(ycc, "ycc2rgb")
 
 
 def ycbcr_to_rgb_libjpeg(ycc: Tensor) -> Tensor:

@@ -34,7 +34,12 @@ Modes (all three share one backward: the gradient of the float stages, with the 
     ``round(z) + (z - round z)^3`` (eq. soft_round) in the forward, triangular up-sampling, clipping. Its
     forward value under-states the JPEG error (the cubic term keeps up to 1/8 of a step).
 In every mode the input is clamped to [0, 1] first (the encoder can only see 8-bit samples; pixels outside
-get no gradient from this operator) and the IDCT output is clamped to [0, 255] as every decoder does.
+get no gradient from this operator) and the IDCT output is clamped to [0, 255] as every decoder does (the
+two inner clamps pass gradient strictly inside their range, a float landing exactly on 0 or 255 gets none).
+
+Kernel count matters more than arithmetic here (on a GPU at training sizes each small kernel costs more to
+launch than to run): all blocks of the three planes go through one coding pass, and the colour maps and
+DCTs are single matrix products (``tests/test_opcount.py``, ``benchmarks/bench_kernel_count.py``).
 
 No data-dependent Python control flow and no host synchronisation: shapes, the sampling and the mode are
 static, so ``torch.compile`` can trace the whole operator.
@@ -46,6 +51,7 @@ from typing import Literal
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from .color import rgb_to_ycbcr, rgb_to_ycbcr_libjpeg, ycbcr_to_rgb, ycbcr_to_rgb_libjpeg
@@ -91,20 +97,26 @@ def as_tables(
     return t
 
 
-def _code_planes(planes: Tensor, table: Tensor, mode: str) -> Tensor:
-    """Level shift, 8x8 DCT, quantize + dequantize, IDCT, +128 and range limit.
+def _clamp_255(x: Tensor) -> Tensor:
+    """``x.clamp(0, 255)`` in value; the gradient passes strictly inside (0, 255) (hardtanh's backward: one
+    kernel instead of clamp's four; float values land exactly on a bound with probability ~0)."""
+    return F.hardtanh(x, 0.0, 255.0)
+
+
+def _code_blocks(blocks: Tensor, q: Tensor, mode: str) -> Tensor:
+    """Level shift, 8x8 DCT, quantize + dequantize, IDCT, +128 and range limit, block by block.
 
     Args:
-        planes: ``(B, C, Hp, Wp)`` samples 0..255, Hp and Wp multiples of 8 (already edge-padded).
-        table: ``(B, 8, 8)`` quantization steps for these planes (one per view, shared by the C planes).
+        blocks: ``(B, n, 8, 8)`` samples 0..255 (the luma and chroma blocks of each view, together: one pass
+            of kernels for all planes instead of one per plane).
+        q: ``(B, n, 8, 8)`` the quantization step of every coefficient (each block's own table).
     Returns:
-        ``(B, C, Hp, Wp)`` decoded samples 0..255 (integers except in mode "paper").
+        ``(B, n, 8, 8)`` decoded samples 0..255 (integers except in mode "paper").
     """
-    blocks = blockify(planes - 128.0)  # (B, C, nby, nbx, 8, 8)
-    q = table[:, None, None, None]
+    blocks = blocks - 128.0
     if mode == "paper":
         deq = q * soft_round(block_dct(blocks) / q)
-        return unblockify((block_idct(deq) + 128.0).clamp(0.0, 255.0))
+        return _clamp_255(block_idct(deq) + 128.0)
     # Modes "exact" and "float": libjpeg's values, float gradients. islow leaves coefficients at 8x the
     # orthonormal scale and its quantizer divides by 8Q.
     exact = mode == "exact"
@@ -113,12 +125,12 @@ def _code_planes(planes: Tensor, table: Tensor, mode: str) -> Tensor:
     deq_value = quantize_libjpeg(t_value, q.to(work)) * q.to(work)
     t = _through(t_value, 8.0 * block_dct(blocks))
     deq = _through(deq_value, q * round_soft_grad(t / (8.0 * q)))
-    out = (block_idct(deq) + 128.0).clamp(0.0, 255.0)
+    out = _clamp_255(block_idct(deq) + 128.0)
     if exact:
         out = _through(range_limit(idct_islow(deq_value)), out)
     else:
         out = round_ste(out)
-    return unblockify(out)
+    return out
 
 
 def jpeg_observe(
@@ -176,8 +188,15 @@ def jpeg_observe(
         chroma = _through(downsample_libjpeg(chroma, h, v), small) if integer else small
         chroma = pad_replicate(chroma, 8 * _ceil_div(ch, 8), chroma.shape[-1])
 
-    luma = _code_planes(luma, tab_y, mode)[..., :height, :width]
-    chroma = _code_planes(chroma, tab_c, mode)[..., :ch, :cw]
+    # Every block of the three planes through one coding pass, each with its plane's table.
+    luma_b, chroma_b = blockify(luma), blockify(chroma)  # (B, 1, ., ., 8, 8), (B, 2, ., ., 8, 8)
+    n_y = luma_b.shape[1] * luma_b.shape[2] * luma_b.shape[3]
+    n_c = chroma_b.shape[1] * chroma_b.shape[2] * chroma_b.shape[3]
+    blocks = torch.cat([luma_b.reshape(b, n_y, 8, 8), chroma_b.reshape(b, n_c, 8, 8)], dim=1)
+    q = torch.cat([tab_y[:, None].expand(b, n_y, 8, 8), tab_c[:, None].expand(b, n_c, 8, 8)], dim=1)
+    decoded = _code_blocks(blocks, q, mode)
+    luma = unblockify(decoded[:, :n_y].reshape(luma_b.shape))[..., :height, :width]
+    chroma = unblockify(decoded[:, n_y:].reshape(chroma_b.shape))[..., :ch, :cw]
 
     # Decoder up-sampling (jdsample.c) from the real chroma samples only.
     if not (h == 1 and v == 1):
@@ -186,7 +205,7 @@ def jpeg_observe(
     chroma = chroma[..., :height, :width]
 
     ycc = torch.cat([luma, chroma], dim=1)
-    out = ycbcr_to_rgb(ycc).clamp(0.0, 255.0)
+    out = _clamp_255(ycbcr_to_rgb(ycc))
     if integer:
         out = _through(ycbcr_to_rgb_libjpeg(ycc), out)
     return out / 255.0

@@ -23,7 +23,8 @@ from torch import Tensor
 def round_half_away(z: Tensor) -> Tensor:
     """Round to nearest, ties away from zero (JPEG's quantizer rounding). No gradient."""
     z = z.detach()
-    return torch.sign(z) * torch.floor(z.abs() + 0.5)
+    # trunc(z ± 1/2) = sign(z) floor(|z| + 1/2), the same float sum, in 3 kernels instead of 5
+    return torch.trunc(z + torch.copysign(torch.full_like(z, 0.5), z))
 
 
 def soft_round(z: Tensor) -> Tensor:

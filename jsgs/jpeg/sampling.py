@@ -80,6 +80,20 @@ def _replicate_up(x: Tensor, h: int, v: int) -> Tensor:
     return x[:, :, :, None, :, None].expand(b, c, hh, v, ww, h).reshape(b, c, hh * v, ww * h)
 
 
+def _triangle(x: Tensor, dim: int) -> Tensor:
+    """x2 along ``dim`` (-1 or -2): outputs ``3/4 x + 1/4 neighbour`` towards each side, edges repeated."""
+    pad = (1, 1, 0, 0) if dim == -1 else (0, 0, 1, 1)
+    xp = F.pad(x, pad, mode="replicate")
+    n = x.shape[dim]
+    near = 0.75 * x
+    # add(a, b, alpha) is one kernel: fewer launches than 0.75 x + 0.25 y written out
+    return _interleave(
+        torch.add(near, xp.narrow(dim, 0, n), alpha=0.25),
+        torch.add(near, xp.narrow(dim, 2, n), alpha=0.25),
+        dim,
+    )
+
+
 def upsample(x: Tensor, h: int, v: int) -> Tensor:
     """Float "fancy" up-sampling: ``(B, C, Hc, Wc)`` -> ``(B, C, v Hc, h Wc)``.
 
@@ -93,10 +107,8 @@ def upsample(x: Tensor, h: int, v: int) -> Tensor:
     if not uses_fancy_upsampling(x.shape[-1]):
         return _replicate_up(x, h, v)
     if v == 2:
-        up, down = _neighbours(x, -2)
-        x = _interleave(0.75 * x + 0.25 * up, 0.75 * x + 0.25 * down, -2)
-    left, right = _neighbours(x, -1)
-    return _interleave(0.75 * x + 0.25 * left, 0.75 * x + 0.25 * right, -1)
+        x = _triangle(x, -2)
+    return _triangle(x, -1)
 
 
 def upsample_libjpeg(x: Tensor, h: int, v: int) -> Tensor:

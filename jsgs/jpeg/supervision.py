@@ -50,6 +50,11 @@ def _dev(device: torch.device | str | None) -> torch.device:
     return torch.device(device if device is not None else "cpu")
 
 
+@cache
+def _luma_weights(dtype: torch.dtype, device: torch.device) -> Tensor:
+    return torch.tensor([[255.0 * 0.299], [255.0 * 0.587], [255.0 * 0.114]], dtype=dtype, device=device)
+
+
 def frequency_index(dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> Tensor:
     """``F(u, v) = u + v`` as an ``(8, 8)`` tensor indexed ``[v, u]``."""
     return _constant("F", dtype, _dev(device))
@@ -78,8 +83,8 @@ def omega(luma_table: Tensor) -> Tensor:
 def luma8(rgb: Tensor) -> Tensor:
     """``Y8(X) = 255 (0.299 R + 0.587 G + 0.114 B)`` (eq. jsgs_luminance): ``(B, 3, H, W)`` in [0, 1] ->
     ``(B, H, W)`` in 0..255 (float, not rounded)."""
-    r, g, b = rgb.unbind(-3)
-    return 255.0 * (0.299 * r + 0.587 * g + 0.114 * b)
+    # one matrix product over all pixels (the channel-wise sum is 6 small kernels, launch-bound on a GPU)
+    return (rgb.movedim(-3, -1) @ _luma_weights(rgb.dtype, rgb.device)).squeeze(-1)
 
 
 def valid_blocks_dct(rgb: Tensor) -> Tensor:

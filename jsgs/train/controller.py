@@ -24,6 +24,7 @@ synchronisation, no data-dependent shapes.
 
 from __future__ import annotations
 
+from functools import cache
 from typing import NamedTuple
 
 import torch
@@ -34,6 +35,12 @@ from jsgs.render.reference import quat_to_rotmat
 TAU_S = 1.0  # τ_s, pixels at the training resolution
 EPS_PROJ = 1e-6  # ε_proj
 FOV_MARGIN = 0.3  # gsplat's widening of the FOV used to clamp x/z and y/z in J
+
+
+@cache
+def _image_size(width: int, height: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    # once per image size and device: a host-to-device copy inside the backward would stall the GPU queue
+    return torch.tensor([width, height], dtype=dtype, device=device)
 
 
 @torch.no_grad()
@@ -57,16 +64,17 @@ def controller_matrix(
     """
     means, quats, viewmat, K = means.detach(), quats.detach(), viewmat.detach(), K.detach()
     Rw, tw = viewmat[:3, :3], viewmat[:3, 3]
-    xyz = means @ Rw.T + tw
-    x, y, z = xyz.unbind(-1)
-    z = torch.where(z >= near_plane, z, torch.ones_like(z))
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-    u = torch.clamp(x / z, min=-(cx / fx + FOV_MARGIN * tan_x), max=(width - cx) / fx + FOV_MARGIN * tan_x)
-    v = torch.clamp(y / z, min=-(cy / fy + FOV_MARGIN * tan_y), max=(height - cy) / fy + FOV_MARGIN * tan_y)
-    zero = torch.zeros_like(z)
-    J = torch.stack([fx / z, zero, -fx * u / z, zero, fy / z, -fy * v / z], dim=-1).reshape(-1, 2, 3)
-    return J @ Rw @ quat_to_rotmat(quats)
+    xyz = torch.addmm(tw, means, Rw.T)
+    z = xyz[:, 2:3]
+    z = torch.where(z >= near_plane, z, 1.0)
+    f, c = K.diagonal()[:2], K[:2, 2]  # (fx, fy), (cx, cy)
+    size = _image_size(width, height, K.dtype, K.device)
+    margin = FOV_MARGIN * 0.5 * size / f
+    uv = torch.clamp(xyz[:, :2] / z, min=-(c / f) - margin, max=(size - c) / f + margin)  # (x', y')
+    # A = J M with M = Rw R(q): row r of A is (f_r / z) (M[r] - uv_r M[2]); written row-wise instead of as
+    # J @ M, it is a handful of kernels over all N (this runs inside every backward).
+    M = Rw @ quat_to_rotmat(quats)
+    return (f / z)[:, :, None] * (M[:, :2, :] - uv[:, :, None] * M[:, 2:3, :])
 
 
 def projected_rms_scale_sq(A: Tensor, scales: Tensor) -> Tensor:
@@ -149,18 +157,23 @@ def fro_loss_and_grads(
 
     With m the contributor mask, n = max(|V|, 1), e = exp(−s̄/τ) and c_k = ‖A[:, k]‖²:
     ∂L/∂logit_j = m r̄ e · 2α²(1 − α) / n and ∂L/∂log s_jk = −m r̄ α² e / τ · c_k s_k² / (2 s̄) / n.
-    Returns (terms, grad of the logits [N], grad of the log-scales [N, 3])."""
-    m = visible.to(rbar.dtype)
-    n = m.sum().clamp_min(1.0)
+    Returns (terms, grad of the logits [N], grad of the log-scales [N, 3]). Shared factors are computed
+    once (it runs inside every backward, where each kernel costs more than its arithmetic)."""
+    count = visible.sum(dtype=rbar.dtype)
     alpha = torch.sigmoid(opacity_logits.detach())
     s = torch.exp(log_scales.detach())
-    col_sq = (A.detach() ** 2).sum(dim=-2)
-    s2 = 0.5 * (col_sq * s * s).sum(dim=-1)
-    sbar = torch.sqrt(torch.where(visible, s2, torch.ones_like(s2)))
-    e = torch.exp(-sbar / tau_s)
-    coef = torch.where(visible, rbar.detach(), torch.zeros_like(rbar)) / n  # m r̄ / n
-    loss = (coef * alpha * alpha * e).sum()
-    g_logit = coef * e * 2.0 * alpha * alpha * (1.0 - alpha)
-    g_log_scale = -(coef * alpha * alpha * e / (tau_s * 2.0 * sbar))[:, None] * col_sq * s * s
-    per = rbar * alpha * alpha * e * m
-    return FroTerms(loss, sbar, per, _stats(rbar, visible, sbar, tau_s)), g_logit, g_log_scale
+    cs2 = (A.detach() ** 2).sum(dim=-2) * (s * s)  # c_k s_k², [N, 3]
+    s2 = 0.5 * cs2.sum(dim=-1)
+    sbar = torch.sqrt(torch.where(visible, s2, 1.0))
+    a2e = alpha * alpha * torch.exp(sbar / -tau_s)  # α² e
+    mr = torch.where(visible, rbar.detach(), 0.0)  # m r̄
+    per = mr * a2e  # r̄ α² e m, the per-Gaussian term
+    w = per / count.clamp_min(1.0)
+    loss = w.sum()
+    g_logit = 2.0 * w * (1.0 - alpha)
+    g_log_scale = (w / (-2.0 * tau_s * sbar))[:, None] * cs2
+    # the statistics of _stats, from the factors above (m r̄ > 0 ⇔ j ∈ V and r̄ > 0)
+    stats = ControllerStats(
+        count, mr.sum() / count.clamp_min(1.0), ((mr > 0) & (sbar <= tau_s)).sum(dtype=rbar.dtype)
+    )
+    return FroTerms(loss, sbar, per, stats), g_logit, g_log_scale

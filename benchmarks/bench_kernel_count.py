@@ -1,0 +1,148 @@
+"""Kernels launched per training step by the JSGS terms, and their host cost, per phase.
+
+At real scene sizes (llff at 504 x 378) JO, DS and the Gaussian Controller are launch-bound on a GPU: every
+eager op costs 10-20 µs of host dispatch and launch (measured on an H200: the deferred GC's 144 kernels took
+2.2 ms, about 15 µs each), far more than its arithmetic. The kernel count is then the cost model, and it is
+the same on every device, so this benchmark runs anywhere:
+
+    .venv/bin/python benchmarks/bench_kernel_count.py [--size 96x64] [--gaussians 1000] [--modes paper]
+        [--sampling 4:2:0] [--device cpu] [--repeats 200]
+
+Per phase, for one view (``B = 1``): JO forward (``jpeg_observe``), L_obs's photometric loss, DS forward
+(``dct_supervision``), the backward through all three (λ-weighted as in training), and the deferred GC's
+closed-form work inside the backward (r̄ from the pooled sums, ``controller_matrix``,
+``fro_loss_and_grads``) for ``--gaussians`` Gaussians. Columns: kernels (aten ops that are not views,
+counted by ``jsgs.opcount.KernelCounter``) and the host time per call at the given size (median of
+``--repeats``; at the default tiny size this is almost all dispatch, the part that a GPU cannot hide).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from jsgs.jpeg.losses import photometric_loss  # noqa: E402
+from jsgs.jpeg.observe import jpeg_observe  # noqa: E402
+from jsgs.jpeg.supervision import dct_supervision  # noqa: E402
+from jsgs.opcount import KernelCounter  # noqa: E402
+from jsgs.render.pool import PooledSums  # noqa: E402
+from jsgs.train.controller import controller_matrix, fro_loss_and_grads  # noqa: E402
+
+PHASES = ("JO", "L_obs", "DS", "backward", "GC (in backward)")
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _host_ms(fn: Callable[[], object], device: torch.device, repeats: int) -> float:
+    for _ in range(3):
+        fn()
+    times = []
+    for _ in range(repeats):
+        _sync(device)
+        t = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append(time.perf_counter() - t)
+    return 1e3 * statistics.median(times)
+
+
+def measure(
+    mode: str, sampling: str, size: tuple[int, int], n_gauss: int, device: torch.device, repeats: int
+) -> dict[str, tuple[int, float]]:
+    """phase -> (kernels, host ms per call)."""
+    w, h = size
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand(1, 3, h, w, generator=g).to(device)
+    y = torch.rand(1, 3, h, w, generator=g).to(device)
+    ly = torch.randint(2, 60, (8, 8), generator=g).float().to(device)
+    lc = torch.randint(2, 90, (8, 8), generator=g).float().to(device)
+    state: dict[str, torch.Tensor] = {}
+
+    def jo() -> None:
+        state["x"] = x0.clone().requires_grad_(True)
+        state["obs"] = jpeg_observe(state["x"], ly, lc, sampling, mode)
+
+    def l_obs() -> None:
+        state["lo"] = photometric_loss(state["obs"], y, 0.2, padding="valid")
+
+    def ds() -> None:
+        state["ds"] = dct_supervision(state["obs"], y, ly)  # type: ignore[assignment]
+
+    def backward() -> None:
+        s = state["ds"]
+        loss = 0.2 * state["lo"] + 0.02 * s.loss_low.sum() + 0.03 * s.loss_mid.sum()  # type: ignore[attr-defined]
+        loss.backward()
+
+    means = (torch.randn(n_gauss, 3, generator=g) + torch.tensor([0.0, 0.0, 4.0])).to(device)
+    quats = torch.randn(n_gauss, 4, generator=g).to(device)
+    logits = torch.randn(n_gauss, generator=g).to(device)
+    log_scales = (torch.randn(n_gauss, 3, generator=g) - 4.0).to(device)
+    probe_grad = torch.rand(n_gauss, 2, generator=g).to(device)
+    viewmat = torch.eye(4, device=device)
+    K = torch.tensor([[1.2 * w, 0.0, w / 2], [0.0, 1.2 * w, h / 2], [0.0, 0.0, 1.0]], device=device)
+
+    def gc() -> None:
+        sums = PooledSums(probe_grad[:, 0] / 0.05, probe_grad[:, 1] / 0.05, probe_grad[:, 1] / 0.05)
+        A = controller_matrix(means, quats, viewmat, K, w, h, 0.01)
+        fro_loss_and_grads(sums.rbar(1e-6), sums.contributors, logits, log_scales, A, 1.0)
+
+    out: dict[str, tuple[int, float]] = {}
+    steps = (("JO", jo), ("L_obs", l_obs), ("DS", ds), ("backward", backward), ("GC (in backward)", gc))
+    for _, fn in steps:  # warm-up: constants built and cached on first use are not per-step work
+        fn()
+    for name, fn in steps:
+        with KernelCounter() as k:
+            fn()
+        out[name] = (k.total, 0.0)
+    # the phases depend on each other: time the chain up to and including a phase, minus the chain before it
+    for i, (name, fn) in enumerate(steps):
+        before = [f for _, f in steps[:i]]
+
+        def one(fn: Callable[[], None] = fn, before: list[Callable[[], None]] = before) -> None:
+            for f in before:
+                f()
+            fn()
+
+        chain = _host_ms(lambda before=before: [f() for f in before], device, repeats) if before else 0.0
+        out[name] = (out[name][0], max(_host_ms(one, device, repeats) - chain, 0.0))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--size", default="96x64", help="W x H of the view (default 96x64: dispatch-bound)")
+    ap.add_argument("--gaussians", type=int, default=1000)
+    ap.add_argument("--modes", default="paper", help="comma list of paper, float, exact")
+    ap.add_argument("--sampling", default="4:2:0")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--repeats", type=int, default=200)
+    a = ap.parse_args(argv)
+    w, h = (int(v) for v in a.size.lower().split("x"))
+    device = torch.device(a.device)
+    torch.set_num_threads(1)
+    print(f"{a.size}, {a.sampling}, {a.gaussians} Gaussians, {device}, torch {torch.__version__}")
+    print("")
+    print("| mode | " + " | ".join(f"{p} kernels | {p} ms" for p in PHASES) + " | total kernels | total ms |")
+    print("|---|" + "---:|" * (2 * len(PHASES) + 2))
+    for mode in a.modes.split(","):
+        r = measure(mode, a.sampling, (w, h), a.gaussians, device, a.repeats)
+        cells = " | ".join(f"{r[p][0]} | {r[p][1]:.2f}" for p in PHASES)
+        tk = sum(v[0] for v in r.values())
+        tm = sum(v[1] for v in r.values())
+        print(f"| {mode} | {cells} | {tk} | {tm:.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
