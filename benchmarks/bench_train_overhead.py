@@ -125,6 +125,9 @@ def main() -> None:
     ap.add_argument(
         "--compile", default="off", help="JSGS variants: method_options.compile, e.g. off,inductor [off]"
     )
+    ap.add_argument(
+        "--cuda-graph", default="off", help="JSGS variants: method_options.cuda_graph, e.g. off,on [off]"
+    )
     ap.add_argument("--no-profile", action="store_true", help="skip the profiled runs (breakdown)")
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     ap.add_argument("--out", type=Path, help="write the results as JSON here")
@@ -143,9 +146,14 @@ def main() -> None:
     for mode in args.jpeg_modes.split(","):
         for pooling in args.gc_pooling.split(","):
             for comp in args.compile.split(","):
-                label = f"jsgs ({mode}, {pooling}" + ("" if comp == "off" else f", compile {comp}") + ")"
-                opts = {"jpeg_mode": mode, "gc_pooling": pooling, "compile": comp}
-                variants.append((label, "jsgs", opts))
+                for graph in args.cuda_graph.split(","):
+                    if graph == "on" and (comp != "off" or not cuda):
+                        continue  # not combinable with compile (yet); CUDA graphs need CUDA
+                    label = f"jsgs ({mode}, {pooling}" + ("" if comp == "off" else f", compile {comp}")
+                    label += (", CUDA graph" if graph == "on" else "") + ")"
+                    opts = {"jpeg_mode": mode, "gc_pooling": pooling, "compile": comp}
+                    opts["cuda_graph"] = graph == "on"
+                    variants.append((label, "jsgs", opts))
 
     with tempfile.TemporaryDirectory() as tmp:
         work = args.workdir or Path(tmp)

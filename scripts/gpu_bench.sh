@@ -126,9 +126,10 @@ if [ -n "$S1_GPUS$PRE" ]; then
         for stage in $PRE; do
             case $stage in
             tests) CUDA_VISIBLE_DEVICES=$g JSGS_GPU_MANIFEST=$M python3 -m pytest -m gpu -p no:cacheprovider \
-                tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_lpips.py -q -s > "$OUT/gpu_tests.log" 2>&1 ;;
+                tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_lpips.py tests/test_graphed.py -q -s \
+                > "$OUT/gpu_tests.log" 2>&1 ;;
             overhead) CUDA_VISIBLE_DEVICES=$g python3 benchmarks/bench_train_overhead.py --manifest "$M" \
-                --iterations 2000 --repeats 1 --device cuda --jpeg-modes ${OVERHEAD_MODES:-paper} --compile off,inductor \
+                --iterations 2000 --repeats 1 --device cuda --jpeg-modes ${OVERHEAD_MODES:-paper} --compile off,inductor --cuda-graph off,on \
                 --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1 ;;
             esac
         done

@@ -83,6 +83,9 @@ class JsgsOptions:
     # torch.compile of JO, L_obs's photometric loss and DS (eager they are launch-bound on a GPU: hundreds of
     # small kernels). "inductor" is torch's default code generator; "aot_eager" only traces (a check).
     compile: Literal["off", "inductor", "aot_eager"] = "off"
+    # CUDA only: replay JO, L_obs and DS (forward and backward) as CUDA graphs (jsgs.train.graphed), one
+    # launch each instead of a few hundred. Off by default until measured on a GPU.
+    cuda_graph: bool = False
 
     @property
     def any_active(self) -> bool:
@@ -135,6 +138,11 @@ def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:
                 f"{where}: method_options.{key} must be one of {list(_CHOICES[key])} (got {value!r})"
             )
         setattr(opts, key, value)
+    if opts.cuda_graph and opts.compile != "off":
+        raise JsgsError(
+            f"{where}: method_options.cuda_graph and method_options.compile ({opts.compile}) cannot be "
+            "combined yet; use one of them"
+        )
     if not opts.jo and (opts.ds or opts.gc):
         on = " and ".join(n for n, v in (("DS", opts.ds), ("GC", opts.gc)) if v)
         raise JsgsError(
@@ -218,6 +226,15 @@ class JsgsHook(LossHook):
         self._observe = _maybe_compile(jpeg_observe, options.compile)
         self._photometric = _maybe_compile(photometric_loss, options.compile)
         self._supervise = _maybe_compile(dct_supervision, options.compile)
+        self._graphed = None
+        if options.cuda_graph and options.jo:
+            from jsgs.train.graphed import GraphedImageTerms
+
+            self._graphed = GraphedImageTerms(
+                mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding, ds=options.ds,
+                gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,
+                eps_block=options.eps_dct_block,
+            )  # fmt: skip
 
     # ------------------------------------------------------------------------------------------------
     @property
@@ -264,13 +281,21 @@ class JsgsHook(LossHook):
 
         x = ctx.render.permute(0, 3, 1, 2)
         y = ctx.target.permute(0, 3, 1, 2)
-        with self.profiler.phase("jo"):
-            obs = self._observe(x, tab.luma, tab.chroma, tab.sampling, o.jpeg_mode)
-            terms["obs"] = self._photometric(obs, y, self.ssim_lambda, padding=self.ssim_padding)
-        if self.keep_last:
-            self.last["observation"] = obs.detach()
         r_map = None
-        if o.ds or o.gc:
+        if self._graphed is not None:
+            with self.profiler.phase("jo"):  # JO, L_obs and DS: one graph replay (the "ds" phase is in it)
+                terms["obs"], low, mid, r_map, obs = self._graphed(x, y, tab.luma, tab.chroma, tab.sampling)
+            if o.ds:
+                terms["low"], terms["mid"] = low, mid
+            if self.keep_last:
+                self.last["observation"] = obs.clone()
+        else:
+            with self.profiler.phase("jo"):
+                obs = self._observe(x, tab.luma, tab.chroma, tab.sampling, o.jpeg_mode)
+                terms["obs"] = self._photometric(obs, y, self.ssim_lambda, padding=self.ssim_padding)
+            if self.keep_last:
+                self.last["observation"] = obs.detach()
+        if (o.ds or o.gc) and self._graphed is None:
             with self.profiler.phase("ds"):
                 # GC alone needs only the (stop-gradient) block scores: no graph through DS then
                 sup = self._supervise(
@@ -390,6 +415,11 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
         raise JsgsError(
             "config: method jsgs: the Gaussian Controller pools through the rasteriser's probe, which needs "
             "render.packed false (or train with --no-gc)"
+        )
+    if opts.cuda_graph and device.type != "cuda":
+        raise JsgsError(
+            "config: method jsgs: method_options.cuda_graph needs a CUDA device "
+            f"(training on {device.type}); turn it off"
         )
     tables = view_tables(scene.train_views, device, str(scene.manifest_path))
     return JsgsHook(
