@@ -11,6 +11,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from jsgs.precision import ieee_fp32
+
 C1 = 0.01**2
 C2 = 0.03**2
 
@@ -35,8 +37,10 @@ def _blur(x: Tensor, window: Tensor, padding: str) -> Tensor:
     pad = k // 2 if padding == "same" else 0
     wv = window.view(1, 1, k, 1).expand(c, 1, k, 1)
     wh = window.view(1, 1, 1, k).expand(c, 1, 1, k)
-    x = F.conv2d(x, wv, padding=(pad, 0), groups=c)
-    return F.conv2d(x, wh, padding=(0, pad), groups=c)
+    # without TF32: SSIM subtracts nearly equal blurred moments (E[x²] − μ²), which TF32 would swamp
+    with ieee_fp32(x.device):
+        x = F.conv2d(x, wv, padding=(pad, 0), groups=c)
+        return F.conv2d(x, wh, padding=(0, pad), groups=c)
 
 
 def ssim_map(

@@ -31,7 +31,7 @@ from __future__ import annotations
 import hashlib
 import os
 import warnings
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 import torch
@@ -39,6 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from jsgs.errors import JsgsError
+from jsgs.precision import ieee_fp32
 
 ENV_VAR = "JSGS_LPIPS_WEIGHTS"
 HEADS_PATH = Path(__file__).resolve().parent / "weights" / "lpips_v0.1_alex.pth"
@@ -139,11 +140,8 @@ class LpipsAlex(nn.Module):
 def _ieee_fp32(device: torch.device) -> AbstractContextManager[object]:
     """Full float32 convolutions on CUDA. cuDNN's default TF32 (Ampere and later) moves LPIPS by up to ~5e-5
     (measured on an H100: ex_ref/ex_p1 0.137523 instead of 0.137566); with it off, CUDA matches the CPU to
-    ~1e-7. The caller's settings are restored on exit."""
-    if device.type != "cuda":
-        return nullcontext()
-    c = torch.backends.cudnn
-    return c.flags(enabled=c.enabled, benchmark=c.benchmark, deterministic=c.deterministic, allow_tf32=False)
+    ~1e-7."""
+    return ieee_fp32(device)
 
 
 def _as_batch(x: Tensor) -> Tensor:
