@@ -13,8 +13,10 @@
 # Knobs (environment): GPU_DIR (.gpu), WHL (.whl), S0_GPUS / S1_GPUS (comma lists; empty: that bench does not run), JOBS_PER_GPU (4),
 # END (seconds after the start by which the benches stop, 520), COMPILE (auto | off | inductor: auto trains
 # 300 JSGS steps with and without torch.compile first and takes the faster that works), PRE (stages on the
-# PRE_GPU, by default the first of S1_GPUS, before S1 starts there: "tests overhead"), SWEEP=1 (also the
-# loss-weight sweep on llff_flower, one run per benchmarks/weight_sweep/*.json, on SWEEP_GPUS).
+# PRE_GPU, by default the first of S1_GPUS, before S1 starts there: "tests overhead"), SWEEP=1 (also a
+# sweep: one bench per config of SWEEP_CONFIGS (benchmarks/weight_sweep; benchmarks/densify_control is the
+# next one) on the gaussian schedule of SWEEP_SCENES (llff_flower), seeds SWEEP_SEEDS (0), on SWEEP_GPUS with
+# SWEEP_JOBS (1) jobs per GPU each; configs named gsplat_* train the baseline).
 set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/jsgs_gpu_out}
@@ -97,18 +99,25 @@ fi
 
 LEFT=$((T0 + END - $(date +%s)))
 pids=()
+SW=$(basename "${SWEEP_CONFIGS:-benchmarks/weight_sweep}")  # results in .res/$SW/<config name>
 if [ -n "${SWEEP:-}" ]; then
-    # the loss-weight sweep: one `jsgs bench --methods jsgs` per config of benchmarks/weight_sweep/, spread
-    # round-robin over SWEEP_GPUS (summarise here with benchmarks/weight_sweep.py .res/sweep)
+    # the sweep: one `jsgs bench` per config of $SWEEP_CONFIGS (a config named gsplat_* trains the baseline,
+    # the others JSGS) on the gaussian schedule of $SWEEP_SCENES, seeds $SWEEP_SEEDS, spread round-robin over
+    # SWEEP_GPUS (summarise here with benchmarks/weight_sweep.py .res/$SW --configs $SWEEP_CONFIGS)
     IFS=, read -r -a gl <<< "${SWEEP_GPUS:-0,1,2,3}"
     i=0
-    for cfg in benchmarks/weight_sweep/*.json; do
+    for cfg in "${SWEEP_CONFIGS:-benchmarks/weight_sweep}"/*.json; do
         name=$(basename "$cfg" .json)
-        mkdir -p ".res/sweep/$name/data"
-        [ -d ".res/sweep/$name/data/llff_flower" ] || cp -r "$R0/data/llff_flower" ".res/sweep/$name/data/"
-        CUDA_VISIBLE_DEVICES=${gl[$((i % ${#gl[@]}))]} $JSGS bench llff_flower --out ".res/sweep/$name" \
-            --methods jsgs --schedules gaussian --fixed= --seeds 0 --config "$cfg" --device cuda \
-            --jobs-per-gpu 1 --compile "$COMPILE" --time-limit "$LEFT" --quiet > "$OUT/sweep_$name.log" 2>&1 &
+        m=jsgs; case $name in gsplat_*) m=gsplat ;; esac
+        mkdir -p ".res/$SW/$name/data"
+        for s in ${SWEEP_SCENES:-llff_flower}; do
+            [ -d ".res/$SW/$name/data/$s" ] || cp -r "$R0/data/$s" ".res/$SW/$name/data/"
+        done
+        # shellcheck disable=SC2086
+        CUDA_VISIBLE_DEVICES=${gl[$((i % ${#gl[@]}))]} $JSGS bench ${SWEEP_SCENES:-llff_flower} --out ".res/$SW/$name" \
+            --methods $m --schedules gaussian --fixed= --seeds "${SWEEP_SEEDS:-0}" --config "$cfg" --device cuda \
+            --jobs-per-gpu "${SWEEP_JOBS:-1}" --compile "$COMPILE" --time-limit "$LEFT" --quiet \
+            > "$OUT/sweep_$name.log" 2>&1 &
         pids+=($!)
         i=$((i + 1))
     done
@@ -147,7 +156,7 @@ tail -n 3 "$OUT"/bench_s*_"$TAG".log 2>/dev/null
 tail -n 3 "$OUT/gpu_tests.log" 2>/dev/null
 tail -n 25 "$OUT/overhead.txt" 2>/dev/null
 (cd .res && tar czf "$OUT/results_$TAG.tgz" --exclude='*.ply' --exclude='*.pt' --exclude='renders' \
-    --exclude='data' bench_s0 bench_s1 $([ -d sweep ] && echo sweep))
+    --exclude='data' bench_s0 bench_s1 $([ -d "$SW" ] && echo "$SW"))
 python3 - <<'EOF'
 import json, pathlib
 for r in (".res/bench_s0", ".res/bench_s1"):

@@ -346,13 +346,17 @@ def test_weight_sweep_configs_and_summary(tmp_path: Path) -> None:
     root = Path(__file__).resolve().parents[1]
     configs = sorted((root / "benchmarks" / "weight_sweep").glob("*.json"))
     assert len(configs) >= 4
-    seen = set()
-    for c in configs:
-        cfg = load_config_file(c)
-        o = parse_options(cfg.method_options)
-        lam = (cfg.loss.base_weight, o.lambda_obs, o.lambda_low, o.lambda_mid, o.lambda_fro)
-        assert lam != (1.0, 0.2, 0.02, 0.03, 0.05) and lam not in seen, c.name
-        seen.add(lam)
+    for folder in ("weight_sweep", "densify_control"):
+        seen = set()
+        for c in sorted((root / "benchmarks" / folder).glob("*.json")):
+            cfg = load_config_file(c)
+            o = parse_options(cfg.method_options)
+            if c.stem.startswith("gsplat_"):  # a baseline control: no JSGS options
+                assert not cfg.method_options, c.name
+            lam = (c.stem.startswith("gsplat_"), cfg.loss.base_weight, o.lambda_obs, o.lambda_low,
+                   o.lambda_mid, o.lambda_fro, cfg.strategy.grow_grad2d)  # fmt: skip
+            assert lam != (False, 1.0, 0.2, 0.02, 0.03, 0.05, 0.0002) and lam not in seen, c.name
+            seen.add(lam)
     ref = root / "docs" / "results" / "results.csv"
     script = root / "benchmarks" / "weight_sweep.py"
     r = subprocess.run(
@@ -362,3 +366,12 @@ def test_weight_sweep_configs_and_summary(tmp_path: Path) -> None:
     assert "| gsplat (reference) |" in r.stdout
     assert "| jsgs, paper weights (reference) | 1 | 0.2 |" in r.stdout
     assert r.stdout.count("not run") == len(configs)
+    control = sorted((root / "benchmarks" / "densify_control").glob("*.json"))
+    r = subprocess.run(
+        [sys.executable, str(script), str(tmp_path), "--reference", str(ref), "--configs",
+         str(root / "benchmarks" / "densify_control"), "--scenes", "llff_flower,llff_fern", "--seed", "1"],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert r.stdout.count("not run") == 2 * len(control)
+    assert "llff_fern, gaussian schedule, seed 1" in r.stdout
+    assert "| gsplat_base2.1 | 2.1 | – | – | – | – | 0.0002 | not run |" in r.stdout
