@@ -269,15 +269,16 @@ class JsgsHook(LossHook):
     # ------------------------------------------------------------------------------------------------
     def losses(self, ctx: StepContext) -> HookOutput:
         o = self.opts
-        dev = ctx.render.device
-        zero = torch.zeros((), dtype=ctx.render.dtype, device=dev)
-        terms: dict[str, Tensor] = {k: zero.clone() for k in self.active_terms()}
-        stats: dict[str, float | Tensor] = {k: zero.clone() for k in STAT_NAMES} if o.gc else {}
         self.last = {}
         self._pending.clear()  # a step whose backward never came (see _gc_deferred)
         tab = self.tables.get(ctx.view.index)
         if tab is None:  # lossless view: ℓ_ph only
-            return HookOutput(terms, self.weights(), stats)
+            zero = torch.zeros((), dtype=ctx.render.dtype, device=ctx.render.device)
+            terms0 = {k: zero.clone() for k in self.active_terms()}
+            return HookOutput(terms0, self.weights(), {k: zero.clone() for k in STAT_NAMES} if o.gc else {})
+        # every active term and statistic is set below (no placeholder kernels on the JPEG views' path)
+        terms: dict[str, Tensor] = {}
+        stats: dict[str, float | Tensor] = {}
 
         x = ctx.render.permute(0, 3, 1, 2)
         y = ctx.target.permute(0, 3, 1, 2)
