@@ -16,7 +16,8 @@ import torch
 def ieee_fp32(device: torch.device) -> AbstractContextManager[object]:
     """Context: cuDNN convolutions without TF32 on CUDA (a no-op elsewhere); the caller's settings are
     restored on exit."""
-    if device.type != "cuda":
+    if device.type != "cuda" or torch.compiler.is_compiling():
+        # inside torch.compile the global setting holds (the trainer turns TF32 off for the whole run)
         return nullcontext()
     c = torch.backends.cudnn
     return c.flags(enabled=c.enabled, benchmark=c.benchmark, deterministic=c.deterministic, allow_tf32=False)

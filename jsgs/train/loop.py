@@ -328,6 +328,9 @@ def train(
             raise JsgsError(f"{manifest}: differs from the manifest the run in {paths.root} was started with")
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
+        # IEEE float32 convolutions for the whole run (SSIM in the losses and metrics; jsgs.precision), also
+        # where torch.compile'd code cannot enter jsgs.precision's context
+        torch.backends.cudnn.allow_tf32 = False
     train_views = scene.train_views
     train_images = load_train_images(scene, device)
     eval_images = load_eval_images(scene, device) if cfg.eval_at else {}
