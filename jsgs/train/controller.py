@@ -107,12 +107,11 @@ class FroTerms(NamedTuple):
     stats: ControllerStats
 
 
-def _stats(rbar: Tensor, mask: Tensor, sbar: Tensor, tau_s: float) -> ControllerStats:
-    m = mask.to(rbar.dtype)
-    count = m.sum()
-    rbar_mean = (rbar.detach() * m).sum() / count.clamp_min(1.0)
-    damped = (mask & (rbar.detach() > 0) & (sbar.detach() <= tau_s)).to(rbar.dtype).sum()
-    return ControllerStats(count.detach(), rbar_mean.detach(), damped)
+def _stats(masked_rbar: Tensor, count: Tensor, sbar: Tensor, tau_s: float) -> ControllerStats:
+    """From m r̄ [N] (r̄ on V_i, 0 elsewhere) and |V_i|: m r̄ > 0 ⇔ j ∈ V_i and r̄_j > 0."""
+    mr = masked_rbar.detach()
+    damped = ((mr > 0) & (sbar.detach() <= tau_s)).sum(dtype=mr.dtype)
+    return ControllerStats(count.detach(), mr.sum() / count.clamp_min(1.0), damped)
 
 
 def fro_loss(
@@ -140,7 +139,8 @@ def fro_loss(
     sbar = torch.sqrt(torch.where(visible, s2, torch.ones_like(s2)))
     per = rbar * alpha * alpha * torch.exp(-sbar / tau_s)
     loss = torch.where(visible, per, torch.zeros_like(per)).sum() / m.sum().clamp_min(1.0)
-    return FroTerms(loss, sbar.detach(), (per * m).detach(), _stats(rbar, visible, sbar, tau_s))
+    stats = _stats(torch.where(visible, rbar, 0.0), m.sum(), sbar, tau_s)
+    return FroTerms(loss, sbar.detach(), (per * m).detach(), stats)
 
 
 @torch.no_grad()
@@ -172,8 +172,4 @@ def fro_loss_and_grads(
     loss = w.sum()
     g_logit = 2.0 * w * (1.0 - alpha)
     g_log_scale = (w / (-2.0 * tau_s * sbar))[:, None] * cs2
-    # the statistics of _stats, from the factors above (m r̄ > 0 ⇔ j ∈ V and r̄ > 0)
-    stats = ControllerStats(
-        count, mr.sum() / count.clamp_min(1.0), ((mr > 0) & (sbar <= tau_s)).sum(dtype=rbar.dtype)
-    )
-    return FroTerms(loss, sbar, per, stats), g_logit, g_log_scale
+    return FroTerms(loss, sbar, per, _stats(mr, count, sbar, tau_s)), g_logit, g_log_scale
