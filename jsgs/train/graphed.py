@@ -6,7 +6,8 @@ once per image size and replays the whole forward, and the whole backward, as on
 is the eager code's, kernel for kernel, so values and gradients are those of the eager path
 (``tests/test_graphed.py``, GPU only).
 
-What is recorded is :func:`image_terms`, a pure function of tensors: the render and target of one view, its
+The chain itself is :func:`jpeg_terms` (the eager hook runs it too); what is recorded is
+:func:`image_terms`, its tensors-only form, a pure function of tensors: the render and target of one view, its
 tables (inputs, so every view replays the same graph with its own), with the JO mode, sampling, weights'
 switches and epsilons fixed per graph. One graph per (image shape, dtype, sampling); the scenes we train have
 one image size. Graphs need static shapes and no host synchronisation, which the JPEG code guarantees (see
@@ -15,6 +16,8 @@ one image size. Graphs need static shapes and no host synchronisation, which the
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from functools import partial
 from typing import Any
 
@@ -23,10 +26,10 @@ from torch import Tensor
 
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
-from jsgs.jpeg.supervision import dct_supervision
+from jsgs.jpeg.supervision import DctSupervision, dct_supervision
 
 
-def image_terms(
+def jpeg_terms(
     x: Tensor,
     y: Tensor,
     luma: Tensor,
@@ -41,24 +44,43 @@ def image_terms(
     eps_sm: float,
     eps_loss: float,
     eps_block: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """L_obs, L_low, L_mid, r(p) and the observation for one view.
+    observe: Callable[..., Tensor] = jpeg_observe,
+    photometric: Callable[..., Tensor] = photometric_loss,
+    supervise: Callable[..., DctSupervision] = dct_supervision,
+    phase: Callable[[str], AbstractContextManager[Any]] = lambda name: nullcontext(),
+) -> tuple[Tensor, Tensor, DctSupervision | None]:
+    """JO, L_obs and DS for one view: the one home of that chain, for the eager hook and for the graph.
 
     Args:
         x: ``(1, 3, H, W)`` the rendering; y: ``(1, 3, H, W)`` the decoded training JPEG, in [0, 1].
-        luma, chroma: ``(8, 8)`` the view's tables. The rest: as :class:`jsgs.train.jsgs_method.JsgsOptions`.
+        luma, chroma: ``(8, 8)`` the view's tables. The settings: as
+            :class:`jsgs.train.jsgs_method.JsgsOptions`.
+        observe, photometric, supervise: the three functions (the hook passes torch.compile'd ones);
+        phase: a profiler's ``phase(name)`` context ("jo" around JO and L_obs, "ds" around DS).
     Returns:
-        ``(L_obs, L_low, L_mid)`` 0-dim (L_low and L_mid are 0 without DS), r(p) ``(1, H, W)`` detached (0
-        without DS and GC), and the observation ``(1, 3, H, W)`` detached.
+        The observation ``(1, 3, H, W)``, L_obs (0-dim) and the DS terms (None without DS and GC; with GC
+        alone they are computed on the detached observation, so no graph runs through DS).
     """
-    obs = jpeg_observe(x, luma, chroma, sampling, mode)
-    l_obs = photometric_loss(obs, y, ssim_lambda, padding=ssim_padding)
-    zero = l_obs.new_zeros(())
+    with phase("jo"):
+        obs = observe(x, luma, chroma, sampling, mode)
+        l_obs = photometric(obs, y, ssim_lambda, padding=ssim_padding)
     if not (ds or gc):
+        return obs, l_obs, None
+    with phase("ds"):
+        sup = supervise(obs if ds else obs.detach(), y, luma, eps_sm, eps_loss, eps_block)
+    return obs, l_obs, sup
+
+
+def image_terms(
+    x: Tensor, y: Tensor, luma: Tensor, chroma: Tensor, **settings: Any
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`jpeg_terms` as tensors only (what a CUDA graph can return): L_obs, L_low, L_mid (0-dim; the DS
+    terms 0 without DS), r(p) ``(1, H, W)`` detached (0 without DS and GC) and the observation, detached."""
+    obs, l_obs, sup = jpeg_terms(x, y, luma, chroma, **settings)
+    zero = l_obs.new_zeros(())
+    if sup is None:
         return l_obs, zero, zero, y.new_zeros(y.shape[0], *y.shape[2:]), obs.detach()
-    # GC alone needs only the (stop-gradient) block scores: no graph through DS then
-    sup = dct_supervision(obs if ds else obs.detach(), y, luma, eps_sm, eps_loss, eps_block)
-    low, mid = (sup.loss_low.sum(), sup.loss_mid.sum()) if ds else (zero, zero)
+    low, mid = (sup.loss_low.sum(), sup.loss_mid.sum()) if settings["ds"] else (zero, zero)
     return l_obs, low, mid, sup.pixel_score, obs.detach()
 
 

@@ -48,6 +48,7 @@ from torch import Tensor
 
 from jsgs.errors import JsgsError
 from jsgs.train.controller import EPS_PROJ, TAU_S, controller_matrix, fro_loss, fro_loss_and_grads
+from jsgs.train.graphed import GraphedImageTerms, jpeg_terms
 from jsgs.train.hooks import HookOutput, LossHook, StepContext, register_method
 from jsgs.train.loop import Profiler
 
@@ -223,18 +224,20 @@ class JsgsHook(LossHook):
         from jsgs.jpeg.observe import jpeg_observe
         from jsgs.jpeg.supervision import dct_supervision
 
-        self._observe = _maybe_compile(jpeg_observe, options.compile)
-        self._photometric = _maybe_compile(photometric_loss, options.compile)
-        self._supervise = _maybe_compile(dct_supervision, options.compile)
+        # what fixes the JO / L_obs / DS chain (jsgs.train.graphed.jpeg_terms), in both routes
+        self._jpeg_settings: dict[str, Any] = dict(
+            mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding, ds=options.ds,
+            gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,
+            eps_block=options.eps_dct_block,
+        )  # fmt: skip
+        self._jpeg_functions = {
+            "observe": _maybe_compile(jpeg_observe, options.compile),
+            "photometric": _maybe_compile(photometric_loss, options.compile),
+            "supervise": _maybe_compile(dct_supervision, options.compile),
+        }
         self._graphed = None
         if options.cuda_graph and options.jo:
-            from jsgs.train.graphed import GraphedImageTerms
-
-            self._graphed = GraphedImageTerms(
-                mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding, ds=options.ds,
-                gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,
-                eps_block=options.eps_dct_block,
-            )  # fmt: skip
+            self._graphed = GraphedImageTerms(**self._jpeg_settings)
 
     # ------------------------------------------------------------------------------------------------
     @property
@@ -291,23 +294,18 @@ class JsgsHook(LossHook):
             if self.keep_last:
                 self.last["observation"] = obs.clone()
         else:
-            with self.profiler.phase("jo"):
-                obs = self._observe(x, tab.luma, tab.chroma, tab.sampling, o.jpeg_mode)
-                terms["obs"] = self._photometric(obs, y, self.ssim_lambda, padding=self.ssim_padding)
+            obs, terms["obs"], sup = jpeg_terms(
+                x, y, tab.luma, tab.chroma, sampling=tab.sampling, phase=self.profiler.phase,
+                **self._jpeg_settings, **self._jpeg_functions,
+            )  # fmt: skip
             if self.keep_last:
                 self.last["observation"] = obs.detach()
-        if (o.ds or o.gc) and self._graphed is None:
-            with self.profiler.phase("ds"):
-                # GC alone needs only the (stop-gradient) block scores: no graph through DS then
-                sup = self._supervise(
-                    obs if o.ds else obs.detach(), y, tab.luma, o.eps_sm, o.eps_dct_loss, o.eps_dct_block
-                )
+            if sup is not None:
                 if o.ds:
-                    terms["low"] = sup.loss_low.sum()
-                    terms["mid"] = sup.loss_mid.sum()
+                    terms["low"], terms["mid"] = sup.loss_low.sum(), sup.loss_mid.sum()
                 r_map = sup.pixel_score  # [1, H, W], detached
-            if self.keep_last:
-                self.last["ds"] = sup
+                if self.keep_last:
+                    self.last["ds"] = sup
         if o.gc:
             assert r_map is not None
             with self.profiler.phase("gc"):
