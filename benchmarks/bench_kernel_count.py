@@ -29,12 +29,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jsgs.jpeg.losses import photometric_loss  # noqa: E402
-from jsgs.jpeg.observe import jpeg_observe  # noqa: E402
-from jsgs.jpeg.supervision import dct_supervision  # noqa: E402
-from jsgs.opcount import KernelCounter  # noqa: E402
-from jsgs.render.pool import PooledSums  # noqa: E402
-from jsgs.train.controller import controller_matrix, fro_loss_and_grads  # noqa: E402
+from jsgs.opcount import count_phases, jsgs_step  # noqa: E402
 
 PHASES = ("JO", "L_obs", "DS", "backward", "GC (in backward)")
 
@@ -61,50 +56,8 @@ def measure(
     mode: str, sampling: str, size: tuple[int, int], n_gauss: int, device: torch.device, repeats: int
 ) -> dict[str, tuple[int, float]]:
     """phase -> (kernels, host ms per call)."""
-    w, h = size
-    g = torch.Generator().manual_seed(0)
-    x0 = torch.rand(1, 3, h, w, generator=g).to(device)
-    y = torch.rand(1, 3, h, w, generator=g).to(device)
-    ly = torch.randint(2, 60, (8, 8), generator=g).float().to(device)
-    lc = torch.randint(2, 90, (8, 8), generator=g).float().to(device)
-    state: dict[str, torch.Tensor] = {}
-
-    def jo() -> None:
-        state["x"] = x0.clone().requires_grad_(True)
-        state["obs"] = jpeg_observe(state["x"], ly, lc, sampling, mode)
-
-    def l_obs() -> None:
-        state["lo"] = photometric_loss(state["obs"], y, 0.2, padding="valid")
-
-    def ds() -> None:
-        state["ds"] = dct_supervision(state["obs"], y, ly)  # type: ignore[assignment]
-
-    def backward() -> None:
-        s = state["ds"]
-        loss = 0.2 * state["lo"] + 0.02 * s.loss_low.sum() + 0.03 * s.loss_mid.sum()  # type: ignore[attr-defined]
-        loss.backward()
-
-    means = (torch.randn(n_gauss, 3, generator=g) + torch.tensor([0.0, 0.0, 4.0])).to(device)
-    quats = torch.randn(n_gauss, 4, generator=g).to(device)
-    logits = torch.randn(n_gauss, generator=g).to(device)
-    log_scales = (torch.randn(n_gauss, 3, generator=g) - 4.0).to(device)
-    probe_grad = torch.rand(n_gauss, 2, generator=g).to(device)
-    viewmat = torch.eye(4, device=device)
-    K = torch.tensor([[1.2 * w, 0.0, w / 2], [0.0, 1.2 * w, h / 2], [0.0, 0.0, 1.0]], device=device)
-
-    def gc() -> None:
-        sums = PooledSums(probe_grad[:, 0] / 0.05, probe_grad[:, 1] / 0.05, probe_grad[:, 1] / 0.05)
-        A = controller_matrix(means, quats, viewmat, K, w, h, 0.01)
-        fro_loss_and_grads(sums.rbar(1e-6), sums.contributors, logits, log_scales, A, 1.0)
-
-    out: dict[str, tuple[int, float]] = {}
-    steps = (("JO", jo), ("L_obs", l_obs), ("DS", ds), ("backward", backward), ("GC (in backward)", gc))
-    for _, fn in steps:  # warm-up: constants built and cached on first use are not per-step work
-        fn()
-    for name, fn in steps:
-        with KernelCounter() as k:
-            fn()
-        out[name] = (k.total, 0.0)
+    steps = jsgs_step(mode, sampling, size, n_gauss, device)
+    out = {name: (n, 0.0) for name, n in count_phases(steps).items()}
     # the phases depend on each other: time the chain up to and including a phase, minus the chain before it
     for i, (name, fn) in enumerate(steps):
         before = [f for _, f in steps[:i]]

@@ -12,8 +12,10 @@ runs inside the counter on the same thread (always on CPU).
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
+import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 #: aten ops that are not views by schema but launch no kernel either.
@@ -36,3 +38,74 @@ class KernelCounter(TorchDispatchMode):
     @property
     def total(self) -> int:
         return sum(self.ops.values())
+
+
+Phases = list[tuple[str, Callable[[], None]]]
+
+
+def jsgs_step(
+    mode: str = "paper",
+    sampling: str = "4:2:0",
+    size: tuple[int, int] = (96, 64),
+    n_gaussians: int = 1000,
+    device: torch.device | str = "cpu",
+) -> Phases:
+    """One view's JSGS work on synthetic inputs, as named phases to run in order: "JO" (``jpeg_observe``),
+    "L_obs" (its photometric loss), "DS" (``dct_supervision``), "backward" (through the three, weighted as in
+    training) and "GC (in backward)" (r̄ from pooled sums, ``controller_matrix``, ``fro_loss_and_grads``
+    for ``n_gaussians``). ``size`` is (W, H). What ``benchmarks/bench_kernel_count.py`` and
+    ``tests/test_opcount.py`` count."""
+    from jsgs.jpeg.losses import photometric_loss
+    from jsgs.jpeg.observe import jpeg_observe
+    from jsgs.jpeg.supervision import dct_supervision
+    from jsgs.render.pool import PooledSums
+    from jsgs.train.controller import controller_matrix, fro_loss_and_grads
+
+    w, h = size
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand(1, 3, h, w, generator=g).to(device)
+    y = torch.rand(1, 3, h, w, generator=g).to(device)
+    ly = torch.randint(2, 60, (8, 8), generator=g).float().to(device)
+    lc = torch.randint(2, 90, (8, 8), generator=g).float().to(device)
+    state: dict[str, Any] = {}
+
+    def jo() -> None:
+        state["obs"] = jpeg_observe(x0.clone().requires_grad_(True), ly, lc, sampling, mode)
+
+    def l_obs() -> None:
+        state["lo"] = photometric_loss(state["obs"], y, 0.2, padding="valid")
+
+    def ds() -> None:
+        state["ds"] = dct_supervision(state["obs"], y, ly)
+
+    def backward() -> None:
+        s = state["ds"]
+        (0.2 * state["lo"] + 0.02 * s.loss_low.sum() + 0.03 * s.loss_mid.sum()).backward()
+
+    means = (torch.randn(n_gaussians, 3, generator=g) + torch.tensor([0.0, 0.0, 4.0])).to(device)
+    quats = torch.randn(n_gaussians, 4, generator=g).to(device)
+    logits = torch.randn(n_gaussians, generator=g).to(device)
+    log_scales = (torch.randn(n_gaussians, 3, generator=g) - 4.0).to(device)
+    probe_grad = torch.rand(n_gaussians, 2, generator=g).to(device)
+    viewmat = torch.eye(4, device=device)
+    K = torch.tensor([[1.2 * w, 0.0, w / 2], [0.0, 1.2 * w, h / 2], [0.0, 0.0, 1.0]], device=device)
+
+    def gc() -> None:
+        sums = PooledSums(probe_grad[:, 0] / 0.05, probe_grad[:, 1] / 0.05, probe_grad[:, 1] / 0.05)
+        A = controller_matrix(means, quats, viewmat, K, w, h, 0.01)
+        fro_loss_and_grads(sums.rbar(1e-6), sums.contributors, logits, log_scales, A, 1.0)
+
+    return [("JO", jo), ("L_obs", l_obs), ("DS", ds), ("backward", backward), ("GC (in backward)", gc)]
+
+
+def count_phases(phases: Phases) -> dict[str, int]:
+    """Kernels per phase, after one warm-up pass of all of them (constants built and cached on first use
+    are not per-step work)."""
+    for _, fn in phases:
+        fn()
+    out = {}
+    for name, fn in phases:
+        with KernelCounter() as k:
+            fn()
+        out[name] = k.total
+    return out

@@ -6,13 +6,8 @@ from __future__ import annotations
 
 import torch
 
-from jsgs.jpeg.losses import photometric_loss
-from jsgs.jpeg.observe import jpeg_observe
-from jsgs.jpeg.supervision import dct_supervision
-from jsgs.opcount import KernelCounter
-from jsgs.render.pool import PooledSums
+from jsgs.opcount import KernelCounter, count_phases, jsgs_step
 from jsgs.render.reference import quat_to_rotmat
-from jsgs.train.controller import controller_matrix, fro_loss_and_grads
 
 
 def test_the_counter_counts_kernels_not_views() -> None:
@@ -30,45 +25,13 @@ def test_the_counter_counts_kernels_not_views() -> None:
 
 def _jsgs_step_kernels(mode: str) -> tuple[int, int]:
     """(JO + L_obs + DS forward and their backward, deferred GC in the backward) kernels for one view."""
-    g = torch.Generator().manual_seed(0)
-    h, w = 64, 96
-    y = torch.rand(1, 3, h, w, generator=g)
-    ly = torch.randint(2, 60, (8, 8), generator=g).float()
-    lc = torch.randint(2, 90, (8, 8), generator=g).float()
-    n = 500
-    means = torch.randn(n, 3, generator=g) + torch.tensor([0.0, 0.0, 4.0])
-    quats, logits = torch.randn(n, 4, generator=g), torch.randn(n, generator=g)
-    log_scales = torch.randn(n, 3, generator=g) - 4.0
-    pg = torch.rand(n, 2, generator=g)
-    K = torch.tensor([[100.0, 0.0, 48.0], [0.0, 100.0, 32.0], [0.0, 0.0, 1.0]])
-
-    def image_terms() -> None:
-        x = torch.rand(1, 3, h, w, generator=g, requires_grad=True)
-        obs = jpeg_observe(x, ly, lc, "4:2:0", mode)
-        ds = dct_supervision(obs, y, ly)
-        loss = (
-            0.2 * photometric_loss(obs, y, padding="valid")
-            + 0.02 * ds.loss_low.sum()
-            + 0.03 * ds.loss_mid.sum()
-        )
-        loss.backward()
-
-    def gc() -> None:
-        sums = PooledSums(pg[:, 0] / 0.05, pg[:, 1] / 0.05, pg[:, 1] / 0.05)
-        A = controller_matrix(means, quats, torch.eye(4), K, w, h)
-        fro_loss_and_grads(sums.rbar(), sums.contributors, logits, log_scales, A)
-
-    image_terms(), gc()  # constants cached on first use are not per-step work
-    with KernelCounter() as k1:
-        image_terms()
-    with KernelCounter() as k2:
-        gc()
-    return k1.total, k2.total
+    n = count_phases(jsgs_step(mode, "4:2:0", (96, 64), 500))
+    return n["JO"] + n["L_obs"] + n["DS"] + n["backward"], n["GC (in backward)"]
 
 
 def test_a_jsgs_step_launches_few_kernels() -> None:
     # Measured when written (torch 2.13, CPU; CUDA dispatches the same ops, not counted there yet): 222 and
-    # 65, down from 346 and 145 before the JO/DS/GC code was rewritten for launch count (one coding pass for
+    # 64, down from 346 and 144 before the JO/DS/GC code was rewritten for launch count (one coding pass for
     # all planes, colour and DCT as single matrix products, R(q) as one quadratic form, shared factors in the
     # closed-form GC). A change that adds kernels to every step must raise these bounds knowingly.
     image, gc = _jsgs_step_kernels("paper")
