@@ -207,8 +207,6 @@ class JsgsHook(LossHook):
     ) -> None:
         self.opts = options
         self.tables = tables
-        self.ssim_lambda = ssim_lambda
-        self.ssim_padding = ssim_padding
         self.near_plane = near_plane
         self.device = device or torch.device("cpu")
         # the trainer's own Profiler; its totals are this hook's ``timings`` (JO, DS, GC phases)
@@ -236,7 +234,7 @@ class JsgsHook(LossHook):
             "supervise": _maybe_compile(dct_supervision, options.compile),
         }
         self._graphed = None
-        if options.cuda_graph and options.jo:
+        if options.cuda_graph:
             self._graphed = GraphedImageTerms(**self._jpeg_settings)
 
     # ------------------------------------------------------------------------------------------------
