@@ -562,6 +562,15 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
         # the logged total includes L_fro, whose value is only known inside the backward (deferred pooling)
         w = {"photometric": 1.0, "obs": 0.2, "low": 0.02, "mid": 0.03, "fro": 0.05}
         assert e["train"]["loss"] == pytest.approx(sum(w[k] * terms[k] for k in w), rel=1e-5)
+        # per-view sums partition the interval: step counts add up, step-weighted means give the totals back
+        pv = e["train"]["per_view"]
+        assert len(pv) > 1 and sum(v["steps"] for v in pv.values()) == e["train"]["steps"] == 12
+        n = e["train"]["steps"]
+        got = sum(v["steps"] * v["loss"] for v in pv.values()) / n
+        assert got == pytest.approx(e["train"]["loss"], rel=1e-9)
+        for k in terms:
+            got = sum(v["steps"] * v["terms"][k] for v in pv.values()) / n
+            assert got == pytest.approx(terms[k], rel=1e-9), k
     settings = json.loads((run / "config.json").read_text())["settings"]
     assert settings["method_options"] == {"jpeg_mode": "float"}
     assert "--jpeg-mode float" in json.loads((run / "config.json").read_text())["command"]

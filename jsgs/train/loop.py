@@ -115,20 +115,32 @@ class Profiler:
 
 @dataclass
 class LogAccumulator:
-    """Sums of each logged value since the last evaluation (floats, so the averages are exact to resume)."""
+    """Sums of each logged value since the last evaluation (floats, so the averages are exact to resume).
+
+    ``per_view`` holds the same sums for each training view (by name) for the loss and the terms, so a run
+    shows which views its loss comes from (issue 6: do the worst JPEGs dominate training?)."""
 
     steps: int = 0
     loss: float = 0.0
     terms: dict[str, float] = field(default_factory=dict)
     stats: dict[str, float] = field(default_factory=dict)
+    per_view: dict[str, dict[str, Any]] = field(default_factory=dict)
 
-    def add(self, loss: float, terms: dict[str, float], stats: dict[str, float]) -> None:
+    def add(
+        self, loss: float, terms: dict[str, float], stats: dict[str, float], view: str | None = None
+    ) -> None:
         self.steps += 1
         self.loss += loss
         for k, v in terms.items():
             self.terms[k] = self.terms.get(k, 0.0) + v
         for k, v in stats.items():
             self.stats[k] = self.stats.get(k, 0.0) + v
+        if view is not None:
+            pv = self.per_view.setdefault(view, {"steps": 0, "loss": 0.0, "terms": {}})
+            pv["steps"] += 1
+            pv["loss"] += loss
+            for k, v in terms.items():
+                pv["terms"][k] = pv["terms"].get(k, 0.0) + v
 
     def means(self) -> dict[str, Any]:
         n = max(self.steps, 1)
@@ -137,14 +149,33 @@ class LogAccumulator:
             "loss": self.loss / n if self.steps else None,
             "terms": {k: v / n for k, v in self.terms.items()},
             "stats": {k: v / n for k, v in self.stats.items()},
+            "per_view": {
+                name: {
+                    "steps": pv["steps"],
+                    "loss": pv["loss"] / pv["steps"],
+                    "terms": {k: v / pv["steps"] for k, v in pv["terms"].items()},
+                }
+                for name, pv in sorted(self.per_view.items())
+            },
         }
 
     def state(self) -> dict[str, Any]:
-        return {"steps": self.steps, "loss": self.loss, "terms": dict(self.terms), "stats": dict(self.stats)}
+        return {
+            "steps": self.steps,
+            "loss": self.loss,
+            "terms": dict(self.terms),
+            "stats": dict(self.stats),
+            "per_view": {k: {**v, "terms": dict(v["terms"])} for k, v in self.per_view.items()},
+        }
 
     @classmethod
     def from_state(cls, s: dict[str, Any]) -> LogAccumulator:
-        return cls(int(s["steps"]), float(s["loss"]), dict(s["terms"]), dict(s["stats"]))
+        # checkpoints written before per-view sums existed resume with none for that interval
+        per_view = {
+            k: {"steps": int(v["steps"]), "loss": float(v["loss"]), "terms": dict(v["terms"])}
+            for k, v in s.get("per_view", {}).items()
+        }
+        return cls(int(s["steps"]), float(s["loss"]), dict(s["terms"]), dict(s["stats"]), per_view)
 
 
 def _versions() -> dict[str, Any]:
@@ -551,7 +582,12 @@ def train(
                     splats, optimizers, strategy_state, step, r.info, packed=cfg.render.packed
                 )
             profiler.steps += 1
-            acc.add(loss_v, dict(zip(names, term_v, strict=True)), dict(zip(stats, stat_v, strict=True)))
+            acc.add(
+                loss_v,
+                dict(zip(names, term_v, strict=True)),
+                dict(zip(stats, stat_v, strict=True)),
+                view.name,
+            )
             done = step + 1
             if bar is not None:
                 bar.update(1)
