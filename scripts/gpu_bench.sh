@@ -10,7 +10,7 @@
 #
 # Two benches run side by side, each on its own GPUs: S0 (every scene carried so far, seed 0: the mixed
 # schedules, clean, fixed 30/50 and the ablation on llff_flower) and S1 (seed 1: mixed schedules and clean).
-# Knobs (environment): GPU_DIR (.gpu), WHL (.whl), S0_GPUS / S1_GPUS (comma lists; empty: that bench does not run), JOBS_PER_GPU (4),
+# Knobs (environment): OVERHEAD_ITERS (1000), GPU_DIR (.gpu), WHL (.whl), S0_GPUS / S1_GPUS (comma lists; empty: that bench does not run), JOBS_PER_GPU (4),
 # END (seconds after the start by which the benches stop, 520), COMPILE (auto | off | inductor: auto trains
 # 300 JSGS steps with and without torch.compile first and takes the faster that works), PRE (stages on the
 # PRE_GPU, by default the first of S1_GPUS, before S1 starts there: "tests overhead"), SWEEP=1 (also a
@@ -138,7 +138,7 @@ if [ -n "$S1_GPUS$PRE" ]; then
                 tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_lpips.py tests/test_graphed.py -q -s \
                 > "$OUT/gpu_tests.log" 2>&1 ;;
             overhead) CUDA_VISIBLE_DEVICES=$g python3 benchmarks/bench_train_overhead.py --manifest "$M" \
-                --iterations 2000 --repeats 1 --device cuda --jpeg-modes ${OVERHEAD_MODES:-paper} --compile off,inductor --cuda-graph off,on \
+                --iterations "${OVERHEAD_ITERS:-1000}" --repeats 1 --device cuda --jpeg-modes ${OVERHEAD_MODES:-paper} --compile off,inductor --cuda-graph off,on \
                 --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1 ;;
             esac
         done
