@@ -15,7 +15,7 @@ from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision
 from jsgs.train.graphed import GraphedImageTerms, image_terms
-from jsgs.train.jsgs_method import parse_options
+from jsgs.train.jsgs_method import parse_options, use_cuda_graph
 
 SETTINGS = dict(
     mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
@@ -87,6 +87,24 @@ def test_cuda_graph_is_refused_off_cuda_and_with_compile(tmp_path: Path) -> None
     with pytest.raises(JsgsError, match="needs a CUDA device") as e:
         make_jsgs_hook(cfg, _Scene(), torch.device("cpu"))  # type: ignore[arg-type]
     assert "\n" not in str(e.value)
+
+
+def test_cuda_graph_auto_resolves_by_device_and_compile() -> None:
+    """The default ("auto") graphs exactly when the device is CUDA and compile is off; other values are
+    refused with one line."""
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert parse_options({}).cuda_graph == "auto"
+    assert use_cuda_graph(parse_options({}), cuda) is True
+    assert use_cuda_graph(parse_options({}), cpu) is False
+    assert use_cuda_graph(parse_options({"compile": "inductor"}), cuda) is False
+    assert use_cuda_graph(parse_options({"cuda_graph": False}), cuda) is False
+    assert use_cuda_graph(parse_options({"cuda_graph": True}), cuda) is True
+    with pytest.raises(JsgsError, match="needs a CUDA device"):
+        use_cuda_graph(parse_options({"cuda_graph": True}), cpu)
+    for bad in ("on", 1, None):
+        with pytest.raises(JsgsError, match="must be true, false or") as e:
+            parse_options({"cuda_graph": bad})
+        assert "\n" not in str(e.value)
 
 
 @pytest.mark.gpu

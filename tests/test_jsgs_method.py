@@ -571,8 +571,12 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
         for k in terms:
             got = sum(v["steps"] * v["terms"][k] for v in pv.values()) / n
             assert got == pytest.approx(terms[k], rel=1e-9), k
-    settings = json.loads((run / "config.json").read_text())["settings"]
+    run_config = json.loads((run / "config.json").read_text())
+    settings = run_config["settings"]
     assert settings["method_options"] == {"jpeg_mode": "float"}
+    # what "auto" and the routes resolved to on this device
+    resolved = {"cuda_graph": False, "gc_route": "deferred", "jpeg_mode": "float"}
+    assert run_config["derived"]["method"] == resolved
     assert "--jpeg-mode float" in json.loads((run / "config.json").read_text())["command"]
     # the switches are refused where they do not apply, and --no-jo alone is refused
     r = CliRunner().invoke(main, ["train", str(manifest), "--out", str(tmp_path / "x"), "--no-gc"])

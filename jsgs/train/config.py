@@ -467,6 +467,11 @@ def config_schema() -> dict[str, Any]:
                     "num_test_views": {"type": "integer"},
                     "initial_gaussians": {"type": "integer"},
                     "notes": {"type": "array", "items": {"type": "string"}},
+                    "method": {
+                        "type": "object",
+                        "description": "What the method resolved from its options for this run (JSGS: "
+                        "cuda_graph, gc_route, jpeg_mode).",
+                    },
                 },
             },
         },

@@ -111,6 +111,10 @@ class LossHook:
         """Extra loss terms and statistics for this step."""
         raise NotImplementedError
 
+    def describe(self) -> dict[str, Any]:
+        """What the method resolved from its options for this run (config.json ``derived.method``)."""
+        return {}
+
     def state_dict(self) -> dict[str, Any]:
         return {}
 

@@ -423,6 +423,7 @@ def train(
         if start_ckpt is None
         else int(json_load(paths.config)["derived"]["initial_gaussians"]),
         "notes": scene.notes,
+        "method": hook.describe() if hook is not None else {},
     }
     if not resume:
         _clear_out(paths)  # only now that the settings and the manifest have been checked
