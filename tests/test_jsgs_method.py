@@ -743,3 +743,16 @@ def test_compiled_jpeg_terms_equal_eager(mode: str) -> None:
         assert traced["terms"][k] == pytest.approx(v, rel=1e-9, abs=1e-12), k
     for k, g in eager["grads"].items():
         assert torch.allclose(traced["grads"][k], g, rtol=1e-7, atol=1e-12), k
+
+
+def test_inductor_compiled_jpeg_terms_equal_eager() -> None:
+    """The same with inductor itself (CPU code generation): its tracing of replication padding's backward on
+    the colour transform's strided planes failed before jsgs.jpeg.sampling.pad_replicate made them
+    contiguous under compile (aot_eager does not reach that check). A size that needs edge padding."""
+    view = make_view(50, "4:2:0")
+    eager = train_step(new_hook(view), view)
+    compiled = train_step(new_hook(view, compile="inductor"), view)
+    for k, v in eager["terms"].items():
+        assert compiled["terms"][k] == pytest.approx(v, rel=1e-5, abs=1e-8), k
+    for k, g in eager["grads"].items():
+        torch.testing.assert_close(compiled["grads"][k], g, rtol=1e-4, atol=1e-7, msg=k)

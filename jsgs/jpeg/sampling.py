@@ -22,6 +22,11 @@ def pad_replicate(x: Tensor, height: int, width: int) -> Tensor:
     ph, pw = height - x.shape[-2], width - x.shape[-1]
     if ph == 0 and pw == 0:
         return x
+    if torch.compiler.is_compiling():
+        # torch.compile mis-traces replication_pad2d's backward on a strided (channels-last) input, such as
+        # a plane of the colour transform's output: the fake kernel's strides disagree (torch 2.11-2.13).
+        # Eager needs no copy; compiled, inductor fuses it.
+        x = x.contiguous()
     return F.pad(x, (0, pw, 0, ph), mode="replicate")
 
 
