@@ -756,3 +756,33 @@ def test_inductor_compiled_jpeg_terms_equal_eager() -> None:
         assert compiled["terms"][k] == pytest.approx(v, rel=1e-5, abs=1e-8), k
     for k, g in eager["grads"].items():
         torch.testing.assert_close(compiled["grads"][k], g, rtol=1e-4, atol=1e-7, msg=k)
+
+
+def test_compile_failure_falls_back_to_eager(monkeypatch: pytest.MonkeyPatch, capsys: Any) -> None:
+    """An internal compiler error (as torch 2.11's inductor raises on CUDA) runs the step eagerly instead
+    of stopping the training: the same values and gradients as eager, one warning line, once."""
+    from torch._dynamo.exc import TorchDynamoException
+
+    calls = []
+
+    def broken_compile(fn: Any, **kw: Any) -> Any:
+        def run(*a: Any, **k: Any) -> Any:
+            calls.append(fn.__name__)
+            raise TorchDynamoException("internal compiler error\nsecond line")
+
+        return run
+
+    monkeypatch.setattr(torch, "compile", broken_compile)
+    view = make_view(50, "4:2:0")
+    eager = train_step(new_hook(view), view)
+    hook = new_hook(view, compile="inductor")
+    first = train_step(hook, view)
+    second = train_step(hook, view)
+    for k, v in eager["terms"].items():
+        assert first["terms"][k] == v == second["terms"][k], k
+    for k, g in eager["grads"].items():
+        assert torch.equal(first["grads"][k], g), k
+    assert sorted(calls) == ["dct_supervision", "jpeg_observe", "photometric_loss"]  # tried once each
+    err = capsys.readouterr().err
+    assert err.count("warning: torch.compile (inductor) of jpeg_observe failed") == 1
+    assert "running it eagerly" in err and "second line" not in err

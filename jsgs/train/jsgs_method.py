@@ -40,6 +40,7 @@ loss).
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -116,9 +117,36 @@ def use_cuda_graph(opts: JsgsOptions, device: torch.device) -> bool:
     return bool(opts.cuda_graph)
 
 
+class CompiledOrEager:
+    """``torch.compile(fn)`` that falls back to ``fn`` for the rest of the run when compilation fails.
+
+    Compilation is an optimisation, not a result: an internal compiler error (torch 2.11's inductor fails on
+    JO at 504x378 on CUDA: "ModularIndexing ... is not comparable") must not stop a training. It fails before
+    anything runs, so the eager call computes the same step. One line on stderr says so, once."""
+
+    def __init__(self, fn: Any, backend: str) -> None:
+        self.fn = fn
+        # dynamic=False: a scene has few image sizes; static shapes let inductor fuse the 8x8 block math
+        self.compiled = torch.compile(fn, backend=backend, dynamic=False)
+        self.backend = backend
+        self.failure: str | None = None
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        if self.failure is None:
+            try:
+                return self.compiled(*args, **kwargs)
+            except torch._dynamo.exc.TorchDynamoException as e:
+                self.failure = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+                print(
+                    f"warning: torch.compile ({self.backend}) of {getattr(self.fn, '__name__', 'fn')} "
+                    f"failed ({self.failure[:200]}); running it eagerly for the rest of the run",
+                    file=sys.stderr,
+                )
+        return self.fn(*args, **kwargs)
+
+
 def _maybe_compile(fn: Any, backend: str) -> Any:
-    # dynamic=False: a scene has few image sizes, and static shapes let inductor fuse the 8x8 block math.
-    return fn if backend == "off" else torch.compile(fn, backend=backend, dynamic=False)
+    return fn if backend == "off" else CompiledOrEager(fn, backend)
 
 
 def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:
