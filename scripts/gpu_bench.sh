@@ -10,7 +10,7 @@
 #
 # Two benches run side by side, each on its own GPUs: S0 (every scene carried so far, seed 0: the mixed
 # schedules, clean, fixed 30/50 and the ablation on llff_flower) and S1 (seed 1: mixed schedules and clean).
-# Knobs (environment): OVERHEAD_ITERS (1000), GPU_DIR (.gpu), WHL (.whl), S0_GPUS / S1_GPUS (comma lists; empty: that bench does not run), JOBS_PER_GPU (4),
+# Knobs (environment): OVERHEAD_ITERS (1000) and OVERHEAD_COMPILE (off,inductor) of PRE=overhead, GPU_DIR (.gpu), WHL (.whl), S0_GPUS / S1_GPUS (comma lists; empty: that bench does not run), JOBS_PER_GPU (4),
 # END (seconds after the start by which the benches stop, 520), COMPILE (auto | off | inductor: auto trains
 # 300 JSGS steps with and without torch.compile first and takes the faster that works), PRE (stages on the
 # PRE_GPU, by default the first of S1_GPUS, before S1 starts there: "tests overhead"), SWEEP=1 (also a
