@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
@@ -69,6 +70,33 @@ def test_the_hooks_graphed_branch_gives_the_eager_terms_and_gradients() -> None:
         assert graphed["stats"][k] == pytest.approx(v, rel=1e-12), k
     for k, g in eager["grads"].items():
         torch.testing.assert_close(graphed["grads"][k], g, rtol=1e-10, atol=1e-14)
+
+
+def test_a_failed_graph_recording_falls_back_to_eager(monkeypatch: pytest.MonkeyPatch, capsys: Any) -> None:
+    """If recording fails (an op that cannot be captured), the step and the rest of the run use the eager
+    chain: the same values and gradients, one warning line, and no second attempt."""
+    view = make_view(30, "4:2:0")
+    eager = train_step(new_hook(view), view)
+    tries = []
+
+    def refuse(fn: Any, sample: Any, **kw: Any) -> Any:
+        tries.append(1)
+        raise RuntimeError("operation not permitted when stream is capturing\nmore detail")
+
+    # only the recording is faked (as if on CUDA): everything else runs on the CPU
+    monkeypatch.setattr(torch.cuda, "make_graphed_callables", refuse)
+    monkeypatch.setattr(GraphedImageTerms, "_check_device", staticmethod(lambda x: None))
+    hook = new_hook(view)
+    hook._graphed = GraphedImageTerms(**SETTINGS)
+    first, second = train_step(hook, view), train_step(hook, view)
+    for k, v in eager["terms"].items():
+        assert first["terms"][k] == v == second["terms"][k], k
+    for k, g in eager["grads"].items():
+        assert torch.equal(first["grads"][k], g), k
+    assert tries == [1] and hook._graphed is None
+    err = capsys.readouterr().err
+    assert err.count("warning: recording JO/L_obs/DS as a CUDA graph failed") == 1
+    assert "not permitted" in err and "more detail" not in err
 
 
 def test_cuda_graph_is_refused_off_cuda_and_with_compile(tmp_path: Path) -> None:

@@ -11,7 +11,8 @@ The chain itself is :func:`jpeg_terms` (the eager hook runs it too); what is rec
 tables (inputs, so every view replays the same graph with its own), with the JO mode, sampling, weights'
 switches and epsilons fixed per graph. One graph per (image shape, dtype, sampling); the scenes we train have
 one image size. Graphs need static shapes and no host synchronisation, which the JPEG code guarantees (see
-``jsgs.jpeg.observe``); they are CUDA-only.
+``jsgs.jpeg.observe``); they are CUDA-only. Should a recording fail all the same
+(:class:`GraphCaptureFailed`), the hook says so in one line and runs the eager chain for the rest of the run.
 """
 
 from __future__ import annotations
@@ -84,6 +85,10 @@ def image_terms(
     return l_obs, low, mid, sup.pixel_score, obs.detach()
 
 
+class GraphCaptureFailed(RuntimeError):
+    """Recording a graph failed (the message says why); the caller runs the eager chain instead."""
+
+
 class GraphedImageTerms:
     """:func:`image_terms` through ``torch.cuda.make_graphed_callables``, one graph per (shape, dtype,
     sampling), recorded on first use (three eager warm-up passes, then the capture)."""
@@ -92,14 +97,18 @@ class GraphedImageTerms:
         self.settings = settings
         self._graphs: dict[tuple[Any, ...], Any] = {}
 
+    @staticmethod
+    def _check_device(x: Tensor) -> None:
+        if x.device.type != "cuda":
+            raise ValueError("CUDA graphs need CUDA tensors")
+
     def __call__(
         self, x: Tensor, y: Tensor, luma: Tensor, chroma: Tensor, sampling: str
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         key = (tuple(x.shape), x.dtype, sampling)
         fn = self._graphs.get(key)
         if fn is None:
-            if x.device.type != "cuda":
-                raise ValueError("CUDA graphs need CUDA tensors")
+            self._check_device(x)
             # the graph's own input buffers: replays copy each call's tensors into them
             sample = (
                 x.detach().clone().requires_grad_(x.requires_grad),
@@ -107,9 +116,13 @@ class GraphedImageTerms:
                 luma.clone(),
                 chroma.clone(),
             )
-            fn = torch.cuda.make_graphed_callables(
-                partial(image_terms, sampling=sampling, **self.settings), sample, allow_unused_input=True
-            )
+            try:
+                fn = torch.cuda.make_graphed_callables(
+                    partial(image_terms, sampling=sampling, **self.settings), sample, allow_unused_input=True
+                )
+            except RuntimeError as e:  # e.g. an op that synchronises with the host, refused while capturing
+                first = str(e).splitlines()[0] if str(e) else type(e).__name__
+                raise GraphCaptureFailed(f"{type(e).__name__}: {first}") from e
             self._graphs[key] = fn
         l_obs, low, mid, r, obs = fn(x, y, luma, chroma)
         # the outputs live in the graph's static memory, overwritten by the next replay; the scalars are

@@ -49,7 +49,7 @@ from torch import Tensor
 
 from jsgs.errors import JsgsError
 from jsgs.train.controller import EPS_PROJ, TAU_S, controller_matrix, fro_loss, fro_loss_and_grads
-from jsgs.train.graphed import GraphedImageTerms, jpeg_terms
+from jsgs.train.graphed import GraphCaptureFailed, GraphedImageTerms, jpeg_terms
 from jsgs.train.hooks import HookOutput, LossHook, StepContext, register_method
 from jsgs.train.loop import Profiler
 
@@ -335,9 +335,21 @@ class JsgsHook(LossHook):
         x = ctx.render.permute(0, 3, 1, 2)
         y = ctx.target.permute(0, 3, 1, 2)
         r_map = None
+        graphed = None
         if self._graphed is not None:
-            with self.profiler.phase("jo"):  # JO, L_obs and DS: one graph replay (the "ds" phase is in it)
-                terms["obs"], low, mid, r_map, obs = self._graphed(x, y, tab.luma, tab.chroma, tab.sampling)
+            try:
+                with self.profiler.phase("jo"):  # JO, L_obs and DS: one graph replay ("ds" is in it)
+                    graphed = self._graphed(x, y, tab.luma, tab.chroma, tab.sampling)
+            except GraphCaptureFailed as e:
+                # a speed-up, not a result: the run goes on with the eager chain, which computes the same
+                self._graphed = None
+                print(
+                    f"warning: recording JO/L_obs/DS as a CUDA graph failed ({str(e)[:200]}); "
+                    "running them eagerly for the rest of the run",
+                    file=sys.stderr,
+                )
+        if graphed is not None:
+            terms["obs"], low, mid, r_map, obs = graphed
             if o.ds:
                 terms["low"], terms["mid"] = low, mid
             if self.keep_last:
