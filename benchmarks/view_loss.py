@@ -31,17 +31,12 @@ TERMS = ("photometric", "obs", "low", "mid", "fro")
 
 
 def view_qualities(manifest: str | Path) -> dict[str, int | None]:
-    """Training view name -> JPEG quality (None: lossless or unknown)."""
-    try:
-        doc = json.loads(Path(manifest).read_text())
-    except (OSError, ValueError) as e:
-        raise JsgsError(f"{manifest}: cannot read the manifest ({e})") from None
-    out: dict[str, int | None] = {}
-    for v in doc.get("views", []):
-        if v.get("split") == "train":
-            jpeg = v.get("jpeg") or {}
-            out[v["name"]] = jpeg.get("quality")
-    return out
+    """Training view name -> JPEG quality (None: a lossless view). The manifest is read and validated by
+    :func:`jsgs.manifest.load_manifest` (its images need not be here)."""
+    from jsgs.manifest import load_manifest
+
+    m = load_manifest(manifest, check_files=False)
+    return {v.name: None if v.jpeg is None else v.jpeg.quality for v in m.views if v.split == "train"}
 
 
 def interval_shares(train: dict[str, Any], quality: dict[str, int | None], low: int) -> dict[str, Any] | None:

@@ -56,14 +56,22 @@ def test_missing_log_and_unknown_views() -> None:
         vl.interval_shares(_train(), {"a": 10}, 30)
 
 
-def test_cli(tmp_path: Path, capsys: Any) -> None:
+def test_cli(compressed_scene: Path, tmp_path: Path, capsys: Any) -> None:
+    # a valid manifest (the shared compressed scene's) with four training views named and graded as QUALITY
+    doc = json.loads((compressed_scene / "manifest.json").read_text())
+    jpeg_view = next(v for v in doc["views"] if v["split"] == "train" and v["jpeg"] is not None)
+    test_view = next(v for v in doc["views"] if v["split"] == "test")
+    views = []
+    for n, q in QUALITY.items():
+        v = json.loads(json.dumps(jpeg_view))
+        v["name"] = n
+        if q is None:
+            v["jpeg"] = None
+        else:
+            v["jpeg"]["quality"] = q
+        views.append(v)
     manifest = tmp_path / "manifest.json"
-    views = [
-        {"name": n, "split": "train", "jpeg": None if q is None else {"quality": q}}
-        for n, q in QUALITY.items()
-    ]
-    views.append({"name": "t", "split": "test", "jpeg": None})
-    manifest.write_text(json.dumps({"views": views}))
+    manifest.write_text(json.dumps({**doc, "views": [*views, test_view]}))
     run = tmp_path / "run"
     run.mkdir()
     old = {"steps": 1, "loss": 0.1, "terms": {}, "stats": {}}  # written before the per-view log existed
