@@ -117,14 +117,14 @@ class Profiler:
 class LogAccumulator:
     """Sums of each logged value since the last evaluation (floats, so the averages are exact to resume).
 
-    ``per_view`` holds the same sums for each training view (by name) for the loss and the terms, so a run
+    ``per_view`` holds one accumulator per training view (by name) for the loss and the terms, so a run
     shows which views its loss comes from (issue 6: do the worst JPEGs dominate training?)."""
 
     steps: int = 0
     loss: float = 0.0
     terms: dict[str, float] = field(default_factory=dict)
     stats: dict[str, float] = field(default_factory=dict)
-    per_view: dict[str, dict[str, Any]] = field(default_factory=dict)
+    per_view: dict[str, LogAccumulator] = field(default_factory=dict)
 
     def add(
         self, loss: float, terms: dict[str, float], stats: dict[str, float], view: str | None = None
@@ -136,27 +136,17 @@ class LogAccumulator:
         for k, v in stats.items():
             self.stats[k] = self.stats.get(k, 0.0) + v
         if view is not None:
-            pv = self.per_view.setdefault(view, {"steps": 0, "loss": 0.0, "terms": {}})
-            pv["steps"] += 1
-            pv["loss"] += loss
-            for k, v in terms.items():
-                pv["terms"][k] = pv["terms"].get(k, 0.0) + v
+            self.per_view.setdefault(view, LogAccumulator()).add(loss, terms, {})
 
     def means(self) -> dict[str, Any]:
         n = max(self.steps, 1)
+        views = {name: acc.means() for name, acc in sorted(self.per_view.items())}
         return {
             "steps": self.steps,
             "loss": self.loss / n if self.steps else None,
             "terms": {k: v / n for k, v in self.terms.items()},
             "stats": {k: v / n for k, v in self.stats.items()},
-            "per_view": {
-                name: {
-                    "steps": pv["steps"],
-                    "loss": pv["loss"] / pv["steps"],
-                    "terms": {k: v / pv["steps"] for k, v in pv["terms"].items()},
-                }
-                for name, pv in sorted(self.per_view.items())
-            },
+            "per_view": {name: {k: m[k] for k in ("steps", "loss", "terms")} for name, m in views.items()},
         }
 
     def state(self) -> dict[str, Any]:
@@ -165,16 +155,13 @@ class LogAccumulator:
             "loss": self.loss,
             "terms": dict(self.terms),
             "stats": dict(self.stats),
-            "per_view": {k: {**v, "terms": dict(v["terms"])} for k, v in self.per_view.items()},
+            "per_view": {k: v.state() for k, v in self.per_view.items()},
         }
 
     @classmethod
     def from_state(cls, s: dict[str, Any]) -> LogAccumulator:
         # checkpoints written before per-view sums existed resume with none for that interval
-        per_view = {
-            k: {"steps": int(v["steps"]), "loss": float(v["loss"]), "terms": dict(v["terms"])}
-            for k, v in s.get("per_view", {}).items()
-        }
+        per_view = {k: cls.from_state(v) for k, v in s.get("per_view", {}).items()}
         return cls(int(s["steps"]), float(s["loss"]), dict(s["terms"]), dict(s["stats"]), per_view)
 
 
