@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from jsgs.errors import JsgsError
+from jsgs.errors import JsgsError, one_line
 from jsgs.precision import ieee_fp32
 
 ENV_VAR = "JSGS_LPIPS_WEIGHTS"
@@ -151,7 +151,7 @@ def _torch_load(path: Path, what: str) -> dict[str, Tensor]:
         # weights_only: a weights file must not be able to run code when loaded
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types (pickle, zip, runtime) for a bad file
-        raise JsgsError(f"{path}: cannot read {what} ({type(e).__name__}: {str(e).splitlines()[0]})") from e
+        raise JsgsError(f"{path}: cannot read {what} ({one_line(e)})") from e
     if not isinstance(obj, dict) or not all(isinstance(k, str) for k in obj):
         raise JsgsError(f"{path}: {what} must be a dict of tensors (a state dict), got {type(obj).__name__}")
     return obj

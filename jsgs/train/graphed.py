@@ -25,6 +25,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from jsgs.errors import one_line
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import DctSupervision, dct_supervision
@@ -121,8 +122,7 @@ class GraphedImageTerms:
                     partial(image_terms, sampling=sampling, **self.settings), sample, allow_unused_input=True
                 )
             except RuntimeError as e:  # e.g. an op that synchronises with the host, refused while capturing
-                first = str(e).splitlines()[0] if str(e) else type(e).__name__
-                raise GraphCaptureFailed(f"{type(e).__name__}: {first}") from e
+                raise GraphCaptureFailed(one_line(e)) from e
             self._graphs[key] = fn
         l_obs, low, mid, r, obs = fn(x, y, luma, chroma)
         # the outputs live in the graph's static memory, overwritten by the next replay; the scalars are

@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import torch
 from torch import Tensor
 
-from jsgs.errors import JsgsError
+from jsgs.errors import JsgsError, one_line
 from jsgs.train.controller import EPS_PROJ, TAU_S, controller_matrix, fro_loss, fro_loss_and_grads
 from jsgs.train.graphed import GraphCaptureFailed, GraphedImageTerms, jpeg_terms
 from jsgs.train.hooks import HookOutput, LossHook, StepContext, register_method
@@ -112,7 +112,7 @@ def use_cuda_graph(opts: JsgsOptions, device: torch.device) -> bool:
     if opts.cuda_graph and device.type != "cuda":
         raise JsgsError(
             "config: method jsgs: method_options.cuda_graph needs a CUDA device "
-            f"(training on {device.type}); set it to false or \"auto\""
+            f'(training on {device.type}); set it to false or "auto"'
         )
     return bool(opts.cuda_graph)
 
@@ -136,13 +136,18 @@ class CompiledOrEager:
             try:
                 return self.compiled(*args, **kwargs)
             except torch._dynamo.exc.TorchDynamoException as e:
-                self.failure = f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
-                print(
-                    f"warning: torch.compile ({self.backend}) of {getattr(self.fn, '__name__', 'fn')} "
-                    f"failed ({self.failure[:200]}); running it eagerly for the rest of the run",
-                    file=sys.stderr,
-                )
+                self.failure = one_line(e)
+                name = getattr(self.fn, "__name__", "fn")
+                warn_eager_fallback(f"torch.compile ({self.backend}) of {name}", self.failure, "it")
         return self.fn(*args, **kwargs)
+
+
+def warn_eager_fallback(what: str, reason: str, pronoun: str) -> None:
+    """The one stderr line of a speed-up that failed and gave way to the eager code (same results)."""
+    print(
+        f"warning: {what} failed ({reason[:200]}); running {pronoun} eagerly for the rest of the run",
+        file=sys.stderr,
+    )
 
 
 def _maybe_compile(fn: Any, backend: str) -> Any:
@@ -168,7 +173,7 @@ def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:
         if key == "cuda_graph":
             if not (isinstance(value, bool) or value == "auto"):
                 raise JsgsError(
-                    f"{where}: method_options.cuda_graph must be true, false or \"auto\" (got {value!r})"
+                    f'{where}: method_options.cuda_graph must be true, false or "auto" (got {value!r})'
                 )
         elif isinstance(default, bool):
             if not isinstance(value, bool):
@@ -343,11 +348,7 @@ class JsgsHook(LossHook):
             except GraphCaptureFailed as e:
                 # a speed-up, not a result: the run goes on with the eager chain, which computes the same
                 self._graphed = None
-                print(
-                    f"warning: recording JO/L_obs/DS as a CUDA graph failed ({str(e)[:200]}); "
-                    "running them eagerly for the rest of the run",
-                    file=sys.stderr,
-                )
+                warn_eager_fallback("recording JO/L_obs/DS as a CUDA graph", str(e), "them")
         if graphed is not None:
             terms["obs"], low, mid, r_map, obs = graphed
             if o.ds:
