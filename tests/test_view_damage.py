@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -11,21 +10,13 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import shared_scene
+from conftest import load_benchmark, shared_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "view_damage.py"
 
 
-def _load() -> Any:
-    spec = importlib.util.spec_from_file_location("view_damage", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-vd = _load()
+vd = load_benchmark("view_damage")
 
 
 @pytest.fixture(scope="module")

@@ -3,27 +3,16 @@ log of metrics.json."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import load_benchmark
 
 from jsgs.errors import JsgsError
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "view_loss.py"
-
-
-def _load() -> Any:
-    spec = importlib.util.spec_from_file_location("view_loss", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-vl = _load()
+vl = load_benchmark("view_loss")
 
 QUALITY = {"a": 10, "b": 30, "c": 80, "d": None}  # d: a lossless training view
 
