@@ -52,14 +52,13 @@ def jsgs_step(
 ) -> Phases:
     """One view's JSGS work on synthetic inputs, as named phases to run in order: "JO" (``jpeg_observe``),
     "L_obs" (its photometric loss), "DS" (``dct_supervision``), "backward" (through the three, weighted as in
-    training) and "GC (in backward)" (r̄ from pooled sums, ``controller_matrix``, ``fro_loss_and_grads``
-    for ``n_gaussians``). ``size`` is (W, H). What ``benchmarks/bench_kernel_count.py`` and
+    training) and "GC (in backward)" (``fro_from_probe_grad``: r̄ from the probe's gradient, ``controller_matrix``,
+    L_fro and its gradient, for ``n_gaussians``; what the hook runs eagerly, or records as one CUDA graph). ``size`` is (W, H). What ``benchmarks/bench_kernel_count.py`` and
     ``tests/test_opcount.py`` count."""
     from jsgs.jpeg.losses import photometric_loss
     from jsgs.jpeg.observe import jpeg_observe
     from jsgs.jpeg.supervision import dct_supervision
-    from jsgs.render.pool import PooledSums
-    from jsgs.train.controller import controller_matrix, fro_loss_and_grads
+    from jsgs.train.controller import fro_from_probe_grad
 
     w, h = size
     g = torch.Generator().manual_seed(0)
@@ -86,14 +85,12 @@ def jsgs_step(
     quats = torch.randn(n_gaussians, 4, generator=g).to(device)
     logits = torch.randn(n_gaussians, generator=g).to(device)
     log_scales = (torch.randn(n_gaussians, 3, generator=g) - 4.0).to(device)
-    probe_grad = torch.rand(n_gaussians, 2, generator=g).to(device)
+    probe_grad = torch.rand(1, n_gaussians, 2, generator=g).to(device)
     viewmat = torch.eye(4, device=device)
     K = torch.tensor([[1.2 * w, 0.0, w / 2], [0.0, 1.2 * w, h / 2], [0.0, 0.0, 1.0]], device=device)
 
     def gc() -> None:
-        sums = PooledSums(probe_grad[:, 0] / 0.05, probe_grad[:, 1] / 0.05, probe_grad[:, 1] / 0.05)
-        A = controller_matrix(means, quats, viewmat, K, w, h, 0.01)
-        fro_loss_and_grads(sums.rbar(1e-6), sums.contributors, logits, log_scales, A, 1.0)
+        fro_from_probe_grad(probe_grad, logits, log_scales, means, quats, viewmat, K, w, h, weight=0.05)
 
     return [("JO", jo), ("L_obs", l_obs), ("DS", ds), ("backward", backward), ("GC (in backward)", gc)]
 

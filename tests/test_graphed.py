@@ -9,13 +9,14 @@ from typing import Any
 
 import pytest
 import torch
-from test_jsgs_method import make_view, new_hook, train_step
+from test_jsgs_method import make_splats, make_view, new_hook, train_step
 
 from jsgs.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision
-from jsgs.train.graphed import GraphedImageTerms, image_terms
+from jsgs.train.controller import fro_from_probe_grad, packed_fro_stats
+from jsgs.train.graphed import GraphedController, GraphedImageTerms, image_terms
 from jsgs.train.jsgs_method import parse_options, use_cuda_graph
 
 SETTINGS = dict(
@@ -136,6 +137,125 @@ def test_cuda_graph_auto_resolves_by_device_and_compile() -> None:
 
 
 @pytest.mark.gpu
+class _ControllerInBuffers:
+    """GraphedController's contract on the CPU: the chain it records (``_run``), its outputs written into
+    buffers it owns and overwrites on every call, as a graph's static outputs are."""
+
+    def __init__(self, **settings: Any) -> None:
+        self.inner = GraphedController(**settings)
+        self.buffers: list[torch.Tensor] = []
+        self.calls = 0
+
+    def __call__(self, probe_grad: torch.Tensor, *args: Any) -> list[torch.Tensor]:
+        logits, log_scales, means, quats, viewmat, K, w, h = args
+        outs = self.inner._run(probe_grad, viewmat, K, (logits, log_scales, means, quats), w, h)
+        if [b.shape for b in self.buffers] != [o.shape for o in outs]:
+            self.buffers = [torch.empty_like(o) for o in outs]
+        for b, o in zip(self.buffers, outs, strict=True):
+            b.copy_(o)
+        self.calls += 1
+        return self.buffers
+
+
+def _controller_settings(hook: Any) -> dict[str, float]:
+    o = hook.opts
+    return dict(weight=o.lambda_fro, near_plane=hook.near_plane, eps_proj=o.eps_proj, tau_s=o.tau_s)
+
+
+def test_the_hooks_graphed_controller_branch_gives_the_eager_terms_and_gradients() -> None:
+    """The deferred GC through the graph's contract (outputs in buffers that the next replay overwrites):
+    bit-for-bit the eager values and gradients, and nothing the step keeps aliases those buffers."""
+    view = make_view(30, "4:2:0")
+    eager = train_step(new_hook(view), view)
+    hook = new_hook(view)
+    hook.keep_last = False  # keep_last asks for the pooled sums, which only the eager chain hands back
+    fake = hook._gc_graphed = _ControllerInBuffers(**_controller_settings(hook))
+    splats = make_splats()
+    graphed = train_step(hook, view, splats)
+    assert fake.calls == 1
+    assert graphed["terms"] == eager["terms"] and graphed["stats"] == eager["stats"]
+    for k, g in eager["grads"].items():
+        assert torch.equal(graphed["grads"][k], g), k
+    kept = {k: p.grad.clone() for k, p in splats.items()}
+    for b in fake.buffers:
+        b.fill_(float("nan"))
+    for k, p in splats.items():
+        assert torch.equal(p.grad, kept[k]), k
+    assert graphed["terms"]["fro"] > 0 and graphed["stats"]["gc_visible"] > 0
+
+
+def test_a_failed_controller_recording_falls_back_to_eager(
+    monkeypatch: pytest.MonkeyPatch, capsys: Any
+) -> None:
+    """A refused recording of the GC graph: this step and the rest run the eager GC (same values and
+    gradients), with one warning line and no second attempt."""
+    view = make_view(30, "4:2:0")
+    eager = train_step(new_hook(view), view)
+    tries = []
+
+    def refuse() -> Any:
+        tries.append(1)
+        raise RuntimeError("CUDA error: operation not permitted when stream is capturing\nmore detail")
+
+    monkeypatch.setattr(torch.cuda, "graph_pool_handle", refuse)
+    monkeypatch.setattr(GraphedImageTerms, "_check_device", staticmethod(lambda x: None))
+    hook = new_hook(view)
+    hook.keep_last = False
+    hook._gc_graphed = GraphedController(**_controller_settings(hook))
+    first, second = train_step(hook, view), train_step(hook, view)
+    for res in (first, second):
+        assert res["terms"] == eager["terms"] and res["stats"] == eager["stats"]
+        for k, g in eager["grads"].items():
+            assert torch.equal(res["grads"][k], g), k
+    assert tries == [1] and hook._gc_graphed is None
+    err = capsys.readouterr().err
+    assert err.count("warning: recording the Gaussian Controller as a CUDA graph failed") == 1
+    assert "not permitted" in err and "more detail" not in err
+
+
+def _controller_inputs(n: int, seed: int, device: str) -> tuple[torch.Tensor, ...]:
+    """A probe gradient [1, N, 2] (some Gaussians not contributing), parameters and a camera."""
+    g = torch.Generator().manual_seed(seed)
+    nu = torch.rand(n, generator=g) * (torch.rand(n, generator=g) > 0.3)
+    probe = torch.stack([torch.rand(n, generator=g) * nu, nu], dim=-1)[None] * 0.05
+    logits = torch.randn(n, generator=g)
+    log_scales = torch.randn(n, 3, generator=g) * 0.5 - 4.0
+    means = torch.randn(n, 3, generator=g) + torch.tensor([0.0, 0.0, 4.0])
+    quats = torch.randn(n, 4, generator=g)
+    viewmat = torch.eye(4)
+    viewmat[:3, 3] = torch.randn(3, generator=g) * 0.1
+    K = torch.tensor([[300.0, 0.0, 80.0], [0.0, 300.0, 60.0], [0.0, 0.0, 1.0]])
+    return tuple(t.to(device) for t in (probe, logits, log_scales, means, quats, viewmat, K))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_gpu_controller_graph_equals_eager_across_views_and_densification() -> None:
+    """Replays for different probe gradients and cameras, a parameter replaced by a new tensor of the same
+    size, and N growing and shrinking: each result equal to the eager chain's; one recording per parameter
+    storage; memory flat across recordings."""
+    settings = dict(weight=0.05, near_plane=0.01, eps_proj=1e-6, tau_s=1.0)
+    ctl = GraphedController(**settings)
+    params = None
+    mem = []
+    for i, n in enumerate([5000, 5000, 5000, 7000, 7000, 3000, 5000, 7000, 5000]):
+        probe, logits, log_scales, means, quats, viewmat, K = _controller_inputs(n, i, "cuda")
+        if params is None or params[0].shape[0] != n or i == 2:
+            params = (logits, log_scales, means, quats)  # new storage (i == 2: same N, as after a reset)
+        else:  # the same tensors updated in place, as the optimizer does between densifications
+            for p, q in zip(params, (logits, log_scales, means, quats), strict=True):
+                p.copy_(q)
+        got = [t.clone() for t in ctl(probe, *params, viewmat, K, 160, 120)]
+        ref = fro_from_probe_grad(probe, *params, viewmat, K, 160, 120, **settings)
+        want = (ref.grad_logit, ref.grad_log_scale, packed_fro_stats(ref.terms))
+        for a, b in zip(got, want, strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-9)
+        assert want[2][1] > 0  # some Gaussians visible
+        torch.cuda.synchronize()
+        mem.append(torch.cuda.memory_allocated())
+    assert ctl.recordings == 7  # steps 0, 2 (new storage), 3, 5, 6, 7, 8 (N changed)
+    assert mem[-1] <= mem[1] + (1 << 20), mem
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 def test_gpu_graph_replays_equal_eager_for_every_view() -> None:
     """Three views in turn through one graph (each with its own render, target and tables), twice: values
@@ -159,3 +279,30 @@ def test_gpu_graph_replays_equal_eager_for_every_view() -> None:
     assert len(graphed._graphs) == 1  # one image size, one sampling: one graph
     for value, tensor in kept:
         assert tensor.item() == value
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_gpu_training_with_graphs_matches_eager(tmp_path: Path, capsys: Any) -> None:
+    """A short jsgs run on CUDA with densification every few steps (so the GC graph is recorded again and
+    again while N changes), graphs on and off: no fallback, and the same training within gsplat's own
+    run-to-run noise (its backward sums with atomics, so two runs are not bit-identical)."""
+    from _train_scene import make_scene
+
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.loop import train
+
+    manifest = make_scene(tmp_path / "scene", jpeg_train=True)
+    docs = {}
+    for graph in (True, False):
+        c = TrainConfig(method="jsgs", iterations=60, eval_at=[60], device="cuda")
+        c.method_options = {"cuda_graph": graph}
+        c.strategy.refine_start_iter, c.strategy.refine_every = 5, 10
+        c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
+        docs[graph] = train(manifest, tmp_path / f"graph_{graph}", c, progress=False)
+    assert "warning" not in capsys.readouterr().err
+    on, off = docs[True]["evals"][-1], docs[False]["evals"][-1]
+    assert on["train"]["terms"]["fro"] > 0 and on["train"]["stats"]["gc_visible"] > 0
+    for k, v in off["train"]["terms"].items():
+        assert on["train"]["terms"][k] == pytest.approx(v, rel=0.05), k
+    assert abs(on["psnr"] - off["psnr"]) < 0.5

@@ -64,13 +64,22 @@ class PooledSums:
         return self.nu > 0
 
 
-def _sums_from_probe_grad(grad: Tensor, info: dict) -> PooledSums:
+def sums_from_probe_grad(grad: Tensor, opacities: Tensor, weight: float = 1.0) -> PooledSums:
+    """Pooled sums from the probe's gradient ``grad`` [C, N, 2] = weight·(o·S_r, ν) (``probe_objective``
+    entered the loss with the factor ``weight``), ``opacities`` [N] the activated o the pass rendered with.
+
+    Contributors have o >= 1/255 (others are culled); ν == 0 ⇔ no contribution, and the sums are 0 there."""
     g = grad.detach()
+    if weight != 1.0:
+        g = g / weight
     nu = g[..., 1]
-    o = info["pool_opacities"].to(g.dtype)[None, :].expand_as(nu)
-    # Contributors have o >= 1/255 (others are culled); ν == 0 ⇔ no contribution: sums are 0 there.
-    o_safe = torch.where(nu > 0, o, torch.ones_like(o))
+    o = opacities.detach().to(g.dtype)[None, :].expand_as(nu)
+    o_safe = torch.where(nu > 0, o, 1.0)
     return PooledSums(s_r=g[..., 0] / o_safe, s_1=nu / o_safe, nu=nu)
+
+
+def _sums_from_probe_grad(grad: Tensor, info: dict) -> PooledSums:
+    return sums_from_probe_grad(grad, info["pool_opacities"])
 
 
 def _upstream(info: dict, r: Tensor) -> Tensor:

@@ -30,6 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from jsgs.render.pool import PooledSums, sums_from_probe_grad
 from jsgs.render.reference import quat_to_rotmat
 
 TAU_S = 1.0  # τ_s, pixels at the training resolution
@@ -173,3 +174,62 @@ def fro_loss_and_grads(
     g_logit = 2.0 * w * (1.0 - alpha)
     g_log_scale = (w / (-2.0 * tau_s * sbar))[:, None] * cs2
     return FroTerms(loss, sbar, per, _stats(mr, count, sbar, tau_s)), g_logit, g_log_scale
+
+
+class DeferredFro(NamedTuple):
+    """What :func:`fro_from_probe_grad` computes for one view: ``terms`` (L_fro and its statistics),
+    ``grad_logit`` [N] and ``grad_log_scale`` [N, 3] (``weight``·∂L_fro/∂θ, ready to add to the parameters'
+    gradients), and for inspection the pooled ``sums`` ([1, N] each), ``rbar`` [N], ``visible`` [N] and
+    ``A`` [N, 2, 3]."""
+
+    terms: FroTerms
+    grad_logit: Tensor
+    grad_log_scale: Tensor
+    sums: PooledSums
+    rbar: Tensor
+    visible: Tensor
+    A: Tensor
+
+
+@torch.no_grad()
+def fro_from_probe_grad(
+    probe_grad: Tensor,
+    opacity_logits: Tensor,
+    log_scales: Tensor,
+    means: Tensor,
+    quats: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    *,
+    weight: float,
+    near_plane: float = 0.01,
+    eps_proj: float = EPS_PROJ,
+    tau_s: float = TAU_S,
+) -> DeferredFro:
+    """The whole deferred Gaussian Controller of one view, from the probe's gradient to the weighted
+    gradients of L_fro: the one home of that chain, for the eager hook and for its CUDA graph
+    (``jsgs.train.graphed.GraphedController``). A pure function of tensors, without host synchronisation.
+
+    Args:
+        probe_grad: [1, N, 2] the probe's gradient after a backward in which ``probe_objective`` entered the
+            loss with the factor ``weight`` (= λ_fro): weight·(o·S_r, ν).
+        opacity_logits: [N], log_scales: [N, 3], means: [N, 3], quats: [N, 4] the stored parameters (the
+            rendered opacities are ``sigmoid(opacity_logits)``, as the trainer activates them).
+        viewmat: [4, 4], K: [3, 3], width, height: the view's camera (see :func:`controller_matrix`).
+        weight: λ_fro (> 0); near_plane, eps_proj, tau_s: as in the paper's equations.
+    """
+    alpha = torch.sigmoid(opacity_logits.detach())
+    sums = sums_from_probe_grad(probe_grad, alpha, weight)
+    rbar = sums.rbar(eps_proj)[0]
+    vis = sums.contributors[0]
+    A = controller_matrix(means, quats, viewmat, K, width, height, near_plane)
+    ft, g_logit, g_ls = fro_loss_and_grads(rbar, vis, opacity_logits, log_scales, A, tau_s)
+    return DeferredFro(ft, weight * g_logit, weight * g_ls, sums, rbar, vis, A)
+
+
+def packed_fro_stats(terms: FroTerms) -> Tensor:
+    """[4]: L_fro, |V_i|, mean r̄ over V_i, #damped (one tensor, so a caller copies them in one kernel)."""
+    s = terms.stats
+    return torch.stack([terms.loss, s.visible, s.rbar_mean, s.damped])

@@ -128,3 +128,96 @@ class GraphedImageTerms:
         # the outputs live in the graph's static memory, overwritten by the next replay; the scalars are
         # kept by the trainer (logging), so they are copied, and so is r(p), which the GC's probe reads
         return l_obs.clone(), low.clone(), mid.clone(), r.clone(), obs
+
+
+class GraphedController:
+    """The deferred Gaussian Controller (:func:`jsgs.train.controller.fro_from_probe_grad`) replayed as a CUDA
+    graph: one launch instead of about sixty small kernels inside every backward.
+
+    Unlike the image terms, its size changes during training: N changes at densification, when the
+    parameters are also replaced by new tensors. The graph reads the parameters where they lie, so it is
+    recorded for one (N, dtype, image size, parameter storage) and again whenever any of them changes
+    (every ``refine_every`` steps while densifying, about 150 recordings in a 30k-step run, then never). The
+    probe's gradient and the camera are copied into the graph's own buffers before each replay. The outputs
+    live in the graph's memory, valid until the next call: ``(grad_logit [N], grad_log_scale [N, 3],
+    stats [4])`` with ``stats`` = (L_fro, |V_i|, mean r̄, #damped), see
+    :func:`jsgs.train.controller.packed_fro_stats`.
+
+    Recording happens inside the trainer's backward (from the probe's post-accumulate-grad hook), on a side
+    stream, with no host synchronisation beyond what recording itself needs.
+    """
+
+    def __init__(self, *, weight: float, near_plane: float, eps_proj: float, tau_s: float) -> None:
+        self.settings = dict(weight=weight, near_plane=near_plane, eps_proj=eps_proj, tau_s=tau_s)
+        self._key: tuple[Any, ...] | None = None
+        self._graph: Any = None
+        self._inputs: tuple[Tensor, Tensor, Tensor] | None = None
+        self._outputs: tuple[Tensor, Tensor, Tensor] | None = None
+        self._pool: Any = None
+        self.recordings = 0
+
+    def _run(
+        self, probe_grad: Tensor, viewmat: Tensor, K: Tensor, params: tuple[Tensor, ...], w: int, h: int
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        from jsgs.train.controller import fro_from_probe_grad, packed_fro_stats
+
+        logits, log_scales, means, quats = params
+        out = fro_from_probe_grad(
+            probe_grad, logits, log_scales, means, quats, viewmat, K, w, h, **self.settings
+        )
+        return out.grad_logit, out.grad_log_scale, packed_fro_stats(out.terms)
+
+    def __call__(
+        self,
+        probe_grad: Tensor,
+        opacity_logits: Tensor,
+        log_scales: Tensor,
+        means: Tensor,
+        quats: Tensor,
+        viewmat: Tensor,
+        K: Tensor,
+        width: int,
+        height: int,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        params = tuple(p.detach() for p in (opacity_logits, log_scales, means, quats))
+        key = (
+            tuple(probe_grad.shape), probe_grad.dtype, width, height,
+            *((p.data_ptr(), tuple(p.shape), p.dtype) for p in params),
+        )  # fmt: skip
+        if key != self._key:
+            self._record(key, probe_grad, viewmat, K, params, width, height)
+        else:
+            assert self._inputs is not None
+            for buf, src in zip(self._inputs, (probe_grad, viewmat, K), strict=True):
+                buf.copy_(src)
+            self._graph.replay()
+        assert self._outputs is not None
+        return self._outputs
+
+    def _record(self, key: tuple[Any, ...], probe_grad: Tensor, viewmat: Tensor, K: Tensor,
+                params: tuple[Tensor, ...], w: int, h: int) -> None:  # fmt: skip
+        GraphedImageTerms._check_device(probe_grad)
+        # the previous graph's memory goes back to the shared pool before the new one records into it
+        self._key = self._graph = self._inputs = self._outputs = None
+        inputs = (probe_grad.detach().clone(), viewmat.detach().clone(), K.detach().clone())
+        try:
+            if self._pool is None:
+                self._pool = torch.cuda.graph_pool_handle()
+            here = torch.cuda.current_stream(probe_grad.device)
+            side = torch.cuda.Stream(probe_grad.device)
+            side.wait_stream(here)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.stream(side):
+                self._run(*inputs, params, w, h)  # warm-up: lazy library state is set up outside the capture
+                graph.capture_begin(pool=self._pool, capture_error_mode="thread_local")
+                try:
+                    outputs = self._run(*inputs, params, w, h)
+                finally:
+                    graph.capture_end()
+            here.wait_stream(side)
+        except RuntimeError as e:  # e.g. an op that synchronises with the host, refused while capturing
+            raise GraphCaptureFailed(one_line(e)) from e
+        self._key, self._graph, self._inputs, self._outputs = key, graph, inputs, outputs
+        self.recordings += 1
+        # replay once so that this call's outputs come from the graph exactly as later calls' do
+        graph.replay()

@@ -48,8 +48,15 @@ import torch
 from torch import Tensor
 
 from jsgs.errors import JsgsError, one_line
-from jsgs.train.controller import EPS_PROJ, TAU_S, controller_matrix, fro_loss, fro_loss_and_grads
-from jsgs.train.graphed import GraphCaptureFailed, GraphedImageTerms, jpeg_terms
+from jsgs.train.controller import (
+    EPS_PROJ,
+    TAU_S,
+    controller_matrix,
+    fro_from_probe_grad,
+    fro_loss,
+    packed_fro_stats,
+)
+from jsgs.train.graphed import GraphCaptureFailed, GraphedController, GraphedImageTerms, jpeg_terms
 from jsgs.train.hooks import HookOutput, LossHook, StepContext, register_method
 from jsgs.train.loop import Profiler
 
@@ -286,9 +293,15 @@ class JsgsHook(LossHook):
             "supervise": _maybe_compile(dct_supervision, options.compile),
         }
         self._graphed = None
+        self._gc_graphed: GraphedController | None = None
         self.cuda_graph = use_cuda_graph(options, self.device)
         if self.cuda_graph:
             self._graphed = GraphedImageTerms(**self._jpeg_settings)
+            if self.gc_route == "deferred":
+                self._gc_graphed = GraphedController(
+                    weight=options.lambda_fro, near_plane=near_plane, eps_proj=options.eps_proj,
+                    tau_s=options.tau_s,
+                )  # fmt: skip
 
     def describe(self) -> dict[str, Any]:
         return {"cuda_graph": self.cuda_graph, "gc_route": self.gc_route, "jpeg_mode": self.opts.jpeg_mode}
@@ -411,60 +424,74 @@ class JsgsHook(LossHook):
         return ft.loss, {"gc_visible": s.visible, "gc_rbar": s.rbar_mean, "gc_damped": s.damped}
 
     def _gc_deferred(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-        from jsgs.render.pool import PooledSums, pool_from_grad, probe_objective
+        from jsgs.render.pool import probe_objective
 
-        # The hook lives on the probe tensor, which ``info`` holds (and ``term``'s graph, through the probe's
-        # AccumulateGrad): a closure over either would make a reference cycle that keeps every step's
-        # rasterisation outputs (GBs on a GPU) alive until Python's cycle collector happens to run. The
-        # closure reaches them through ``pending`` instead, emptied by the hook itself (and by the next step,
-        # if a backward never came).
+        # The hook lives on the probe tensor, which ``term``'s graph holds (through the probe's
+        # AccumulateGrad): a closure over ``term`` (or ``info``) would make a reference cycle that keeps
+        # every step's rasterisation outputs (GBs on a GPU) alive until Python's cycle collector happens to
+        # run. The closure reaches ``term`` through ``pending`` instead, emptied by the hook itself (and by
+        # the next step, if a backward never came).
         pending = self._pending
-        pending["info"] = ctx.info
         splats = ctx.splats
-        lam = self.opts.lambda_fro
         # Σ_p r·probe₀ + Σ_p probe₁, exactly 0; weighted by λ_fro in the loss, so the probe's gradient is
-        # λ_fro·(o·S_r, ν), divided out below
+        # λ_fro·(o·S_r, ν), divided out in fro_from_probe_grad
         term = probe_objective(ctx.info, r_map)
-        stat_t = {k: torch.zeros((), dtype=term.dtype, device=term.device) for k in STAT_NAMES}
+        # one tensor for the three statistics: filled by one copy in the backward
+        stat_vec = torch.zeros(len(STAT_NAMES), dtype=term.dtype, device=term.device)
+        stat_t = dict(zip(STAT_NAMES, stat_vec.unbind(), strict=True))
         pending["term"] = term
         viewmat, K, w, h = self._camera(ctx)
-        opts, near = self.opts, self.near_plane
-        last = self.last if self.keep_last else None
 
         def on_probe_grad(probe: Tensor) -> None:
-            info, term = pending.pop("info", None), pending.pop("term", None)
-            if info is None or term is None:
+            term = pending.pop("term", None)
+            if term is None:
                 return
             with self.profiler.phase("gc_backward"), torch.no_grad():
-                g = pool_from_grad(info)
-                del info
-                sums = PooledSums(g.s_r / lam, g.s_1 / lam, g.nu / lam)
+                grad = probe.grad
                 probe.grad = None  # served its purpose; keeps memory flat
-                rbar = sums.rbar(opts.eps_proj)[0]
-                vis = sums.contributors[0]
-                A = controller_matrix(splats["means"], splats["quats"], viewmat, K, w, h, near)
-                ft, g_logit, g_ls = fro_loss_and_grads(
-                    rbar, vis, splats["opacities"], splats["scales"], A, opts.tau_s
-                )
-                _add_grad(splats["opacities"], lam * g_logit)
-                _add_grad(splats["scales"], lam * g_ls)
-                # the term's value is known only now; the trainer reads it after the backward
-                term.copy_(ft.loss.to(term.dtype))
-                s = ft.stats
-                for k, v in zip(STAT_NAMES, (s.visible, s.rbar_mean, s.damped), strict=True):
-                    stat_t[k].copy_(v)
-                if last is not None:
-                    last.update(sums=sums, rbar=rbar, visible=vis, fro=ft, A=A)
+                params = (splats["opacities"], splats["scales"], splats["means"], splats["quats"])
+                packed = self._controller(grad, params, viewmat, K, w, h)
+                term.copy_(packed[0])
+                stat_vec.copy_(packed[1:])
 
         ctx.info["pool_probe"].register_post_accumulate_grad_hook(on_probe_grad)
         return term, stat_t
 
+    def _controller(
+        self, probe_grad: Tensor, params: tuple[Tensor, ...], viewmat: Tensor, K: Tensor, w: int, h: int
+    ) -> Tensor:
+        """The deferred GC inside the backward: adds λ_fro ∂L_fro/∂θ to the opacity-logit and log-scale
+        gradients and returns the packed (L_fro, statistics) [4] (the graph's when graphed)."""
+        opts = self.opts
+        if self._gc_graphed is not None and not self.keep_last:
+            try:
+                g_logit, g_ls, packed = self._gc_graphed(probe_grad, *params, viewmat, K, w, h)
+            except GraphCaptureFailed as e:
+                self._gc_graphed = None
+                warn_eager_fallback("recording the Gaussian Controller as a CUDA graph", str(e), "it")
+            else:
+                _add_grad(params[0], g_logit)
+                _add_grad(params[1], g_ls)
+                return packed
+        out = fro_from_probe_grad(
+            probe_grad, *params, viewmat, K, w, h, weight=opts.lambda_fro, near_plane=self.near_plane,
+            eps_proj=opts.eps_proj, tau_s=opts.tau_s,
+        )  # fmt: skip
+        _add_grad(params[0], out.grad_logit)
+        _add_grad(params[1], out.grad_log_scale)
+        if self.keep_last:
+            self.last.update(sums=out.sums, rbar=out.rbar, visible=out.visible, fro=out.terms, A=out.A)
+        return packed_fro_stats(out.terms)
+
 
 def _add_grad(p: Tensor, g: Tensor) -> None:
     """Accumulate ``g`` into ``p.grad`` as autograd would (the parameter's own AccumulateGrad may run before
-    or after this; both orders sum)."""
+    or after this; both orders sum). ``g`` may be a graph's output buffer: it is never stored as is."""
     g = g.to(p.dtype)
-    p.grad = g.clone() if p.grad is None else p.grad + g
+    if p.grad is None:
+        p.grad = g.clone()
+    else:
+        p.grad.add_(g)
 
 
 def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> JsgsHook | None:
