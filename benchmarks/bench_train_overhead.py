@@ -126,7 +126,10 @@ def main() -> None:
         "--compile", default="off", help="JSGS variants: method_options.compile, e.g. off,inductor [off]"
     )
     ap.add_argument(
-        "--cuda-graph", default="off", help="JSGS variants: method_options.cuda_graph, e.g. off,on [off]"
+        "--cuda-graph",
+        default="off",
+        help="JSGS variants: method_options.cuda_graph: off, on, or jo (JO/L_obs/DS graphed, the GC eager: "
+        "cuda_graph_gc false), e.g. off,jo,on [off]",
     )
     ap.add_argument("--no-profile", action="store_true", help="skip the profiled runs (breakdown)")
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
@@ -147,12 +150,14 @@ def main() -> None:
         for pooling in args.gc_pooling.split(","):
             for comp in args.compile.split(","):
                 for graph in args.cuda_graph.split(","):
-                    if graph == "on" and (comp != "off" or not cuda):
+                    if graph != "off" and (comp != "off" or not cuda):
                         continue  # not combinable with compile (yet); CUDA graphs need CUDA
                     label = f"jsgs ({mode}, {pooling}" + ("" if comp == "off" else f", compile {comp}")
-                    label += (", CUDA graph" if graph == "on" else "") + ")"
+                    label += {"off": "", "on": ", CUDA graph", "jo": ", CUDA graph w/o GC"}[graph] + ")"
                     opts = {"jpeg_mode": mode, "gc_pooling": pooling, "compile": comp}
-                    opts["cuda_graph"] = graph == "on"
+                    opts["cuda_graph"] = graph != "off"
+                    if graph == "jo":
+                        opts["cuda_graph_gc"] = False
                     variants.append((label, "jsgs", opts))
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -17,7 +17,7 @@ from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision
 from jsgs.train.controller import fro_from_probe_grad, packed_fro_stats
 from jsgs.train.graphed import GraphedController, GraphedImageTerms, image_terms
-from jsgs.train.jsgs_method import parse_options, use_cuda_graph
+from jsgs.train.jsgs_method import JsgsHook, parse_options, use_cuda_graph
 
 SETTINGS = dict(
     mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
@@ -306,3 +306,23 @@ def test_gpu_training_with_graphs_matches_eager(tmp_path: Path, capsys: Any) -> 
     for k, v in off["train"]["terms"].items():
         assert on["train"]["terms"][k] == pytest.approx(v, rel=0.05), k
     assert abs(on["psnr"] - off["psnr"]) < 0.5
+
+
+def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
+    """The GC graph exists exactly with cuda_graph on, the deferred route and cuda_graph_gc (default true);
+    config.json's derived.method says so (built for a CUDA device without touching it)."""
+    view = make_view(30, "4:2:0")
+    cuda = torch.device("cuda")
+
+    def described(**options: Any) -> dict[str, Any]:
+        tables = {view.index: new_hook(view).tables[view.index]}
+        return JsgsHook(parse_options(options), tables, device=cuda).describe()
+
+    assert described()["cuda_graph_gc"] is True
+    assert described(cuda_graph_gc=False) == {
+        "cuda_graph": True, "cuda_graph_gc": False, "gc_route": "deferred", "jpeg_mode": "paper"
+    }  # fmt: skip
+    assert described(gc_pooling="now")["cuda_graph_gc"] is False
+    assert described(cuda_graph=False)["cuda_graph_gc"] is False
+    with pytest.raises(JsgsError, match="cuda_graph_gc must be true or false"):
+        parse_options({"cuda_graph_gc": "yes"})

@@ -96,6 +96,9 @@ class JsgsOptions:
     # instead of a few hundred, which is what these small kernels cost on a GPU (measured 2.30x -> 1.32x of
     # gsplat's step on an H200). "auto": on for CUDA without compile, off otherwise; true needs CUDA.
     cuda_graph: bool | Literal["auto"] = "auto"
+    # With cuda_graph: the deferred Gaussian Controller as a graph of its own too (recorded again whenever
+    # densification changes N; jsgs.train.graphed.GraphedController). false keeps it eager.
+    cuda_graph_gc: bool = True
 
     @property
     def any_active(self) -> bool:
@@ -297,14 +300,19 @@ class JsgsHook(LossHook):
         self.cuda_graph = use_cuda_graph(options, self.device)
         if self.cuda_graph:
             self._graphed = GraphedImageTerms(**self._jpeg_settings)
-            if self.gc_route == "deferred":
+            if self.gc_route == "deferred" and options.cuda_graph_gc:
                 self._gc_graphed = GraphedController(
                     weight=options.lambda_fro, near_plane=near_plane, eps_proj=options.eps_proj,
                     tau_s=options.tau_s,
                 )  # fmt: skip
 
     def describe(self) -> dict[str, Any]:
-        return {"cuda_graph": self.cuda_graph, "gc_route": self.gc_route, "jpeg_mode": self.opts.jpeg_mode}
+        return {
+            "cuda_graph": self.cuda_graph,
+            "cuda_graph_gc": self._gc_graphed is not None,
+            "gc_route": self.gc_route,
+            "jpeg_mode": self.opts.jpeg_mode,
+        }
 
     # ------------------------------------------------------------------------------------------------
     @property

@@ -1,0 +1,632 @@
+"""Kernel-level profile of one training step of ``--method jsgs`` against ``--method gsplat``: is a step
+launch-bound (the host issuing many small kernels) or device-bound (the kernels themselves), and which kernels
+does JSGS add?
+
+    .venv/bin/python benchmarks/profile_step.py                          # synthetic scene, CPU or CUDA (auto)
+    .venv/bin/python benchmarks/profile_step.py --manifest DATA/manifest.json --device cuda \
+        --warmup 600 --steps 50 --jsgs-options '{"cuda_graph": false}' --out profile_step.json
+
+Without ``--manifest`` a synthetic scene is built in a temporary folder, as ``bench_train_overhead.py``
+builds it (``--size``, ``--views``). Every method runs the same settings (``--config`` JSON over the
+defaults; no evaluation, no intermediate checkpoints; ``--jsgs-options`` over ``method_options`` for jsgs)
+from the same seed.
+
+Per method:
+
+1. train ``--warmup`` steps and stop there with a checkpoint (600 by default: densification has begun, the
+   Gaussians are no longer the initial point cloud; gsplat's JIT build and the allocator are warm);
+2. copy that run twice and resume each copy for ``--settle`` + ``--steps`` + 1 steps: the ``--settle``
+   steps absorb what a fresh process does once (CUDA-graph recording, ``torch.compile``, the profiler's own
+   warm-up), the next ``--steps`` steps are the measured window, the last step only closes it. One copy runs
+   plain (the honest wall time), the other under ``torch.profiler`` (CPU activity, plus CUDA on a GPU). Both
+   start from the same checkpoint, so they train the same Gaussians on the same views.
+
+The measured steps are the 0-based steps ``warmup + settle`` to ``warmup + settle + steps - 1``. A
+densification step among them (every ``strategy.refine_every`` = 100 steps from ``refine_start_iter`` = 500)
+is averaged into the window, and so is, for JSGS with CUDA graphs, the controller graph's re-recording on the
+step after it; with the defaults the window holds none (the densification at step 600 and the re-recording
+at 601 fall on the settling steps).
+
+The window is delimited at step boundaries (the device is synchronised at its two ends only); the trainer
+has no per-step callback, so the boundaries come from its view sampler, which is asked for one view at the
+start of every step (``jsgs.train.loop.ViewSampler`` is replaced by a subclass for the duration of a run).
+
+Columns (per training step, averaged over the window):
+
+- wall ms/step (unprofiled): the plain copy's device-synchronised wall time; the number to quote;
+- wall ms/step (profiled): the same window under the profiler (inflated by its bookkeeping, more so for
+  launch-heavy code);
+- kernel launches/step: on CUDA, host calls of ``cudaLaunchKernel`` / ``cudaLaunchKernelExC`` /
+  ``cuLaunchKernel`` (Triton) and the like; on the CPU, the aten ops that produce data (views, aliases and
+  allocations are free; an op that only dispatches to others, e.g. ``aten::linear``, counts as the ops it
+  runs: the rule of ``jsgs.opcount.KernelCounter``);
+- graph launches/step: ``cudaGraphLaunch`` calls (each replays many kernels for one launch);
+- device kernel ms/step: the summed duration of everything the GPU ran (kernels, copies, fills), CUDA only;
+- device busy %: device kernel ms / unprofiled wall ms. Well below 100 % with many launches per step means
+  launch-bound: the GPU waits for the host; near 100 % means device-bound;
+- host op ms/step: the host's time inside torch ops (their self times summed over threads: dispatch, the
+  CUDA runtime calls, and on the CPU the arithmetic itself), from the profiled run: compare it with the
+  profiled wall time, the rest of which is Python (and, on a GPU, waiting in syncs counts as op time);
+- syncs/step: host-device synchronisations (``cudaStreamSynchronize``, ``cudaDeviceSynchronize``,
+  ``cudaEventSynchronize``, blocking ``cudaMemcpy``; not the one that closes the window); CUDA only.
+
+Then, for every method against the first (normally jsgs − gsplat), the ``--top`` kernels by extra device
+time per step and by extra host launches per step. Kernels replayed from a CUDA graph count as runs, not as
+host launches. On the CPU the "kernels" are the counted aten ops and their time is the op's own host time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_train_overhead import build_scene, variant_config  # noqa: E402
+
+import jsgs  # noqa: E402
+import jsgs.train.loop as loop_mod  # noqa: E402
+from jsgs.errors import JsgsError  # noqa: E402
+from jsgs.io import write_json_atomic  # noqa: E402
+from jsgs.opcount import FREE_OPS  # noqa: E402
+from jsgs.train.config import TrainConfig, load_config_file  # noqa: E402
+from jsgs.train.evaluate import synchronize  # noqa: E402
+from jsgs.train.rendering import resolve_device  # noqa: E402
+
+FORMAT = "jsgs-profile-step"
+FORMAT_VERSION = 1
+#: The profiler annotation around the synchronisation that closes the window (not the steps' own work).
+WINDOW_END = "profile_step: window end"
+
+#: Host-side CUDA runtime / driver calls that launch one kernel each.
+LAUNCH_CALLS = frozenset(
+    {
+        "cudaLaunchKernel",
+        "cudaLaunchKernelExC",
+        "cudaLaunchCooperativeKernel",
+        "cudaLaunchCooperativeKernelMultiDevice",
+        "cuLaunchKernel",
+        "cuLaunchKernelEx",
+        "cuLaunchCooperativeKernel",
+    }
+)
+#: Host-side calls that replay a recorded CUDA graph.
+GRAPH_CALLS = frozenset({"cudaGraphLaunch", "cuGraphLaunch"})
+#: Host-side calls that wait for the device.
+SYNC_CALLS = frozenset(
+    {
+        "cudaStreamSynchronize",
+        "cudaDeviceSynchronize",
+        "cudaEventSynchronize",
+        "cudaMemcpy",
+        "cuStreamSynchronize",
+        "cuCtxSynchronize",
+        "cuEventSynchronize",
+        "cuMemcpy",
+    }
+)
+#: aten ops that launch nothing although their schema is not a view's (jsgs.opcount's, plus allocations and
+#: the conjugate/negative-bit resolvers, which return their input unless a bit is set).
+FREE_ATEN = frozenset(n.replace("aten.", "aten::") for n in FREE_OPS) | {
+    "aten::empty",
+    "aten::empty_strided",
+    "aten::empty_like",
+    "aten::resolve_conj",
+    "aten::resolve_neg",
+    "aten::set_",
+    "aten::record_stream",
+}
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Step boundaries
+
+
+class StepWindow:
+    """Called at the start of every step of a resumed segment of ``settle + steps + 1`` steps: synchronises
+    the device and reads the clock at the start of step ``settle`` and of step ``settle + steps``, and steps
+    the torch profiler (if any) at every call, whose schedule records exactly the steps in between."""
+
+    def __init__(
+        self, device: torch.device, settle: int, steps: int, prof: torch.profiler.profile | None = None
+    ) -> None:
+        self.device = device
+        self.settle = settle
+        self.steps = steps
+        self.prof = prof
+        self.calls = 0
+        self.t0: float | None = None
+        self.t1: float | None = None
+
+    def __call__(self) -> None:
+        i = self.calls
+        self.calls += 1
+        if i == self.settle:
+            synchronize(self.device)  # before the recording starts: the wait is not in the trace
+            if self.prof is not None:
+                self.prof.step()
+            self.t0 = time.perf_counter()
+        elif i == self.settle + self.steps:
+            with torch.profiler.record_function(WINDOW_END):  # recorded: window_stats leaves it out
+                synchronize(self.device)
+            self.t1 = time.perf_counter()
+            if self.prof is not None:
+                self.prof.step()
+        elif self.prof is not None:
+            self.prof.step()
+
+    def ms_per_step(self) -> float:
+        if self.t0 is None or self.t1 is None:
+            raise JsgsError(
+                f"the measured window was not reached: the trainer asked its view sampler {self.calls} times "
+                f"(expected {self.settle + self.steps + 1}, once per step)"
+            )
+        return 1000.0 * (self.t1 - self.t0) / self.steps
+
+    @staticmethod
+    def schedule(settle: int, steps: int) -> Callable[[int], Any]:
+        """The profiler's schedule: step number 0 is the run's setup, number k the segment's step k - 1; the
+        segment's step ``settle - 1`` is the profiler's warm-up, the next ``steps`` are recorded."""
+        return torch.profiler.schedule(wait=settle, warmup=1, active=steps, repeat=1)
+
+
+@contextmanager
+def step_callback(fn: Callable[[], None]) -> Iterator[None]:
+    """Call ``fn`` at the start of every training step of :func:`jsgs.train.loop.train` (the loop asks its
+    ``ViewSampler`` for the next view first thing in a step; its subclass calls ``fn`` then)."""
+    base = loop_mod.ViewSampler
+
+    class Sampler(base):  # type: ignore[misc, valid-type]
+        def next(self) -> int:
+            fn()
+            return super().next()
+
+    loop_mod.ViewSampler = Sampler  # type: ignore[misc]
+    try:
+        yield
+    finally:
+        loop_mod.ViewSampler = base  # type: ignore[misc]
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Reading the profiler's events
+
+
+# Plain classes, not dataclasses: tests load this script with conftest.load_benchmark, as a module that is not
+# in sys.modules, where @dataclass cannot resolve the postponed annotations.
+class KernelStat:
+    """One kernel name's runs in the window: ``runs``, of which ``launched`` by a kernel-launch call of the
+    host (the others: replayed from a CUDA graph, or copies and fills), and ``time_us``: device time (CUDA),
+    or the op's host time, its children included (CPU)."""
+
+    __slots__ = ("runs", "launched", "time_us")
+
+    def __init__(self) -> None:
+        self.runs = 0
+        self.launched = 0
+        self.time_us = 0.0
+
+    def add(self, time_us: float, launched: bool = True) -> None:
+        self.runs += 1
+        self.launched += int(launched)
+        self.time_us += time_us
+
+
+class WindowStats:
+    """Totals over the recorded window (divide by the number of steps); ``syncs`` and ``device_us`` are None
+    on the CPU."""
+
+    def __init__(self) -> None:
+        self.launches = 0
+        self.graph_launches = 0
+        self.syncs: int | None = None
+        self.device_us: float | None = None
+        self.host_us = 0.0
+        self.kernels: dict[str, KernelStat] = {}
+
+
+@cache
+def aten_kind(name: str) -> str:
+    """``"free"`` (a view or an op that launches nothing), ``"composite"`` (only dispatches to other aten ops:
+    count those instead) or ``"kernel"``, for a profiler event name like ``aten::add``. Decided on the op's
+    schemas (all overloads but the ``out=`` ones must agree); unknown names are kernels."""
+    if name in FREE_ATEN:
+        return "free"
+    try:
+        packet = getattr(torch.ops.aten, name.split("::", 1)[1])
+        overloads = [getattr(packet, o) for o in packet.overloads()]
+    except (AttributeError, RuntimeError, IndexError):
+        return "kernel"
+    # the overloads that return a new tensor (not the out= ones, not TorchScript's str/int/list ones)
+    functional = [
+        o
+        for o in overloads
+        if not any(a.is_out for a in o._schema.arguments)
+        and o._schema.returns
+        and "Tensor" in str(o._schema.returns[0].type)
+    ] or overloads
+    key = torch._C.DispatchKey.CompositeImplicitAutograd
+    composite: list[bool] = []
+    for o in functional:
+        try:
+            composite.append(o.has_kernel_for_dispatch_key(key))
+        except RuntimeError:  # an overload the dispatcher does not know (TorchScript's prim_* ones)
+            continue
+    if composite and all(composite):
+        return "composite"
+    if functional and all(o.is_view for o in functional):
+        return "free"
+    return "kernel"
+
+
+def _is_cpu(e: Any) -> bool:
+    return e.device_type == torch.autograd.DeviceType.CPU
+
+
+def _annotation(e: Any) -> bool:
+    return bool(getattr(e, "is_user_annotation", False)) or e.name.startswith("ProfilerStep")
+
+
+def _recorded(events: Sequence[Any]) -> list[Any]:
+    """The host events that belong to the recorded steps: those that start within the profiler's step
+    annotations (``ProfilerStep#k``; on any thread, e.g. CUDA's autograd thread) but not within the window's
+    closing synchronisation (:data:`WINDOW_END`), nor the profiler's own stop after the last step."""
+    cpu = [e for e in events if _is_cpu(e)]
+    steps = [e.time_range for e in cpu if e.name.startswith("ProfilerStep")]
+    closing = [e.time_range for e in cpu if e.name == WINDOW_END]
+    lo = min((r.start for r in steps), default=-math.inf)
+    hi = max((r.end for r in steps), default=math.inf)
+    return [
+        e
+        for e in cpu
+        if not _annotation(e)
+        and e.name != WINDOW_END
+        and lo <= e.time_range.start <= hi
+        and not any(r.start <= e.time_range.start <= r.end for r in closing)
+    ]
+
+
+def window_stats(events: Sequence[Any], cuda: bool) -> WindowStats:
+    """Launches, syncs, device and host time and per-kernel numbers from ``torch.profiler``'s events of the
+    recorded window (``prof.events()``)."""
+    out = WindowStats()
+    cpu_events = _recorded(events)
+    out.host_us = sum(e.self_cpu_time_total for e in cpu_events if not e.is_async)
+    if cuda:
+        via: dict[int, bool] = {}  # correlation id of a launching call -> whether it launches one kernel
+        syncs = 0
+        for e in cpu_events:
+            if e.name in LAUNCH_CALLS:
+                out.launches += 1
+                via[e.id] = True
+            elif e.name in GRAPH_CALLS:
+                out.graph_launches += 1
+                via[e.id] = False
+            elif e.name in SYNC_CALLS:
+                syncs += 1
+        out.syncs = syncs
+        out.device_us = 0.0
+        for e in events:
+            if _is_cpu(e) or _annotation(e):
+                continue
+            dur = float(e.time_range.elapsed_us())
+            out.device_us += dur
+            out.kernels.setdefault(e.name, KernelStat()).add(dur, via.get(e.id, False))
+        return out
+    for e in cpu_events:
+        if not e.name.startswith("aten::") or aten_kind(e.name) != "kernel":
+            continue
+        p = e.cpu_parent
+        while p is not None and not (p.name.startswith("aten::") and aten_kind(p.name) != "composite"):
+            p = p.cpu_parent
+        if p is not None:
+            continue  # inside a counted (or free) op: part of that one
+        out.launches += 1
+        out.kernels.setdefault(e.name, KernelStat()).add(float(e.cpu_time_total))
+    return out
+
+
+def kernel_rows(kernels: dict[str, KernelStat], steps: int, top: int) -> list[dict[str, Any]]:
+    """The ``top`` kernels by time, per step."""
+    ranked = sorted(kernels.items(), key=lambda kv: -kv[1].time_us)[:top]
+    return [
+        {
+            "name": n,
+            "runs_per_step": k.runs / steps,
+            "launches_per_step": k.launched / steps,
+            "ms_per_step": k.time_us / 1000.0 / steps,
+        }
+        for n, k in ranked
+    ]
+
+
+def kernel_difference(
+    a: dict[str, KernelStat], b: dict[str, KernelStat], steps: int, top: int
+) -> dict[str, list[dict[str, Any]]]:
+    """``a`` minus ``b`` per kernel name, per step: the ``top`` names by extra time and by extra host
+    launches (positive differences only)."""
+    rows = []
+    for name in sorted(set(a) | set(b)):
+        ka, kb = a.get(name, KernelStat()), b.get(name, KernelStat())
+        ms_a, ms_b = ka.time_us / 1000.0 / steps, kb.time_us / 1000.0 / steps
+        la, lb = ka.launched / steps, kb.launched / steps
+        rows.append(
+            {
+                "name": name,
+                "ms_per_step": ms_a,
+                "baseline_ms_per_step": ms_b,
+                "extra_ms_per_step": ms_a - ms_b,
+                "launches_per_step": la,
+                "baseline_launches_per_step": lb,
+                "extra_launches_per_step": la - lb,
+                "extra_runs_per_step": (ka.runs - kb.runs) / steps,
+            }
+        )
+    by_time = [r for r in sorted(rows, key=lambda r: -r["extra_ms_per_step"]) if r["extra_ms_per_step"] > 0]
+    by_launches = sorted(rows, key=lambda r: (-r["extra_launches_per_step"], -r["extra_ms_per_step"]))
+    by_launches = [r for r in by_launches if r["extra_launches_per_step"] > 0]
+    return {"by_time": by_time[:top], "by_launches": by_launches[:top]}
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Runs
+
+
+def profile_method(
+    manifest: Path,
+    work: Path,
+    cfg: TrainConfig,
+    device: torch.device,
+    warmup: int,
+    settle: int,
+    steps: int,
+) -> tuple[dict[str, Any], WindowStats]:
+    """Warm-up run, then the plain and the profiled copy of the window (module docstring)."""
+    train = loop_mod.train
+    warm = work / "warm"
+    train(manifest, warm, cfg, force=True, stop_at=warmup, progress=False, log=_quiet)
+    cuda = device.type == "cuda"
+
+    plain = work / "plain"
+    shutil.copytree(warm, plain)
+    clock = StepWindow(device, settle, steps)
+    with step_callback(clock):
+        doc = train(manifest, plain, resume=True, progress=False, log=_quiet)
+    wall = clock.ms_per_step()
+
+    profiled = work / "profiled"
+    shutil.copytree(warm, profiled)
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if cuda:
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    captured: dict[str, Any] = {}
+
+    def ready(p: torch.profiler.profile) -> None:
+        captured["events"] = p.events()
+
+    with torch.profiler.profile(
+        activities=activities, schedule=StepWindow.schedule(settle, steps), on_trace_ready=ready
+    ) as prof:
+        pclock = StepWindow(device, settle, steps, prof)
+        with step_callback(pclock):
+            pdoc = train(manifest, profiled, resume=True, progress=False, log=_quiet)
+    wall_prof = pclock.ms_per_step()
+    if "events" not in captured:
+        raise JsgsError(f"{cfg.method}: the profiler delivered no trace for the window")
+    stats = window_stats(captured["events"], cuda)
+    device_ms = None if stats.device_us is None else stats.device_us / 1000.0 / steps
+
+    result = {
+        "wall_ms_per_step": wall,
+        "wall_ms_per_step_profiled": wall_prof,
+        "kernel_launches_per_step": stats.launches / steps,
+        "graph_launches_per_step": stats.graph_launches / steps,
+        "device_kernel_ms_per_step": device_ms,
+        "device_busy_percent": None if device_ms is None else 100.0 * device_ms / wall,
+        "host_op_ms_per_step": stats.host_us / 1000.0 / steps,
+        "syncs_per_step": None if stats.syncs is None else stats.syncs / steps,
+        "num_gaussians": int(doc["num_gaussians"]),
+        "num_gaussians_profiled": int(pdoc["num_gaussians"]),
+        "device_name": doc["device_name"],
+        "backend": doc["backend"],
+    }
+    return result, stats
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Output
+
+
+def _cell(x: float | None, fmt: str = ".2f") -> str:
+    return "–" if x is None else format(x, fmt)
+
+
+def _name(n: str, width: int = 60) -> str:
+    n = n.replace("|", "\\|").replace("\n", " ")
+    return n if len(n) <= width else n[: width - 1] + "…"
+
+
+def print_report(doc: dict[str, Any]) -> None:
+    res = doc["results"]
+    first = next(iter(res.values()))
+    cuda = doc["device"].startswith("cuda")
+    print(
+        f"device {first['device_name']} ({doc['device']}, backend {first['backend']}), torch {doc['torch']}, "
+        f"jsgs {doc['version']}, {torch.get_num_threads()} CPU threads"
+    )
+    print(
+        f"scene {doc['manifest']}: {doc['warmup']} warm-up steps, {doc['settle']} settling steps, "
+        f"{doc['steps']} measured steps"
+        + ("" if cuda else "; CPU: kernels are aten ops, their time is host time")
+    )
+    print()
+    print(
+        "| method | wall ms/step (unprofiled) | wall ms/step (profiled) | kernel launches/step | "
+        "graph launches/step | device kernel ms/step | device busy % | host op ms/step | syncs/step | "
+        "#Gaussians |"
+    )
+    print("|---|" + "---:|" * 9)
+    for m, r in res.items():
+        cells = [
+            _cell(r["wall_ms_per_step"]),
+            _cell(r["wall_ms_per_step_profiled"]),
+            _cell(r["kernel_launches_per_step"], ".1f"),
+            _cell(r["graph_launches_per_step"], ".1f"),
+            _cell(r["device_kernel_ms_per_step"]),
+            _cell(r["device_busy_percent"], ".1f"),
+            _cell(r["host_op_ms_per_step"]),
+            _cell(r["syncs_per_step"], ".1f"),
+            str(r["num_gaussians"]),
+        ]
+        print(f"| {m} | " + " | ".join(cells) + " |")
+    unit = "device ms" if cuda else "op ms (host)"
+    for m, d in doc["differences"].items():
+        b = d["baseline"]
+        print()
+        print(f"{m} − {b}: top {doc['settings']['top']} kernels by extra {unit} per step")
+        print()
+        print(f"| kernel | {m} {unit}/step | {b} {unit}/step | extra {unit}/step | extra launches/step |")
+        print("|---|---:|---:|---:|---:|")
+        for r in d["by_time"]:
+            print(
+                f"| {_name(r['name'])} | {r['ms_per_step']:.3f} | {r['baseline_ms_per_step']:.3f} | "
+                f"{r['extra_ms_per_step']:.3f} | {r['extra_launches_per_step']:.1f} |"
+            )
+        print()
+        print(f"{m} − {b}: top {doc['settings']['top']} kernels by extra host launches per step")
+        print()
+        print(f"| kernel | {m} launches/step | {b} launches/step | extra launches/step | extra {unit}/step |")
+        print("|---|---:|---:|---:|---:|")
+        for r in d["by_launches"]:
+            print(
+                f"| {_name(r['name'])} | {r['launches_per_step']:.1f} | "
+                f"{r['baseline_launches_per_step']:.1f} | {r['extra_launches_per_step']:.1f} | "
+                f"{r['extra_ms_per_step']:.3f} |"
+            )
+
+
+def _json_arg(text: str) -> dict[str, Any]:
+    try:
+        value = json.loads(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"not JSON: {e}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError("must be a JSON object")
+    return value
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--manifest", type=Path, help="scene manifest (default: a synthetic scene)")
+    ap.add_argument("--size", default="160x120", help="synthetic scene image size WxH [160x120]")
+    ap.add_argument("--views", type=int, default=16, help="synthetic scene views [16]")
+    ap.add_argument("--methods", default="gsplat,jsgs", help="comma-separated; the first is the baseline")
+    ap.add_argument("--config", type=Path, help="JSON settings over the defaults, for every method")
+    ap.add_argument(
+        "--jsgs-options",
+        type=_json_arg,
+        default={},
+        help="JSON over method_options for jsgs, e.g. '{\"cuda_graph\": false}'",
+    )
+    ap.add_argument("--warmup", type=int, default=600, help="steps trained before the window [600]")
+    ap.add_argument("--settle", type=int, default=2, help="resumed steps before the window (>= 1) [2]")
+    ap.add_argument("--steps", type=int, default=50, help="steps in the measured window [50]")
+    ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    ap.add_argument("--top", type=int, default=15, help="kernels in each difference table [15]")
+    ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    ap.add_argument("--workdir", type=Path, help="the runs' temporary folder goes here [system's]")
+    ap.add_argument("--out", type=Path, help="write the results as JSON here")
+    args = ap.parse_args(argv)
+    if args.warmup < 1 or args.settle < 1 or args.steps < 1 or args.top < 1:
+        ap.error("--warmup, --settle, --steps and --top must be >= 1")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if not methods or len(set(methods)) != len(methods):
+        ap.error(f"--methods {args.methods!r}: give distinct method names")
+    args.methods = ",".join(methods)
+    return args
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Profile every method; returns the output document (schemas/profile_step.schema.json)."""
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
+    base = load_config_file(args.config) if args.config else TrainConfig()
+    methods = args.methods.split(",")
+    iterations = args.warmup + args.settle + args.steps + 1
+    results: dict[str, dict[str, Any]] = {}
+    stats: dict[str, WindowStats] = {}
+    if args.workdir:
+        args.workdir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="profile_step.", dir=args.workdir) as tmp:
+        work = Path(tmp)
+        if args.manifest is None:
+            w, h = (int(v) for v in args.size.lower().split("x"))
+            manifest = build_scene(work / "synthetic", (w, h), args.views)
+        else:
+            manifest = args.manifest
+        for m in methods:
+            opts = {**base.method_options, **args.jsgs_options} if m == "jsgs" else dict(base.method_options)
+            cfg = variant_config(base, m, opts, iterations, str(device))
+            cfg.checkpoint_every = 0  # nothing but training inside the window
+            results[m], stats[m] = profile_method(
+                manifest, work / m, cfg, device, args.warmup, args.settle, args.steps
+            )
+            results[m]["kernels"] = kernel_rows(stats[m].kernels, args.steps, args.top)
+    baseline = methods[0]
+    differences = {}
+    for m in methods[1:]:
+        diff = kernel_difference(stats[m].kernels, stats[baseline].kernels, args.steps, args.top)
+        differences[m] = {"baseline": baseline, **diff}
+    settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "version": jsgs.__version__,
+        "settings": settings,
+        "manifest": f"synthetic {args.size}, {args.views} views" if args.manifest is None else str(manifest),
+        "device": str(device),
+        "torch": torch.__version__,
+        "warmup": args.warmup,
+        "settle": args.settle,
+        "steps": args.steps,
+        "results": results,
+        "differences": differences,
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        doc = run(args)
+        print_report(doc)
+        if args.out:
+            from jsgs.schemas import validate
+
+            validate(doc, "profile_step", str(args.out))
+            write_json_atomic(args.out, doc)
+    except JsgsError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
