@@ -1,15 +1,15 @@
 #!/usr/bin/env bash
 # Issue 5's GPU checks in one device call on a single GPU: the GPU tests, the per-iteration overhead of
 # --method jsgs against --method gsplat (benchmarks/bench_train_overhead.py) and the kernel-level profile of
-# a training step (benchmarks/profile_step.py), on llff_flower's gaussian schedule (seed 0).
+# a training step (benchmarks/profile_step.py) and the SSIM blur variants (benchmarks/bench_ssim.py), on llff_flower's gaussian schedule (seed 0).
 #
 #   here:   .venv/bin/python -m cli.jsgs_cli bench llff_flower --out .gpuD --schedules gaussian --fixed= \
 #               --seeds 0 --prepare-only      (after copying a clean base into .gpuD/data/llff_flower/)
 #   device: command "bash scripts/gpu_speed.sh", carry [".whlmin", ".gpuD"], kind nvidia-h200
 #
-# Knobs (environment): STAGES ("tests overhead profile"), ITERS (2000, overhead), GRAPHS (off,jo,on),
-# MODES (paper), WHL (.whlmin), DATA (.gpuD/data). Results: $OUT/gpu_tests.log, overhead.{txt,json},
-# profile.{txt,json}.
+# Knobs (environment): STAGES ("tests ssim overhead profile"), ITERS (2000, overhead), GRAPHS (off,jo,on),
+# MODES (paper), WHL (.whlmin), DATA (.gpuD/data). Results: $OUT/gpu_tests.log, ssim.{txt,json},
+# overhead.{txt,json}, profile.{txt,json}.
 set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/jsgs_gpu_out}
@@ -28,12 +28,15 @@ M=${DATA:-.gpuD/data}/llff_flower/gaussian_s0/manifest.json
     python3 -c "from gsplat.cuda._backend import _C; print('gsplat CUDA ready')" 2>&1 | tail -1
     echo "gsplat build/load: $(($(date +%s) - t)) s"
 } 2>&1 | tee "$OUT/log.txt"
-for stage in ${STAGES:-tests overhead profile}; do
+for stage in ${STAGES:-tests ssim overhead profile}; do
     t=$(date +%s)
     case $stage in
     tests) JSGS_GPU_MANIFEST=$M python3 -m pytest -m gpu -p no:cacheprovider -q -s -p no:warnings \
         tests/test_graphed.py tests/test_render_gpu.py tests/test_jsgs_method.py > "$OUT/gpu_tests.log" 2>&1
         tail -n 3 "$OUT/gpu_tests.log" ;;
+    ssim) python3 benchmarks/bench_ssim.py --device cuda --sizes 504x378,1297x840 --repeats 50 \
+        --out "$OUT/ssim.json" > "$OUT/ssim.txt" 2>&1
+        cat "$OUT/ssim.txt" ;;
     overhead) python3 benchmarks/bench_train_overhead.py --manifest "$M" --iterations "${ITERS:-2000}" \
         --repeats 1 --device cuda --jpeg-modes "${MODES:-paper}" --cuda-graph "${GRAPHS:-off,jo,on}" \
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1

@@ -197,7 +197,16 @@ def test_a_failed_controller_recording_falls_back_to_eager(
         tries.append(1)
         raise RuntimeError("CUDA error: operation not permitted when stream is capturing\nmore detail")
 
-    monkeypatch.setattr(torch.cuda, "graph_pool_handle", refuse)
+    class NoStream:  # the streams of a CUDA device, as far as recording touches them before the graph
+        def __init__(self, device: Any = None) -> None:
+            pass
+
+        def wait_stream(self, other: Any) -> None:
+            pass
+
+    monkeypatch.setattr(torch.cuda, "current_stream", NoStream)
+    monkeypatch.setattr(torch.cuda, "Stream", NoStream)
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", refuse)
     monkeypatch.setattr(GraphedImageTerms, "_check_device", staticmethod(lambda x: None))
     hook = new_hook(view)
     hook.keep_last = False

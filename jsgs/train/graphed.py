@@ -153,7 +153,6 @@ class GraphedController:
         self._graph: Any = None
         self._inputs: tuple[Tensor, Tensor, Tensor] | None = None
         self._outputs: tuple[Tensor, Tensor, Tensor] | None = None
-        self._pool: Any = None
         self.recordings = 0
 
     def _run(
@@ -197,25 +196,25 @@ class GraphedController:
     def _record(self, key: tuple[Any, ...], probe_grad: Tensor, viewmat: Tensor, K: Tensor,
                 params: tuple[Tensor, ...], w: int, h: int) -> None:  # fmt: skip
         GraphedImageTerms._check_device(probe_grad)
-        # the previous graph's memory goes back to the shared pool before the new one records into it
-        self._key = self._graph = self._inputs = self._outputs = None
         inputs = (probe_grad.detach().clone(), viewmat.detach().clone(), K.detach().clone())
+        # The new graph records into the previous one's memory pool, which must still be alive while it
+        # does (torch's allocator refuses a pool whose graphs are all gone); the old graph is dropped after.
+        pool = self._graph.pool() if self._graph is not None else None
         try:
-            if self._pool is None:
-                self._pool = torch.cuda.graph_pool_handle()
             here = torch.cuda.current_stream(probe_grad.device)
             side = torch.cuda.Stream(probe_grad.device)
             side.wait_stream(here)
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.stream(side):
                 self._run(*inputs, params, w, h)  # warm-up: lazy library state is set up outside the capture
-                graph.capture_begin(pool=self._pool, capture_error_mode="thread_local")
+                graph.capture_begin(pool=pool, capture_error_mode="thread_local")
                 try:
                     outputs = self._run(*inputs, params, w, h)
                 finally:
                     graph.capture_end()
             here.wait_stream(side)
         except RuntimeError as e:  # e.g. an op that synchronises with the host, refused while capturing
+            self._key = self._graph = self._inputs = self._outputs = None
             raise GraphCaptureFailed(one_line(e)) from e
         self._key, self._graph, self._inputs, self._outputs = key, graph, inputs, outputs
         self.recordings += 1
