@@ -30,8 +30,8 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = tor
     return _window_cached(size, sigma, dtype, torch.device(device if device is not None else "cpu"))
 
 
-def _blur_grouped(x: Tensor, window: Tensor, padding: str) -> Tensor:
-    """Two grouped 1-D convolutions, one group per channel."""
+def _blur(x: Tensor, window: Tensor, padding: str) -> Tensor:
+    """Separable Gaussian blur of ``(B, C, H, W)`` per channel; zero padding for "same", none for "valid"."""
     c = x.shape[1]
     k = window.numel()
     pad = k // 2 if padding == "same" else 0
@@ -41,58 +41,6 @@ def _blur_grouped(x: Tensor, window: Tensor, padding: str) -> Tensor:
     with ieee_fp32(x.device):
         x = F.conv2d(x, wv, padding=(pad, 0), groups=c)
         return F.conv2d(x, wh, padding=(0, pad), groups=c)
-
-
-def _blur_batched(x: Tensor, window: Tensor, padding: str) -> Tensor:
-    """Two 1-D convolutions of one channel with the channels folded into the batch (cuDNN runs a grouped
-    convolution as one kernel per group: 15 launches per pass for SSIM's five RGB moments)."""
-    b, c, h, w = x.shape
-    k = window.numel()
-    pad = k // 2 if padding == "same" else 0
-    with ieee_fp32(x.device):
-        y = F.conv2d(x.reshape(b * c, 1, h, w), window.view(1, 1, k, 1), padding=(pad, 0))
-        y = F.conv2d(y, window.view(1, 1, 1, k), padding=(0, pad))
-    return y.reshape(b, c, *y.shape[-2:])
-
-
-@functools.cache
-def _band(n: int, size: int, sigma: float, padding: str, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """``(n', n)`` matrix of the 1-D blur along an axis of length n: row i holds the window centred on i
-    ("same": n' = n, zero padding as cut-off rows) or starting at i ("valid": n' = n - size + 1)."""
-    w = _window_cached(size, sigma, torch.float64, torch.device("cpu"))
-    pad = size // 2 if padding == "same" else 0
-    n_out = n if padding == "same" else n - size + 1
-    i = torch.arange(n_out)[:, None]
-    j = torch.arange(n)[None, :]
-    t = j - i + pad  # tap index
-    band = torch.where((t >= 0) & (t < size), w[t.clamp(0, size - 1)], 0.0)
-    return band.to(dtype=dtype, device=device)
-
-
-def _blur_banded(x: Tensor, window: Tensor, padding: str, sigma: float) -> Tensor:
-    """The blur as two matrix products with banded matrices, ``B_h X B_wᵀ`` per channel: two GEMM launches
-    (four in the backward) whatever the channel count; the zeros off the band add exact zeros."""
-    b, c, h, w = x.shape
-    k = window.numel()
-    bh = _band(h, k, sigma, padding, x.dtype, x.device)
-    bw = _band(w, k, sigma, padding, x.dtype, x.device)
-    return torch.matmul(torch.matmul(bh, x), bw.T)
-
-
-#: How the separable blur runs (values agree to float32 rounding; tests/test_ssim.py checks each against
-#: float64): see ``benchmarks/bench_ssim.py`` for the measured speeds.
-BLUR_IMPLS = ("grouped", "batched", "banded")
-BLUR: dict[str, str] = {"cpu": "grouped", "cuda": "grouped"}
-
-
-def _blur(x: Tensor, window: Tensor, padding: str, sigma: float = 1.5, impl: str | None = None) -> Tensor:
-    """Separable Gaussian blur of ``(B, C, H, W)`` per channel; zero padding for "same", none for "valid"."""
-    impl = impl or BLUR.get(x.device.type, "grouped")
-    if impl == "banded":
-        return _blur_banded(x, window, padding, sigma)
-    if impl == "batched":
-        return _blur_batched(x, window, padding)
-    return _blur_grouped(x, window, padding)
 
 
 def ssim_map(
@@ -112,7 +60,7 @@ def ssim_map(
     c = x.shape[1]
     w = gaussian_window(window_size, sigma, x.dtype, x.device)
     # One grouped convolution for the five local moments.
-    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), w, padding, sigma)
+    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), w, padding)
     mu_x, mu_y, xx, yy, xy = stats.split(c, dim=1)
     mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
     s_xx, s_yy, s_xy = xx - mu_xx, yy - mu_yy, xy - mu_xy

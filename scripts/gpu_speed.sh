@@ -1,15 +1,16 @@
 #!/usr/bin/env bash
 # Issue 5's GPU checks in one device call on a single GPU: the GPU tests, the per-iteration overhead of
 # --method jsgs against --method gsplat (benchmarks/bench_train_overhead.py) and the kernel-level profile of
-# a training step (benchmarks/profile_step.py) and the SSIM blur variants (benchmarks/bench_ssim.py), on llff_flower's gaussian schedule (seed 0).
+# a training step (benchmarks/profile_step.py), on llff_flower's gaussian schedule (seed 0).
 #
 #   here:   .venv/bin/python -m cli.jsgs_cli bench llff_flower --out .gpuD --schedules gaussian --fixed= \
 #               --seeds 0 --prepare-only      (after copying a clean base into .gpuD/data/llff_flower/)
 #   device: command "bash scripts/gpu_speed.sh", carry [".whlmin", ".gpuD"], kind nvidia-h200
 #
-# Knobs (environment): STAGES ("tests ssim overhead profile"), ITERS (2000, overhead), GRAPHS (off,jo,on),
-# MODES (paper), WHL (.whlmin), DATA (.gpuD/data). Results: $OUT/gpu_tests.log, ssim.{txt,json},
-# overhead.{txt,json}, profile.{txt,json}.
+# Knobs (environment): STAGES ("tests overhead profile"; "full" trains jsgs, then gsplat, for FULL_ITERS
+# (10000) steps each, evaluated at 3000 / 7000 / 10000), ITERS (2000, overhead), GRAPHS (off,jo,on),
+# MODES (paper), WHL (.whlmin), DATA (.gpuD/data; LPIPS weights in .gpuD/alexnet_features.pth). Results in
+# $OUT: gpu_tests.log, overhead.{txt,json}, profile.{txt,json}, full_<method>.{json,log} (metrics.json).
 set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/jsgs_gpu_out}
@@ -20,6 +21,7 @@ if [ ! -f /tmp/site/.jsgs_ok ]; then
 fi
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 OMP_NUM_THREADS=4
 export TORCH_EXTENSIONS_DIR=$PWD/.torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16
+[ -f "${DATA:-.gpuD/data}/../alexnet_features.pth" ] && export JSGS_LPIPS_WEIGHTS=$PWD/${DATA:-.gpuD/data}/../alexnet_features.pth
 M=${DATA:-.gpuD/data}/llff_flower/gaussian_s0/manifest.json
 {
     nvidia-smi --query-gpu=index,name,memory.total,driver_version,utilization.gpu --format=csv,noheader
@@ -28,19 +30,22 @@ M=${DATA:-.gpuD/data}/llff_flower/gaussian_s0/manifest.json
     python3 -c "from gsplat.cuda._backend import _C; print('gsplat CUDA ready')" 2>&1 | tail -1
     echo "gsplat build/load: $(($(date +%s) - t)) s"
 } 2>&1 | tee "$OUT/log.txt"
-for stage in ${STAGES:-tests ssim overhead profile}; do
+for stage in ${STAGES:-tests overhead profile}; do
     t=$(date +%s)
     case $stage in
     tests) JSGS_GPU_MANIFEST=$M python3 -m pytest -m gpu -p no:cacheprovider -q -s -p no:warnings \
         tests/test_graphed.py tests/test_render_gpu.py tests/test_jsgs_method.py > "$OUT/gpu_tests.log" 2>&1
         tail -n 3 "$OUT/gpu_tests.log" ;;
-    ssim) python3 benchmarks/bench_ssim.py --device cuda --sizes 504x378,1297x840 --repeats 50 \
-        --out "$OUT/ssim.json" > "$OUT/ssim.txt" 2>&1
-        cat "$OUT/ssim.txt" ;;
     overhead) python3 benchmarks/bench_train_overhead.py --manifest "$M" --iterations "${ITERS:-2000}" \
         --repeats 1 --device cuda --jpeg-modes "${MODES:-paper}" --cuda-graph "${GRAPHS:-off,jo,on}" \
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1
         tail -n 16 "$OUT/overhead.txt" ;;
+    full) for m in jsgs gsplat; do
+            python3 -m cli.jsgs_cli train "$M" --out "/tmp/full_$m" --method $m --iterations "${FULL_ITERS:-10000}" \
+                --eval-at 3000,7000,10000 --device cuda --quiet --force > "$OUT/full_$m.log" 2>&1
+            cp "/tmp/full_$m/metrics.json" "$OUT/full_$m.json"
+            tail -n 2 "$OUT/full_$m.log"
+        done ;;
     profile) python3 benchmarks/profile_step.py --manifest "$M" --device cuda --out "$OUT/profile.json" \
         > "$OUT/profile.txt" 2>&1
         tail -n 45 "$OUT/profile.txt" ;;
