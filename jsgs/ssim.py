@@ -30,8 +30,8 @@ def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = tor
     return _window_cached(size, sigma, dtype, torch.device(device if device is not None else "cpu"))
 
 
-def _blur_conv(x: Tensor, window: Tensor, padding: str) -> Tensor:
-    """Two grouped 1-D convolutions, one group per channel (cuDNN runs each group as a kernel of its own)."""
+def _blur(x: Tensor, window: Tensor, padding: str) -> Tensor:
+    """Separable Gaussian blur of ``(B, C, H, W)`` per channel; zero padding for "same", none for "valid"."""
     c = x.shape[1]
     k = window.numel()
     pad = k // 2 if padding == "same" else 0
@@ -41,62 +41,6 @@ def _blur_conv(x: Tensor, window: Tensor, padding: str) -> Tensor:
     with ieee_fp32(x.device):
         x = F.conv2d(x, wv, padding=(pad, 0), groups=c)
         return F.conv2d(x, wh, padding=(0, pad), groups=c)
-
-
-TILE = 32  # output rows (columns) per tile of the banded products
-
-
-@functools.cache
-def _band(size: int, tile: int, dtype: torch.dtype, device: torch.device, sigma: float) -> Tensor:
-    """``(tile, tile + size - 1)``: row i holds the window at columns i .. i + size - 1."""
-    w = _window_cached(size, sigma, torch.float64, torch.device("cpu"))
-    t = torch.arange(tile + size - 1)[None, :] - torch.arange(tile)[:, None]
-    band = torch.where((t >= 0) & (t < size), w[t.clamp(0, size - 1)], 0.0)
-    return band.to(dtype=dtype, device=device)
-
-
-def _blur_axis(x: Tensor, band: Tensor, dim: int, pad: int, n_out: int) -> Tensor:
-    """1-D blur along ``dim`` (-2 or -1) of ``x`` ``(P, H, W)``: tiles of ``tile`` outputs, each one small
-    matrix product with ``band`` over the ``tile + k - 1`` inputs it needs (zero padding ``pad`` in front)."""
-    tile, span = band.shape
-    n_tiles = -(-n_out // tile)
-    n_in = x.shape[dim]
-    # zeros in front ("same" padding) and behind (to whole tiles, and "same" padding)
-    back = n_tiles * tile + span - tile - pad - n_in
-    if dim == -1:
-        xp = F.pad(x, (pad, back))
-        tiles = xp.unfold(-1, span, tile)  # (P, H, n_tiles, span)
-        out = tiles @ band.T  # (P, H, n_tiles, tile)
-        return out.flatten(-2)[..., :n_out]
-    xp = F.pad(x, (0, 0, pad, back))
-    tiles = xp.unfold(-2, span, tile).transpose(-1, -2)  # (P, n_tiles, span, W)
-    out = band @ tiles  # (P, n_tiles, tile, W)
-    return out.flatten(-3, -2)[..., :n_out, :]
-
-
-def _blur_tiled(x: Tensor, window: Tensor, padding: str, sigma: float) -> Tensor:
-    """The blur as banded matrix products on tiles: a handful of batched GEMMs whatever the channel count
-    (the zeros off the band add exact zeros; IEEE float32 products unless the caller enabled TF32 matmuls)."""
-    b, c, h, w = x.shape
-    k = window.numel()
-    pad = k // 2 if padding == "same" else 0
-    h_out, w_out = (h, w) if padding == "same" else (h - k + 1, w - k + 1)
-    band = _band(k, TILE, x.dtype, x.device, sigma)
-    y = _blur_axis(x.reshape(b * c, h, w), band, -2, pad, h_out)
-    y = _blur_axis(y, band, -1, pad, w_out)
-    return y.reshape(b, c, h_out, w_out)
-
-
-#: How the separable blur runs, per device type ("conv" or "tiled"; equal to float32 rounding, both checked
-#: against float64 in tests/test_ssim.py): chosen by ``benchmarks/bench_ssim.py`` (README, "SSIM").
-BLUR: dict[str, str] = {"cpu": "conv", "cuda": "tiled"}
-
-
-def _blur(x: Tensor, window: Tensor, padding: str, sigma: float = 1.5) -> Tensor:
-    """Separable Gaussian blur of ``(B, C, H, W)`` per channel; zero padding for "same", none for "valid"."""
-    if BLUR.get(x.device.type, "conv") == "tiled":
-        return _blur_tiled(x, window, padding, sigma)
-    return _blur_conv(x, window, padding)
 
 
 def ssim_map(
@@ -116,7 +60,7 @@ def ssim_map(
     c = x.shape[1]
     w = gaussian_window(window_size, sigma, x.dtype, x.device)
     # One grouped convolution for the five local moments.
-    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), w, padding, sigma)
+    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), w, padding)
     mu_x, mu_y, xx, yy, xy = stats.split(c, dim=1)
     mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
     s_xx, s_yy, s_xy = xx - mu_xx, yy - mu_yy, xy - mu_xy

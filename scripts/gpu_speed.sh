@@ -7,10 +7,11 @@
 #               --seeds 0 --prepare-only      (after copying a clean base into .gpuD/data/llff_flower/)
 #   device: command "bash scripts/gpu_speed.sh", carry [".whlmin", ".gpuD"], kind nvidia-h200
 #
-# Knobs (environment): STAGES ("tests overhead profile"; "ssim": benchmarks/bench_ssim.py; "full" trains jsgs, then gsplat, for FULL_ITERS
-# (10000) steps each, evaluated at 3000 / 7000 / 10000), ITERS (2000, overhead), GRAPHS (off,jo,on),
+# Knobs (environment): STAGES ("tests overhead profile"; "full" trains the FULL_RUNS ("jsgs gsplat"; also
+# jsgs_eager: JSGS without CUDA graphs) one after the other for FULL_ITERS (10000) steps each, evaluated at
+# 3000 / 7000 / 10000), ITERS (2000, overhead), GRAPHS (off,jo,on),
 # MODES (paper), WHL (.whlmin), DATA (.gpuD/data; LPIPS weights in .gpuD/alexnet_features.pth). Results in
-# $OUT: gpu_tests.log, ssim.{txt,json}, overhead.{txt,json}, profile.{txt,json}, full_<method>.{json,log} (metrics.json).
+# $OUT: gpu_tests.log, overhead.{txt,json}, profile.{txt,json}, full_<method>.{json,log} (metrics.json).
 set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/jsgs_gpu_out}
@@ -36,16 +37,16 @@ for stage in ${STAGES:-tests overhead profile}; do
     tests) JSGS_GPU_MANIFEST=$M python3 -m pytest -m gpu -p no:cacheprovider -q -s -p no:warnings \
         tests/test_graphed.py tests/test_render_gpu.py tests/test_jsgs_method.py > "$OUT/gpu_tests.log" 2>&1
         tail -n 3 "$OUT/gpu_tests.log" ;;
-    ssim) python3 benchmarks/bench_ssim.py --device cuda --sizes 504x378,1297x840 --repeats 50 \
-        --out "$OUT/ssim.json" > "$OUT/ssim.txt" 2>&1
-        cat "$OUT/ssim.txt" ;;
     overhead) python3 benchmarks/bench_train_overhead.py --manifest "$M" --iterations "${ITERS:-2000}" \
         --repeats 1 --device cuda --jpeg-modes "${MODES:-paper}" --cuda-graph "${GRAPHS:-off,jo,on}" \
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1
         tail -n 16 "$OUT/overhead.txt" ;;
-    full) for m in jsgs gsplat; do
-            python3 -m cli.jsgs_cli train "$M" --out "/tmp/full_$m" --method $m --iterations "${FULL_ITERS:-10000}" \
-                --eval-at 3000,7000,10000 --device cuda --quiet --force > "$OUT/full_$m.log" 2>&1
+    full) for m in ${FULL_RUNS:-jsgs gsplat}; do  # jsgs_eager: JSGS without CUDA graphs
+            echo '{"method_options": {"cuda_graph": false}}' > /tmp/eager.json
+            cfg=(); [ "$m" = jsgs_eager ] && cfg=(--config /tmp/eager.json)
+            python3 -m cli.jsgs_cli train "$M" --out "/tmp/full_$m" --method "${m%_eager}" "${cfg[@]}" \
+                --iterations "${FULL_ITERS:-10000}" --eval-at 3000,7000,10000 --device cuda --quiet --force \
+                > "$OUT/full_$m.log" 2>&1
             cp "/tmp/full_$m/metrics.json" "$OUT/full_$m.json"
             tail -n 2 "$OUT/full_$m.log"
         done ;;

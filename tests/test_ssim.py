@@ -4,7 +4,6 @@ zero padding (the 3DGS convention: conv2d with padding 5 on the 2-D outer-produc
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 import pytest
@@ -78,34 +77,3 @@ def test_photometric_loss_formula() -> None:
     assert photometric_loss(x, y).item() == pytest.approx(expected.item(), rel=1e-12)
     per = photometric_loss(x, y, reduction="none")
     assert per.mean().item() == pytest.approx(expected.item(), rel=1e-12)
-
-
-@pytest.mark.parametrize("impl", ["conv", "tiled"])
-def test_every_blur_implementation_matches_the_reference(impl: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Each way of running the blur (jsgs.ssim.BLUR, chosen per device by measured speed): the float64
-    reference, both paddings, a batch of two, sizes that are not whole tiles, and float64 gradients."""
-    from jsgs import ssim as ssim_mod
-
-    monkeypatch.setitem(ssim_mod.BLUR, "cpu", impl)
-    monkeypatch.setattr(ssim_mod, "TILE", 8)  # several tiles, the last one partial, on a small image
-    rng = np.random.default_rng(1)
-    x = rng.random((2, 3, 13, 18))
-    y = np.clip(x + rng.normal(0, 0.1, x.shape), 0, 1)
-    tx, ty = torch.tensor(x), torch.tensor(y)
-    for valid in (False, True):
-        got = ssim_map(tx, ty, padding="valid" if valid else "same").numpy()
-        for b in range(2):
-            assert np.allclose(got[b], reference_ssim_map(x[b], y[b], valid=valid), atol=1e-12), (b, valid)
-    xr, yr = tx[:1, :, :12, :11].clone().requires_grad_(), ty[:1, :, :12, :11]
-    assert torch.autograd.gradcheck(lambda a: photometric_loss(a, yr, padding="valid"), (xr,))
-    assert torch.autograd.gradcheck(lambda a: photometric_loss(a, yr, padding="same"), (xr,))
-
-
-def test_bench_ssim_runs_and_writes_its_schema(tmp_path: Any) -> None:
-    from conftest import load_benchmark
-
-    bench = load_benchmark("bench_ssim")
-    rows = bench.main(["--sizes", "40x24", "--repeats", "2", "--out", str(tmp_path / "s.json")])
-    assert {r["impl"] for r in rows} == {"conv", "tiled"}
-    assert all(r["grad_rel_err"] < 1e-5 and r["ms"] > 0 and r["graph_ms"] is None for r in rows)
-    assert list(tmp_path.iterdir()) == [tmp_path / "s.json"]
