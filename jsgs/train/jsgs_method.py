@@ -26,10 +26,12 @@ values and gradients (tested), chosen by ``gc_pooling``:
 * ``"deferred"`` (default): ``probe_objective`` (value exactly 0) rides in the ``fro`` term, so the main
   backward itself pools ``(o·S_r, ν)`` into the probe's gradient; a post-accumulate hook on the probe then
   computes r̄, V_i, L_fro and L_fro's closed-form gradient and adds ``λ_fro ∂L_fro/∂θ`` to the
-  opacity-logit and log-scale gradients. No extra rasteriser pass of any kind. The ``fro`` term's value
-  (and the GC statistics) are written in place during that backward: they are correct wherever the trainer
-  reads them after ``loss.backward()`` (progress bar, metrics.json), but the total ``loss`` the trainer sums
-  *before* the backward does not include ``λ_fro L_fro`` (its logged value; the gradient is complete).
+  opacity-logit and log-scale gradients (``jsgs.train.controller.fro_from_probe_grad``; on CUDA replayed as
+  one graph, ``jsgs.train.graphed.GraphedController``). No extra rasteriser pass of any kind. The ``fro``
+  term's value (and the GC statistics) are written in place during that backward: they are correct wherever
+  the trainer reads them after ``loss.backward()`` (progress bar, metrics.json), but the total ``loss`` the
+  trainer sums *before* the backward does not include ``λ_fro L_fro`` (its logged value; the gradient is
+  complete).
 * ``"now"``: ``pool_now`` runs one extra rasteriser backward before the loss is formed; L_fro is an ordinary
   autograd term (exact total loss too; costs that extra backward).
 
