@@ -157,11 +157,6 @@ class _ControllerInBuffers:
         return self.buffers
 
 
-def _controller_settings(hook: Any) -> dict[str, float]:
-    o = hook.opts
-    return dict(weight=o.lambda_fro, near_plane=hook.near_plane, eps_proj=o.eps_proj, tau_s=o.tau_s)
-
-
 def test_the_hooks_graphed_controller_branch_gives_the_eager_terms_and_gradients() -> None:
     """The deferred GC through the graph's contract (outputs in buffers that the next replay overwrites):
     bit-for-bit the eager values and gradients, and nothing the step keeps aliases those buffers."""
@@ -169,7 +164,7 @@ def test_the_hooks_graphed_controller_branch_gives_the_eager_terms_and_gradients
     eager = train_step(new_hook(view), view)
     hook = new_hook(view)
     hook.keep_last = False  # keep_last asks for the pooled sums, which only the eager chain hands back
-    fake = hook._gc_graphed = _ControllerInBuffers(**_controller_settings(hook))
+    fake = hook._gc_graphed = _ControllerInBuffers(**hook._gc_settings)
     splats = make_splats()
     graphed = train_step(hook, view, splats)
     assert fake.calls == 1
@@ -210,7 +205,7 @@ def test_a_failed_controller_recording_falls_back_to_eager(
     monkeypatch.setattr(GraphedImageTerms, "_check_device", staticmethod(lambda x: None))
     hook = new_hook(view)
     hook.keep_last = False
-    hook._gc_graphed = GraphedController(**_controller_settings(hook))
+    hook._gc_graphed = GraphedController(**hook._gc_settings)
     first, second = train_step(hook, view), train_step(hook, view)
     for res in (first, second):
         assert res["terms"] == eager["terms"] and res["stats"] == eager["stats"]

@@ -298,15 +298,16 @@ class JsgsHook(LossHook):
             "supervise": _maybe_compile(dct_supervision, options.compile),
         }
         self._graphed = None
+        # what fixes the deferred GC (jsgs.train.controller.fro_from_probe_grad), eager or graphed
+        self._gc_settings: dict[str, float] = dict(
+            weight=options.lambda_fro, near_plane=near_plane, eps_proj=options.eps_proj, tau_s=options.tau_s
+        )
         self._gc_graphed: GraphedController | None = None
         self.cuda_graph = use_cuda_graph(options, self.device)
         if self.cuda_graph:
             self._graphed = GraphedImageTerms(**self._jpeg_settings)
             if self.gc_route == "deferred" and options.cuda_graph_gc:
-                self._gc_graphed = GraphedController(
-                    weight=options.lambda_fro, near_plane=near_plane, eps_proj=options.eps_proj,
-                    tau_s=options.tau_s,
-                )  # fmt: skip
+                self._gc_graphed = GraphedController(**self._gc_settings)
 
     def describe(self) -> dict[str, Any]:
         return {
@@ -472,26 +473,23 @@ class JsgsHook(LossHook):
     ) -> Tensor:
         """The deferred GC inside the backward: adds λ_fro ∂L_fro/∂θ to the opacity-logit and log-scale
         gradients and returns the packed (L_fro, statistics) [4] (the graph's when graphed)."""
-        opts = self.opts
+        graphed = None
         if self._gc_graphed is not None and not self.keep_last:
             try:
-                g_logit, g_ls, packed = self._gc_graphed(probe_grad, *params, viewmat, K, w, h)
+                graphed = self._gc_graphed(probe_grad, *params, viewmat, K, w, h)
             except GraphCaptureFailed as e:
                 self._gc_graphed = None
                 warn_eager_fallback("recording the Gaussian Controller as a CUDA graph", str(e), "it")
-            else:
-                _add_grad(params[0], g_logit)
-                _add_grad(params[1], g_ls)
-                return packed
-        out = fro_from_probe_grad(
-            probe_grad, *params, viewmat, K, w, h, weight=opts.lambda_fro, near_plane=self.near_plane,
-            eps_proj=opts.eps_proj, tau_s=opts.tau_s,
-        )  # fmt: skip
-        _add_grad(params[0], out.grad_logit)
-        _add_grad(params[1], out.grad_log_scale)
-        if self.keep_last:
-            self.last.update(sums=out.sums, rbar=out.rbar, visible=out.visible, fro=out.terms, A=out.A)
-        return packed_fro_stats(out.terms)
+        if graphed is not None:
+            g_logit, g_ls, packed = graphed
+        else:
+            out = fro_from_probe_grad(probe_grad, *params, viewmat, K, w, h, **self._gc_settings)
+            g_logit, g_ls, packed = out.grad_logit, out.grad_log_scale, packed_fro_stats(out.terms)
+            if self.keep_last:
+                self.last.update(sums=out.sums, rbar=out.rbar, visible=out.visible, fro=out.terms, A=out.A)
+        _add_grad(params[0], g_logit)
+        _add_grad(params[1], g_ls)
+        return packed
 
 
 def _add_grad(p: Tensor, g: Tensor) -> None:
