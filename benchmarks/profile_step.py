@@ -66,6 +66,7 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -209,19 +210,15 @@ def step_callback(fn: Callable[[], None]) -> Iterator[None]:
 # Reading the profiler's events
 
 
-# Plain classes, not dataclasses: tests load this script with conftest.load_benchmark, as a module that is not
-# in sys.modules, where @dataclass cannot resolve the postponed annotations.
+@dataclass
 class KernelStat:
     """One kernel name's runs in the window: ``runs``, of which ``launched`` by a kernel-launch call of the
     host (the others: replayed from a CUDA graph, or copies and fills), and ``time_us``: device time (CUDA),
     or the op's host time, its children included (CPU)."""
 
-    __slots__ = ("runs", "launched", "time_us")
-
-    def __init__(self) -> None:
-        self.runs = 0
-        self.launched = 0
-        self.time_us = 0.0
+    runs: int = 0
+    launched: int = 0
+    time_us: float = 0.0
 
     def add(self, time_us: float, launched: bool = True) -> None:
         self.runs += 1
@@ -229,17 +226,17 @@ class KernelStat:
         self.time_us += time_us
 
 
+@dataclass
 class WindowStats:
     """Totals over the recorded window (divide by the number of steps); ``syncs`` and ``device_us`` are None
     on the CPU."""
 
-    def __init__(self) -> None:
-        self.launches = 0
-        self.graph_launches = 0
-        self.syncs: int | None = None
-        self.device_us: float | None = None
-        self.host_us = 0.0
-        self.kernels: dict[str, KernelStat] = {}
+    launches: int = 0
+    graph_launches: int = 0
+    syncs: int | None = None
+    device_us: float | None = None
+    host_us: float = 0.0
+    kernels: dict[str, KernelStat] = field(default_factory=dict)
 
 
 @cache
