@@ -29,12 +29,8 @@ END=${END:-520}
 COMPILE=${COMPILE:-auto}
 PRE=${PRE:-}
 PRE_GPU=${PRE_GPU:-${S1_GPUS%%,*}}
-if [ ! -f /tmp/site/.jsgs_ok ]; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
-        "${WHL:-.whl}"/*.whl && touch /tmp/site/.jsgs_ok || exit 1
-fi
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 OMP_NUM_THREADS=4
-export TORCH_EXTENSIONS_DIR=$PWD/.torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16
+WHL=${WHL:-.whl}
+. scripts/gpu_env.sh
 R0=$PWD/.res/bench_s0
 R1=$PWD/.res/bench_s1
 mkdir -p "$R0/data" "$R1/data"

@@ -16,12 +16,8 @@ set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/jsgs_gpu_out}
 mkdir -p "$OUT"
-if [ ! -f /tmp/site/.jsgs_ok ]; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
-        "${WHL:-.whlmin}"/*.whl && touch /tmp/site/.jsgs_ok || exit 1
-fi
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 OMP_NUM_THREADS=4
-export TORCH_EXTENSIONS_DIR=$PWD/.torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16
+WHL=${WHL:-.whlmin}
+. scripts/gpu_env.sh
 [ -f "${DATA:-.gpuD/data}/../alexnet_features.pth" ] && export JSGS_LPIPS_WEIGHTS=$PWD/${DATA:-.gpuD/data}/../alexnet_features.pth
 M=${DATA:-.gpuD/data}/llff_flower/gaussian_s0/manifest.json
 {
@@ -41,8 +37,8 @@ for stage in ${STAGES:-tests overhead profile}; do
         --repeats 1 --device cuda --jpeg-modes "${MODES:-paper}" --cuda-graph "${GRAPHS:-off,jo,on}" \
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1
         tail -n 16 "$OUT/overhead.txt" ;;
-    full) for m in ${FULL_RUNS:-jsgs gsplat}; do  # jsgs_eager: JSGS without CUDA graphs
-            echo '{"method_options": {"cuda_graph": false}}' > /tmp/eager.json
+    full) echo '{"method_options": {"cuda_graph": false}}' > /tmp/eager.json
+        for m in ${FULL_RUNS:-jsgs gsplat}; do  # jsgs_eager: JSGS without CUDA graphs
             cfg=(); [ "$m" = jsgs_eager ] && cfg=(--config /tmp/eager.json)
             python3 -m cli.jsgs_cli train "$M" --out "/tmp/full_$m" --method "${m%_eager}" "${cfg[@]}" \
                 --iterations "${FULL_ITERS:-10000}" --eval-at 3000,7000,10000 --device cuda --quiet --force \
