@@ -1,11 +1,25 @@
 """SSIM as 3D Gaussian Splatting computes it (and fused-ssim reproduces): 11x11 Gaussian window, sigma 1.5,
 C1 = 0.01^2, C2 = 0.03^2, data range 1, zero padding of 5 ("same" output size), mean over every pixel and
-channel. The window is separable, so it is applied as two 1-D convolutions (same value as the 2-D one).
+channel.
+
+Two implementations of one definition, picked by ``kernel``:
+
+- "torch": the separable window as two 1-D grouped convolutions (same value as the 2-D one). Runs
+  anywhere, and is the reference the CUDA kernel is tested against.
+- "cuda": ``jsgs/csrc/ssim.cu``, one fused kernel forward and one backward, built on first use with
+  ``torch.utils.cpp_extension`` (needs nvcc). On a GPU the convolutions cost more than the rasterisation's
+  backward (cuDNN's depthwise kernels plus layout transposes); gsplat's simple_trainer uses the fused-ssim
+  package for the same reason.
+- "auto" (default): "cuda" for float32/float64 CUDA tensors with the 11-tap window when the kernel builds
+  and only ``x`` needs a gradient, else "torch"; a failed build says so once on stderr.
 """
 
 from __future__ import annotations
 
 import functools
+import sys
+from pathlib import Path
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -15,6 +29,8 @@ from jsgs.precision import ieee_fp32
 
 C1 = 0.01**2
 C2 = 0.03**2
+SSIM_KERNELS = ("auto", "torch", "cuda")
+_SOURCE = Path(__file__).parent / "csrc" / "ssim.cu"
 
 
 @functools.cache
@@ -43,13 +59,80 @@ def _blur(x: Tensor, window: Tensor, padding: str) -> Tensor:
         return F.conv2d(x, wh, padding=(0, pad), groups=c)
 
 
+@functools.cache
+def _extension_or_error() -> tuple[Any, str | None]:
+    try:
+        from torch.utils.cpp_extension import load
+
+        ext = load(name="jsgs_ssim", sources=[str(_SOURCE)], extra_cuda_cflags=["-O3"], verbose=False)
+    except Exception as e:  # no nvcc, no compiler, a CPU-only torch: the twin computes the same
+        return None, " ".join(str(e).split())[:300] or type(e).__name__
+    return ext, None
+
+
+def fused_extension(warn: bool = True) -> Any | None:
+    """The compiled ``jsgs/csrc/ssim.cu`` module, built once per process (and cached on disk by torch in
+    ``$TORCH_EXTENSIONS_DIR``); None where it cannot be built (one stderr line the first time)."""
+    ext, err = _extension_or_error()
+    if err is not None and warn and not _warned:
+        _warned.append(True)
+        print(f"warning: building the fused SSIM kernel failed ({err}); using the torch SSIM",
+              file=sys.stderr)
+    return ext
+
+
+_warned: list[bool] = []
+
+
+class _FusedSsimMap(torch.autograd.Function):
+    """SSIM map through the fused kernels; differentiable in ``x`` only (y is a target)."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, y: Tensor, window: Tensor, same: bool) -> Tensor:  # type: ignore[override]
+        ext = fused_extension()
+        smap, d_mu, d_xx, d_xy = ext.ssim_forward(x, y, window, C1, C2, same)
+        ctx.save_for_backward(x, y, window, d_mu, d_xx, d_xy)
+        ctx.same = same
+        return smap
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, None, None, None]:  # type: ignore[override]
+        x, y, window, d_mu, d_xx, d_xy = ctx.saved_tensors
+        grad_x = fused_extension().ssim_backward(grad, x, y, window, d_mu, d_xx, d_xy, ctx.same)
+        return grad_x, None, None, None
+
+
+def _use_fused(x: Tensor, y: Tensor, kernel: str, window_size: int) -> bool:
+    if kernel not in SSIM_KERNELS:
+        raise ValueError(f"kernel must be one of {', '.join(SSIM_KERNELS)}, got {kernel!r}")
+    if kernel == "torch":
+        return False
+    fits = x.dtype == y.dtype and x.dtype in (torch.float32, torch.float64) and window_size == 11
+    if kernel == "cuda":
+        if not x.is_cuda:
+            raise ValueError(f"the fused SSIM kernel needs CUDA tensors, got {x.device.type}")
+        if not fits:
+            raise ValueError(
+                f"the fused SSIM kernel needs float32 or float64 and an 11-tap window, got {x.dtype}, "
+                f"{y.dtype}, {window_size}"
+            )
+        if y.requires_grad:
+            raise ValueError("the fused SSIM kernel differentiates x only; y must not need a gradient")
+        if fused_extension(warn=False) is None:
+            raise RuntimeError(f"the fused SSIM kernel cannot be built: {_extension_or_error()[1]}")
+        return True
+    return x.is_cuda and fits and not y.requires_grad and fused_extension() is not None
+
+
 def ssim_map(
-    x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, padding: str = "same"
+    x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, padding: str = "same",
+    kernel: str = "auto",
 ) -> Tensor:
     """Per-pixel SSIM ``(B, C, H', W')`` of ``x``, ``y`` (``(B, C, H, W)``, data range 1).
 
     ``padding="same"``: H' = H, W' = W with zero padding (3DGS / fused-ssim); ``"valid"``: H' = H - 10 etc.
-    (no padded samples; needs H, W >= window_size).
+    (no padded samples; needs H, W >= window_size). ``kernel``: "auto", "torch" or "cuda" (module doc).
     """
     if padding not in ("same", "valid"):
         raise ValueError(f"padding must be 'same' or 'valid', got {padding!r}")
@@ -59,6 +142,8 @@ def ssim_map(
         )
     c = x.shape[1]
     w = gaussian_window(window_size, sigma, x.dtype, x.device)
+    if _use_fused(x, y, kernel, window_size):
+        return _FusedSsimMap.apply(x.contiguous(), y.contiguous(), w, padding == "same")
     # One grouped convolution for the five local moments.
     stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), w, padding)
     mu_x, mu_y, xx, yy, xy = stats.split(c, dim=1)
@@ -70,7 +155,7 @@ def ssim_map(
 
 
 def ssim(x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, padding: str = "same",
-         reduction: str = "mean") -> Tensor:
+         reduction: str = "mean", kernel: str = "auto") -> Tensor:
     """Structural similarity of two image batches.
 
     Args:
@@ -79,10 +164,11 @@ def ssim(x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, paddin
         padding: "same" (zero padding, 3DGS convention) or "valid".
         reduction: "mean" -> scalar, mean over every pixel, channel and image (3DGS); "none" -> ``(B,)`` per
             image.
+        kernel: "auto", "torch" or "cuda" (see the module doc).
     Returns:
         SSIM, 1 for identical images.
     """
-    m = ssim_map(x, y, window_size, sigma, padding)
+    m = ssim_map(x, y, window_size, sigma, padding, kernel)
     if reduction == "mean":
         return m.mean()
     if reduction == "none":
@@ -90,4 +176,4 @@ def ssim(x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, paddin
     raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
 
 
-__all__ = ["C1", "C2", "gaussian_window", "ssim", "ssim_map"]
+__all__ = ["C1", "C2", "SSIM_KERNELS", "fused_extension", "gaussian_window", "ssim", "ssim_map"]

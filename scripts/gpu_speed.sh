@@ -7,11 +7,12 @@
 #               --seeds 0 --prepare-only      (after copying a clean base into .gpuD/data/llff_flower/)
 #   device: command "bash scripts/gpu_speed.sh", carry [".whlmin", ".gpuD"], kind nvidia-h200
 #
-# Knobs (environment): STAGES ("tests overhead profile"; "full" trains the FULL_RUNS ("jsgs gsplat"; also
+# Knobs (environment): STAGES ("tests overhead profile"; "ssim": benchmarks/bench_ssim.py; "full" trains
+# the FULL_RUNS ("jsgs gsplat"; also
 # jsgs_eager: JSGS without CUDA graphs) one after the other for FULL_ITERS (10000) steps each, evaluated at
 # 3000 / 7000 / 10000), ITERS (2000, overhead), GRAPHS (off,jo,on),
 # MODES (paper), WHL (.whlmin), DATA (.gpuD/data; LPIPS weights in .gpuD/alexnet_features.pth). Results in
-# $OUT: gpu_tests.log, overhead.{txt,json}, profile.{txt,json}, full_<method>.{json,log} (metrics.json).
+# $OUT: gpu_tests.log, ssim.txt, overhead.{txt,json}, profile.{txt,json}, full_<method>.{json,log} (metrics.json).
 set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/jsgs_gpu_out}
@@ -31,8 +32,10 @@ for stage in ${STAGES:-tests overhead profile}; do
     t=$(date +%s)
     case $stage in
     tests) JSGS_GPU_MANIFEST=$M python3 -m pytest -m gpu -p no:cacheprovider -q -s -p no:warnings \
-        tests/test_graphed.py tests/test_render_gpu.py tests/test_jsgs_method.py > "$OUT/gpu_tests.log" 2>&1
+        tests/test_graphed.py tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_ssim_cuda.py \
+        > "$OUT/gpu_tests.log" 2>&1
         tail -n 3 "$OUT/gpu_tests.log" ;;
+    ssim) python3 benchmarks/bench_ssim.py > "$OUT/ssim.txt" 2>&1; tail -n 12 "$OUT/ssim.txt" ;;
     overhead) python3 benchmarks/bench_train_overhead.py --manifest "$M" --iterations "${ITERS:-2000}" \
         --repeats 1 --device cuda --jpeg-modes "${MODES:-paper}" --cuda-graph "${GRAPHS:-off,jo,on}" \
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1

@@ -15,7 +15,8 @@ LAMBDA_SSIM = 0.2
 
 
 def photometric_loss(
-    x: Tensor, y: Tensor, lambda_ssim: float = LAMBDA_SSIM, reduction: str = "mean", padding: str = "same"
+    x: Tensor, y: Tensor, lambda_ssim: float = LAMBDA_SSIM, reduction: str = "mean", padding: str = "same",
+    ssim_kernel: str = "auto",
 ) -> Tensor:
     """``l_ph(X, Y) = (1 - lambda) ||X - Y||_1 / (3HW) + lambda (1 - SSIM(X, Y))`` (eq. photometric).
 
@@ -25,6 +26,7 @@ def photometric_loss(
         reduction: "mean" -> scalar (mean over views of the per-view loss, equal to the mean over everything
             since views share H, W); "none" -> ``(B,)``.
         padding: SSIM borders, "same" (zero-padded, the original 3DGS) or "valid" (gsplat's training loss).
+        ssim_kernel: the SSIM implementation, "auto", "torch" or "cuda" (:mod:`jsgs.ssim`; same value).
     Returns:
         The loss (unitless).
     """
@@ -34,7 +36,8 @@ def photometric_loss(
         l1 = (x - y).abs().flatten(1).mean(1)
     else:
         raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
-    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - ssim(x, y, padding=padding, reduction=reduction))
+    s = ssim(x, y, padding=padding, reduction=reduction, kernel=ssim_kernel)
+    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
 
 
 class ObservationLoss(NamedTuple):

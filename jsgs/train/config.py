@@ -146,6 +146,12 @@ class LossConfig:
         "SSIM window padding in l_ph: valid (gsplat simple_trainer's fused_ssim call) or same (zero padding, "
         "the original 3DGS).",
     )
+    ssim_kernel: Literal["auto", "torch", "cuda"] = _f(
+        "auto",
+        "SSIM implementation for l_ph and L_obs (same value): auto (the fused CUDA kernel jsgs/csrc/ssim.cu "
+        "on a GPU, as gsplat's simple_trainer uses fused-ssim; the torch twin elsewhere), torch (separable "
+        "convolutions everywhere) or cuda (the kernel, or an error).",
+    )
     base_weight: float = _f(1.0, "lambda_base: weight of l_ph in the total loss (JSGS exposes it).")
     opacity_reg: float = _f(0.0, "Weight of mean(opacity) (gsplat opacity_reg).")
     scale_reg: float = _f(0.0, "Weight of mean(exp(scales)) (gsplat scale_reg).")
@@ -467,6 +473,11 @@ def config_schema() -> dict[str, Any]:
                     "num_test_views": {"type": "integer"},
                     "initial_gaussians": {"type": "integer"},
                     "notes": {"type": "array", "items": {"type": "string"}},
+                    "ssim_kernel": {
+                        "enum": ["torch", "cuda"],
+                        "description": "The SSIM implementation that loss.ssim_kernel resolved to on this "
+                        "device (cuda: the fused kernel, built before training starts).",
+                    },
                     "method": {
                         "type": "object",
                         "description": "What the method resolved from its options for this run (JSGS: "

@@ -42,6 +42,7 @@ def jpeg_terms(
     mode: str,
     ssim_lambda: float,
     ssim_padding: str,
+    ssim_kernel: str = "auto",
     ds: bool,
     gc: bool,
     eps_sm: float,
@@ -66,7 +67,7 @@ def jpeg_terms(
     """
     with phase("jo"):
         obs = observe(x, luma, chroma, sampling, mode)
-        l_obs = photometric(obs, y, ssim_lambda, padding=ssim_padding)
+        l_obs = photometric(obs, y, ssim_lambda, padding=ssim_padding, ssim_kernel=ssim_kernel)
     if not (ds or gc):
         return obs, l_obs, None
     with phase("ds"):

@@ -266,6 +266,7 @@ class JsgsHook(LossHook):
         *,
         ssim_lambda: float = 0.2,
         ssim_padding: str = "valid",
+        ssim_kernel: str = "auto",
         near_plane: float = 0.01,
         device: torch.device | None = None,
     ) -> None:
@@ -288,7 +289,8 @@ class JsgsHook(LossHook):
 
         # what fixes the JO / L_obs / DS chain (jsgs.train.graphed.jpeg_terms), in both routes
         self._jpeg_settings: dict[str, Any] = dict(
-            mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding, ds=options.ds,
+            mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding,
+            ssim_kernel=ssim_kernel, ds=options.ds,
             gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,
             eps_block=options.eps_dct_block,
         )  # fmt: skip
@@ -519,6 +521,7 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
         tables,
         ssim_lambda=cfg.loss.ssim_lambda,
         ssim_padding=cfg.loss.ssim_padding,
+        ssim_kernel=cfg.loss.ssim_kernel,
         near_plane=cfg.render.near_plane,
         device=device,
     )

@@ -410,6 +410,7 @@ def train(
         if start_ckpt is None
         else int(json_load(paths.config)["derived"]["initial_gaussians"]),
         "notes": scene.notes,
+        "ssim_kernel": _resolve_ssim_kernel(cfg.loss.ssim_kernel, device),
         "method": hook.describe() if hook is not None else {},
     }
     if not resume:
@@ -644,6 +645,23 @@ def train(
     return doc
 
 
+def _resolve_ssim_kernel(kernel: str, device: torch.device) -> str:
+    """"cuda" or "torch": what ``loss.ssim_kernel`` means on ``device``. Builds the fused kernel now (about a
+    minute the first time on a machine), so that neither the build nor its failure lands inside the timed
+    training steps."""
+    from jsgs.ssim import fused_extension
+
+    if kernel == "torch" or device.type != "cuda":
+        if kernel == "cuda":
+            raise JsgsError(f"config: loss.ssim_kernel cuda needs a CUDA device (training on {device.type})")
+        return "torch"
+    if fused_extension(warn=kernel == "auto") is None:
+        if kernel == "cuda":
+            raise JsgsError("config: loss.ssim_kernel cuda: the fused SSIM kernel cannot be built (no nvcc?)")
+        return "torch"
+    return "cuda"
+
+
 def _stat_tensor(value: Any, device: torch.device) -> torch.Tensor:
     if isinstance(value, torch.Tensor):
         return value.detach().float().reshape(()).to(device)
@@ -661,7 +679,10 @@ def _base_terms(
 
     lam = cfg.loss.ssim_lambda
     l1 = F.l1_loss(rgb, target)
-    ssim_term = 1.0 - ssim(rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2), padding=cfg.loss.ssim_padding)
+    ssim_term = 1.0 - ssim(
+        rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2), padding=cfg.loss.ssim_padding,
+        kernel=cfg.loss.ssim_kernel,
+    )
     photometric = (1.0 - lam) * l1 + lam * ssim_term
     terms = {"l1": l1, "ssim": ssim_term, "photometric": photometric}
     weights = {"l1": 0.0, "ssim": 0.0, "photometric": cfg.loss.base_weight}

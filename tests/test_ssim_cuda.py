@@ -1,0 +1,126 @@
+"""The fused SSIM kernel (``jsgs/csrc/ssim.cu``) against its torch twin (``jsgs.ssim``, kernel="torch").
+
+On CPU: how ``kernel`` is chosen and refused. On CUDA (the kernel is built on first use, ~30 s): values and
+gradients equal the twin's in float64 (tight) and float32, for both paddings, odd sizes, batches, a
+non-uniform upstream gradient, flat and saturated images, and inside a CUDA graph.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from jsgs.ssim import ssim, ssim_map
+
+cuda = pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs CUDA (the fused SSIM kernel is CUDA-only)"
+)
+
+
+def test_auto_on_cpu_is_the_twin() -> None:
+    g = torch.Generator().manual_seed(0)
+    x, y = torch.rand(2, 3, 20, 24, generator=g), torch.rand(2, 3, 20, 24, generator=g)
+    assert torch.equal(ssim_map(x, y, kernel="auto"), ssim_map(x, y, kernel="torch"))
+
+
+def test_kernel_choice_is_checked() -> None:
+    x = torch.rand(1, 3, 16, 16)
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        ssim(x, x, kernel="fast")
+    with pytest.raises(ValueError, match="needs CUDA tensors"):
+        ssim(x, x, kernel="cuda")
+
+
+def _pair(shape: tuple[int, ...], dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(*shape, generator=g, dtype=torch.float64)
+    y = (x + 0.2 * torch.randn(*shape, generator=g, dtype=torch.float64)).clamp(0, 1)
+    return x.to("cuda", dtype), y.to("cuda", dtype)
+
+
+def _both(x: torch.Tensor, y: torch.Tensor, padding: str, weight: torch.Tensor | None = None):
+    out = []
+    for kernel in ("cuda", "torch"):
+        xa = x.clone().requires_grad_()
+        m = ssim_map(xa, y, padding=padding, kernel=kernel)
+        (m.mean() if weight is None else (m * weight).sum()).backward()
+        out.append((m.detach(), xa.grad))
+    return out
+
+
+@cuda
+@pytest.mark.gpu
+@pytest.mark.parametrize("padding", ["same", "valid"])
+@pytest.mark.parametrize("shape", [(1, 3, 37, 53), (2, 3, 64, 41), (1, 1, 11, 11)])
+def test_fused_matches_twin_float64(padding: str, shape: tuple[int, ...]) -> None:
+    x, y = _pair(shape, torch.float64, 1)
+    (m1, g1), (m2, g2) = _both(x, y, padding)
+    torch.testing.assert_close(m1, m2, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(g1, g2, rtol=1e-10, atol=1e-14)
+
+
+@cuda
+@pytest.mark.gpu
+@pytest.mark.parametrize("padding", ["same", "valid"])
+def test_fused_matches_twin_float32_weighted(padding: str) -> None:
+    x, y = _pair((2, 3, 96, 130), torch.float32, 2)
+    ho, wo = (96, 130) if padding == "same" else (86, 120)
+    weight = torch.rand(2, 3, ho, wo, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
+    (m1, g1), (m2, g2) = _both(x, y, padding, weight)
+    # float32 sums in another order: the two differ by rounding, and each stays as close to float64
+    torch.testing.assert_close(m1, m2, rtol=0, atol=5e-6)
+    torch.testing.assert_close(g1, g2, rtol=0, atol=5e-6)
+    (m64, g64), _ = _both(x.double(), y.double(), padding, weight.double())
+    for m, g in ((m1, g1), (m2, g2)):
+        assert (m.double() - m64).abs().max() < 5e-6 and (g.double() - g64).abs().max() < 5e-6
+
+
+@cuda
+@pytest.mark.gpu
+@pytest.mark.parametrize("case", ["flat", "black", "saturated", "inverse"])
+def test_fused_hard_cases_are_finite_and_match(case: str) -> None:
+    x, y = _pair((1, 3, 40, 40), torch.float32, 3)
+    if case == "flat":  # zero variance everywhere: S rests on C1 and C2 alone
+        x, y = torch.full_like(x, 0.5), torch.full_like(y, 0.5)
+    elif case == "black":
+        x, y = torch.zeros_like(x), torch.zeros_like(y)
+    elif case == "saturated":
+        x, y = (x > 0.5).float(), torch.ones_like(y)
+    else:  # 2 s_xy + C2 near or below 0
+        y = 1.0 - x
+    (m1, g1), (m2, g2) = _both(x, y, "valid")
+    assert torch.isfinite(m1).all() and torch.isfinite(g1).all()
+    torch.testing.assert_close(m1, m2, rtol=1e-5, atol=2e-6)
+    torch.testing.assert_close(g1, g2, rtol=1e-4, atol=1e-6)
+
+
+@cuda
+@pytest.mark.gpu
+def test_fused_inside_a_cuda_graph() -> None:
+    x, y = _pair((1, 3, 70, 90), torch.float32, 4)
+    xs = x.clone().requires_grad_()
+    fn = torch.cuda.make_graphed_callables(lambda a, b: ssim(a, b, padding="valid", kernel="cuda"), (xs, y))
+    for seed in (5, 6):
+        x2, y2 = _pair((1, 3, 70, 90), torch.float32, seed)
+        a = x2.clone().requires_grad_()
+        fn(a, y2).backward()
+        b = x2.clone().requires_grad_()
+        ref = ssim(b, y2, padding="valid", kernel="torch")
+        ref.backward()
+        torch.testing.assert_close(a.grad, b.grad, rtol=1e-4, atol=1e-7)
+
+
+@cuda
+@pytest.mark.gpu
+def test_fused_refuses_what_it_cannot_do() -> None:
+    x, y = _pair((1, 3, 16, 16), torch.float32, 0)
+    with pytest.raises(ValueError, match="must not need a gradient"):
+        ssim(x, y.requires_grad_(), kernel="cuda")
+    with pytest.raises(ValueError, match="needs float32 or float64"):
+        ssim(x.half(), y.half(), kernel="cuda")
+    with pytest.raises(ValueError, match="11-tap window"):
+        ssim(x, y, window_size=7, kernel="cuda")
+    # auto: the twin where the kernel does not apply (a target with a gradient)
+    yy = y.detach().clone().requires_grad_()
+    ssim(x, yy, kernel="auto").backward()
+    assert yy.grad is not None
