@@ -58,8 +58,10 @@ host launches. On the CPU the "kernels" are the counted aten ops and their time 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import math
+import pstats
 import shutil
 import sys
 import tempfile
@@ -186,6 +188,37 @@ class StepWindow:
         """The profiler's schedule: step number 0 is the run's setup, number k the segment's step k - 1; the
         segment's step ``settle - 1`` is the profiler's warm-up, the next ``steps`` are recorded."""
         return torch.profiler.schedule(wait=settle, warmup=1, active=steps, repeat=1)
+
+
+class PythonWindow(StepWindow):
+    """A :class:`StepWindow` that runs ``cProfile`` over the window instead of the torch profiler: where the
+    host's Python time goes (function self times; a sync shows up as the time of the call that waits)."""
+
+    def __init__(self, device: torch.device, settle: int, steps: int) -> None:
+        super().__init__(device, settle, steps)
+        self.profiler = cProfile.Profile()
+
+    def __call__(self) -> None:
+        i = self.calls
+        super().__call__()
+        if i == self.settle:
+            self.profiler.enable()
+        elif i == self.settle + self.steps:
+            self.profiler.disable()
+
+    def top(self, n: int) -> list[dict[str, Any]]:
+        """The ``n`` functions with the most self time: name, calls, self and cumulative ms per step."""
+        rows = []
+        for (file, line, func), (_, calls, tt, ct, _) in pstats.Stats(self.profiler).stats.items():  # type: ignore[attr-defined]
+            name = f"{func}" if file == "~" else f"{Path(file).name}:{line}({func})"
+            rows.append((tt, name, calls, ct))
+        rows.sort(reverse=True)
+        s = self.steps
+        return [
+            {"function": name, "calls_per_step": calls / s, "self_ms_per_step": 1e3 * tt / s,
+             "cumulative_ms_per_step": 1e3 * ct / s}
+            for tt, name, calls, ct in rows[:n]
+        ]  # fmt: skip
 
 
 @contextmanager
@@ -394,8 +427,10 @@ def profile_method(
     warmup: int,
     settle: int,
     steps: int,
+    python_top: int = 0,
 ) -> tuple[dict[str, Any], WindowStats]:
-    """Warm-up run, then the plain and the profiled copy of the window (module docstring)."""
+    """Warm-up run, then the plain and the profiled copy of the window (module docstring); with
+    ``python_top``, a third copy under cProfile."""
     train = loop_mod.train
     warm = work / "warm"
     train(manifest, warm, cfg, force=True, stop_at=warmup, progress=False, log=_quiet)
@@ -444,6 +479,14 @@ def profile_method(
         "device_name": doc["device_name"],
         "backend": doc["backend"],
     }
+    if python_top > 0:
+        py = work / "python"
+        shutil.copytree(warm, py)
+        pywin = PythonWindow(device, settle, steps)
+        with step_callback(pywin):
+            train(manifest, py, resume=True, progress=False, log=_quiet)
+        result["python_wall_ms_per_step"] = pywin.ms_per_step()
+        result["python_top"] = pywin.top(python_top)
     return result, stats
 
 
@@ -519,6 +562,21 @@ def print_report(doc: dict[str, Any]) -> None:
             )
 
 
+def print_python(doc: dict[str, Any]) -> None:
+    for m, r in doc["results"].items():
+        if "python_top" not in r:
+            continue
+        print()
+        wall = r["python_wall_ms_per_step"]
+        print(f"{m}: Python functions by self time (cProfile; wall {wall:.2f} ms/step under it)")
+        print()
+        print("| function | calls/step | self ms/step | cumulative ms/step |")
+        print("|---|---:|---:|---:|")
+        for row in r["python_top"]:
+            cells = (row["calls_per_step"], row["self_ms_per_step"], row["cumulative_ms_per_step"])
+            print(f"| {_name(row['function'], 80)} | {cells[0]:.1f} | {cells[1]:.3f} | {cells[2]:.3f} |")
+
+
 def _json_arg(text: str) -> dict[str, Any]:
     try:
         value = json.loads(text)
@@ -547,6 +605,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument("--steps", type=int, default=50, help="steps in the measured window [50]")
     ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
     ap.add_argument("--top", type=int, default=15, help="kernels in each difference table [15]")
+    ap.add_argument(
+        "--python-top", type=int, default=0,
+        help="also resume a copy under cProfile and list this many functions by self time [0: no]",
+    )  # fmt: skip
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     ap.add_argument("--workdir", type=Path, help="the runs' temporary folder goes here [system's]")
     ap.add_argument("--out", type=Path, help="write the results as JSON here")
@@ -584,7 +646,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             cfg = variant_config(base, m, opts, iterations, str(device))
             cfg.checkpoint_every = 0  # nothing but training inside the window
             results[m], stats[m] = profile_method(
-                manifest, work / m, cfg, device, args.warmup, args.settle, args.steps
+                manifest, work / m, cfg, device, args.warmup, args.settle, args.steps, args.python_top
             )
             results[m]["kernels"] = kernel_rows(stats[m].kernels, args.steps, args.top)
     baseline = methods[0]
@@ -614,6 +676,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         doc = run(args)
         print_report(doc)
+        print_python(doc)
         if args.out:
             from jsgs.schemas import validate
 

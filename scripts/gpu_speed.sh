@@ -8,11 +8,11 @@
 #   device: command "bash scripts/gpu_speed.sh", carry [".whlmin", ".gpuD"], kind nvidia-h200
 #
 # Knobs (environment): STAGES ("tests overhead profile"; "ssim": benchmarks/bench_ssim.py; "full" trains
-# the FULL_RUNS ("jsgs gsplat"; also
-# jsgs_eager: JSGS without CUDA graphs) one after the other for FULL_ITERS (10000) steps each, evaluated at
-# 3000 / 7000 / 10000), ITERS (2000, overhead), GRAPHS (off,jo,on),
+# the FULL_RUNS ("jsgs gsplat"; a name may repeat; METHOD_eager: JSGS without CUDA graphs; METHOD_torchssim:
+# the torch SSIM instead of the fused kernel) one after the other for FULL_ITERS (10000) steps each,
+# evaluated at 3000 / 7000 / 10000), ITERS (2000, overhead), GRAPHS (off,jo,on),
 # MODES (paper), WHL (.whlmin), DATA (.gpuD/data; LPIPS weights in .gpuD/alexnet_features.pth). Results in
-# $OUT: gpu_tests.log, ssim.txt, overhead.{txt,json}, profile.{txt,json}, full_<method>.{json,log} (metrics.json).
+# $OUT: gpu_tests.log, ssim.txt, overhead.{txt,json}, profile.{txt,json}, full_<i>_<run>.{json,log} (metrics.json).
 set -uo pipefail
 T0=$(date +%s)
 OUT=${OUT:-/tmp/jsgs_gpu_out}
@@ -41,13 +41,17 @@ for stage in ${STAGES:-tests overhead profile}; do
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1
         tail -n 16 "$OUT/overhead.txt" ;;
     full) echo '{"method_options": {"cuda_graph": false}}' > /tmp/eager.json
-        for m in ${FULL_RUNS:-jsgs gsplat}; do  # jsgs_eager: JSGS without CUDA graphs
-            cfg=(); [ "$m" = jsgs_eager ] && cfg=(--config /tmp/eager.json)
-            python3 -m cli.jsgs_cli train "$M" --out "/tmp/full_$m" --method "${m%_eager}" "${cfg[@]}" \
+        echo '{"loss": {"ssim_kernel": "torch"}}' > /tmp/torchssim.json
+        i=0
+        for m in ${FULL_RUNS:-jsgs gsplat}; do  # METHOD[_eager|_torchssim], in this order; repeats allowed
+            i=$((i + 1))
+            cfg=(); case $m in *_eager) cfg=(--config /tmp/eager.json) ;; *_torchssim) cfg=(--config /tmp/torchssim.json) ;; esac
+            python3 -m cli.jsgs_cli train "$M" --out "/tmp/full_$m" --method "${m%%_*}" "${cfg[@]}" \
                 --iterations "${FULL_ITERS:-10000}" --eval-at 3000,7000,10000 --device cuda --quiet --force \
-                > "$OUT/full_$m.log" 2>&1
-            cp "/tmp/full_$m/metrics.json" "$OUT/full_$m.json"
-            tail -n 2 "$OUT/full_$m.log"
+                > "$OUT/full_${i}_$m.log" 2>&1
+            cp "/tmp/full_$m/metrics.json" "$OUT/full_${i}_$m.json"
+            echo "$i $m: $(tail -n 2 "$OUT/full_${i}_$m.log" | head -n 1)"
+            python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print(f\"  {d['time_per_iteration_s']*1e3:.2f} ms/it\")" "$OUT/full_${i}_$m.json"
         done ;;
     profile) python3 benchmarks/profile_step.py --manifest "$M" --device cuda --out "$OUT/profile.json" \
         > "$OUT/profile.txt" 2>&1

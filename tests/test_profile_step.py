@@ -35,11 +35,13 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
     argv = [
         "--size", "48x32", "--views", "6", "--warmup", "3", "--settle", "1", "--steps", "2",
         "--device", "cpu", "--config", str(cfg), "--top", "5", "--workdir", str(work), "--out", str(out),
+        "--python-top", "4",
     ]  # fmt: skip
     assert ps.main(argv) == 0
     printed = capsys.readouterr().out
     assert "| method | wall ms/step (unprofiled) | wall ms/step (profiled) |" in printed
     assert "jsgs − gsplat: top 5 kernels by extra" in printed
+    assert "jsgs: Python functions by self time (cProfile" in printed
 
     doc = json.loads(out.read_text())
     validate(doc, "profile_step", str(out))
@@ -48,6 +50,9 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
     assert list(res) == ["gsplat", "jsgs"]
     for r in res.values():
         assert r["kernel_launches_per_step"] > 0 and r["host_op_ms_per_step"] > 0
+        top = r["python_top"]
+        assert len(top) == 4 and top[0]["self_ms_per_step"] >= top[-1]["self_ms_per_step"] > 0
+        assert all(t["cumulative_ms_per_step"] >= t["self_ms_per_step"] for t in top)
         assert r["wall_ms_per_step"] > 0 and r["wall_ms_per_step_profiled"] > 0
         assert r["graph_launches_per_step"] == 0  # CPU: no graphs, and no device-only numbers
         assert r["device_kernel_ms_per_step"] is None and r["syncs_per_step"] is None
