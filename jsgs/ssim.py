@@ -6,8 +6,8 @@ Two implementations of one definition, picked by ``kernel``:
 
 - "torch": the separable window as two 1-D grouped convolutions (same value as the 2-D one). Runs
   anywhere, and is the reference the CUDA kernel is tested against.
-- "cuda": ``jsgs/csrc/ssim.cu``, one fused kernel forward and one backward, built on first use with
-  ``torch.utils.cpp_extension`` (needs nvcc). On a GPU the convolutions cost more than the rasterisation's
+- "cuda": ``jsgs/csrc/ssim.cu``, one fused kernel forward and one backward, built on first use
+  (:mod:`jsgs.cuda_ext`, needs nvcc). On a GPU the convolutions cost more than the rasterisation's
   backward (cuDNN's depthwise kernels plus layout transposes); gsplat's simple_trainer uses the fused-ssim
   package for the same reason.
 - "auto" (default): "cuda" for float32/float64 CUDA tensors with the 11-tap window when the kernel builds
@@ -17,8 +17,6 @@ Two implementations of one definition, picked by ``kernel``:
 from __future__ import annotations
 
 import functools
-import sys
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -30,7 +28,6 @@ from jsgs.precision import ieee_fp32
 C1 = 0.01**2
 C2 = 0.03**2
 SSIM_KERNELS = ("auto", "torch", "cuda")
-_SOURCE = Path(__file__).parent / "csrc" / "ssim.cu"
 
 
 @functools.cache
@@ -59,29 +56,11 @@ def _blur(x: Tensor, window: Tensor, padding: str) -> Tensor:
         return F.conv2d(x, wh, padding=(0, pad), groups=c)
 
 
-@functools.cache
-def _extension_or_error() -> tuple[Any, str | None]:
-    try:
-        from torch.utils.cpp_extension import load
-
-        ext = load(name="jsgs_ssim", sources=[str(_SOURCE)], extra_cuda_cflags=["-O3"], verbose=False)
-    except Exception as e:  # no nvcc, no compiler, a CPU-only torch: the twin computes the same
-        return None, " ".join(str(e).split())[:300] or type(e).__name__
-    return ext, None
-
-
 def fused_extension(warn: bool = True) -> Any | None:
-    """The compiled ``jsgs/csrc/ssim.cu`` module, built once per process (and cached on disk by torch in
-    ``$TORCH_EXTENSIONS_DIR``); None where it cannot be built (one stderr line the first time)."""
-    ext, err = _extension_or_error()
-    if err is not None and warn and not _warned:
-        _warned.append(True)
-        print(f"warning: building the fused SSIM kernel failed ({err}); using the torch SSIM",
-              file=sys.stderr)
-    return ext
+    """The compiled kernels (:mod:`jsgs.cuda_ext`), or None where they cannot be built."""
+    from jsgs.cuda_ext import extension
 
-
-_warned: list[bool] = []
+    return extension(warn)
 
 
 class _FusedSsimMap(torch.autograd.Function):
@@ -108,19 +87,25 @@ def _use_fused(x: Tensor, y: Tensor, kernel: str, window_size: int) -> bool:
         raise ValueError(f"kernel must be one of {', '.join(SSIM_KERNELS)}, got {kernel!r}")
     if kernel == "torch":
         return False
-    fits = x.dtype == y.dtype and x.dtype in (torch.float32, torch.float64) and window_size == 11
+    # the kernel's grid has one z-slice per image x channel (CUDA allows 65535)
+    fits = (
+        x.dtype == y.dtype and x.dtype in (torch.float32, torch.float64) and window_size == 11
+        and x.shape[0] * x.shape[1] <= 65535
+    )  # fmt: skip
     if kernel == "cuda":
         if not x.is_cuda:
             raise ValueError(f"the fused SSIM kernel needs CUDA tensors, got {x.device.type}")
         if not fits:
             raise ValueError(
-                f"the fused SSIM kernel needs float32 or float64 and an 11-tap window, got {x.dtype}, "
-                f"{y.dtype}, {window_size}"
+                f"the fused SSIM kernel needs float32 or float64, an 11-tap window and at most 65535 "
+                f"images x channels, got {x.dtype}, {y.dtype}, {window_size}, {x.shape[0] * x.shape[1]}"
             )
         if y.requires_grad:
             raise ValueError("the fused SSIM kernel differentiates x only; y must not need a gradient")
         if fused_extension(warn=False) is None:
-            raise RuntimeError(f"the fused SSIM kernel cannot be built: {_extension_or_error()[1]}")
+            from jsgs.cuda_ext import build_error
+
+            raise RuntimeError(f"the fused SSIM kernel cannot be built: {build_error()}")
         return True
     return x.is_cuda and fits and not y.requires_grad and fused_extension() is not None
 

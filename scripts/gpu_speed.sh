@@ -9,7 +9,7 @@
 #
 # Knobs (environment): STAGES ("tests overhead profile"; "ssim": benchmarks/bench_ssim.py; "full" trains
 # the FULL_RUNS ("jsgs gsplat"; a name may repeat; METHOD_eager: JSGS without CUDA graphs; METHOD_torchssim:
-# the torch SSIM instead of the fused kernel) one after the other for FULL_ITERS (10000) steps each,
+# the torch SSIM instead of the fused kernel; METHOD_torchgc: the GC's torch twin, graphed) one after the other for FULL_ITERS (10000) steps each,
 # evaluated at 3000 / 7000 / 10000), ITERS (2000, overhead), GRAPHS (off,jo,on),
 # MODES (paper), WHL (.whlmin), DATA (.gpuD/data; LPIPS weights in .gpuD/alexnet_features.pth). Results in
 # $OUT: gpu_tests.log, ssim.txt, overhead.{txt,json}, profile.{txt,json}, full_<i>_<run>.{json,log} (metrics.json).
@@ -33,6 +33,7 @@ for stage in ${STAGES:-tests overhead profile}; do
     case $stage in
     tests) JSGS_GPU_MANIFEST=$M python3 -m pytest -m gpu -p no:cacheprovider -q -s -p no:warnings \
         tests/test_graphed.py tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_ssim_cuda.py \
+        tests/test_controller_cuda.py \
         > "$OUT/gpu_tests.log" 2>&1
         tail -n 3 "$OUT/gpu_tests.log" ;;
     ssim) python3 benchmarks/bench_ssim.py > "$OUT/ssim.txt" 2>&1; tail -n 12 "$OUT/ssim.txt" ;;
@@ -42,10 +43,12 @@ for stage in ${STAGES:-tests overhead profile}; do
         tail -n 16 "$OUT/overhead.txt" ;;
     full) echo '{"method_options": {"cuda_graph": false}}' > /tmp/eager.json
         echo '{"loss": {"ssim_kernel": "torch"}}' > /tmp/torchssim.json
+        echo '{"method_options": {"gc_kernel": "torch"}}' > /tmp/torchgc.json
         i=0
         for m in ${FULL_RUNS:-jsgs gsplat}; do  # METHOD[_eager|_torchssim], in this order; repeats allowed
             i=$((i + 1))
-            cfg=(); case $m in *_eager) cfg=(--config /tmp/eager.json) ;; *_torchssim) cfg=(--config /tmp/torchssim.json) ;; esac
+            cfg=(); case $m in *_eager) cfg=(--config /tmp/eager.json) ;; *_torchssim) cfg=(--config /tmp/torchssim.json) ;;
+                *_torchgc) cfg=(--config /tmp/torchgc.json) ;; esac
             python3 -m cli.jsgs_cli train "$M" --out "/tmp/full_$m" --method "${m%%_*}" "${cfg[@]}" \
                 --iterations "${FULL_ITERS:-10000}" --eval-at 3000,7000,10000 --device cuda --quiet --force \
                 > "$OUT/full_${i}_$m.log" 2>&1

@@ -322,13 +322,17 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
 
     def described(**options: Any) -> dict[str, Any]:
         tables = {view.index: new_hook(view).tables[view.index]}
-        return JsgsHook(parse_options(options), tables, device=cuda).describe()
+        return JsgsHook(parse_options({"gc_kernel": "torch", **options}), tables, device=cuda).describe()
 
     assert described()["cuda_graph_gc"] is True
     assert described(cuda_graph_gc=False) == {
-        "cuda_graph": True, "cuda_graph_gc": False, "gc_route": "deferred", "jpeg_mode": "paper"
+        "cuda_graph": True, "cuda_graph_gc": False, "gc_kernel": "torch", "gc_route": "deferred",
+        "jpeg_mode": "paper",
     }  # fmt: skip
     assert described(gc_pooling="now")["cuda_graph_gc"] is False
     assert described(cuda_graph=False)["cuda_graph_gc"] is False
+    if torch.cuda.is_available():  # the default on a GPU: the fused kernels, which need no graph
+        assert described(gc_kernel="auto")["gc_kernel"] == "cuda"
+        assert described(gc_kernel="auto")["cuda_graph_gc"] is False
     with pytest.raises(JsgsError, match="cuda_graph_gc must be true or false"):
         parse_options({"cuda_graph_gc": "yes"})

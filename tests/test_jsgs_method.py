@@ -575,7 +575,10 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
     settings = run_config["settings"]
     assert settings["method_options"] == {"jpeg_mode": "float"}
     # what "auto" and the routes resolved to on this device
-    resolved = {"cuda_graph": False, "cuda_graph_gc": False, "gc_route": "deferred", "jpeg_mode": "float"}
+    resolved = {
+        "cuda_graph": False, "cuda_graph_gc": False, "gc_kernel": "torch", "gc_route": "deferred",
+        "jpeg_mode": "float",
+    }  # fmt: skip
     assert run_config["derived"]["method"] == resolved
     assert "--jpeg-mode float" in json.loads((run / "config.json").read_text())["command"]
     # the switches are refused where they do not apply, and --no-jo alone is refused

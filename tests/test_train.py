@@ -432,3 +432,15 @@ def test_lpips_from_config_weights(tmp_path: Path) -> None:
     e = train(manifest, tmp_path / "run", cfg, progress=False)["evals"][-1]
     assert e["lpips"] is not None and 0.0 < e["lpips"] < 1.0 and e["lpips_note"] is None
     assert e["views"][0]["lpips"] == pytest.approx(e["lpips"])  # one test view
+
+
+def test_view_camera_tensors_are_made_once_per_device(scene: Path) -> None:
+    # the training step reads them every step; a fresh host-to-device copy each time is a GPU sync
+    from jsgs.train.data import load_scene
+
+    v = load_scene(scene, TrainConfig()).train_views[0]
+    vm, K = v.viewmat_tensor(torch.device("cpu")), v.K_tensor("cpu")
+    assert vm is v.viewmat_tensor("cpu") and K is v.K_tensor(torch.device("cpu"))
+    assert vm.shape == (1, 4, 4) and K.shape == (1, 3, 3) and vm.dtype == K.dtype == torch.float32
+    assert np.array_equal(vm[0].numpy(), v.viewmat.astype(np.float32))
+    assert np.array_equal(K[0].numpy(), v.K.astype(np.float32))

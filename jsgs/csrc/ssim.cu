@@ -16,8 +16,8 @@
 // memory, then the separable window is applied along rows and then along columns. The backward is the same
 // correlation (the window is symmetric) applied to the three weighted derivative maps, with the tile shifted
 // by the halo. Only the 11-tap window exists here (what SSIM uses); jsgs.ssim sends other sizes to the twin.
-#include <torch/extension.h>
-
+#include <ATen/ATen.h>
+#include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
@@ -165,7 +165,7 @@ __global__ void __launch_bounds__(kTileW* kTileH)
   grad_x[q] = acc[0] + 2 * x[q] * acc[1] + y[q] * acc[2];
 }
 
-void check_inputs(const torch::Tensor& x, const torch::Tensor& y, const torch::Tensor& window) {
+void check_inputs(const at::Tensor& x, const at::Tensor& y, const at::Tensor& window) {
   TORCH_CHECK(x.is_cuda() && y.is_cuda() && window.is_cuda(), "fused SSIM: tensors must be on CUDA");
   TORCH_CHECK(x.dim() == 4 && x.sizes() == y.sizes(), "fused SSIM: x, y must be (B, C, H, W) of one shape");
   TORCH_CHECK(x.scalar_type() == y.scalar_type() && x.scalar_type() == window.scalar_type(),
@@ -181,7 +181,7 @@ struct Geometry {
   int H, W, Ho, Wo, off;
 };
 
-Geometry geometry(const torch::Tensor& x, const torch::Tensor& window, bool same) {
+Geometry geometry(const at::Tensor& x, const at::Tensor& window, bool same) {
   Geometry g;
   g.planes = x.size(0) * x.size(1);
   g.H = static_cast<int>(x.size(2));
@@ -200,15 +200,15 @@ dim3 tiles(int64_t planes, int rows, int cols) {
 
 }  // namespace
 
-std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch::Tensor window, double c1,
+std::vector<at::Tensor> ssim_forward(at::Tensor x, at::Tensor y, at::Tensor window, double c1,
                                         double c2, bool same) {
   check_inputs(x, y, window);
   const c10::cuda::CUDAGuard guard(x.device());
   const Geometry g = geometry(x, window, same);
-  auto smap = torch::empty({x.size(0), x.size(1), g.Ho, g.Wo}, x.options());
-  auto d_mu = torch::empty_like(smap);
-  auto d_xx = torch::empty_like(smap);
-  auto d_xy = torch::empty_like(smap);
+  auto smap = at::empty({x.size(0), x.size(1), g.Ho, g.Wo}, x.options());
+  auto d_mu = at::empty_like(smap);
+  auto d_xx = at::empty_like(smap);
+  auto d_xy = at::empty_like(smap);
   if (smap.numel() == 0) return {smap, d_mu, d_xx, d_xy};
   auto stream = c10::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "jsgs_ssim_forward", [&] {
@@ -220,8 +220,8 @@ std::vector<torch::Tensor> ssim_forward(torch::Tensor x, torch::Tensor y, torch:
   return {smap, d_mu, d_xx, d_xy};
 }
 
-torch::Tensor ssim_backward(torch::Tensor grad, torch::Tensor x, torch::Tensor y, torch::Tensor window,
-                            torch::Tensor d_mu, torch::Tensor d_xx, torch::Tensor d_xy, bool same) {
+at::Tensor ssim_backward(at::Tensor grad, at::Tensor x, at::Tensor y, at::Tensor window,
+                            at::Tensor d_mu, at::Tensor d_xx, at::Tensor d_xy, bool same) {
   check_inputs(x, y, window);
   const c10::cuda::CUDAGuard guard(x.device());
   const Geometry g = geometry(x, window, same);
@@ -232,7 +232,7 @@ torch::Tensor ssim_backward(torch::Tensor grad, torch::Tensor x, torch::Tensor y
   bool uniform = true;
   for (const auto st : grad.strides()) uniform = uniform && st == 0;
   if (!uniform) grad = grad.contiguous();
-  auto grad_x = torch::empty_like(x);
+  auto grad_x = at::empty_like(x);
   if (grad_x.numel() == 0) return grad_x;
   auto stream = c10::cuda::getCurrentCUDAStream();
   AT_DISPATCH_FLOATING_TYPES(x.scalar_type(), "jsgs_ssim_backward", [&] {
@@ -243,9 +243,4 @@ torch::Tensor ssim_backward(torch::Tensor grad, torch::Tensor x, torch::Tensor y
   });
   C10_CUDA_KERNEL_LAUNCH_CHECK();
   return grad_x;
-}
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("ssim_forward", &ssim_forward, "SSIM map and its partial derivatives (fused)");
-  m.def("ssim_backward", &ssim_backward, "gradient of a weighted SSIM map sum w.r.t. x (fused)");
 }

@@ -481,7 +481,7 @@ def config_schema() -> dict[str, Any]:
                     "method": {
                         "type": "object",
                         "description": "What the method resolved from its options for this run (JSGS: "
-                        "cuda_graph, cuda_graph_gc, gc_route, jpeg_mode).",
+                        "cuda_graph, cuda_graph_gc, gc_kernel, gc_route, jpeg_mode).",
                     },
                 },
             },

@@ -232,6 +232,56 @@ def fro_from_probe_grad(
     return DeferredFro(ft, weight * g_logit, weight * g_ls, sums, rbar, vis, A)
 
 
+@torch.no_grad()
+def fro_from_probe_grad_fused(
+    probe_grad: Tensor,
+    opacity_logits: Tensor,
+    log_scales: Tensor,
+    means: Tensor,
+    quats: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    *,
+    weight: float,
+    near_plane: float = 0.01,
+    eps_proj: float = EPS_PROJ,
+    tau_s: float = TAU_S,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`fro_from_probe_grad` and :func:`packed_fro_stats` as the three kernels of
+    ``jsgs/csrc/controller.cu`` (CUDA, float32 or float64; same arguments, all tensors of one dtype and
+    device): ``(grad_logit [N], grad_log_scale [N, 3], stats [4])``, equal to the twin's
+    ``(out.grad_logit, out.grad_log_scale, packed_fro_stats(out.terms))`` up to rounding."""
+    from jsgs.cuda_ext import build_error, extension
+
+    tensors = (probe_grad, opacity_logits, log_scales, means, quats, viewmat, K)
+    n = opacity_logits.shape[0] if opacity_logits.dim() == 1 else -1
+    shapes = ((1, n, 2), (n,), (n, 3), (n, 3), (n, 4), (4, 4), (3, 3))
+    names = ("probe_grad", "opacity_logits", "log_scales", "means", "quats", "viewmat", "K")
+    # checked here, not only in the kernels' C++: an error raised there does not reach Python cleanly
+    if opacity_logits.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"the fused controller needs float32 or float64, got {opacity_logits.dtype}")
+    for t, shape, name in zip(tensors, shapes, names, strict=True):
+        if tuple(t.shape) != shape or n < 0:
+            raise ValueError(f"the fused controller: {name} has shape {tuple(t.shape)}, expected {shape}")
+        if t.dtype != opacity_logits.dtype or t.device != opacity_logits.device or t.device.type != "cuda":
+            raise ValueError(
+                f"the fused controller: {name} is {t.dtype} on {t.device}; every tensor must be "
+                f"{opacity_logits.dtype} on one CUDA device"
+            )
+    if not weight > 0:
+        raise ValueError(f"the fused controller: weight must be > 0, got {weight}")
+    ext = extension(warn=False)
+    if ext is None:
+        raise RuntimeError(f"the fused Gaussian Controller cannot be built: {build_error()}")
+    g_logit, g_ls, stats = ext.controller_forward(
+        *(t.detach().contiguous() for t in tensors), int(width), int(height), float(weight),
+        float(near_plane), float(eps_proj), float(tau_s),
+    )  # fmt: skip
+    return g_logit, g_ls, stats
+
+
 def packed_fro_stats(terms: FroTerms) -> Tensor:
     """[4]: L_fro, |V_i|, mean r̄ over V_i, #damped (one tensor, so a caller copies them in one kernel)."""
     s = terms.stats

@@ -26,7 +26,8 @@ values and gradients (tested), chosen by ``gc_pooling``:
 * ``"deferred"`` (default): ``probe_objective`` (value exactly 0) rides in the ``fro`` term, so the main
   backward itself pools ``(o·S_r, ν)`` into the probe's gradient; a post-accumulate hook on the probe then
   computes r̄, V_i, L_fro and L_fro's closed-form gradient and adds ``λ_fro ∂L_fro/∂θ`` to the
-  opacity-logit and log-scale gradients (``jsgs.train.controller.fro_from_probe_grad``; on CUDA replayed as
+  opacity-logit and log-scale gradients (``jsgs.train.controller.fro_from_probe_grad``; on CUDA the three
+  fused kernels of ``jsgs/csrc/controller.cu``, ``method_options.gc_kernel``, or that function replayed as
   one graph, ``jsgs.train.graphed.GraphedController``). No extra rasteriser pass of any kind. The ``fro``
   term's value (and the GC statistics) are written in place during that backward: they are correct wherever
   the trainer reads them after ``loss.backward()`` (progress bar, metrics.json), but the total ``loss`` the
@@ -55,6 +56,7 @@ from jsgs.train.controller import (
     TAU_S,
     controller_matrix,
     fro_from_probe_grad,
+    fro_from_probe_grad_fused,
     fro_loss,
     packed_fro_stats,
 )
@@ -101,6 +103,10 @@ class JsgsOptions:
     # With cuda_graph: the deferred Gaussian Controller as a graph of its own too (recorded again whenever
     # densification changes N; jsgs.train.graphed.GraphedController). false keeps it eager.
     cuda_graph_gc: bool = True
+    # The deferred GC's implementation: "cuda" = jsgs/csrc/controller.cu, three kernels (no graph, no
+    # re-recording); "torch" = its twin fro_from_probe_grad (graphed per cuda_graph_gc); "auto": cuda on a
+    # GPU where the kernels build, torch elsewhere.
+    gc_kernel: Literal["auto", "torch", "cuda"] = "auto"
 
     @property
     def any_active(self) -> bool:
@@ -113,6 +119,7 @@ _CHOICES = {
     "jpeg_mode": ("paper", "float", "exact"),
     "gc_pooling": ("deferred", "now"),
     "compile": COMPILE_BACKENDS,
+    "gc_kernel": ("auto", "torch", "cuda"),
 }
 
 
@@ -127,6 +134,28 @@ def use_cuda_graph(opts: JsgsOptions, device: torch.device) -> bool:
             f'(training on {device.type}); set it to false or "auto"'
         )
     return bool(opts.cuda_graph)
+
+
+def use_gc_kernel(opts: JsgsOptions, device: torch.device) -> bool:
+    """Whether the deferred GC runs as the fused CUDA kernels on ``device`` (``method_options.gc_kernel``
+    resolved; builds them now if needed); JsgsError (one line) for ``cuda`` where they cannot run."""
+    from jsgs.cuda_ext import build_error, extension
+
+    if opts.gc_kernel == "torch":
+        return False
+    if device.type != "cuda":
+        if opts.gc_kernel == "cuda":
+            raise JsgsError(
+                f"config: method_options.gc_kernel cuda needs a CUDA device (training on {device.type})"
+            )
+        return False
+    if extension(warn=opts.gc_kernel == "auto") is None:
+        if opts.gc_kernel == "cuda":
+            raise JsgsError(
+                f"config: method_options.gc_kernel cuda: the kernels cannot be built ({build_error()})"
+            )
+        return False
+    return True
 
 
 class CompiledOrEager:
@@ -305,16 +334,18 @@ class JsgsHook(LossHook):
             weight=options.lambda_fro, near_plane=near_plane, eps_proj=options.eps_proj, tau_s=options.tau_s
         )
         self._gc_graphed: GraphedController | None = None
+        self._gc_fused = options.gc and self.gc_route == "deferred" and use_gc_kernel(options, self.device)
         self.cuda_graph = use_cuda_graph(options, self.device)
         if self.cuda_graph:
             self._graphed = GraphedImageTerms(**self._jpeg_settings)
-            if self.gc_route == "deferred" and options.cuda_graph_gc:
+            if self.gc_route == "deferred" and options.cuda_graph_gc and not self._gc_fused:
                 self._gc_graphed = GraphedController(**self._gc_settings)
 
     def describe(self) -> dict[str, Any]:
         return {
             "cuda_graph": self.cuda_graph,
             "cuda_graph_gc": self._gc_graphed is not None,
+            "gc_kernel": "cuda" if self._gc_fused else "torch",
             "gc_route": self.gc_route,
             "jpeg_mode": self.opts.jpeg_mode,
         }
@@ -475,6 +506,13 @@ class JsgsHook(LossHook):
     ) -> Tensor:
         """The deferred GC inside the backward: adds λ_fro ∂L_fro/∂θ to the opacity-logit and log-scale
         gradients and returns the packed (L_fro, statistics) [4] (the graph's when graphed)."""
+        if self._gc_fused and not self.keep_last:
+            g_logit, g_ls, packed = fro_from_probe_grad_fused(
+                probe_grad, *params, viewmat, K, w, h, **self._gc_settings
+            )
+            _add_grad(params[0], g_logit)
+            _add_grad(params[1], g_ls)
+            return packed
         graphed = None
         if self._gc_graphed is not None and not self.keep_last:
             try:
