@@ -147,3 +147,10 @@ def test_bad_arguments() -> None:
     with pytest.raises(SystemExit):
         ps.parse_args(["--jsgs-options", "[1]"])
     assert ps.parse_args(["--jsgs-options", '{"cuda_graph": false}']).jsgs_options == {"cuda_graph": False}
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+def test_sync_census_refuses_without_cuda(capsys: Any) -> None:
+    sc = load_benchmark("sync_census")
+    assert sc.main(["--manifest", "missing.json"]) == 1
+    assert capsys.readouterr().err.strip() == "error: sync_census needs CUDA (host syncs are a GPU matter)"

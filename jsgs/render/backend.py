@@ -198,7 +198,10 @@ def _rasterize_gsplat(
     if sh_degree is not None:
         from gsplat.cuda._wrapper import spherical_harmonics
 
-        campos = torch.inverse(viewmats)[:, :3, 3]
+        # camera centres C = -Rᵀt of the rigid world-to-camera maps; torch.inverse (what gsplat uses) would
+        # synchronise with the host on CUDA (its singularity check), once per step
+        R, t = viewmats[:, :3, :3], viewmats[:, :3, 3:]
+        campos = -(R.transpose(1, 2) @ t)[..., 0]
         dirs = means[None, :, :] - campos[:, None, :]
         coeffs = colors if colors.dim() == 4 else colors[None].expand(C, -1, -1, -1)
         rgb = torch.clamp_min(spherical_harmonics(sh_degree, dirs, coeffs) + 0.5, 0.0)
