@@ -14,6 +14,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import torch
+
+#: the values of a setting that picks a kernel or its twin (loss.ssim_kernel, method_options.gc_kernel)
+KERNEL_CHOICES = ("auto", "torch", "cuda")
 _SOURCES = ("bindings.cpp", "ssim.cu", "controller.cu")
 _CSRC = Path(__file__).parent / "csrc"
 
@@ -51,3 +55,22 @@ def extension(warn: bool = True) -> Any | None:
 def build_error() -> str | None:
     """Why :func:`extension` is None (None when it built)."""
     return _build()[1]
+
+
+def use_kernels(choice: str, device: torch.device, setting: str) -> bool:
+    """Whether a setting ``choice`` ("auto", "torch" or "cuda"; named ``setting`` in messages) runs the CUDA
+    kernels on ``device``: builds them now if it does (so neither the build nor its failure lands inside
+    timed training steps); JsgsError (one line) for "cuda" where they cannot run."""
+    from jsgs.errors import JsgsError
+
+    if choice == "torch":
+        return False
+    if device.type != "cuda":
+        if choice == "cuda":
+            raise JsgsError(f"config: {setting} cuda needs a CUDA device (training on {device.type})")
+        return False
+    if extension(warn=choice == "auto") is None:
+        if choice == "cuda":
+            raise JsgsError(f"config: {setting} cuda: the kernels cannot be built ({build_error()})")
+        return False
+    return True

@@ -23,11 +23,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from jsgs.cuda_ext import KERNEL_CHOICES, build_error, extension
 from jsgs.precision import ieee_fp32
 
 C1 = 0.01**2
 C2 = 0.03**2
-SSIM_KERNELS = ("auto", "torch", "cuda")
+SSIM_KERNELS = KERNEL_CHOICES
 
 
 @functools.cache
@@ -56,19 +57,12 @@ def _blur(x: Tensor, window: Tensor, padding: str) -> Tensor:
         return F.conv2d(x, wh, padding=(0, pad), groups=c)
 
 
-def fused_extension(warn: bool = True) -> Any | None:
-    """The compiled kernels (:mod:`jsgs.cuda_ext`), or None where they cannot be built."""
-    from jsgs.cuda_ext import extension
-
-    return extension(warn)
-
-
 class _FusedSsimMap(torch.autograd.Function):
     """SSIM map through the fused kernels; differentiable in ``x`` only (y is a target)."""
 
     @staticmethod
     def forward(ctx: Any, x: Tensor, y: Tensor, window: Tensor, same: bool) -> Tensor:  # type: ignore[override]
-        ext = fused_extension()
+        ext = extension()
         smap, d_mu, d_xx, d_xy = ext.ssim_forward(x, y, window, C1, C2, same)
         ctx.save_for_backward(x, y, window, d_mu, d_xx, d_xy)
         ctx.same = same
@@ -78,7 +72,7 @@ class _FusedSsimMap(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, None, None, None]:  # type: ignore[override]
         x, y, window, d_mu, d_xx, d_xy = ctx.saved_tensors
-        grad_x = fused_extension().ssim_backward(grad, x, y, window, d_mu, d_xx, d_xy, ctx.same)
+        grad_x = extension().ssim_backward(grad, x, y, window, d_mu, d_xx, d_xy, ctx.same)
         return grad_x, None, None, None
 
 
@@ -102,12 +96,10 @@ def _use_fused(x: Tensor, y: Tensor, kernel: str, window_size: int) -> bool:
             )
         if y.requires_grad:
             raise ValueError("the fused SSIM kernel differentiates x only; y must not need a gradient")
-        if fused_extension(warn=False) is None:
-            from jsgs.cuda_ext import build_error
-
+        if extension(warn=False) is None:
             raise RuntimeError(f"the fused SSIM kernel cannot be built: {build_error()}")
         return True
-    return x.is_cuda and fits and not y.requires_grad and fused_extension() is not None
+    return x.is_cuda and fits and not y.requires_grad and extension() is not None
 
 
 def ssim_map(
@@ -161,4 +153,4 @@ def ssim(x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, paddin
     raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
 
 
-__all__ = ["C1", "C2", "SSIM_KERNELS", "fused_extension", "gaussian_window", "ssim", "ssim_map"]
+__all__ = ["C1", "C2", "SSIM_KERNELS", "gaussian_window", "ssim", "ssim_map"]

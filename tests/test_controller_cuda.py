@@ -15,14 +15,12 @@ from typing import Any
 
 import pytest
 import torch
-from _train_scene import make_scene
+from test_graphed import assert_same_training, train_jsgs_variants
 from test_jsgs_method import make_view, new_hook
 
 from jsgs.errors import JsgsError
-from jsgs.train.config import TrainConfig
 from jsgs.train.controller import fro_from_probe_grad, fro_from_probe_grad_fused, packed_fro_stats
 from jsgs.train.jsgs_method import JsgsHook, parse_options
-from jsgs.train.loop import train
 
 SETTINGS = dict(weight=0.05, near_plane=0.01, eps_proj=1e-6, tau_s=1.0)
 cuda = pytest.mark.skipif(
@@ -127,17 +125,6 @@ def test_fused_controller_refuses_bad_input() -> None:
 @cuda
 @pytest.mark.gpu
 def test_training_with_the_fused_controller_matches_the_twin(tmp_path: Path, capsys: Any) -> None:
-    manifest = make_scene(tmp_path / "scene", jpeg_train=True)
-    docs = {}
-    for kernel in ("cuda", "torch"):
-        c = TrainConfig(method="jsgs", iterations=60, eval_at=[60], device="cuda")
-        c.method_options = {"gc_kernel": kernel}
-        c.strategy.refine_start_iter, c.strategy.refine_every = 5, 10
-        c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
-        docs[kernel] = train(manifest, tmp_path / kernel, c, progress=False)
+    evals = train_jsgs_variants(tmp_path, {"cuda": {"gc_kernel": "cuda"}, "torch": {"gc_kernel": "torch"}})
     assert "warning" not in capsys.readouterr().err
-    on, off = docs["cuda"]["evals"][-1], docs["torch"]["evals"][-1]
-    assert on["train"]["terms"]["fro"] > 0 and on["train"]["stats"]["gc_visible"] > 0
-    for k, v in off["train"]["terms"].items():
-        assert on["train"]["terms"][k] == pytest.approx(v, rel=0.05), k
-    assert abs(on["psnr"] - off["psnr"]) < 0.5
+    assert_same_training(evals["cuda"], evals["torch"])

@@ -287,31 +287,46 @@ def test_gpu_graph_replays_equal_eager_for_every_view(mode: str) -> None:
         assert tensor.item() == value
 
 
-@pytest.mark.gpu
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
-def test_gpu_training_with_graphs_matches_eager(tmp_path: Path, capsys: Any) -> None:
-    """A short jsgs run on CUDA with densification every few steps (so the GC graph is recorded again and
-    again while N changes), graphs on and off: no fallback, and the same training within gsplat's own
-    run-to-run noise (its backward sums with atomics, so two runs are not bit-identical)."""
+def train_jsgs_variants(tmp_path: Path, variants: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """60-step jsgs runs on CUDA with densification every 10 steps, one per ``method_options`` variant, on
+    one JPEG scene: name -> the run's last evaluation."""
     from _train_scene import make_scene
 
     from jsgs.train.config import TrainConfig
     from jsgs.train.loop import train
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
-    docs = {}
-    for graph in (True, False):
+    evals = {}
+    for name, options in variants.items():
         c = TrainConfig(method="jsgs", iterations=60, eval_at=[60], device="cuda")
-        c.method_options = {"cuda_graph": graph}
+        c.method_options = dict(options)
         c.strategy.refine_start_iter, c.strategy.refine_every = 5, 10
         c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
-        docs[graph] = train(manifest, tmp_path / f"graph_{graph}", c, progress=False)
-    assert "eagerly for the rest of the run" not in capsys.readouterr().err  # no graph fell back
-    on, off = docs[True]["evals"][-1], docs[False]["evals"][-1]
+        evals[name] = train(manifest, tmp_path / name, c, progress=False)["evals"][-1]
+    return evals
+
+
+def assert_same_training(on: dict[str, Any], off: dict[str, Any]) -> None:
+    """Two runs' last evaluations agree within gsplat's own run-to-run noise (its backward sums with
+    atomics, so two runs are not bit-identical), with the GC at work."""
     assert on["train"]["terms"]["fro"] > 0 and on["train"]["stats"]["gc_visible"] > 0
     for k, v in off["train"]["terms"].items():
         assert on["train"]["terms"][k] == pytest.approx(v, rel=0.05), k
     assert abs(on["psnr"] - off["psnr"]) < 0.5
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_gpu_training_with_graphs_matches_eager(tmp_path: Path, capsys: Any) -> None:
+    """A short jsgs run on CUDA with densification every few steps (so the GC graph is recorded again and
+    again while N changes: the torch GC, which the graph replays), graphs on and off: no fallback, and the
+    same training."""
+    evals = train_jsgs_variants(tmp_path, {
+        "graphs": {"cuda_graph": True, "gc_kernel": "torch"},
+        "eager": {"cuda_graph": False, "gc_kernel": "torch"},
+    })  # fmt: skip
+    assert "eagerly for the rest of the run" not in capsys.readouterr().err  # no graph fell back
+    assert_same_training(evals["graphs"], evals["eager"])
 
 
 def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:

@@ -444,3 +444,11 @@ def test_view_camera_tensors_are_made_once_per_device(scene: Path) -> None:
     assert vm.shape == (1, 4, 4) and K.shape == (1, 3, 3) and vm.dtype == K.dtype == torch.float32
     assert np.array_equal(vm[0].numpy(), v.viewmat.astype(np.float32))
     assert np.array_equal(K[0].numpy(), v.K.astype(np.float32))
+
+
+def test_ssim_kernel_cuda_is_refused_without_cuda(scene: Path, tmp_path: Path) -> None:
+    cfg = TrainConfig(iterations=1, eval_at=[], device="cpu")
+    cfg.loss.ssim_kernel = "cuda"
+    match = r"config: loss.ssim_kernel cuda needs a CUDA device \(training on cpu\)"
+    with pytest.raises(JsgsError, match=match):
+        train(scene, tmp_path / "run", cfg, progress=False)

@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import torch
 from torch import Tensor
 
+from jsgs.cuda_ext import KERNEL_CHOICES, use_kernels
 from jsgs.errors import JsgsError, one_line
 from jsgs.train.controller import (
     EPS_PROJ,
@@ -119,7 +120,7 @@ _CHOICES = {
     "jpeg_mode": ("paper", "float", "exact"),
     "gc_pooling": ("deferred", "now"),
     "compile": COMPILE_BACKENDS,
-    "gc_kernel": ("auto", "torch", "cuda"),
+    "gc_kernel": KERNEL_CHOICES,
 }
 
 
@@ -134,28 +135,6 @@ def use_cuda_graph(opts: JsgsOptions, device: torch.device) -> bool:
             f'(training on {device.type}); set it to false or "auto"'
         )
     return bool(opts.cuda_graph)
-
-
-def use_gc_kernel(opts: JsgsOptions, device: torch.device) -> bool:
-    """Whether the deferred GC runs as the fused CUDA kernels on ``device`` (``method_options.gc_kernel``
-    resolved; builds them now if needed); JsgsError (one line) for ``cuda`` where they cannot run."""
-    from jsgs.cuda_ext import build_error, extension
-
-    if opts.gc_kernel == "torch":
-        return False
-    if device.type != "cuda":
-        if opts.gc_kernel == "cuda":
-            raise JsgsError(
-                f"config: method_options.gc_kernel cuda needs a CUDA device (training on {device.type})"
-            )
-        return False
-    if extension(warn=opts.gc_kernel == "auto") is None:
-        if opts.gc_kernel == "cuda":
-            raise JsgsError(
-                f"config: method_options.gc_kernel cuda: the kernels cannot be built ({build_error()})"
-            )
-        return False
-    return True
 
 
 class CompiledOrEager:
@@ -334,7 +313,10 @@ class JsgsHook(LossHook):
             weight=options.lambda_fro, near_plane=near_plane, eps_proj=options.eps_proj, tau_s=options.tau_s
         )
         self._gc_graphed: GraphedController | None = None
-        self._gc_fused = options.gc and self.gc_route == "deferred" and use_gc_kernel(options, self.device)
+        self._gc_fused = (
+            options.gc and self.gc_route == "deferred"
+            and use_kernels(options.gc_kernel, self.device, "method_options.gc_kernel")
+        )  # fmt: skip
         self.cuda_graph = use_cuda_graph(options, self.device)
         if self.cuda_graph:
             self._graphed = GraphedImageTerms(**self._jpeg_settings)
@@ -505,23 +487,19 @@ class JsgsHook(LossHook):
         self, probe_grad: Tensor, params: tuple[Tensor, ...], viewmat: Tensor, K: Tensor, w: int, h: int
     ) -> Tensor:
         """The deferred GC inside the backward: adds λ_fro ∂L_fro/∂θ to the opacity-logit and log-scale
-        gradients and returns the packed (L_fro, statistics) [4] (the graph's when graphed)."""
+        gradients and returns the packed (L_fro, statistics) [4]. Fused kernels or the graph where they are
+        on (and nothing asks for the intermediates, ``keep_last``), else the eager twin."""
+        fast = None  # (grad_logit, grad_log_scale, packed) from the kernels or the graph
         if self._gc_fused and not self.keep_last:
-            g_logit, g_ls, packed = fro_from_probe_grad_fused(
-                probe_grad, *params, viewmat, K, w, h, **self._gc_settings
-            )
-            _add_grad(params[0], g_logit)
-            _add_grad(params[1], g_ls)
-            return packed
-        graphed = None
-        if self._gc_graphed is not None and not self.keep_last:
+            fast = fro_from_probe_grad_fused(probe_grad, *params, viewmat, K, w, h, **self._gc_settings)
+        elif self._gc_graphed is not None and not self.keep_last:
             try:
-                graphed = self._gc_graphed(probe_grad, *params, viewmat, K, w, h)
+                fast = self._gc_graphed(probe_grad, *params, viewmat, K, w, h)
             except GraphCaptureFailed as e:
                 self._gc_graphed = None
                 warn_eager_fallback("recording the Gaussian Controller as a CUDA graph", str(e), "it")
-        if graphed is not None:
-            g_logit, g_ls, packed = graphed
+        if fast is not None:
+            g_logit, g_ls, packed = fast
         else:
             out = fro_from_probe_grad(probe_grad, *params, viewmat, K, w, h, **self._gc_settings)
             g_logit, g_ls, packed = out.grad_logit, out.grad_log_scale, packed_fro_stats(out.terms)

@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 
 import jsgs
+from jsgs.cuda_ext import use_kernels
 from jsgs.errors import JsgsError
 from jsgs.io import write_json_atomic
 from jsgs.train import checkpoint as ckpt
@@ -410,7 +411,7 @@ def train(
         if start_ckpt is None
         else int(json_load(paths.config)["derived"]["initial_gaussians"]),
         "notes": scene.notes,
-        "ssim_kernel": _resolve_ssim_kernel(cfg.loss.ssim_kernel, device),
+        "ssim_kernel": "cuda" if use_kernels(cfg.loss.ssim_kernel, device, "loss.ssim_kernel") else "torch",
         "method": hook.describe() if hook is not None else {},
     }
     if not resume:
@@ -643,23 +644,6 @@ def train(
         )
     write_metrics(doc)
     return doc
-
-
-def _resolve_ssim_kernel(kernel: str, device: torch.device) -> str:
-    """"cuda" or "torch": what ``loss.ssim_kernel`` means on ``device``. Builds the fused kernel now (about a
-    minute the first time on a machine), so that neither the build nor its failure lands inside the timed
-    training steps."""
-    from jsgs.ssim import fused_extension
-
-    if kernel == "torch" or device.type != "cuda":
-        if kernel == "cuda":
-            raise JsgsError(f"config: loss.ssim_kernel cuda needs a CUDA device (training on {device.type})")
-        return "torch"
-    if fused_extension(warn=kernel == "auto") is None:
-        if kernel == "cuda":
-            raise JsgsError("config: loss.ssim_kernel cuda: the fused SSIM kernel cannot be built (no nvcc?)")
-        return "torch"
-    return "cuda"
 
 
 def _stat_tensor(value: Any, device: torch.device) -> torch.Tensor:
