@@ -428,9 +428,11 @@ def profile_method(
     settle: int,
     steps: int,
     python_top: int = 0,
+    trace: Path | None = None,
 ) -> tuple[dict[str, Any], WindowStats]:
     """Warm-up run, then the plain and the profiled copy of the window (module docstring); with
-    ``python_top``, a third copy under cProfile."""
+    ``python_top``, a third copy under cProfile; with ``trace``, the profiled copy also records Python stacks
+    and its Chrome trace is written there (``benchmarks/trace_gaps.py`` reads it)."""
     train = loop_mod.train
     warm = work / "warm"
     train(manifest, warm, cfg, force=True, stop_at=warmup, progress=False, log=_quiet)
@@ -452,10 +454,13 @@ def profile_method(
 
     def ready(p: torch.profiler.profile) -> None:
         captured["events"] = p.events()
+        if trace is not None:
+            p.export_chrome_trace(str(trace))
 
     with torch.profiler.profile(
-        activities=activities, schedule=StepWindow.schedule(settle, steps), on_trace_ready=ready
-    ) as prof:
+        activities=activities, schedule=StepWindow.schedule(settle, steps), on_trace_ready=ready,
+        with_stack=trace is not None,
+    ) as prof:  # fmt: skip
         pclock = StepWindow(device, settle, steps, prof)
         with step_callback(pclock):
             pdoc = train(manifest, profiled, resume=True, progress=False, log=_quiet)
@@ -609,6 +614,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--python-top", type=int, default=0,
         help="also resume a copy under cProfile and list this many functions by self time [0: no]",
     )  # fmt: skip
+    ap.add_argument(
+        "--trace", type=Path,
+        help="write each method's Chrome trace of the profiled window (with Python stacks) into this folder",
+    )  # fmt: skip
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     ap.add_argument("--workdir", type=Path, help="the runs' temporary folder goes here [system's]")
     ap.add_argument("--out", type=Path, help="write the results as JSON here")
@@ -634,6 +643,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     stats: dict[str, WindowStats] = {}
     if args.workdir:
         args.workdir.mkdir(parents=True, exist_ok=True)
+    if args.trace:
+        args.trace.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="profile_step.", dir=args.workdir) as tmp:
         work = Path(tmp)
         if args.manifest is None:
@@ -646,7 +657,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             cfg = variant_config(base, m, opts, iterations, str(device))
             cfg.checkpoint_every = 0  # nothing but training inside the window
             results[m], stats[m] = profile_method(
-                manifest, work / m, cfg, device, args.warmup, args.settle, args.steps, args.python_top
+                manifest,
+                work / m,
+                cfg,
+                device,
+                args.warmup,
+                args.settle,
+                args.steps,
+                args.python_top,
+                None if args.trace is None else args.trace / f"{m}.trace.json",
             )
             results[m]["kernels"] = kernel_rows(stats[m].kernels, args.steps, args.top)
     baseline = methods[0]

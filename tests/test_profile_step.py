@@ -35,7 +35,7 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
     argv = [
         "--size", "48x32", "--views", "6", "--warmup", "3", "--settle", "1", "--steps", "2",
         "--device", "cpu", "--config", str(cfg), "--top", "5", "--workdir", str(work), "--out", str(out),
-        "--python-top", "4",
+        "--python-top", "4", "--trace", str(tmp_path / "traces"),
     ]  # fmt: skip
     assert ps.main(argv) == 0
     printed = capsys.readouterr().out
@@ -64,6 +64,13 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
     assert diff["baseline"] == "gsplat" and list(doc["differences"]) == ["jsgs"]
     assert diff["by_launches"] and all(r["extra_launches_per_step"] > 0 for r in diff["by_launches"])
     assert all(r["name"].startswith("aten::") for r in diff["by_launches"])
+
+    # the Chrome traces of the profiled windows, with Python frames (benchmarks/trace_gaps.py reads them)
+    traces = sorted(p.name for p in (tmp_path / "traces").iterdir())
+    assert traces == ["gsplat.trace.json", "jsgs.trace.json"]
+    events = json.loads((tmp_path / "traces" / "jsgs.trace.json").read_text())["traceEvents"]
+    assert any(e.get("cat") == "python_function" for e in events)
+    assert any(e.get("name", "").startswith("autograd::engine::evaluate_function") for e in events)
 
     # nothing left behind: no partial JSON beside the output, the runs' temporary folder removed, the
     # trainer's sampler restored
