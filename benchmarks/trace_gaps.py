@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import bisect
 import json
+import re
 import sys
 from collections import defaultdict
 from collections.abc import Sequence
@@ -27,6 +28,15 @@ from pathlib import Path
 from typing import Any
 
 DEVICE_CATS = ("kernel", "gpu_memcpy", "gpu_memset")
+# "<built-in method float of Tensor object at 0x7f..>": one name per function, not per object
+_ADDRESS = re.compile(
+    r" of (?:pybind11_builtins\.)?pybind11_detail_function_record\S* object at 0x[0-9a-f]+| at 0x[0-9a-f]+"
+)
+
+
+def frame_name(name: str) -> str:
+    """A Python frame's name without object addresses (and pybind's record type), so traces compare."""
+    return _ADDRESS.sub("", name)
 
 
 class Busy:
@@ -99,7 +109,7 @@ def analyse(path: Path, steps: int) -> dict[str, Any]:
         a, b = max(float(e["ts"]), t0), min(float(e["ts"]) + float(e["dur"]), t1)
         idle = busy.idle(a, b) if b > a else 0.0
         parent = args.get("Python parent id")
-        by_id[args.get("Python id")] = {"name": e["name"], "idle": idle, "parent": parent}
+        by_id[args.get("Python id")] = {"name": frame_name(e["name"]), "idle": idle, "parent": parent}
     child_idle: dict[Any, float] = defaultdict(float)
     for node in by_id.values():
         if node["parent"] in by_id:

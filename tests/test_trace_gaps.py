@@ -82,3 +82,17 @@ def _bad(tmp_path: Path) -> Path:
     p = tmp_path / "bad.json"
     p.write_text(json.dumps({"events": []}))
     return p
+
+
+def test_frame_names_compare_across_traces() -> None:
+    assert tg.frame_name("<built-in method float of Tensor object at 0x7f66addaa9e0>") == (
+        "<built-in method float of Tensor object>"
+    )
+    assert (
+        tg.frame_name(
+            "<built-in method rasterize_to_pixels_3dgs_bwd of pybind11_builtins.pybind11_detail_"
+            "function_record_v1_system_libstdcpp_gxx_abi_1xxx_use_cxx11_abi_1 object at 0x7f69e>"
+        )
+        == "<built-in method rasterize_to_pixels_3dgs_bwd>"
+    )
+    assert tg.frame_name("jsgs/train/loop.py(545): <genexpr>") == "jsgs/train/loop.py(545): <genexpr>"
