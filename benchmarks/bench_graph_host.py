@@ -1,0 +1,87 @@
+"""Host time of the JSGS image terms (JO, L_obs, DS) per step, without a profiler: eager against the CUDA
+graph (``jsgs.train.graphed.GraphedImageTerms``), forward call and backward call timed separately.
+
+    python benchmarks/bench_graph_host.py [--size 504x378] [--steps 300]      # CUDA only
+
+A training step is partly host-bound (``benchmarks/trace_gaps.py``), and a profiler inflates exactly the
+host work it would measure (CUPTI instruments every graph node), so this times the Python calls with
+``time.perf_counter`` and no synchronisation inside the timed region: the number is what the host spends
+launching, while the device works behind it. The device is synchronised between steps, outside the timing;
+``device`` is the forward + backward time with a synchronisation at the end (host and device together).
+Medians over ``--steps`` after 20 untimed steps. Prints one table (µs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from jsgs.train.graphed import GraphedImageTerms, image_terms  # noqa: E402
+
+SETTINGS = dict(
+    mode="paper", ssim_lambda=0.2, ssim_padding="valid", ssim_kernel="auto", ds=True, gc=True,
+    eps_sm=1e-3, eps_loss=1e-6, eps_block=1e-6,
+)  # fmt: skip
+
+
+def measure(fn, x: torch.Tensor, args: tuple, steps: int) -> dict[str, float]:  # noqa: ANN001
+    fwd, bwd, both = [], [], []
+    for i in range(steps + 20):
+        xi = x.detach().clone().requires_grad_(True)
+        torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        out = fn(xi, *args)
+        loss = out[0] + 0.02 * out[1] + 0.03 * out[2]
+        t1 = time.perf_counter()
+        loss.backward()
+        t2 = time.perf_counter()
+        torch.cuda.synchronize()
+        t3 = time.perf_counter()
+        if i >= 20:
+            fwd.append(t1 - t0)
+            bwd.append(t2 - t1)
+            both.append(t3 - t0)
+    return {k: 1e6 * statistics.median(v) for k, v in (("forward", fwd), ("backward", bwd), ("device", both))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", default="504x378", help="image size WxH [504x378]")
+    ap.add_argument("--steps", type=int, default=300, help="timed steps per variant [300]")
+    args = ap.parse_args(argv)
+    if not torch.cuda.is_available():
+        print("error: bench_graph_host needs CUDA (it times host launches of GPU work)", file=sys.stderr)
+        return 1
+    w, h = (int(v) for v in args.size.lower().split("x"))
+    g = torch.Generator(device="cuda").manual_seed(0)
+    x = torch.rand(1, 3, h, w, device="cuda", generator=g)
+    y = torch.rand(1, 3, h, w, device="cuda", generator=g)
+    luma = torch.randint(2, 60, (8, 8), device="cuda", generator=g).float()
+    chroma = torch.randint(2, 90, (8, 8), device="cuda", generator=g).float()
+
+    def eager(xi: torch.Tensor, *a: object) -> tuple:
+        return image_terms(xi, *a, sampling="4:2:0", **SETTINGS)  # type: ignore[arg-type]
+
+    graphed = GraphedImageTerms(**SETTINGS)
+
+    def graph(xi: torch.Tensor, *a: object) -> tuple:
+        return graphed(xi, *a, "4:2:0")  # type: ignore[arg-type]
+
+    print(f"{torch.cuda.get_device_name()}, torch {torch.__version__}, {w}x{h}, 4:2:0, paper mode")
+    print("\n| variant | host µs forward | host µs backward | µs forward + backward + sync |")
+    print("|---|---:|---:|---:|")
+    for name, fn in (("eager", eager), ("CUDA graph", graph)):
+        m = measure(fn, x, (y, luma, chroma), args.steps)
+        print(f"| {name} | {m['forward']:.1f} | {m['backward']:.1f} | {m['device']:.1f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
