@@ -161,3 +161,12 @@ def test_sync_census_refuses_without_cuda(capsys: Any) -> None:
     sc = load_benchmark("sync_census")
     assert sc.main(["--manifest", "missing.json"]) == 1
     assert capsys.readouterr().err.strip() == "error: sync_census needs CUDA (host syncs are a GPU matter)"
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+def test_bench_graph_host_refuses_without_cuda(capsys: Any) -> None:
+    bg = load_benchmark("bench_graph_host")
+    assert bg.main(["--steps", "1"]) == 1
+    assert capsys.readouterr().err.strip() == (
+        "error: bench_graph_host needs CUDA (it times host launches of GPU work)"
+    )
