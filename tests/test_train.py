@@ -444,6 +444,10 @@ def test_view_camera_tensors_are_made_once_per_device(scene: Path) -> None:
     assert vm.shape == (1, 4, 4) and K.shape == (1, 3, 3) and vm.dtype == K.dtype == torch.float32
     assert np.array_equal(vm[0].numpy(), v.viewmat.astype(np.float32))
     assert np.array_equal(K[0].numpy(), v.K.astype(np.float32))
+    # the JSGS hook's copies in the parameters' dtype come from the same cache, one per dtype
+    vm64 = v.viewmat_tensor("cpu", torch.float64)
+    assert vm64 is v.viewmat_tensor(torch.device("cpu"), torch.float64) and vm64 is not vm
+    assert vm64.dtype == torch.float64 and np.array_equal(vm64[0].numpy(), v.viewmat.astype(np.float64))
 
 
 def test_ssim_kernel_cuda_is_refused_without_cuda(scene: Path, tmp_path: Path) -> None:

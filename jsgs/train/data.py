@@ -44,27 +44,28 @@ class View:
     K: np.ndarray
     camtoworld: np.ndarray
     viewmat: np.ndarray
-    # per (name, device): a host-to-device copy from pageable memory synchronises with the GPU, once per
-    # call; made once, the training step has two fewer syncs (both methods)
-    _tensors: dict[tuple[str, torch.device], Tensor] = field(
+    # per (name, device, dtype): a host-to-device copy from pageable memory synchronises with the GPU, once
+    # per call; made once, the training step has two fewer syncs (both methods), and none inside a backward
+    _tensors: dict[tuple[str, torch.device, torch.dtype], Tensor] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
 
-    def _on(self, name: str, device: torch.device | str) -> Tensor:
-        key = (name, torch.device(device))
+    def _on(self, name: str, device: torch.device | str, dtype: torch.dtype) -> Tensor:
+        key = (name, torch.device(device), dtype)
         t = self._tensors.get(key)
         if t is None:
-            t = torch.from_numpy(getattr(self, name)).float().to(device)[None]
+            t = torch.from_numpy(getattr(self, name)).to(dtype=dtype, device=device)[None]
             self._tensors[key] = t
         return t
 
-    def K_tensor(self, device: torch.device | str) -> Tensor:
-        """[1, 3, 3] float32 (made once per device and shared: do not modify it in place)."""
-        return self._on("K", device)
+    def K_tensor(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> Tensor:
+        """[1, 3, 3] (made once per device and dtype and shared: do not modify it in place)."""
+        return self._on("K", device, dtype)
 
-    def viewmat_tensor(self, device: torch.device | str) -> Tensor:
-        """[1, 4, 4] float32 world-to-camera (made once per device and shared: do not modify it in place)."""
-        return self._on("viewmat", device)
+    def viewmat_tensor(self, device: torch.device | str, dtype: torch.dtype = torch.float32) -> Tensor:
+        """[1, 4, 4] world-to-camera (made once per device and dtype and shared: do not modify it in
+        place)."""
+        return self._on("viewmat", device, dtype)
 
     def eval_image_path(self) -> Path:
         """The uncompressed image to evaluate against: the reference, else the image itself (lossless)."""

@@ -288,7 +288,6 @@ class JsgsHook(LossHook):
         # pooled sums, r̄, V, GC terms); off in training so no step outlives its own backward
         self.keep_last = False
         self.last: dict[str, Any] = {}
-        self._cameras: dict[tuple[int, torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
         # the rasterisation outputs of the step whose deferred GC waits for its backward
         self._pending: dict[str, Any] = {}
         from jsgs.jpeg.losses import photometric_loss
@@ -420,19 +419,13 @@ class JsgsHook(LossHook):
 
     # ------------------------------------------------------------------------------------------------
     def _camera(self, ctx: StepContext) -> tuple[Tensor, Tensor, int, int]:
-        """The view's world-to-camera [4, 4] and K [3, 3] in the parameters' dtype, width, height (cached
-        on the device: a host-to-device copy inside the backward would stall the GPU queue)."""
+        """The view's world-to-camera [4, 4] and K [3, 3] in the parameters' dtype (the view's own
+        per-device copies: a host-to-device copy inside the backward would stall the GPU queue), width,
+        height."""
         v = ctx.view
         means = ctx.splats["means"]
-        key = (v.index, means.dtype, means.device)
-        cam = self._cameras.get(key)
-        if cam is None:
-            cam = (
-                torch.as_tensor(v.viewmat, dtype=means.dtype, device=means.device),
-                torch.as_tensor(v.K, dtype=means.dtype, device=means.device),
-            )
-            self._cameras[key] = cam
-        return cam[0], cam[1], v.width, v.height
+        viewmat = v.viewmat_tensor(means.device, means.dtype)[0]
+        return viewmat, v.K_tensor(means.device, means.dtype)[0], v.width, v.height
 
     def _gc_now(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         from jsgs.render.pool import pool_now
