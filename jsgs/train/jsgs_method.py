@@ -225,6 +225,18 @@ def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:
     return opts
 
 
+def image_term_settings(
+    options: JsgsOptions, ssim_lambda: float, ssim_padding: str, ssim_kernel: str
+) -> dict[str, Any]:
+    """The settings that fix the JO / L_obs / DS chain (:func:`jsgs.train.graphed.jpeg_terms` and its
+    graph): the method's options plus the trainer's photometric-loss settings (``loss.ssim_*``)."""
+    return dict(
+        mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding, ssim_kernel=ssim_kernel,
+        ds=options.ds, gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,
+        eps_block=options.eps_dct_block,
+    )  # fmt: skip
+
+
 @dataclass
 class ViewJpeg:
     """A training view's JPEG state on the training device: tables [8, 8] float32, natural order [v, u]."""
@@ -295,12 +307,7 @@ class JsgsHook(LossHook):
         from jsgs.jpeg.supervision import dct_supervision
 
         # what fixes the JO / L_obs / DS chain (jsgs.train.graphed.jpeg_terms), in both routes
-        self._jpeg_settings: dict[str, Any] = dict(
-            mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding,
-            ssim_kernel=ssim_kernel, ds=options.ds,
-            gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,
-            eps_block=options.eps_dct_block,
-        )  # fmt: skip
+        self._jpeg_settings = image_term_settings(options, ssim_lambda, ssim_padding, ssim_kernel)
         self._jpeg_functions = {
             "observe": _maybe_compile(jpeg_observe, options.compile),
             "photometric": _maybe_compile(photometric_loss, options.compile),
