@@ -96,13 +96,13 @@ def analyse(path: Path, steps: int) -> dict[str, Any]:
     py = [e for e in py if e.get("tid") == tid]
     t0 = min(a for a, _ in dev)
     t1 = max(b for _, b in dev)
-    total_idle = busy.idle(t0, t1)
+    per_step = 1e-3 / steps  # µs in the trace -> ms per step
     prefix = "autograd::engine::evaluate_function: "
     nodes: dict[str, float] = defaultdict(float)
     for e in events:
         if e.get("cat") == "cpu_op" and e["name"].startswith(prefix):
             a, b = float(e["ts"]), float(e["ts"]) + float(e["dur"])
-            nodes[e["name"][len(prefix) :]] += busy.idle(a, b) / 1000.0 / steps
+            nodes[e["name"][len(prefix) :]] += busy.idle(a, b) * per_step
     by_id: dict[Any, dict[str, Any]] = {}
     for e in py:
         args = e.get("args", {})
@@ -117,12 +117,12 @@ def analyse(path: Path, steps: int) -> dict[str, Any]:
     self_ms: dict[str, float] = defaultdict(float)
     total_ms: dict[str, float] = defaultdict(float)
     for pid, node in by_id.items():
-        self_ms[node["name"]] += (node["idle"] - child_idle.get(pid, 0.0)) / 1000.0 / steps
-        total_ms[node["name"]] += node["idle"] / 1000.0 / steps
+        self_ms[node["name"]] += (node["idle"] - child_idle.get(pid, 0.0)) * per_step
+        total_ms[node["name"]] += node["idle"] * per_step
     return {
-        "span_ms": (t1 - t0) / 1000.0 / steps,
-        "busy_ms": (busy.prefix[-1]) / 1000.0 / steps,
-        "idle_ms": total_idle / 1000.0 / steps,
+        "span_ms": (t1 - t0) * per_step,
+        "busy_ms": busy.prefix[-1] * per_step,
+        "idle_ms": busy.idle(t0, t1) * per_step,
         "self": dict(self_ms),
         "total": dict(total_ms),
         "backward": dict(nodes),
@@ -132,6 +132,13 @@ def analyse(path: Path, steps: int) -> dict[str, Any]:
 def _short(name: str, width: int = 90) -> str:
     name = name.replace("|", "/")
     return name if len(name) <= width else "…" + name[-(width - 1) :]
+
+
+def _table(title: str, column: str, values: dict[str, float], top: int) -> None:
+    print(f"\n{title}\n")
+    print(f"| frame | {column} |\n|---|---:|")
+    for name, v in sorted(values.items(), key=lambda kv: -kv[1])[:top]:
+        print(f"| {_short(name)} | {v:.3f} |")
 
 
 def report(paths: Sequence[Path], steps: int, top: int) -> None:
@@ -147,19 +154,14 @@ def report(paths: Sequence[Path], steps: int, top: int) -> None:
     }
     for key in what:
         for p, r in zip(paths, results, strict=True):
-            print(f"\n{p.name}: top {top} {what[key]} device-idle ms/step\n")
-            print("| frame | ms/step |\n|---|---:|")
-            for name, v in sorted(r[key].items(), key=lambda kv: -kv[1])[:top]:
-                print(f"| {_short(name)} | {v:.3f} |")
+            _table(f"{p.name}: top {top} {what[key]} device-idle ms/step", "ms/step", r[key], top)
     if len(results) == 2:
         base, other = results
         for key in what:
             names = set(base[key]) | set(other[key])
             diff = {n: other[key].get(n, 0.0) - base[key].get(n, 0.0) for n in names}
-            print(f"\n{paths[1].name} − {paths[0].name}: top {top} {what[key]} extra device-idle ms/step\n")
-            print("| frame | extra ms/step |\n|---|---:|")
-            for name, v in sorted(diff.items(), key=lambda kv: -kv[1])[:top]:
-                print(f"| {_short(name)} | {v:.3f} |")
+            title = f"{paths[1].name} − {paths[0].name}: top {top} {what[key]} extra device-idle ms/step"
+            _table(title, "extra ms/step", diff, top)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
