@@ -1,5 +1,11 @@
-"""Host time of the JSGS image terms (JO, L_obs, DS) per step, without a profiler: eager against the CUDA
-graph (``jsgs.train.graphed.GraphedImageTerms``), forward call and backward call timed separately.
+"""Host time of the JSGS image terms (JO, L_obs, DS) per step, without a profiler, forward call and backward
+call timed separately, for three ways of running them:
+
+- eager: :func:`jsgs.train.graphed.image_terms` and autograd;
+- two graphs: ``torch.cuda.make_graphed_callables`` on the same function (a forward graph and a backward
+  graph, with its copies of inputs and upstream gradients; what the trainer used up to session 7);
+- one graph: ``jsgs.train.graphed.GraphedImageTerms`` (forward and the weighted sum's gradient in one replay;
+  the backward scales the stored gradient).
 
     python benchmarks/bench_graph_host.py [--size 504x378] [--steps 300]      # CUDA only
 
@@ -18,6 +24,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -34,17 +41,15 @@ _LOSS = TrainConfig().loss
 SETTINGS = image_term_settings(JsgsOptions(), _LOSS.ssim_lambda, _LOSS.ssim_padding, _LOSS.ssim_kernel)
 
 
-def measure(
-    fn: Callable[..., tuple[Tensor, ...]], x: Tensor, args: tuple[Tensor, ...], steps: int
-) -> dict[str, float]:
-    """Median µs of the forward call, the backward call (host only) and both with a final sync."""
+def measure(fn: Callable[[Tensor], Tensor], x: Tensor, steps: int) -> dict[str, float]:
+    """Median µs of the forward call ``fn(x)`` (the weighted loss), the backward call (host only) and both
+    with a final sync."""
     fwd, bwd, both = [], [], []
     for i in range(steps + 20):
         xi = x.detach().clone().requires_grad_(True)
         torch.cuda.synchronize()
         t0 = time.perf_counter()
-        out = fn(xi, *args)
-        loss = out[0] + 0.02 * out[1] + 0.03 * out[2]
+        loss = fn(xi)
         t1 = time.perf_counter()
         loss.backward()
         t2 = time.perf_counter()
@@ -65,27 +70,42 @@ def main(argv: list[str] | None = None) -> int:
     if not torch.cuda.is_available():
         print("error: bench_graph_host needs CUDA (it times host launches of GPU work)", file=sys.stderr)
         return 1
-    w, h = (int(v) for v in args.size.lower().split("x"))
+    w_px, h_px = (int(v) for v in args.size.lower().split("x"))
     g = torch.Generator(device="cuda").manual_seed(0)
-    x = torch.rand(1, 3, h, w, device="cuda", generator=g)
-    y = torch.rand(1, 3, h, w, device="cuda", generator=g)
+    x = torch.rand(1, 3, h_px, w_px, device="cuda", generator=g)
+    y = torch.rand(1, 3, h_px, w_px, device="cuda", generator=g)
     luma = torch.randint(2, 60, (8, 8), device="cuda", generator=g).float()
     chroma = torch.randint(2, 90, (8, 8), device="cuda", generator=g).float()
 
-    def eager(xi: Tensor, *a: Tensor) -> tuple[Tensor, ...]:
-        return image_terms(xi, *a, sampling="4:2:0", **SETTINGS)
+    tables = torch.stack([luma, chroma])
+    w = (0.2, 0.02, 0.03)
 
-    graphed = GraphedImageTerms(**SETTINGS)
+    def eager(xi: Tensor) -> Tensor:
+        out = image_terms(xi, y, luma, chroma, sampling="4:2:0", **SETTINGS)
+        return w[0] * out[0] + w[1] * out[1] + w[2] * out[2]
 
-    def graph(xi: Tensor, y_: Tensor, luma_: Tensor, chroma_: Tensor) -> tuple[Tensor, ...]:
-        return graphed(xi, y_, luma_, chroma_, "4:2:0")
+    sample = (x.detach().clone().requires_grad_(), y.clone(), luma.clone(), chroma.clone())
+    two = torch.cuda.make_graphed_callables(
+        partial(image_terms, sampling="4:2:0", **SETTINGS), sample, allow_unused_input=True
+    )
+
+    def two_graphs(xi: Tensor) -> Tensor:
+        out = two(xi, y, luma, chroma)
+        return w[0] * out[0] + w[1] * out[1] + w[2] * out[2]
+
+    one = GraphedImageTerms(weights=w, **SETTINGS)
+
+    def one_graph(xi: Tensor) -> Tensor:
+        return one(xi, y, tables, "4:2:0").weighted
 
     mode = SETTINGS["mode"]
-    print(f"{torch.cuda.get_device_name()}, torch {torch.__version__}, {w}x{h}, 4:2:0, {mode} mode")
+    print(f"{torch.cuda.get_device_name()}, torch {torch.__version__}, {w_px}x{h_px}, 4:2:0, {mode} mode")
     print("\n| variant | host µs forward | host µs backward | µs forward + backward + sync |")
     print("|---|---:|---:|---:|")
-    for name, fn in (("eager", eager), ("CUDA graph", graph)):
-        m = measure(fn, x, (y, luma, chroma), args.steps)
+    variants = (("eager", eager), ("two graphs (make_graphed_callables)", two_graphs),
+                ("one graph + known gradient", one_graph))  # fmt: skip
+    for name, fn in variants:
+        m = measure(fn, x, args.steps)
         print(f"| {name} | {m['forward']:.1f} | {m['backward']:.1f} | {m['total']:.1f} |")
     return 0
 

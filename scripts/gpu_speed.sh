@@ -7,7 +7,8 @@
 #               --seeds 0 --prepare-only      (after copying a clean base into .gpuD/data/llff_flower/)
 #   device: command "bash scripts/gpu_speed.sh", carry [".whlmin", ".gpuD"], kind nvidia-h200
 #
-# Knobs (environment): STAGES ("tests overhead profile"; "ssim": benchmarks/bench_ssim.py; "full" trains
+# Knobs (environment): STAGES ("tests overhead profile"; "ssim": benchmarks/bench_ssim.py; "graphhost":
+# benchmarks/bench_graph_host.py; "full" trains
 # the FULL_RUNS ("jsgs gsplat"; a name may repeat; METHOD_eager: JSGS without CUDA graphs; METHOD_torchssim:
 # the torch SSIM instead of the fused kernel; METHOD_torchgc: the GC's torch twin, graphed) one after the other for FULL_ITERS (10000) steps each,
 # evaluated at 3000 / 7000 / 10000), ITERS (2000, overhead), GRAPHS (off,jo,on),
@@ -37,6 +38,8 @@ for stage in ${STAGES:-tests overhead profile}; do
         > "$OUT/gpu_tests.log" 2>&1
         tail -n 3 "$OUT/gpu_tests.log" ;;
     ssim) python3 benchmarks/bench_ssim.py > "$OUT/ssim.txt" 2>&1; tail -n 12 "$OUT/ssim.txt" ;;
+    graphhost) python3 benchmarks/bench_graph_host.py > "$OUT/graph_host.txt" 2>&1
+        tail -n 8 "$OUT/graph_host.txt" ;;
     overhead) python3 benchmarks/bench_train_overhead.py --manifest "$M" --iterations "${ITERS:-2000}" \
         --repeats 1 --device cuda --jpeg-modes "${MODES:-paper}" --cuda-graph "${GRAPHS:-off,jo,on}" \
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1

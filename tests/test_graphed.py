@@ -3,6 +3,7 @@ against the eager hook) and its CUDA-graph replay (GPU only: the same values and
 
 from __future__ import annotations
 
+from contextlib import nullcontext
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,13 @@ from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision
 from jsgs.train.controller import fro_from_probe_grad, packed_fro_stats
-from jsgs.train.graphed import GraphedController, GraphedImageTerms, image_terms
+from jsgs.train.graphed import (
+    GraphedController,
+    GraphedImageTerms,
+    _Recording,
+    image_terms,
+    terms_with_gradient,
+)
 from jsgs.train.jsgs_method import JsgsHook, parse_options, use_cuda_graph
 
 SETTINGS = dict(
@@ -58,19 +65,76 @@ def test_image_terms_are_the_three_eager_functions(ds: bool, gc: bool) -> None:
     torch.testing.assert_close(x1.grad, x2.grad, rtol=1e-12, atol=1e-15)
 
 
-def test_the_hooks_graphed_branch_gives_the_eager_terms_and_gradients() -> None:
-    """The hook's cuda_graph branch, with image_terms run directly (what the graph records) on the CPU."""
+def _eager_recording(
+    self: GraphedImageTerms, x: torch.Tensor, y: torch.Tensor, tables: torch.Tensor, sampling: str
+) -> _Recording:
+    """GraphedImageTerms._record without CUDA: the same input and output buffers, and a "replay" that runs
+    the function the graph would record on the input buffers and writes its results into the outputs."""
+    inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
+    fn = partial(terms_with_gradient, weights=self.weights, sampling=sampling, **self.settings)
+    outputs = fn(*inputs)
+
+    def replay() -> None:
+        for buf, new in zip(outputs, fn(*inputs), strict=True):
+            if buf is not None:
+                buf.copy_(new)
+
+    return _Recording(replay, inputs, outputs)
+
+
+def test_terms_with_gradient_is_the_gradient_of_the_weighted_sum() -> None:
+    x, y, luma, chroma = _view_tensors(4)
+    w = (0.2, 0.02, 0.03)
+    values, grad, r, obs = terms_with_gradient(
+        x.clone().requires_grad_(), y, torch.stack([luma, chroma]), weights=w, sampling="4:2:0", **SETTINGS
+    )
+    x2 = x.clone().requires_grad_()
+    l_obs, low, mid, r2, obs2 = image_terms(x2, y, luma, chroma, sampling="4:2:0", **SETTINGS)
+    total = w[0] * l_obs + w[1] * low + w[2] * mid
+    total.backward()
+    assert values.tolist() == [total.item(), l_obs.item(), low.item(), mid.item()]
+    assert grad is not None and torch.equal(grad, x2.grad)
+    assert torch.equal(r, r2) and torch.equal(obs, obs2) and not values.requires_grad
+    none = terms_with_gradient(x, y, torch.stack([luma, chroma]), weights=w, sampling="4:2:0", **SETTINGS)
+    assert none[1] is None and torch.equal(none[0], values)
+
+
+@pytest.mark.parametrize("ds", [True, False])
+def test_the_hooks_graphed_branch_gives_the_eager_terms_and_gradients(
+    monkeypatch: pytest.MonkeyPatch, ds: bool
+) -> None:
+    """The hook's cuda_graph branch through GraphedImageTerms with its recording replaced by an eager one on
+    the CPU (buffers and all): the eager hook's terms, statistics and gradients, the image terms folded into
+    one weighted term whose gradient was computed ahead, and nothing the step keeps aliasing the buffers."""
     view = make_view(30, "4:2:0")
-    eager = train_step(new_hook(view), view)
-    hook = new_hook(view)
-    hook._graphed = lambda x, y, lu, ch, s: image_terms(x, y, lu, ch, sampling=s, **SETTINGS)
-    graphed = train_step(hook, view)
+    eager = train_step(new_hook(view, ds=ds), view)
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    hook = new_hook(view, ds=ds)
+    w = hook.weights()
+    hook._graphed = GraphedImageTerms(
+        weights=(w["obs"], w.get("low", 0.0), w.get("mid", 0.0)), **hook._jpeg_settings
+    )
+    splats = make_splats()
+    graphed = train_step(hook, view, splats)
+    assert set(graphed["terms"]) == set(eager["terms"])
     for k, v in eager["terms"].items():
         assert graphed["terms"][k] == pytest.approx(v, rel=1e-12, abs=1e-15), k
     for k, v in eager["stats"].items():
         assert graphed["stats"][k] == pytest.approx(v, rel=1e-12), k
     for k, g in eager["grads"].items():
         torch.testing.assert_close(graphed["grads"][k], g, rtol=1e-10, atol=1e-14)
+    # a second step through the same buffers (a replay, no new recording) gives the same again
+    again = train_step(hook, view)
+    assert again["terms"] == graphed["terms"] and len(hook._graphed._graphs) == 1
+    for k, g in graphed["grads"].items():
+        assert torch.equal(again["grads"][k], g), k
+    kept = {k: p.grad.clone() for k, p in splats.items()}
+    (rec,) = hook._graphed._graphs.values()
+    for b in rec.outputs:
+        if b is not None:
+            b.fill_(float("nan"))
+    for k, p in splats.items():
+        assert torch.equal(p.grad, kept[k]), k
 
 
 def test_a_failed_graph_recording_falls_back_to_eager(monkeypatch: pytest.MonkeyPatch, capsys: Any) -> None:
@@ -80,15 +144,16 @@ def test_a_failed_graph_recording_falls_back_to_eager(monkeypatch: pytest.Monkey
     eager = train_step(new_hook(view), view)
     tries = []
 
-    def refuse(fn: Any, sample: Any, **kw: Any) -> Any:
+    def refuse() -> Any:
         tries.append(1)
         raise RuntimeError("operation not permitted when stream is capturing\nmore detail")
 
-    # only the recording is faked (as if on CUDA): everything else runs on the CPU
-    monkeypatch.setattr(torch.cuda, "make_graphed_callables", refuse)
+    # only the recording is faked (as if on CUDA): the warm-up runs on the CPU, the capture fails
+    _no_cuda_streams(monkeypatch)
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", refuse)
     monkeypatch.setattr(GraphedImageTerms, "_check_device", staticmethod(lambda x: None))
     hook = new_hook(view)
-    hook._graphed = GraphedImageTerms(**SETTINGS)
+    hook._graphed = GraphedImageTerms(weights=(0.2, 0.02, 0.03), **SETTINGS)
     first, second = train_step(hook, view), train_step(hook, view)
     for k, v in eager["terms"].items():
         assert first["terms"][k] == v == second["terms"][k], k
@@ -98,6 +163,22 @@ def test_a_failed_graph_recording_falls_back_to_eager(monkeypatch: pytest.Monkey
     err = capsys.readouterr().err
     assert err.count("warning: recording JO/L_obs/DS as a CUDA graph failed") == 1
     assert "not permitted" in err and "more detail" not in err
+
+
+def _no_cuda_streams(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The streams of a CUDA device, as far as recording touches them before the graph, on the CPU."""
+
+    class NoStream:
+        def __init__(self, device: Any = None) -> None:
+            pass
+
+        def wait_stream(self, other: Any) -> None:
+            pass
+
+    monkeypatch.setattr(torch.cuda, "current_stream", NoStream)
+    monkeypatch.setattr(torch.cuda, "Stream", NoStream)
+    monkeypatch.setattr(torch.cuda, "stream", lambda s: nullcontext())
+    monkeypatch.setattr(torch.cuda, "graph_pool_handle", lambda: None)
 
 
 def test_cuda_graph_is_refused_off_cuda_and_with_compile(tmp_path: Path) -> None:
@@ -192,15 +273,7 @@ def test_a_failed_controller_recording_falls_back_to_eager(
         tries.append(1)
         raise RuntimeError("CUDA error: operation not permitted when stream is capturing\nmore detail")
 
-    class NoStream:  # the streams of a CUDA device, as far as recording touches them before the graph
-        def __init__(self, device: Any = None) -> None:
-            pass
-
-        def wait_stream(self, other: Any) -> None:
-            pass
-
-    monkeypatch.setattr(torch.cuda, "current_stream", NoStream)
-    monkeypatch.setattr(torch.cuda, "Stream", NoStream)
+    _no_cuda_streams(monkeypatch)
     monkeypatch.setattr(torch.cuda, "CUDAGraph", refuse)
     monkeypatch.setattr(GraphedImageTerms, "_check_device", staticmethod(lambda x: None))
     hook = new_hook(view)
@@ -267,7 +340,8 @@ def test_gpu_graph_replays_equal_eager_for_every_view(mode: str) -> None:
     JO mode: values and render gradients equal to the eager function's, and earlier results not
     overwritten by later replays."""
     settings = {**SETTINGS, "mode": mode}
-    graphed = GraphedImageTerms(**settings)
+    w = (0.2, 0.02, 0.03)
+    graphed = GraphedImageTerms(weights=w, **settings)
     eager = partial(image_terms, sampling="4:2:0", **settings)
     kept = []
     for rnd in range(2):
@@ -275,16 +349,20 @@ def test_gpu_graph_replays_equal_eager_for_every_view(mode: str) -> None:
             x, y, luma, chroma = _view_tensors(seed, "cuda", torch.float32)
             x = x * (1.0 + 0.01 * rnd)
             xg, xe = x.clone().requires_grad_(), x.clone().requires_grad_()
-            out_g, out_e = graphed(xg, y, luma, chroma, "4:2:0"), eager(xe, y, luma, chroma)
-            for a, b in zip(out_g, out_e, strict=True):
-                torch.testing.assert_close(a, b.detach(), rtol=1e-6, atol=1e-7)
-            (0.2 * out_g[0] + 0.02 * out_g[1] + 0.03 * out_g[2]).backward()
-            (0.2 * out_e[0] + 0.02 * out_e[1] + 0.03 * out_e[2]).backward()
+            out_g = graphed(xg, y, torch.stack([luma, chroma]), "4:2:0")
+            out_e = eager(xe, y, luma, chroma)
+            total_e = w[0] * out_e[0] + w[1] * out_e[1] + w[2] * out_e[2]
+            torch.testing.assert_close(out_g.values, torch.stack(out_e[:3]).detach(), rtol=1e-6, atol=1e-7)
+            torch.testing.assert_close(out_g.weighted, total_e.detach(), rtol=1e-6, atol=1e-7)
+            torch.testing.assert_close(out_g.r, out_e[3], rtol=1e-6, atol=1e-7)
+            torch.testing.assert_close(out_g.obs, out_e[4], rtol=1e-6, atol=1e-7)
+            (3.0 * out_g.weighted).backward()  # an upstream factor other than 1 is applied too
+            (3.0 * total_e).backward()
             torch.testing.assert_close(xg.grad, xe.grad, rtol=1e-5, atol=1e-8)
-            kept.append((out_g[0].item(), out_g[0]))
+            kept.append((out_g.values.tolist(), out_g.values))
     assert len(graphed._graphs) == 1  # one image size, one sampling: one graph
     for value, tensor in kept:
-        assert tensor.item() == value
+        assert tensor.tolist() == value
 
 
 def train_jsgs_variants(tmp_path: Path, variants: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:

@@ -32,6 +32,7 @@ from jsgs.train.config import TrainConfig
 from jsgs.train.data import View
 from jsgs.train.hooks import StepContext, make_hook
 from jsgs.train.jsgs_method import JsgsHook, make_jsgs_hook, parse_options, view_tables
+from jsgs.train.loop import weighted_loss
 from jsgs.train.rendering import render_view
 
 D = torch.float64
@@ -276,10 +277,8 @@ def train_step(hook: JsgsHook, view: View, splats: torch.nn.ParameterDict | None
     h = hook.losses(ctx)
     h.check("jsgs")
     x, y = out.rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
-    loss = photometric_loss(x, y, 0.2, padding="valid")
-    for k, w in h.weights.items():
-        if w != 0.0:
-            loss = loss + w * h.terms[k]
+    terms = {"photometric": photometric_loss(x, y, 0.2, padding="valid"), **h.terms}
+    loss = weighted_loss(terms, {"photometric": 1.0, **h.weights}, h.folded, h.folded_loss)
     loss.backward()
     return {
         "terms": {k: v.item() for k, v in h.terms.items()},

@@ -174,15 +174,6 @@ __global__ void scale_kernel(int64_t n, const T* __restrict__ factor, T* __restr
   }
 }
 
-void check(const at::Tensor& t, const at::Tensor& like, std::vector<int64_t> shape, const char* name) {
-  TORCH_CHECK(t.is_cuda() && t.device() == like.device(), "fused controller: ", name, " must be on ",
-              like.device());
-  TORCH_CHECK(t.scalar_type() == like.scalar_type(), "fused controller: ", name, " must be ",
-              like.scalar_type());
-  TORCH_CHECK(t.is_contiguous(), "fused controller: ", name, " must be contiguous");
-  TORCH_CHECK(t.sizes() == at::IntArrayRef(shape), "fused controller: ", name, " has shape ", t.sizes());
-}
-
 }  // namespace
 
 // Returns (grad_logit [N], grad_log_scale [N, 3], stats [4]) as fro_from_probe_grad + packed_fro_stats.
@@ -190,18 +181,9 @@ std::vector<at::Tensor> controller_forward(at::Tensor probe_grad, at::Tensor log
                                            at::Tensor means, at::Tensor quats, at::Tensor viewmat,
                                            at::Tensor K, int64_t width, int64_t height, double weight,
                                            double near_plane, double eps_proj, double tau_s) {
+  // the arguments were checked by the caller in bindings.cpp: an exception thrown from this nvcc-compiled
+  // translation unit did not reach Python cleanly (it crashed the process in session 6)
   const int64_t n = logits.size(0);
-  TORCH_CHECK(logits.dim() == 1, "fused controller: opacity logits must be [N]");
-  TORCH_CHECK(logits.scalar_type() == at::kFloat || logits.scalar_type() == at::kDouble,
-              "fused controller: float32 or float64 only");
-  TORCH_CHECK(weight > 0, "fused controller: weight must be > 0");
-  check(logits, logits, {n}, "opacity_logits");
-  check(probe_grad, logits, {1, n, 2}, "probe_grad");
-  check(log_scales, logits, {n, 3}, "log_scales");
-  check(means, logits, {n, 3}, "means");
-  check(quats, logits, {n, 4}, "quats");
-  check(viewmat, logits, {4, 4}, "viewmat");
-  check(K, logits, {3, 3}, "K");
   const c10::cuda::CUDAGuard guard(logits.device());
   auto grad_logit = at::empty({n}, logits.options());
   auto grad_log_scale = at::empty({n, 3}, logits.options());

@@ -216,6 +216,8 @@ def _rasterize_gsplat(
         means, quats, scales, opacities, torch.cat(feats, dim=-1), viewmats, Ks, width, height,
         sh_degree=None, backgrounds=torch.cat(bgs, dim=-1), render_mode=render_mode, **kw,
     )  # fmt: skip
-    info["pool_channels"] = img[..., n_col : n_col + 2]
-    img = torch.cat([img[..., :n_col], img[..., n_col + 2 :]], dim=-1)
+    # one split (its backward is one cat of the parts' gradients); a depth channel, if any, is re-attached
+    parts = img.split([n_col, 2, img.shape[-1] - n_col - 2], dim=-1)
+    info["pool_channels"] = parts[1]
+    img = parts[0] if parts[2].shape[-1] == 0 else torch.cat([parts[0], parts[2]], dim=-1)
     return img, alpha, info

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from jsgs.known_grad import with_known_gradient
+
 from . import reference
 
 EPS_PROJ = 1e-6  # the paper's ε_proj
@@ -97,8 +99,13 @@ def probe_objective(info: dict, r: Tensor) -> Tensor:
     """Scalar Σ_p r(p)·probe₀(p) + Σ_p probe₁(p) (value exactly 0) to add, unscaled, to the loss.
 
     After ``backward`` read the sums with ``pool_from_grad(info)``.
+
+    The gradient with respect to the probe channels is the upstream map ``(r, 1)`` itself and the value is
+    exactly 0 (the channels render zero colours over a zero background), so the objective is one node with
+    that known gradient rather than a product and a sum (``jsgs.known_grad``).
     """
-    return (info["pool_channels"] * _upstream(info, r)).sum()
+    up = _upstream(info, r)
+    return with_known_gradient(info["pool_channels"], up.new_zeros(()), up)
 
 
 def pool_from_grad(info: dict) -> PooledSums:

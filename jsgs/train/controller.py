@@ -256,22 +256,8 @@ def fro_from_probe_grad_fused(
     from jsgs.cuda_ext import build_error, extension
 
     tensors = (probe_grad, opacity_logits, log_scales, means, quats, viewmat, K)
-    n = opacity_logits.shape[0] if opacity_logits.dim() == 1 else -1
-    shapes = ((1, n, 2), (n,), (n, 3), (n, 3), (n, 4), (4, 4), (3, 3))
-    names = ("probe_grad", "opacity_logits", "log_scales", "means", "quats", "viewmat", "K")
-    # checked here, not only in the kernels' C++: an error raised there does not reach Python cleanly
-    if opacity_logits.dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"the fused controller needs float32 or float64, got {opacity_logits.dtype}")
-    for t, shape, name in zip(tensors, shapes, names, strict=True):
-        if tuple(t.shape) != shape or n < 0:
-            raise ValueError(f"the fused controller: {name} has shape {tuple(t.shape)}, expected {shape}")
-        if t.dtype != opacity_logits.dtype or t.device != opacity_logits.device or t.device.type != "cuda":
-            raise ValueError(
-                f"the fused controller: {name} is {t.dtype} on {t.device}; every tensor must be "
-                f"{opacity_logits.dtype} on one CUDA device"
-            )
-    if not weight > 0:
-        raise ValueError(f"the fused controller: weight must be > 0, got {weight}")
+    # shapes, dtypes, devices and the weight are checked in C++ (jsgs/csrc/bindings.cpp: RuntimeError naming
+    # the tensor), not here: this runs inside every step's backward
     ext = extension(warn=False)
     if ext is None:
         raise RuntimeError(f"the fused Gaussian Controller cannot be built: {build_error()}")

@@ -3,16 +3,17 @@
 
 At training sizes these terms are a few hundred small kernels per step, forward and backward, and on a GPU
 each one costs more to launch than to run (``benchmarks/bench_kernel_count.py``). A CUDA graph records them
-once per image size and replays the whole forward, and the whole backward, as one launch each. The arithmetic
-is the eager code's, kernel for kernel, so values and gradients are those of the eager path
-(``tests/test_graphed.py``, GPU only).
+once per image size and replays them as one launch. The arithmetic is the eager code's, kernel for kernel,
+so values and gradients are those of the eager path (``tests/test_graphed.py``, GPU only).
 
-The chain itself is :func:`jpeg_terms` (the eager hook runs it too); what is recorded is
-:func:`image_terms`, its tensors-only form, a pure function of tensors: the render and target of one view, its
-tables (inputs, so every view replays the same graph with its own), with the JO mode, sampling, weights'
-switches and epsilons fixed per graph. One graph per (image shape, dtype, sampling); the scenes we train have
-one image size. Graphs need static shapes and no host synchronisation, which the JPEG code guarantees (see
-``jsgs.jpeg.observe``); they are CUDA-only. Should a recording fail all the same
+The chain itself is :func:`jpeg_terms` (the eager hook runs it too); its tensors-only form is
+:func:`image_terms`, and what is recorded is :func:`terms_with_gradient`: the image terms *and* the gradient
+of their weighted sum with respect to the render, in one graph, so the forward call is the only replay and
+the trainer's backward merely scales the stored gradient (``jsgs.known_grad``). The inputs are the render and
+target of one view and its tables (so every view replays the same graph with its own); the JO mode,
+sampling, weights and epsilons are fixed per graph. One graph per (image shape, dtype, sampling); the scenes
+we train have one image size. Graphs need static shapes and no host synchronisation, which the JPEG code
+guarantees (see ``jsgs.jpeg.observe``); they are CUDA-only. Should a recording fail all the same
 (:class:`GraphCaptureFailed`), the hook says so in one line and runs the eager chain for the rest of the run.
 """
 
@@ -20,8 +21,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass
 from functools import partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -30,6 +32,7 @@ from jsgs.errors import one_line
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import DctSupervision, dct_supervision
+from jsgs.known_grad import with_known_gradient
 
 
 def jpeg_terms(
@@ -88,48 +91,118 @@ def image_terms(
     return l_obs, low, mid, sup.pixel_score, obs.detach()
 
 
+class ImageTerms(NamedTuple):
+    """What :class:`GraphedImageTerms` returns for one view.
+
+    - ``weighted``: 0-dim, λ_obs·L_obs + λ_low·L_low + λ_mid·L_mid, differentiable with respect to the render
+      (its gradient was computed in the same replay; the backward only scales it);
+    - ``values``: ``(3,)`` L_obs, L_low, L_mid (0 without DS), detached, the caller's own copy;
+    - ``r``: ``(1, H, W)`` the block-score map r(p), detached (0 without DS and GC);
+    - ``obs``: ``(1, 3, H, W)`` the observation, detached.
+
+    ``r`` and ``obs`` live in the graph's memory: valid until the next call (the step's backward included).
+    """
+
+    weighted: Tensor
+    values: Tensor
+    r: Tensor
+    obs: Tensor
+
+
+def terms_with_gradient(
+    x: Tensor, y: Tensor, tables: Tensor, *, weights: tuple[float, float, float], **settings: Any
+) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+    """:func:`image_terms` and the gradient of their weighted sum, in one pass (what the graph records).
+
+    Args:
+        x: ``(1, 3, H, W)`` the render (a leaf; needs grad for the gradient); y: ``(1, 3, H, W)`` the target;
+        tables: ``(2, 8, 8)`` the view's luma and chroma tables; weights: (λ_obs, λ_low, λ_mid), the last two
+            0 without DS; settings: :func:`jpeg_terms`'s, with ``sampling``.
+    Returns:
+        values ``(4,)`` (the weighted sum, L_obs, L_low, L_mid), its gradient with respect to ``x`` (None when
+        ``x`` needs none), r(p) ``(1, H, W)`` and the observation ``(1, 3, H, W)``, all detached.
+    """
+    l_obs, low, mid, r, obs = image_terms(x, y, tables[0], tables[1], **settings)
+    w_obs, w_low, w_mid = weights
+    total = w_obs * l_obs + w_low * low + w_mid * mid
+    grad = torch.autograd.grad(total, x)[0] if x.requires_grad else None
+    values = torch.stack([total, l_obs, low, mid]).detach()
+    return values, grad, r, obs
+
+
 class GraphCaptureFailed(RuntimeError):
     """Recording a graph failed (the message says why); the caller runs the eager chain instead."""
 
 
-class GraphedImageTerms:
-    """:func:`image_terms` through ``torch.cuda.make_graphed_callables``, one graph per (shape, dtype,
-    sampling), recorded on first use (three eager warm-up passes, then the capture)."""
+@dataclass
+class _Recording:
+    """One recorded graph: its input buffers (the replay reads them) and outputs (the replay writes them)."""
 
-    def __init__(self, **settings: Any) -> None:
+    replay: Callable[[], None]
+    inputs: tuple[Tensor, Tensor, Tensor]
+    outputs: tuple[Tensor, Tensor | None, Tensor, Tensor]
+
+
+class GraphedImageTerms:
+    """:func:`terms_with_gradient` replayed as one CUDA graph per (shape, dtype, sampling, needs-grad),
+    recorded on first use: the forward of JO, L_obs and DS *and* the gradient of their weighted sum with
+    respect to the render, in one launch. The trainer's backward then multiplies that stored gradient by its
+    upstream scalar (:func:`jsgs.known_grad.with_known_gradient`): no second replay and no per-term output
+    gradients to copy in.
+
+    This is exact for the loss the trainer forms, Σ_k λ_k·term_k + the rest, because the weights are fixed
+    for the run and the weighted sum enters the loss as one term (``HookOutput.folded_loss``). Each call
+    copies the render, the target and the tables into the graph's input buffers and the four values out.
+    """
+
+    def __init__(self, *, weights: tuple[float, float, float], **settings: Any) -> None:
+        self.weights = tuple(float(w) for w in weights)
         self.settings = settings
-        self._graphs: dict[tuple[Any, ...], Any] = {}
+        self._graphs: dict[tuple[Any, ...], _Recording] = {}
+        self._pool: Any = None
 
     @staticmethod
     def _check_device(x: Tensor) -> None:
         if x.device.type != "cuda":
             raise ValueError("CUDA graphs need CUDA tensors")
 
-    def __call__(
-        self, x: Tensor, y: Tensor, luma: Tensor, chroma: Tensor, sampling: str
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        key = (tuple(x.shape), x.dtype, sampling)
-        fn = self._graphs.get(key)
-        if fn is None:
-            self._check_device(x)
-            # the graph's own input buffers: replays copy each call's tensors into them
-            sample = (
-                x.detach().clone().requires_grad_(x.requires_grad),
-                y.clone(),
-                luma.clone(),
-                chroma.clone(),
-            )
-            try:
-                fn = torch.cuda.make_graphed_callables(
-                    partial(image_terms, sampling=sampling, **self.settings), sample, allow_unused_input=True
-                )
-            except RuntimeError as e:  # e.g. an op that synchronises with the host, refused while capturing
-                raise GraphCaptureFailed(one_line(e)) from e
-            self._graphs[key] = fn
-        l_obs, low, mid, r, obs = fn(x, y, luma, chroma)
-        # the outputs live in the graph's static memory, overwritten by the next replay; the scalars are
-        # kept by the trainer (logging), so they are copied, and so is r(p), which the GC's probe reads
-        return l_obs.clone(), low.clone(), mid.clone(), r.clone(), obs
+    def __call__(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str) -> ImageTerms:
+        """``x``, ``y``: ``(1, 3, H, W)`` render and target; ``tables``: ``(2, 8, 8)`` luma and chroma."""
+        key = (tuple(x.shape), x.dtype, sampling, x.requires_grad)
+        rec = self._graphs.get(key)
+        if rec is None:
+            rec = self._graphs[key] = self._record(x, y, tables, sampling)
+        with torch.no_grad():  # the render's buffer is a leaf that needs grad (the recorded gradient's input)
+            for buf, src in zip(rec.inputs, (x, y, tables), strict=True):
+                buf.copy_(src)
+        rec.replay()
+        values, grad, r, obs = rec.outputs
+        values = values.clone()  # the caller's: logged after the step, when the next replay may have run
+        weighted = values[0] if grad is None else with_known_gradient(x, values[0], grad)
+        return ImageTerms(weighted, values[1:], r, obs)
+
+    def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str) -> _Recording:
+        self._check_device(x)
+        inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
+        fn = partial(terms_with_gradient, weights=self.weights, sampling=sampling, **self.settings)
+        try:
+            # warm-up passes on a side stream (lazy library and autograd-engine state is set up outside the
+            # capture), then the capture, into one memory pool shared by all of this object's graphs
+            here = torch.cuda.current_stream(x.device)
+            side = torch.cuda.Stream(x.device)
+            side.wait_stream(here)
+            with torch.cuda.stream(side):
+                for _ in range(2):
+                    fn(*inputs)
+            here.wait_stream(side)
+            if self._pool is None:
+                self._pool = torch.cuda.graph_pool_handle()
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph, pool=self._pool):
+                outputs = fn(*inputs)
+        except RuntimeError as e:  # e.g. an op that synchronises with the host, refused while capturing
+            raise GraphCaptureFailed(one_line(e)) from e
+        return _Recording(graph.replay, inputs, outputs)
 
 
 class GraphedController:

@@ -8,6 +8,8 @@ statistics to log. The total loss is::
 
     loss = loss.base_weight * l_ph + sum_k weights[k] * terms[k] (+ gsplat's optional regularisers)
 
+(a hook may hand some terms' weighted sum over ready-made, ``HookOutput.folded_loss``).
+
 Every term (base ones included) is checked for NaN/Inf each step; a bad one stops the run naming the term and
 the step. Term values and stats are shown on the progress bar and averaged into ``RUN/metrics.json`` between
 evaluations (``train`` of each entry of ``evals``).
@@ -74,16 +76,27 @@ class StepContext:
 class HookOutput:
     """A hook's contribution: ``terms`` (name -> scalar tensor, unweighted, differentiable), ``weights``
     (name -> float; every term needs one, 0 logs a term without optimising it) and ``stats`` (name -> float or
-    0-dim tensor; logged only, never differentiated)."""
+    0-dim tensor; logged only, never differentiated).
+
+    A hook that computes some terms' weighted sum with its gradient in one go (JSGS's graphed image terms)
+    returns that sum as ``folded_loss`` (0-dim, differentiable, = Σ weights[k]·terms[k] over ``folded``) and
+    names those terms in ``folded``: their ``terms`` entries are then values to log (and to check), and the
+    trainer adds ``folded_loss`` to the loss instead of weighting them again."""
 
     terms: dict[str, Tensor] = field(default_factory=dict)
     weights: dict[str, float] = field(default_factory=dict)
     stats: dict[str, float | Tensor] = field(default_factory=dict)
+    folded: frozenset[str] = frozenset()
+    folded_loss: Tensor | None = None
 
     def check(self, hook_name: str) -> None:
         missing = sorted(set(self.terms) - set(self.weights))
         if missing:
             raise JsgsError(f"method {hook_name}: loss term {missing[0]!r} has no weight")
+        unknown = sorted(self.folded - set(self.terms))
+        if unknown or (self.folded and self.folded_loss is None):
+            what = f"folds {unknown[0]!r}, which it does not return" if unknown else "returns no folded_loss"
+            raise JsgsError(f"method {hook_name}: {what}")
         clash = sorted(set(self.terms) & RESERVED_TERMS)
         if clash:
             raise JsgsError(f"method {hook_name}: loss term name {clash[0]!r} is reserved")

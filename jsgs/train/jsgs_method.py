@@ -47,6 +47,7 @@ import sys
 from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Any, Literal
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -239,11 +240,19 @@ def image_term_settings(
 
 @dataclass
 class ViewJpeg:
-    """A training view's JPEG state on the training device: tables [8, 8] float32, natural order [v, u]."""
+    """A training view's JPEG state on the training device: ``tables`` [2, 8, 8] float32 (luma, chroma; one
+    tensor so that a graph replay copies them in once), natural order [v, u]."""
 
-    luma: Tensor
-    chroma: Tensor
+    tables: Tensor
     sampling: str
+
+    @property
+    def luma(self) -> Tensor:
+        return self.tables[0]
+
+    @property
+    def chroma(self) -> Tensor:
+        return self.tables[1]
 
 
 def view_tables(views: list[View], device: torch.device, where: str) -> dict[int, ViewJpeg]:
@@ -264,11 +273,8 @@ def view_tables(views: list[View], device: torch.device, where: str) -> dict[int
                 f"{where}: view {v.name!r} has chroma sampling {j.sampling}; the JPEG observation operator "
                 f"supports {', '.join(SUPPORTED_SAMPLING)} (re-encode it, or train with --method gsplat)"
             )
-        out[v.index] = ViewJpeg(
-            torch.as_tensor(j.luma_table, dtype=torch.float32, device=device).reshape(8, 8),
-            torch.as_tensor(j.chroma_table, dtype=torch.float32, device=device).reshape(8, 8),
-            j.sampling,
-        )
+        tables = torch.as_tensor(np.stack([np.asarray(j.luma_table), np.asarray(j.chroma_table)]))
+        out[v.index] = ViewJpeg(tables.to(device, torch.float32).reshape(2, 8, 8), j.sampling)
     return out
 
 
@@ -325,7 +331,9 @@ class JsgsHook(LossHook):
         )  # fmt: skip
         self.cuda_graph = use_cuda_graph(options, self.device)
         if self.cuda_graph:
-            self._graphed = GraphedImageTerms(**self._jpeg_settings)
+            w = self.weights()
+            image_weights = (w["obs"], w.get("low", 0.0), w.get("mid", 0.0))
+            self._graphed = GraphedImageTerms(weights=image_weights, **self._jpeg_settings)
             if self.gc_route == "deferred" and options.cuda_graph_gc and not self._gc_fused:
                 self._gc_graphed = GraphedController(**self._gc_settings)
 
@@ -386,20 +394,27 @@ class JsgsHook(LossHook):
         y = ctx.target.permute(0, 3, 1, 2)
         r_map = None
         graphed = None
+        folded: frozenset[str] = frozenset()
+        folded_loss = None
         if self._graphed is not None:
             try:
                 with self.profiler.phase("jo"):  # JO, L_obs and DS: one graph replay ("ds" is in it)
-                    graphed = self._graphed(x, y, tab.luma, tab.chroma, tab.sampling)
+                    graphed = self._graphed(x, y, tab.tables, tab.sampling)
             except GraphCaptureFailed as e:
                 # a speed-up, not a result: the run goes on with the eager chain, which computes the same
                 self._graphed = None
                 warn_eager_fallback("recording JO/L_obs/DS as a CUDA graph", str(e), "them")
         if graphed is not None:
-            terms["obs"], low, mid, r_map, obs = graphed
+            # the weighted sum carries the three terms' gradient; the terms themselves are logged values
+            l_obs, low, mid = graphed.values.unbind()
+            terms["obs"] = l_obs
             if o.ds:
                 terms["low"], terms["mid"] = low, mid
+            folded, folded_loss = frozenset(terms), graphed.weighted
+            r_map = graphed.r
             if self.keep_last:
-                self.last["observation"] = obs.clone()
+                self.last["observation"] = graphed.obs.clone()
+                r_map = r_map.clone()
         else:
             obs, terms["obs"], sup = jpeg_terms(
                 x, y, tab.luma, tab.chroma, sampling=tab.sampling, phase=self.profiler.phase,
@@ -422,7 +437,7 @@ class JsgsHook(LossHook):
                 else:
                     terms["fro"], gc_stats = self._gc_deferred(ctx, r_map)
                 stats.update(gc_stats)
-        return HookOutput(terms, self.weights(), stats)
+        return HookOutput(terms, self.weights(), stats, folded, folded_loss)
 
     # ------------------------------------------------------------------------------------------------
     def _camera(self, ctx: StepContext) -> tuple[Tensor, Tensor, int, int]:

@@ -523,6 +523,8 @@ def train(
             with profiler.phase("loss"):
                 terms, weights = _base_terms(rgb, target, splats, cfg)
             stats: dict[str, Any] = {}
+            folded: frozenset[str] = frozenset()
+            folded_loss = None
             if hook is not None:
                 with profiler.phase("hook"):
                     ctx = StepContext(
@@ -542,8 +544,8 @@ def train(
                     terms.update(hout.terms)
                     weights.update(hout.weights)
                     stats = dict(hout.stats)
-            loss = sum(weights[k] * terms[k] for k in weights if weights[k] != 0.0)
-            assert isinstance(loss, torch.Tensor)
+                    folded, folded_loss = hout.folded, hout.folded_loss
+            loss = weighted_loss(terms, weights, folded, folded_loss)
             with profiler.phase("backward"):
                 loss.backward()
             # one host sync per step: every logged value and the gradients' finiteness together
@@ -677,6 +679,32 @@ def _base_terms(
         terms["scale_reg"] = torch.exp(splats["scales"]).mean()
         weights["scale_reg"] = cfg.loss.scale_reg
     return terms, weights
+
+
+def weighted_loss(
+    terms: dict[str, torch.Tensor],
+    weights: dict[str, float],
+    folded: frozenset[str] = frozenset(),
+    folded_loss: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The step's loss Σ weights[k]·terms[k] (terms of weight 0 left out) with the terms in ``folded``
+    replaced by their ready-made weighted sum ``folded_loss`` (:class:`jsgs.train.hooks.HookOutput`).
+
+    Each multiplication and addition is a kernel and an autograd node, which on a GPU cost more host time
+    than device time, so a weight of 1 is not multiplied and the sum starts from the first part, not 0."""
+    parts = [
+        terms[k] if weights[k] == 1.0 else weights[k] * terms[k]
+        for k in weights
+        if weights[k] != 0.0 and k not in folded
+    ]
+    if folded_loss is not None:
+        parts.append(folded_loss)
+    if not parts:
+        raise JsgsError("every loss term has weight 0: nothing to optimise")
+    loss = parts[0]
+    for p in parts[1:]:
+        loss = loss + p
+    return loss
 
 
 def _weighted_sum(names: list[str], values: list[float], weights: dict[str, float]) -> float:
