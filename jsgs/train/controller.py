@@ -256,15 +256,20 @@ def fro_from_probe_grad_fused(
     from jsgs.cuda_ext import build_error, extension
 
     tensors = (probe_grad, opacity_logits, log_scales, means, quats, viewmat, K)
-    # shapes, dtypes, devices and the weight are checked in C++ (jsgs/csrc/bindings.cpp: RuntimeError naming
-    # the tensor), not here: this runs inside every step's backward
+    # shapes, dtypes, devices and the weight are checked in C++ (jsgs/csrc/bindings.cpp), not here: this runs
+    # inside every step's backward. Bad arguments give an empty result and the reason, not an exception
+    # (one thrown from the extension crashed the process on the GPU machine).
     ext = extension(warn=False)
     if ext is None:
         raise RuntimeError(f"the fused Gaussian Controller cannot be built: {build_error()}")
-    g_logit, g_ls, stats = ext.controller_forward(
+    args = (
         *(t.detach().contiguous() for t in tensors), int(width), int(height), float(weight),
         float(near_plane), float(eps_proj), float(tau_s),
     )  # fmt: skip
+    out = ext.controller_forward(*args)
+    if not out:
+        raise ValueError(ext.controller_arguments_error(*args))
+    g_logit, g_ls, stats = out
     return g_logit, g_ls, stats
 
 
