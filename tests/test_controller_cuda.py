@@ -42,6 +42,24 @@ def test_gc_kernel_option_on_cpu() -> None:
         parse_options({"gc_kernel": "fast"})
 
 
+def test_fused_controller_refusal_words() -> None:
+    """The words of a refusal (the C++ side answers only yes or no): each check, on the CPU."""
+    from jsgs.train.controller import _fused_arguments_error
+
+    n = 10
+    good = (torch.zeros(1, n, 2), torch.zeros(n), torch.zeros(n, 3), torch.zeros(n, 3), torch.zeros(n, 4),
+            torch.eye(4), torch.eye(3))  # fmt: skip
+    assert _fused_arguments_error(good, 0.05) == (
+        "the fused controller: probe_grad is torch.float32 on cpu; every tensor must be torch.float32 on one "
+        "CUDA device"
+    )
+    assert "weight must be > 0, got -1.0" in _fused_arguments_error(good, -1.0)
+    assert "got torch.int64" in _fused_arguments_error((good[0], torch.zeros(n, dtype=torch.long), *good[2:]), 1)
+    assert "opacity_logits must be [N], got shape (1, 10)" in _fused_arguments_error(
+        (good[0], good[1][None], *good[2:]), 1.0
+    )
+
+
 def _inputs(n: int, seed: int, dtype: torch.dtype, hard: bool = False) -> tuple[torch.Tensor, ...]:
     g = torch.Generator().manual_seed(seed)
     nu = torch.rand(n, generator=g, dtype=torch.float64) * (torch.rand(n, generator=g) > 0.3)
@@ -143,20 +161,23 @@ print("alive")
 @pytest.mark.gpu
 def test_fused_controller_refuses_bad_input() -> None:
     """Bad arguments raise a ValueError naming the tensor (checked in C++, jsgs/csrc/bindings.cpp, which
-    returns the reason instead of throwing). Run in a child process: an exception thrown from the extension
-    crashed the process on the GPU machine, and a crash must fail this test, not end the test session."""
+    refuses with an empty result; the words are Python's). Run in a child process: an exception or a message
+    built in the extension crashed the process on the GPU machine, and a crash must fail this test, not end
+    the test session."""
     repo = Path(__file__).resolve().parents[1]
+    path = os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")])
     r = subprocess.run(
-        [sys.executable, "-c", _REFUSALS], capture_output=True, text=True, timeout=600, cwd=repo,
-        env={**os.environ, "PYTHONPATH": str(repo)},
+        [sys.executable, "-X", "faulthandler", "-c", _REFUSALS], capture_output=True, text=True, timeout=600,
+        cwd=repo, env={**os.environ, "PYTHONPATH": path},
     )  # fmt: skip
     assert r.returncode == 0, f"exit {r.returncode} after {r.stdout[-500:]!r}: {r.stderr[-3000:]}"
     assert [s for s in r.stdout.splitlines() if not s.startswith("case ")] == [
-        "fused controller: probe_grad has shape [1, 50, 2], expected [1, 100, 2]",
-        "fused controller: probe_grad is Double on cuda:0; every tensor must be Float on one CUDA device",
-        "fused controller: needs float32 or float64, got Half",
-        "fused controller: opacity_logits must be [N], got [1, 100]",
-        "fused controller: weight must be > 0, got 0",
+        "the fused controller: probe_grad has shape (1, 50, 2), expected (1, 100, 2)",
+        "the fused controller: probe_grad is torch.float64 on cuda:0; every tensor must be torch.float32 on "
+        "one CUDA device",
+        "the fused controller needs float32 or float64, got torch.float16",
+        "the fused controller: opacity_logits must be [N], got shape (1, 100)",
+        "the fused controller: weight must be > 0, got 0.0",
         "alive",
     ]
 

@@ -256,21 +256,43 @@ def fro_from_probe_grad_fused(
     from jsgs.cuda_ext import build_error, extension
 
     tensors = (probe_grad, opacity_logits, log_scales, means, quats, viewmat, K)
-    # shapes, dtypes, devices and the weight are checked in C++ (jsgs/csrc/bindings.cpp), not here: this runs
-    # inside every step's backward. Bad arguments give an empty result and the reason, not an exception
-    # (one thrown from the extension crashed the process on the GPU machine).
+    # checked in C++ (jsgs/csrc/bindings.cpp), not here: this runs inside every step's backward. A refusal is
+    # an empty result, worded here (an exception or message built in the extension crashed the process)
     ext = extension(warn=False)
     if ext is None:
         raise RuntimeError(f"the fused Gaussian Controller cannot be built: {build_error()}")
-    args = (
+    out = ext.controller_forward(
         *(t.detach().contiguous() for t in tensors), int(width), int(height), float(weight),
         float(near_plane), float(eps_proj), float(tau_s),
     )  # fmt: skip
-    out = ext.controller_forward(*args)
     if not out:
-        raise ValueError(ext.controller_arguments_error(*args))
+        raise ValueError(_fused_arguments_error(tensors, weight))
     g_logit, g_ls, stats = out
     return g_logit, g_ls, stats
+
+
+def _fused_arguments_error(tensors: tuple[Tensor, ...], weight: float) -> str:
+    """Why the fused controller refused ``(probe_grad, opacity_logits, log_scales, means, quats, viewmat,
+    K)`` and ``weight`` (the checks of ``jsgs/csrc/bindings.cpp``, in words)."""
+    logits = tensors[1]
+    if logits.dim() != 1:
+        return f"the fused controller: opacity_logits must be [N], got shape {tuple(logits.shape)}"
+    if logits.dtype not in (torch.float32, torch.float64):
+        return f"the fused controller needs float32 or float64, got {logits.dtype}"
+    if not weight > 0:
+        return f"the fused controller: weight must be > 0, got {weight}"
+    n = logits.shape[0]
+    shapes = ((1, n, 2), (n,), (n, 3), (n, 3), (n, 4), (4, 4), (3, 3))
+    names = ("probe_grad", "opacity_logits", "log_scales", "means", "quats", "viewmat", "K")
+    for t, shape, name in zip(tensors, shapes, names, strict=True):
+        if t.dtype != logits.dtype or t.device != logits.device or t.device.type != "cuda":
+            return (
+                f"the fused controller: {name} is {t.dtype} on {t.device}; every tensor must be "
+                f"{logits.dtype} on one CUDA device"
+            )
+        if tuple(t.shape) != shape:
+            return f"the fused controller: {name} has shape {tuple(t.shape)}, expected {shape}"
+    return "the fused controller refused its arguments"
 
 
 def packed_fro_stats(terms: FroTerms) -> Tensor:
