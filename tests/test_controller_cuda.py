@@ -54,7 +54,8 @@ def test_fused_controller_refusal_words() -> None:
         "CUDA device"
     )
     assert "weight must be > 0, got -1.0" in _fused_arguments_error(good, -1.0)
-    assert "got torch.int64" in _fused_arguments_error((good[0], torch.zeros(n, dtype=torch.long), *good[2:]), 1)
+    ints = (good[0], torch.zeros(n, dtype=torch.long), *good[2:])
+    assert "got torch.int64" in _fused_arguments_error(ints, 1.0)
     assert "opacity_logits must be [N], got shape (1, 10)" in _fused_arguments_error(
         (good[0], good[1][None], *good[2:]), 1.0
     )
