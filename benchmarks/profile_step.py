@@ -34,6 +34,8 @@ start of every step (``jsgs.train.loop.ViewSampler`` is replaced by a subclass f
 Columns (per training step, averaged over the window):
 
 - wall ms/step (unprofiled): the plain copy's device-synchronised wall time; the number to quote;
+- the same, run not resumed: the same window timed in a third run trained from step 0 in this process
+  (a check that resuming from the checkpoint does not change the step);
 - wall ms/step (profiled): the same window under the profiler (inflated by its bookkeeping, more so for
   launch-heavy code);
 - kernel launches/step: on CUDA, host calls of ``cudaLaunchKernel`` / ``cudaLaunchKernelExC`` /
@@ -445,6 +447,13 @@ def profile_method(
         doc = train(manifest, plain, resume=True, progress=False, log=_quiet)
     wall = clock.ms_per_step()
 
+    # the same window timed inside a run from step 0 (no resume): a check that resuming does not change
+    # the step (session 8 saw a window 1.41x slower for jsgs than the whole runs' own segments)
+    fresh_clock = StepWindow(device, warmup + settle, steps)
+    with step_callback(fresh_clock):
+        train(manifest, work / "fresh", cfg, force=True, progress=False, log=_quiet)
+    wall_fresh = fresh_clock.ms_per_step()
+
     profiled = work / "profiled"
     shutil.copytree(warm, profiled)
     activities = [torch.profiler.ProfilerActivity.CPU]
@@ -472,6 +481,7 @@ def profile_method(
 
     result = {
         "wall_ms_per_step": wall,
+        "wall_ms_per_step_fresh": wall_fresh,
         "wall_ms_per_step_profiled": wall_prof,
         "kernel_launches_per_step": stats.launches / steps,
         "graph_launches_per_step": stats.graph_launches / steps,
@@ -523,14 +533,15 @@ def print_report(doc: dict[str, Any]) -> None:
     )
     print()
     print(
-        "| method | wall ms/step (unprofiled) | wall ms/step (profiled) | kernel launches/step | "
-        "graph launches/step | device kernel ms/step | device busy % | host op ms/step | syncs/step | "
-        "#Gaussians |"
+        "| method | wall ms/step (unprofiled) | the same, run not resumed | wall ms/step (profiled) | "
+        "kernel launches/step | graph launches/step | device kernel ms/step | device busy % | "
+        "host op ms/step | syncs/step | #Gaussians |"
     )
-    print("|---|" + "---:|" * 9)
+    print("|---|" + "---:|" * 10)
     for m, r in res.items():
         cells = [
             _cell(r["wall_ms_per_step"]),
+            _cell(r.get("wall_ms_per_step_fresh")),
             _cell(r["wall_ms_per_step_profiled"]),
             _cell(r["kernel_launches_per_step"], ".1f"),
             _cell(r["graph_launches_per_step"], ".1f"),
