@@ -98,9 +98,10 @@ class JsgsOptions:
     # torch.compile of JO, L_obs's photometric loss and DS (eager they are launch-bound on a GPU: hundreds of
     # small kernels). "inductor" is torch's default code generator; "aot_eager" only traces (a check).
     compile: Literal["off", "inductor", "aot_eager"] = "off"
-    # Replay JO, L_obs and DS (forward and backward) as CUDA graphs (jsgs.train.graphed): one launch each
-    # instead of a few hundred, which is what these small kernels cost on a GPU (measured 2.30x -> 1.32x of
-    # gsplat's step on an H200). "auto": on for CUDA without compile, off otherwise; true needs CUDA.
+    # Replay JO, L_obs and DS and their weighted gradient as one CUDA graph (jsgs.train.graphed): one launch
+    # instead of a few hundred small kernels, which is what they cost on a GPU (measured 2.30x -> 1.32x of
+    # gsplat's step on an H200 with two graphs, session 4). "auto": on for CUDA without compile; true needs
+    # CUDA.
     cuda_graph: bool | Literal["auto"] = "auto"
     # With cuda_graph: the deferred Gaussian Controller as a graph of its own too (recorded again whenever
     # densification changes N; jsgs.train.graphed.GraphedController). false keeps it eager.
