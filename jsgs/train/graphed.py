@@ -134,6 +134,36 @@ class GraphCaptureFailed(RuntimeError):
     """Recording a graph failed (the message says why); the caller runs the eager chain instead."""
 
 
+def record_graph(
+    fn: Callable[[], Any], device: torch.device, *, warmups: int, pool: Any, error_mode: str
+) -> tuple[Any, Any]:
+    """``fn()`` recorded as a CUDA graph: ``(graph, outputs)``, the outputs living in the graph's memory.
+
+    ``warmups`` eager calls first, on the same side stream as the capture (lazy library and autograd-engine
+    state is set up outside the capture); the capture goes into ``pool`` (None: a new one) with torch's
+    ``capture_error_mode`` ``error_mode`` ("thread_local" when recording from inside a backward, whose
+    engine threads keep working). The caller's stream waits for the side stream before and after.
+    GraphCaptureFailed (one line) where recording fails, e.g. on an op that synchronises with the host.
+    """
+    try:
+        here = torch.cuda.current_stream(device)
+        side = torch.cuda.Stream(device)
+        side.wait_stream(here)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.stream(side):
+            for _ in range(warmups):
+                fn()
+            graph.capture_begin(pool=pool, capture_error_mode=error_mode)
+            try:
+                outputs = fn()
+            finally:
+                graph.capture_end()
+        here.wait_stream(side)
+    except RuntimeError as e:
+        raise GraphCaptureFailed(one_line(e)) from e
+    return graph, outputs
+
+
 @dataclass
 class _Recording:
     """One recorded graph: its input buffers (the replay reads them) and outputs (the replay writes them)."""
@@ -184,24 +214,10 @@ class GraphedImageTerms:
     def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str) -> _Recording:
         self._check_device(x)
         inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
-        fn = partial(terms_with_gradient, weights=self.weights, sampling=sampling, **self.settings)
-        try:
-            # warm-up passes on a side stream (lazy library and autograd-engine state is set up outside the
-            # capture), then the capture, into one memory pool shared by all of this object's graphs
-            here = torch.cuda.current_stream(x.device)
-            side = torch.cuda.Stream(x.device)
-            side.wait_stream(here)
-            with torch.cuda.stream(side):
-                for _ in range(2):
-                    fn(*inputs)
-            here.wait_stream(side)
-            if self._pool is None:
-                self._pool = torch.cuda.graph_pool_handle()
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph, pool=self._pool):
-                outputs = fn(*inputs)
-        except RuntimeError as e:  # e.g. an op that synchronises with the host, refused while capturing
-            raise GraphCaptureFailed(one_line(e)) from e
+        fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling, **self.settings)
+        if self._pool is None:  # one memory pool shared by all of this object's graphs
+            self._pool = torch.cuda.graph_pool_handle()
+        graph, outputs = record_graph(fn, x.device, warmups=2, pool=self._pool, error_mode="global")
         return _Recording(graph.replay, inputs, outputs)
 
 
@@ -275,22 +291,14 @@ class GraphedController:
         # The new graph records into the previous one's memory pool, which must still be alive while it
         # does (torch's allocator refuses a pool whose graphs are all gone); the old graph is dropped after.
         pool = self._graph.pool() if self._graph is not None else None
-        try:
-            here = torch.cuda.current_stream(probe_grad.device)
-            side = torch.cuda.Stream(probe_grad.device)
-            side.wait_stream(here)
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.stream(side):
-                self._run(*inputs, params, w, h)  # warm-up: lazy library state is set up outside the capture
-                graph.capture_begin(pool=pool, capture_error_mode="thread_local")
-                try:
-                    outputs = self._run(*inputs, params, w, h)
-                finally:
-                    graph.capture_end()
-            here.wait_stream(side)
-        except RuntimeError as e:  # e.g. an op that synchronises with the host, refused while capturing
+        try:  # recorded from the probe's hook, inside the trainer's backward
+            graph, outputs = record_graph(
+                partial(self._run, *inputs, params, w, h), probe_grad.device, warmups=1, pool=pool,
+                error_mode="thread_local",
+            )  # fmt: skip
+        except GraphCaptureFailed:
             self._key = self._graph = self._inputs = self._outputs = None
-            raise GraphCaptureFailed(one_line(e)) from e
+            raise
         self._key, self._graph, self._inputs, self._outputs = key, graph, inputs, outputs
         self.recordings += 1
         # replay once so that this call's outputs come from the graph exactly as later calls' do
