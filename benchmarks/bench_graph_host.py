@@ -1,10 +1,10 @@
 """Host time of the JSGS image terms (JO, L_obs, DS) per step, without a profiler, forward call and backward
 call timed separately, for three ways of running them:
 
-- eager: :func:`jsgs.train.graphed.image_terms` and autograd;
+- eager: :func:`jsgs.method.graphed.image_terms` and autograd;
 - two graphs: ``torch.cuda.make_graphed_callables`` on the same function (a forward graph and a backward
   graph, with its copies of inputs and upstream gradients; what the trainer used up to session 7);
-- one graph: ``jsgs.train.graphed.GraphedImageTerms`` (forward and the weighted sum's gradient in one replay;
+- one graph: ``jsgs.method.graphed.GraphedImageTerms`` (forward and the weighted sum's gradient in one replay;
   the backward scales the stored gradient).
 
     python benchmarks/bench_graph_host.py [--size 504x378] [--steps 300]      # CUDA only
@@ -32,9 +32,13 @@ from torch import Tensor
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from jsgs.method.graphed import GraphedImageTerms  # noqa: E402
+from jsgs.method.image_terms import (
+    image_term_settings,  # noqa: E402
+    image_terms,  # noqa: E402
+)
+from jsgs.method.options import JsgsOptions  # noqa: E402
 from jsgs.train.config import TrainConfig  # noqa: E402
-from jsgs.train.graphed import GraphedImageTerms, image_terms  # noqa: E402
-from jsgs.train.jsgs_method import JsgsOptions, image_term_settings  # noqa: E402
 
 # the training defaults: paper mode, DS and GC on, the trainer's photometric loss
 _LOSS = TrainConfig().loss

@@ -41,9 +41,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jsgs.train.config import TrainConfig, from_dict, load_config_file, to_dict  # noqa: E402
 from jsgs.train.data import load_scene  # noqa: E402
-from jsgs.train.hooks import make_hook  # noqa: E402
 from jsgs.train.loop import train  # noqa: E402
-from jsgs.train.rendering import resolve_device  # noqa: E402
+from jsgs.train.method import make_hook  # noqa: E402
+from jsgs.train.render_view import resolve_device  # noqa: E402
 
 PHASES = ("render", "l_ph", "JO", "DS", "GC", "backward", "GC-bwd", "optimizer", "densify", "other")
 

@@ -89,7 +89,7 @@ from jsgs.io import write_json_atomic  # noqa: E402
 from jsgs.opcount import FREE_OPS  # noqa: E402
 from jsgs.train.config import TrainConfig, load_config_file  # noqa: E402
 from jsgs.train.evaluate import synchronize  # noqa: E402
-from jsgs.train.rendering import resolve_device  # noqa: E402
+from jsgs.train.render_view import resolve_device  # noqa: E402
 
 FORMAT = "jsgs-profile-step"
 FORMAT_VERSION = 1

@@ -16,15 +16,11 @@ from jsgs.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision
-from jsgs.train.controller import fro_from_probe_grad, packed_fro_stats
-from jsgs.train.graphed import (
-    GraphedController,
-    GraphedImageTerms,
-    _Recording,
-    image_terms,
-    terms_with_gradient,
-)
-from jsgs.train.jsgs_method import JsgsHook, parse_options, use_cuda_graph
+from jsgs.method.controller import fro_from_probe_grad, packed_fro_stats
+from jsgs.method.graphed import GraphedController, GraphedImageTerms, _Recording
+from jsgs.method.hook import JsgsHook
+from jsgs.method.image_terms import image_terms, terms_with_gradient
+from jsgs.method.options import parse_options, use_cuda_graph
 
 SETTINGS = dict(
     mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
@@ -182,8 +178,8 @@ def _no_cuda_streams(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_cuda_graph_is_refused_off_cuda_and_with_compile(tmp_path: Path) -> None:
+    from jsgs.method.hook import make_jsgs_hook
     from jsgs.train.config import TrainConfig
-    from jsgs.train.jsgs_method import make_jsgs_hook
 
     with pytest.raises(JsgsError, match="cannot be combined"):
         parse_options({"cuda_graph": True, "compile": "inductor"})

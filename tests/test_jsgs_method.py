@@ -1,5 +1,5 @@
-"""``--method jsgs`` (jsgs.train.jsgs_method): every term against a float64 evaluation of its equation written
-here from the paper (independent of jsgs.jpeg / jsgs.render / jsgs.train.controller), r̄ from the training
+"""``--method jsgs`` (jsgs.method): every term against a float64 evaluation of its equation written
+here from the paper (independent of jsgs.jpeg / jsgs.render / jsgs.method.controller), r̄ from the training
 path against the brute-force rasteriser, L_fro's gradients, the ablation switches, the options, and a short
 ``jsgs train --method jsgs`` run on the compressed synthetic scene.
 
@@ -27,13 +27,15 @@ from jsgs.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.tables import ijg_tables
 from jsgs.manifest import JpegState
+from jsgs.method.hook import JsgsHook, make_jsgs_hook
+from jsgs.method.image_terms import view_tables
+from jsgs.method.options import parse_options
 from jsgs.render.bruteforce import render_bruteforce
 from jsgs.train.config import TrainConfig
 from jsgs.train.data import View
-from jsgs.train.hooks import StepContext, make_hook
-from jsgs.train.jsgs_method import JsgsHook, make_jsgs_hook, parse_options, view_tables
 from jsgs.train.loop import weighted_loss
-from jsgs.train.rendering import render_view
+from jsgs.train.method import StepContext, make_hook
+from jsgs.train.render_view import render_view
 
 D = torch.float64
 WIDTH, HEIGHT, FOCAL = 27, 19, 30.0
@@ -337,7 +339,7 @@ def test_terms_equal_float64_evaluation_of_the_equations(route: str) -> None:
     assert fro_ref > 1e-4  # the scene exercises the term
     assert math.isclose(res["terms"]["fro"], fro_ref, rel_tol=1e-9)
     np.testing.assert_allclose(last["fro"].sbar.numpy()[vis], sbar[vis], rtol=1e-12)
-    # statistics (definitions in jsgs.train.controller.ControllerStats)
+    # statistics (definitions in jsgs.method.controller.ControllerStats)
     assert res["stats"]["gc_visible"] == vis.sum()
     assert math.isclose(res["stats"]["gc_rbar"], rbar[vis].mean(), rel_tol=1e-9)
     assert res["stats"]["gc_damped"] == ((rbar > 0) & vis & (sbar <= 1.0)).sum()

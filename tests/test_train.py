@@ -20,8 +20,8 @@ from _train_scene import make_scene
 from jsgs.errors import JsgsError
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.config import TrainConfig, config_schema, from_dict, load_config_file, to_dict
-from jsgs.train.hooks import HookOutput, LossHook, StepContext
 from jsgs.train.loop import TrainingDiverged, train
+from jsgs.train.method import HookOutput, LossHook, StepContext
 from jsgs.train.model import (
     init_splats,
     knn_sq_dists,

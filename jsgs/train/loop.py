@@ -5,7 +5,7 @@ One step (0-based ``step``), as simple_trainer's ``train()``:
 1. sample a training view (shuffled epochs), SH degree = min(step // 1000, 3);
 2. rasterise it; ``DefaultStrategy.step_pre_backward`` (retain the screen-space means' gradient);
 3. l_ph = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM); plus the method hook's terms (see
-   :mod:`jsgs.train.hooks`); check every term and every gradient for NaN/Inf;
+   :mod:`jsgs.train.method`); check every term and every gradient for NaN/Inf;
 4. backward, Adam step on every group, the means' LR decay, ``DefaultStrategy.step_post_backward``
    (densify / prune);
 5. after steps listed in ``eval_at`` (1-based counts): evaluate on the test views, write metrics.json and a
@@ -24,8 +24,7 @@ import random
 import shutil
 import sys
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -42,7 +41,7 @@ from jsgs.train import checkpoint as ckpt
 from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, from_dict, to_dict
 from jsgs.train.data import ViewSampler, load_eval_images, load_scene, load_train_images
 from jsgs.train.evaluate import evaluate, synchronize
-from jsgs.train.hooks import HookOutput, LossHook, StepContext, make_hook
+from jsgs.train.method import HookOutput, LossHook, StepContext, make_hook
 from jsgs.train.model import (
     PARAM_NAMES,
     init_splats,
@@ -51,7 +50,8 @@ from jsgs.train.model import (
     sh_degree_at,
     splats_from_state,
 )
-from jsgs.train.rendering import render_view, resolve_backend, resolve_device
+from jsgs.train.profiler import Profiler
+from jsgs.train.render_view import render_view, resolve_backend, resolve_device
 
 METRICS_FORMAT = "jsgs-metrics"
 METRICS_VERSION = 1
@@ -85,33 +85,6 @@ class RunPaths:
 
     def renders(self, step: int) -> Path:
         return self.root / "renders" / f"step_{step:06d}"
-
-
-class Profiler:
-    """Per-phase wall time (ms per step), device-synchronised at each phase boundary; a no-op unless enabled
-    (synchronising every phase slows the GPU pipeline, so it is off for measured runs)."""
-
-    def __init__(self, enabled: bool, device: torch.device) -> None:
-        self.enabled = enabled
-        self.device = device
-        self.totals: dict[str, float] = {}
-        self.steps = 0
-
-    @contextmanager
-    def phase(self, name: str) -> Iterator[None]:
-        if not self.enabled:
-            yield
-            return
-        synchronize(self.device)
-        t0 = time.perf_counter()
-        yield
-        synchronize(self.device)
-        self.totals[name] = self.totals.get(name, 0.0) + time.perf_counter() - t0
-
-    def summary(self) -> dict[str, float] | None:
-        if not self.enabled or self.steps == 0:
-            return None
-        return {k: 1000.0 * v / self.steps for k, v in self.totals.items()}
 
 
 @dataclass
@@ -688,7 +661,7 @@ def weighted_loss(
     folded_loss: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The step's loss Σ weights[k]·terms[k] (terms of weight 0 left out) with the terms in ``folded``
-    replaced by their ready-made weighted sum ``folded_loss`` (:class:`jsgs.train.hooks.HookOutput`).
+    replaced by their ready-made weighted sum ``folded_loss`` (:class:`jsgs.train.method.HookOutput`).
 
     Each multiplication and addition is a kernel and an autograd node, which on a GPU cost more host time
     than device time, so a weight of 1 is not multiplied and the sum starts from the first part, not 0."""

@@ -27,6 +27,7 @@ Hooks with state (running statistics, schedules) implement ``state_dict``/``load
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -139,40 +140,45 @@ class LossHook:
 # A method is a factory (config, scene, device) -> LossHook or None (None: the plain gsplat baseline).
 MethodFactory = Callable[["TrainConfig", "Scene", torch.device], "LossHook | None"]
 
+#: The built-in methods: name -> "module:factory", imported when a run asks for the method (so that the
+#: generic trainer imports no method at import time).
+BUILTIN_METHODS: dict[str, str] = {
+    "gsplat": "jsgs.train.method:gsplat_baseline",
+    "jsgs": "jsgs.method.hook:make_jsgs_hook",
+}
+
 _METHODS: dict[str, MethodFactory] = {}
 
 
 def register_method(name: str, factory: MethodFactory) -> None:
-    """Make ``--method name`` available."""
+    """Make ``--method name`` available (a method defined outside :data:`BUILTIN_METHODS`)."""
     _METHODS[name] = factory
 
 
-def available_methods() -> list[str]:
-    _load_builtin_methods()
-    return sorted(_METHODS)
+def method_names() -> list[str]:
+    """Every method ``--method`` takes."""
+    return sorted({*BUILTIN_METHODS, *_METHODS})
+
+
+def _factory(name: str) -> MethodFactory:
+    if name in _METHODS:
+        return _METHODS[name]
+    target = BUILTIN_METHODS.get(name)
+    if target is None:
+        raise JsgsError(f"unknown method {name!r} (available: {', '.join(method_names())})")
+    module, attr = target.split(":")
+    factory: MethodFactory = getattr(importlib.import_module(module), attr)
+    return factory
 
 
 def make_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
     """The hook of ``cfg.method`` (JsgsError naming the available methods when unknown)."""
-    _load_builtin_methods()
-    factory = _METHODS.get(cfg.method)
-    if factory is None:
-        raise JsgsError(f"unknown method {cfg.method!r} (available: {', '.join(sorted(_METHODS))})")
-    return factory(cfg, scene, device)
+    return _factory(cfg.method)(cfg, scene, device)
 
 
-def _gsplat_baseline(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
+def gsplat_baseline(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
+    """``--method gsplat``: no hook (the trainer's own loss only); it takes no method_options."""
     if cfg.method_options:
         key = sorted(cfg.method_options)[0]
         raise JsgsError(f"config: method gsplat takes no method_options (got {key!r})")
     return None
-
-
-def _load_builtin_methods() -> None:
-    register_method("gsplat", _gsplat_baseline)
-    # Methods living in other modules register themselves on import; a missing module is simply absent.
-    try:
-        import jsgs.train.jsgs_method  # noqa: F401
-    except ModuleNotFoundError as e:
-        if e.name != "jsgs.train.jsgs_method":
-            raise
