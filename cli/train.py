@@ -1,4 +1,4 @@
-"""``jsgs train MANIFEST --out RUN``: a thin wrapper over :func:`jsgs.train.loop.train`."""
+"""``jsgs train MANIFEST --out RUN``: a thin wrapper over :func:`jsgs.train.trainer.train`."""
 
 from __future__ import annotations
 
@@ -115,7 +115,7 @@ def train_command(
 ) -> None:
     """Train Gaussians on the views of MANIFEST (a jsgs manifest; see `jsgstools manifest`)."""
     from jsgs.train.config import TrainConfig, from_dict, load_config_file
-    from jsgs.train.loop import load_run_settings, train
+    from jsgs.train.trainer import load_run_settings, train
 
     if resume and force:
         raise JsgsError("--resume and --force exclude each other")

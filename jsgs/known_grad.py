@@ -9,7 +9,7 @@ Two places in a JSGS step know a gradient before the backward starts:
   gradient is the per-pixel upstream map itself and whose value is exactly 0.
 
 On a GPU at training sizes each autograd node and small kernel costs more host time than device time, so
-replacing such chains by one node is a measurable part of a step (``benchmarks/bench_graph_host.py``).
+replacing such chains by one node is a measurable part of a step (``tools/diagnostics/bench_graph_host.py``).
 """
 
 from __future__ import annotations

@@ -367,7 +367,7 @@ def train_jsgs_variants(tmp_path: Path, variants: dict[str, dict[str, Any]]) -> 
     from _train_scene import make_scene
 
     from jsgs.train.config import TrainConfig
-    from jsgs.train.loop import train
+    from jsgs.train.trainer import train
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
     evals = {}

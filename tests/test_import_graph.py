@@ -1,8 +1,8 @@
 """The module-level import graph of ``jsgs`` and ``jsgstools`` has no cycles.
 
-Every import statement is an edge, those inside functions (lazy) and under ``if TYPE_CHECKING:`` included:
-a lazy import only defers a cycle to run time. The one exception is a package's ``__init__`` importing its
-own submodules inside a function. ``from package import name`` is an edge to the submodule ``package.name``
+Every import statement that runs is an edge, those inside functions (lazy) included: a lazy import only
+defers a cycle to run time. Imports under ``if TYPE_CHECKING:`` never run and are not edges; nor is a
+package's ``__init__`` importing its own submodules inside a function. ``from package import name`` is an edge to the submodule ``package.name``
 when that is a module, else to ``package``. The trainer's method registry names its built-in methods as
 strings (``jsgs.train.method.BUILTIN_METHODS``), which is no import."""
 
@@ -27,11 +27,16 @@ def _modules() -> dict[str, Path]:
 
 
 def _imports(tree: ast.Module) -> list[tuple[ast.Import | ast.ImportFrom, bool]]:
-    """Every import statement with whether it lies inside a function."""
+    """Every import statement that can run (not under ``if TYPE_CHECKING:``), with whether it lies inside a
+    function."""
     found: list[tuple[ast.Import | ast.ImportFrom, bool]] = []
 
     def visit(node: ast.AST, lazy: bool) -> None:
-        for child in ast.iter_child_nodes(node):
+        if isinstance(node, ast.If) and ast.unparse(node.test) in ("TYPE_CHECKING", "typing.TYPE_CHECKING"):
+            children: list[ast.AST] = list(node.orelse)
+        else:
+            children = list(ast.iter_child_nodes(node))
+        for child in children:
             if isinstance(child, (ast.Import, ast.ImportFrom)):
                 found.append((child, lazy))
             visit(child, lazy or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))

@@ -33,9 +33,9 @@ from jsgs.method.options import parse_options
 from jsgs.render.bruteforce import render_bruteforce
 from jsgs.train.config import TrainConfig
 from jsgs.train.data import View
-from jsgs.train.loop import weighted_loss
 from jsgs.train.method import StepContext, make_hook
 from jsgs.train.render_view import render_view
+from jsgs.train.trainer import weighted_loss
 
 D = torch.float64
 WIDTH, HEIGHT, FOCAL = 27, 19, 30.0
@@ -701,7 +701,7 @@ def test_jsgs_runs_resume_bit_exactly_with_densification(tmp_path: Path) -> None
     from _train_scene import make_scene
 
     from jsgs.train import checkpoint as ckpt
-    from jsgs.train.loop import train
+    from jsgs.train.trainer import train
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
 

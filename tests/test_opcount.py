@@ -1,6 +1,6 @@
 """The kernel counter, and the number of kernels one JSGS step launches (a regression guard: at real scene
-sizes these terms are launch-bound on a GPU, so the count is their cost; benchmarks/bench_kernel_count.py
-prints it per phase)."""
+sizes these terms are launch-bound on a GPU, so the count is their cost;
+tools/diagnostics/bench_kernel_count.py prints it per phase)."""
 
 from __future__ import annotations
 

@@ -20,7 +20,6 @@ from _train_scene import make_scene
 from jsgs.errors import JsgsError
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.config import TrainConfig, config_schema, from_dict, load_config_file, to_dict
-from jsgs.train.loop import TrainingDiverged, train
 from jsgs.train.method import HookOutput, LossHook, StepContext
 from jsgs.train.model import (
     init_splats,
@@ -31,6 +30,7 @@ from jsgs.train.model import (
     sh_degree_at,
 )
 from jsgs.train.normalize import normalize_world
+from jsgs.train.trainer import TrainingDiverged, train
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -416,7 +416,7 @@ def test_trainer_imports_without_dataset_tools() -> None:
     code = (
         "import sys\n"
         "sys.modules['pycolmap'] = None; sys.modules['cv2'] = None\n"
-        "import jsgs.train.loop, cli.train, cli.jsgs_cli\n"
+        "import jsgs.train.trainer, cli.train, cli.jsgs_cli\n"
         "assert 'jsgstools' not in sys.modules\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)

@@ -2,7 +2,8 @@
 ``method_options.cuda_graph`` (and ``cuda_graph_gc`` for the GC's own graph, :class:`GraphedController`).
 
 At training sizes these terms are a few hundred small kernels per step, forward and backward, and on a GPU
-each one costs more to launch than to run (``benchmarks/bench_kernel_count.py``). A CUDA graph records them
+each one costs more to launch than to run (``tools/diagnostics/bench_kernel_count.py``). A CUDA graph records
+them
 once per image size and replays them as one launch. The arithmetic is the eager code's, kernel for kernel,
 so values and gradients are those of the eager path (``tests/test_graphed.py``, GPU only).
 

@@ -7,9 +7,10 @@ call timed separately, for three ways of running them:
 - one graph: ``jsgs.method.graphed.GraphedImageTerms`` (forward and the weighted sum's gradient in one replay;
   the backward scales the stored gradient).
 
-    python benchmarks/bench_graph_host.py [--size 504x378] [--steps 300]      # CUDA only
+    python tools/diagnostics/bench_graph_host.py [--size 504x378] [--steps 300]      # CUDA only
 
-A training step is partly host-bound (``benchmarks/trace_gaps.py``), and a profiler inflates exactly the
+A training step is partly host-bound (``tools/diagnostics/trace_gaps.py``), and a profiler inflates exactly
+the
 host work it would measure (CUPTI instruments every graph node), so this times the Python calls with
 ``time.perf_counter`` and no synchronisation inside the timed region: the number is what the host spends
 launching, while the device works behind it. The device is synchronised between steps, outside the timing;
@@ -30,7 +31,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from jsgs.method.graphed import GraphedImageTerms  # noqa: E402
 from jsgs.method.image_terms import (

@@ -1,8 +1,9 @@
 """Time per training iteration of ``--method jsgs`` against ``--method gsplat`` on the same scene, in one
 call, with a per-phase breakdown (render, ℓ_ph, JO, DS, GC, backward, optimizer, densification).
 
-    .venv/bin/python benchmarks/bench_train_overhead.py                  # synthetic scene, CPU or CUDA (auto)
-    .venv/bin/python benchmarks/bench_train_overhead.py --manifest DATA/manifest.json --iterations 2000 \
+    .venv/bin/python tools/diagnostics/bench_train_overhead.py          # synthetic scene, CPU or CUDA (auto)
+    .venv/bin/python tools/diagnostics/bench_train_overhead.py --manifest DATA/manifest.json \
+        --iterations 2000 \
         --device cuda --jpeg-modes paper,float,exact --gc-pooling deferred,now --out overhead.json
 
 Without ``--manifest`` a synthetic scene is built in a temporary folder (``jsgstools`` synth + compress,
@@ -37,13 +38,13 @@ from typing import Any
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from jsgs.train.config import TrainConfig, from_dict, load_config_file, to_dict  # noqa: E402
 from jsgs.train.data import load_scene  # noqa: E402
-from jsgs.train.loop import train  # noqa: E402
 from jsgs.train.method import make_hook  # noqa: E402
 from jsgs.train.render_view import resolve_device  # noqa: E402
+from jsgs.train.trainer import train  # noqa: E402
 
 PHASES = ("render", "l_ph", "JO", "DS", "GC", "backward", "GC-bwd", "optimizer", "densify", "other")
 
