@@ -1,10 +1,10 @@
-"""The module-level import graph of ``jsgs`` and ``jsgstools`` has no cycles.
+"""The import graph of ``jsgs`` and ``jsgstools`` has no cycles.
 
 Every import statement that runs is an edge, those inside functions (lazy) included: a lazy import only
 defers a cycle to run time. Imports under ``if TYPE_CHECKING:`` never run and are not edges; nor is a
-package's ``__init__`` importing its own submodules inside a function. ``from package import name`` is an edge to the submodule ``package.name``
-when that is a module, else to ``package``. The trainer's method registry names its built-in methods as
-strings (``jsgs.train.method.BUILTIN_METHODS``), which is no import."""
+package's ``__init__`` importing its own submodules inside a function. ``from package import name`` is an
+edge to the submodule ``package.name`` when that is a module, else to ``package``. The trainer's method
+registry names its built-in methods as strings (``jsgs.train.method.BUILTIN_METHODS``), which is no import."""
 
 from __future__ import annotations
 

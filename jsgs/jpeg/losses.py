@@ -13,7 +13,8 @@ from .observe import jpeg_observe
 
 LAMBDA_SSIM = 0.2
 #: SSIM window padding of l_ph when none is given: zero-padded "same", as the paper's eq. photometric (the
-#: original 3DGS). The trainer always passes its ``loss.ssim_padding`` (default "valid", gsplat's training loss).
+#: original 3DGS). The trainer always passes its ``loss.ssim_padding`` (default "valid", gsplat's training
+#: loss).
 SSIM_PADDING = "same"
 
 
