@@ -44,9 +44,9 @@ for stage in ${STAGES:-tests overhead profile}; do
         --repeats 1 --device cuda --jpeg-modes "${MODES:-paper}" --cuda-graph "${GRAPHS:-off,jo,on}" \
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1
         tail -n 16 "$OUT/overhead.txt" ;;
-    full) echo '{"method_options": {"cuda_graph": false}}' > /tmp/eager.json
+    full) echo '{"method_options": {"speed": {"cuda_graph": false}}}' > /tmp/eager.json
         echo '{"loss": {"ssim_kernel": "torch"}}' > /tmp/torchssim.json
-        echo '{"method_options": {"gc_kernel": "torch"}}' > /tmp/torchgc.json
+        echo '{"method_options": {"speed": {"gc_kernel": "torch"}}}' > /tmp/torchgc.json
         i=0
         for m in ${FULL_RUNS:-jsgs gsplat}; do  # METHOD[_eager|_torchssim], in this order; repeats allowed
             i=$((i + 1))

@@ -1,5 +1,5 @@
-"""``method_options.cuda_graph``: JO, L_obs and DS as one pure function of tensors (tested here on the CPU
-against the eager hook) and its CUDA-graph replay (GPU only: the same values and gradients as eager)."""
+"""``method_options.speed.cuda_graph``: JO, L_obs and DS as one pure function of tensors (tested here on the
+CPU against the eager hook) and its CUDA-graph replay (GPU only: the same values and gradients as eager)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 import torch
-from test_jsgs_method import make_splats, make_view, new_hook, train_step
+from test_jsgs_method import jsgs_options, make_splats, make_view, new_hook, train_step
 
 from jsgs.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
@@ -182,9 +182,9 @@ def test_cuda_graph_is_refused_off_cuda_and_with_compile(tmp_path: Path) -> None
     from jsgs.train.config import TrainConfig
 
     with pytest.raises(JsgsError, match="cannot be combined"):
-        parse_options({"cuda_graph": True, "compile": "inductor"})
+        parse_options(jsgs_options(cuda_graph=True, compile="inductor"))
     cfg = TrainConfig()
-    cfg.method, cfg.method_options = "jsgs", {"cuda_graph": True}
+    cfg.method, cfg.method_options = "jsgs", jsgs_options(cuda_graph=True)
 
     class _Scene:  # make_jsgs_hook refuses before it reads the views
         train_views: list = []
@@ -199,17 +199,17 @@ def test_cuda_graph_auto_resolves_by_device_and_compile() -> None:
     """The default ("auto") graphs exactly when the device is CUDA and compile is off; other values are
     refused with one line."""
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
-    assert parse_options({}).cuda_graph == "auto"
+    assert parse_options({}).speed.cuda_graph == "auto"
     assert use_cuda_graph(parse_options({}), cuda) is True
     assert use_cuda_graph(parse_options({}), cpu) is False
-    assert use_cuda_graph(parse_options({"compile": "inductor"}), cuda) is False
-    assert use_cuda_graph(parse_options({"cuda_graph": False}), cuda) is False
-    assert use_cuda_graph(parse_options({"cuda_graph": True}), cuda) is True
+    assert use_cuda_graph(parse_options(jsgs_options(compile="inductor")), cuda) is False
+    assert use_cuda_graph(parse_options(jsgs_options(cuda_graph=False)), cuda) is False
+    assert use_cuda_graph(parse_options(jsgs_options(cuda_graph=True)), cuda) is True
     with pytest.raises(JsgsError, match="needs a CUDA device"):
-        use_cuda_graph(parse_options({"cuda_graph": True}), cpu)
+        use_cuda_graph(parse_options(jsgs_options(cuda_graph=True)), cpu)
     for bad in ("on", 1, None):
         with pytest.raises(JsgsError, match="must be true, false or") as e:
-            parse_options({"cuda_graph": bad})
+            parse_options(jsgs_options(cuda_graph=bad))
         assert "\n" not in str(e.value)
 
 
@@ -373,7 +373,7 @@ def train_jsgs_variants(tmp_path: Path, variants: dict[str, dict[str, Any]]) -> 
     evals = {}
     for name, options in variants.items():
         c = TrainConfig(method="jsgs", iterations=60, eval_at=[60], device="cuda")
-        c.method_options = dict(options)
+        c.method_options = jsgs_options(**options)
         c.strategy.refine_start_iter, c.strategy.refine_every = 5, 10
         c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
         evals[name] = train(manifest, tmp_path / name, c, progress=False)["evals"][-1]
@@ -411,7 +411,8 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
 
     def described(**options: Any) -> dict[str, Any]:
         tables = {view.index: new_hook(view).tables[view.index]}
-        return JsgsHook(parse_options({"gc_kernel": "torch", **options}), tables, device=cuda).describe()
+        opts = parse_options(jsgs_options(**{"gc_kernel": "torch", **options}))
+        return JsgsHook(opts, tables, device=cuda).describe()
 
     assert described()["cuda_graph_gc"] is True
     assert described(cuda_graph_gc=False) == {
@@ -424,4 +425,4 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
         assert described(gc_kernel="auto")["gc_kernel"] == "cuda"
         assert described(gc_kernel="auto")["cuda_graph_gc"] is False
     with pytest.raises(JsgsError, match="cuda_graph_gc must be true or false"):
-        parse_options({"cuda_graph_gc": "yes"})
+        parse_options(jsgs_options(cuda_graph_gc="yes"))

@@ -261,8 +261,17 @@ def target_for(view: View) -> torch.Tensor:
     return torch.tensor(ref_pillow_jpeg(img, j.luma_table, j.chroma_table, j.sampling), dtype=D)[None]
 
 
+SPEED_KEYS = ("compile", "cuda_graph", "cuda_graph_gc", "gc_kernel")
+
+
+def jsgs_options(**options: Any) -> dict[str, Any]:
+    """``method_options`` from keyword arguments, the speed settings (``SPEED_KEYS``) put in ``speed``."""
+    speed = {k: options.pop(k) for k in SPEED_KEYS if k in options}
+    return {**options, "speed": speed} if speed else options
+
+
 def new_hook(view: View, **options: Any) -> JsgsHook:
-    hook = JsgsHook(parse_options(options), view_tables([view], torch.device("cpu"), "test"))
+    hook = JsgsHook(parse_options(jsgs_options(**options)), view_tables([view], torch.device("cpu"), "test"))
     hook.keep_last = True
     return hook
 
@@ -504,7 +513,9 @@ def test_options_are_validated() -> None:
     assert (o.tau_s, o.eps_sm, o.eps_dct_loss, o.eps_dct_block, o.eps_proj) == (1.0, 1e-3, 1e-6, 1e-6, 1e-6)
     assert (o.jpeg_mode, o.jo, o.ds, o.gc, o.gc_pooling) == ("paper", True, True, True, "deferred")
     bad = [
-        ({"lambda_obz": 1}, "unknown method_options.lambda_obz"),
+        ({"lambda_obz": 1}, "unknown setting method_options.lambda_obz"),
+        ({"cuda_graph": True}, "unknown setting method_options.cuda_graph .known: .*speed"),
+        ({"speed": {"gc_kernel": "fast"}}, "method_options.speed.gc_kernel must be one of"),
         ({"lambda_base": 2}, "loss.base_weight"),
         ({"lambda_fro": -1}, "must be >= 0"),
         ({"lambda_fro": "x"}, "finite number"),
@@ -737,8 +748,9 @@ def test_packed_rendering_is_refused_with_gc(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("mode", ["paper", "exact"])
 def test_compiled_jpeg_terms_equal_eager(mode: str) -> None:
-    """method_options.compile traces JO, L_obs's ℓ_ph and DS with torch.compile; "aot_eager" checks on the
-    CPU that the traced graphs (straight-through rounding included) give the eager values and gradients."""
+    """method_options.speed.compile traces JO, L_obs's ℓ_ph and DS with torch.compile; "aot_eager" checks on
+    the CPU that the traced graphs (straight-through rounding included) give the eager values and
+    gradients."""
     view = make_view(50, "4:2:0")
     eager = train_step(new_hook(view, jpeg_mode=mode), view)
     traced = train_step(new_hook(view, jpeg_mode=mode, compile="aot_eager"), view)

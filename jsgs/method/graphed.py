@@ -1,5 +1,6 @@
 """The JSGS image terms (JO, L_obs, DS) and the deferred Gaussian Controller replayed as CUDA graphs:
-``method_options.cuda_graph`` (and ``cuda_graph_gc`` for the GC's own graph, :class:`GraphedController`).
+``method_options.speed.cuda_graph`` (and ``cuda_graph_gc`` for the GC's own graph,
+:class:`GraphedController`).
 
 At training sizes these terms are a few hundred small kernels per step, forward and backward, and on a GPU
 each one costs more to launch than to run (``tools/diagnostics/bench_kernel_count.py``). A CUDA graph records

@@ -27,8 +27,8 @@ values and gradients (tested), chosen by ``gc_pooling``:
   backward itself pools ``(o·S_r, ν)`` into the probe's gradient; a post-accumulate hook on the probe then
   computes r̄, V_i, L_fro and L_fro's closed-form gradient and adds ``λ_fro ∂L_fro/∂θ`` to the
   opacity-logit and log-scale gradients (``jsgs.method.controller.fro_from_probe_grad``; on CUDA the three
-  fused kernels of ``jsgs/csrc/controller.cu``, ``method_options.gc_kernel``, or that function replayed as
-  one graph, ``jsgs.method.graphed.GraphedController``). No extra rasteriser pass of any kind. The ``fro``
+  fused kernels of ``jsgs/csrc/controller.cu``, ``method_options.speed.gc_kernel``, or that function replayed
+  as one graph, ``jsgs.method.graphed.GraphedController``). No extra rasteriser pass of any kind. The ``fro``
   term's value (and the GC statistics) are written in place during that backward: they are correct wherever
   the trainer reads them after ``loss.backward()`` (progress bar, metrics.json), but the total ``loss`` the
   trainer sums *before* the backward does not include ``λ_fro L_fro`` (its logged value; the gradient is
@@ -116,9 +116,9 @@ class JsgsHook(LossHook):
         # what fixes the JO / L_obs / DS chain (jsgs.method.image_terms.jpeg_terms), in both routes
         self._jpeg_settings = image_term_settings(options, ssim_lambda, ssim_padding, ssim_kernel)
         self._jpeg_functions = {
-            "observe": maybe_compile(jpeg_observe, options.compile),
-            "photometric": maybe_compile(photometric_loss, options.compile),
-            "supervise": maybe_compile(dct_supervision, options.compile),
+            "observe": maybe_compile(jpeg_observe, options.speed.compile),
+            "photometric": maybe_compile(photometric_loss, options.speed.compile),
+            "supervise": maybe_compile(dct_supervision, options.speed.compile),
         }
         self._graphed = None
         # what fixes the deferred GC (jsgs.method.controller.fro_from_probe_grad), eager or graphed
@@ -128,14 +128,14 @@ class JsgsHook(LossHook):
         self._gc_graphed: GraphedController | None = None
         self._gc_fused = (
             options.gc and self.gc_route == "deferred"
-            and use_kernels(options.gc_kernel, self.device, "method_options.gc_kernel")
+            and use_kernels(options.speed.gc_kernel, self.device, "method_options.speed.gc_kernel")
         )  # fmt: skip
         self.cuda_graph = use_cuda_graph(options, self.device)
         if self.cuda_graph:
             w = self.weights()
             image_weights = (w["obs"], w.get("low", 0.0), w.get("mid", 0.0))
             self._graphed = GraphedImageTerms(weights=image_weights, **self._jpeg_settings)
-            if self.gc_route == "deferred" and options.cuda_graph_gc and not self._gc_fused:
+            if self.gc_route == "deferred" and options.speed.cuda_graph_gc and not self._gc_fused:
                 self._gc_graphed = GraphedController(**self._gc_settings)
 
     def describe(self) -> dict[str, Any]:

@@ -140,19 +140,30 @@ class LossHook:
 # A method is a factory (config, scene, device) -> LossHook or None (None: the plain gsplat baseline).
 MethodFactory = Callable[["TrainConfig", "Scene", torch.device], "LossHook | None"]
 
-#: The built-in methods: name -> "module:factory", imported when a run asks for the method (so that the
-#: generic trainer imports no method at import time).
-BUILTIN_METHODS: dict[str, str] = {
-    "gsplat": "jsgs.train.method:gsplat_baseline",
-    "jsgs": "jsgs.method.hook:make_jsgs_hook",
+@dataclass(frozen=True)
+class MethodEntry:
+    """A method of ``--method``: its hook factory and its options section (a dataclass of
+    :func:`jsgs.train.config.setting` fields, or None for a method without options), each either the object
+    or a ``"module:attribute"`` string imported on first use."""
+
+    factory: MethodFactory | str
+    options: type | str | None = None
+
+
+#: The built-in methods, named by strings so that the generic trainer imports no method when it is imported.
+BUILTIN_METHODS: dict[str, MethodEntry] = {
+    "gsplat": MethodEntry("jsgs.train.method:gsplat_baseline"),
+    "jsgs": MethodEntry("jsgs.method.hook:make_jsgs_hook", "jsgs.method.options:JsgsOptions"),
 }
 
-_METHODS: dict[str, MethodFactory] = {}
+_METHODS: dict[str, MethodEntry] = {}
 
 
-def register_method(name: str, factory: MethodFactory) -> None:
-    """Make ``--method name`` available (a method defined outside :data:`BUILTIN_METHODS`)."""
-    _METHODS[name] = factory
+def register_method(name: str, factory: MethodFactory, options: type | None = None) -> None:
+    """Make ``--method name`` available (a method defined outside :data:`BUILTIN_METHODS`); ``options``: its
+    options dataclass (``method_options``), parsed by :func:`jsgs.train.config.parse_method_options`, with an
+    optional ``check(where)`` method."""
+    _METHODS[name] = MethodEntry(factory, options)
 
 
 def method_names() -> list[str]:
@@ -160,20 +171,30 @@ def method_names() -> list[str]:
     return sorted({*BUILTIN_METHODS, *_METHODS})
 
 
-def _factory(name: str) -> MethodFactory:
-    if name in _METHODS:
-        return _METHODS[name]
-    target = BUILTIN_METHODS.get(name)
-    if target is None:
+def _resolve(target: Any) -> Any:
+    if isinstance(target, str):
+        module, attr = target.split(":")
+        return getattr(importlib.import_module(module), attr)
+    return target
+
+
+def _entry(name: str) -> MethodEntry:
+    entry = _METHODS.get(name) or BUILTIN_METHODS.get(name)
+    if entry is None:
         raise JsgsError(f"unknown method {name!r} (available: {', '.join(method_names())})")
-    module, attr = target.split(":")
-    factory: MethodFactory = getattr(importlib.import_module(module), attr)
-    return factory
+    return entry
+
+
+def options_class(name: str) -> type | None:
+    """The options dataclass of method ``name`` (None: it takes no method_options)."""
+    cls: type | None = _resolve(_entry(name).options)
+    return cls
 
 
 def make_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
     """The hook of ``cfg.method`` (JsgsError naming the available methods when unknown)."""
-    return _factory(cfg.method)(cfg, scene, device)
+    factory: MethodFactory = _resolve(_entry(cfg.method).factory)
+    return factory(cfg, scene, device)
 
 
 def gsplat_baseline(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:

@@ -124,13 +124,14 @@ def main() -> None:
     ap.add_argument("--jpeg-modes", default="paper", help="JSGS variants: comma-separated JO modes [paper]")
     ap.add_argument("--gc-pooling", default="deferred", help="JSGS variants: deferred,now [deferred]")
     ap.add_argument(
-        "--compile", default="off", help="JSGS variants: method_options.compile, e.g. off,inductor [off]"
-    )
+        "--compile", default="off",
+        help="JSGS variants: method_options.speed.compile, e.g. off,inductor [off]",
+    )  # fmt: skip
     ap.add_argument(
         "--cuda-graph",
         default="off",
-        help="JSGS variants: method_options.cuda_graph: off, on, or jo (JO/L_obs/DS graphed, the GC eager: "
-        "cuda_graph_gc false), e.g. off,jo,on [off]",
+        help="JSGS variants: method_options.speed.cuda_graph: off, on, or jo (JO/L_obs/DS graphed, the GC "
+        "eager: cuda_graph_gc false), e.g. off,jo,on [off]",
     )
     ap.add_argument("--no-profile", action="store_true", help="skip the profiled runs (breakdown)")
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
@@ -155,10 +156,10 @@ def main() -> None:
                         continue  # not combinable with compile (yet); CUDA graphs need CUDA
                     label = f"jsgs ({mode}, {pooling}" + ("" if comp == "off" else f", compile {comp}")
                     label += {"off": "", "on": ", CUDA graph", "jo": ", CUDA graph w/o GC"}[graph] + ")"
-                    opts = {"jpeg_mode": mode, "gc_pooling": pooling, "compile": comp}
-                    opts["cuda_graph"] = graph != "off"
+                    speed: dict[str, Any] = {"compile": comp, "cuda_graph": graph != "off"}
                     if graph == "jo":
-                        opts["cuda_graph_gc"] = False
+                        speed["cuda_graph_gc"] = False
+                    opts = {"jpeg_mode": mode, "gc_pooling": pooling, "speed": speed}
                     variants.append((label, "jsgs", opts))
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -4,7 +4,7 @@ does JSGS add?
 
     .venv/bin/python tools/diagnostics/profile_step.py                  # synthetic scene, CPU or CUDA (auto)
     .venv/bin/python tools/diagnostics/profile_step.py --manifest DATA/manifest.json --device cuda \
-        --warmup 600 --steps 50 --jsgs-options '{"cuda_graph": false}' --out profile_step.json
+        --warmup 600 --steps 50 --jsgs-options '{"speed": {"cuda_graph": false}}' --out profile_step.json
 
 Without ``--manifest`` a synthetic scene is built in a temporary folder, as ``bench_train_overhead.py``
 builds it (``--size``, ``--views``). Every method runs the same settings (``--config`` JSON over the
@@ -605,7 +605,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--jsgs-options",
         type=_json_arg,
         default={},
-        help="JSON over method_options for jsgs, e.g. '{\"cuda_graph\": false}'",
+        help="JSON over method_options for jsgs, e.g. '{\"speed\": {\"cuda_graph\": false}}'",
     )
     ap.add_argument("--warmup", type=int, default=600, help="steps trained before the window [600]")
     ap.add_argument("--settle", type=int, default=2, help="resumed steps before the window (>= 1) [2]")
