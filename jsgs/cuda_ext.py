@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-#: the values of a setting that picks a kernel or its twin (loss.ssim_kernel, method_options.speed.gc_kernel)
+#: the values of a setting that picks a kernel or its twin (speed.ssim_kernel, method_options.speed.gc_kernel)
 KERNEL_CHOICES = ("auto", "torch", "cuda")
 _SOURCES = ("bindings.cpp", "ssim.cu", "controller.cu")
 _CSRC = Path(__file__).parent / "csrc"

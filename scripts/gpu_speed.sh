@@ -45,7 +45,7 @@ for stage in ${STAGES:-tests overhead profile}; do
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1
         tail -n 16 "$OUT/overhead.txt" ;;
     full) echo '{"method_options": {"speed": {"cuda_graph": false}}}' > /tmp/eager.json
-        echo '{"loss": {"ssim_kernel": "torch"}}' > /tmp/torchssim.json
+        echo '{"speed": {"ssim_kernel": "torch"}}' > /tmp/torchssim.json
         echo '{"method_options": {"speed": {"gc_kernel": "torch"}}}' > /tmp/torchgc.json
         i=0
         for m in ${FULL_RUNS:-jsgs gsplat}; do  # METHOD[_eager|_torchssim], in this order; repeats allowed

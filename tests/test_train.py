@@ -452,7 +452,65 @@ def test_view_camera_tensors_are_made_once_per_device(scene: Path) -> None:
 
 def test_ssim_kernel_cuda_is_refused_without_cuda(scene: Path, tmp_path: Path) -> None:
     cfg = TrainConfig(iterations=1, eval_at=[], device="cpu")
-    cfg.loss.ssim_kernel = "cuda"
-    match = r"config: loss.ssim_kernel cuda needs a CUDA device \(training on cpu\)"
+    cfg.speed.ssim_kernel = "cuda"
+    match = r"config: speed.ssim_kernel cuda needs a CUDA device \(training on cpu\)"
     with pytest.raises(JsgsError, match=match):
         train(scene, tmp_path / "run", cfg, progress=False)
+
+
+def test_callbacks_see_every_event_in_order(scene: Path, tmp_path: Path) -> None:
+    """The Trainer calls its callbacks at step boundaries, evaluations, checkpoint points and the end; a
+    callback's checkpoint point comes after the standard CheckpointSaver wrote the file."""
+    from jsgs.train.callbacks import Callback
+    from jsgs.train.trainer import StepResult, Trainer
+
+    events: list[tuple[str, Any]] = []
+
+    class Recorder(Callback):
+        def on_setup(self, trainer: Trainer) -> None:
+            events.append(("setup", trainer.start_step))
+
+        def on_step_begin(self, trainer: Trainer, step: int) -> None:
+            events.append(("begin", step))
+
+        def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
+            assert math.isfinite(result.loss) and "photometric" in result.terms
+            events.append(("end", result.step))
+
+        def on_eval(self, trainer: Trainer, entry: dict[str, Any]) -> None:
+            events.append(("eval", entry["step"]))
+
+        def on_checkpoint(self, trainer: Trainer, step: int) -> None:
+            assert trainer.last_checkpoint.endswith(f"step_{step:06d}.pt")
+            events.append(("checkpoint", step))
+
+        def on_end(self, trainer: Trainer, doc: dict[str, Any] | None) -> None:
+            events.append(("done", None if doc is None else doc["status"]))
+
+    cfg = tiny_config(iterations=4, eval_at=[2], checkpoint_every=3)
+    train(scene, tmp_path / "run", cfg, progress=False, callbacks=[Recorder()], log=lambda s: None)
+    assert events == [
+        ("setup", 0),
+        ("begin", 0), ("end", 0), ("begin", 1), ("end", 1), ("eval", 2), ("checkpoint", 2),
+        ("begin", 2), ("end", 2), ("checkpoint", 3),
+        ("begin", 3), ("end", 3), ("checkpoint", 4),
+        ("done", "complete"),
+    ]  # fmt: skip
+    events.clear()
+    # resumed from the last checkpoint of a stopped run: setup knows the step it continues from
+    train(scene, tmp_path / "stopped", cfg, progress=False, stop_at=1, log=lambda s: None)
+    rec = [Recorder()]
+    train(scene, tmp_path / "stopped", progress=False, resume=True, callbacks=rec, log=lambda s: None)
+    assert events[0] == ("setup", 1) and events[1] == ("begin", 1) and events[-1] == ("done", "complete")
+
+
+def test_methods_are_named_not_imported_by_the_trainer() -> None:
+    from jsgs.train.method import method_names, options_class
+
+    assert method_names() == ["gsplat", "jsgs"]
+    assert options_class("gsplat") is None
+    assert options_class("jsgs").__name__ == "JsgsOptions"
+    with pytest.raises(JsgsError, match=r"unknown method 'nerf' \(available: gsplat, jsgs\)"):
+        options_class("nerf")
+    with pytest.raises(JsgsError, match="config: method gsplat takes no method_options"):
+        from_dict({"method": "gsplat", "method_options": {"jo": False}}).check()

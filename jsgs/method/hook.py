@@ -353,7 +353,7 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
         tables,
         ssim_lambda=cfg.loss.ssim_lambda,
         ssim_padding=cfg.loss.ssim_padding,
-        ssim_kernel=cfg.loss.ssim_kernel,
+        ssim_kernel=cfg.speed.ssim_kernel,
         near_plane=cfg.render.near_plane,
         device=device,
     )

@@ -112,8 +112,9 @@ def terms_with_gradient(
 def image_term_settings(
     options: JsgsOptions, ssim_lambda: float, ssim_padding: str, ssim_kernel: str
 ) -> dict[str, Any]:
-    """The settings that fix the JO / L_obs / DS chain (:func:`jpeg_terms` and its
-    graph): the method's options plus the trainer's photometric-loss settings (``loss.ssim_*``)."""
+    """The settings that fix the JO / L_obs / DS chain (:func:`jpeg_terms` and its graph): the method's
+    options plus the trainer's photometric-loss settings (``loss.ssim_lambda``, ``loss.ssim_padding``,
+    ``speed.ssim_kernel``)."""
     return dict(
         mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding, ssim_kernel=ssim_kernel,
         ds=options.ds, gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,

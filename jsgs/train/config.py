@@ -152,15 +152,22 @@ class LossConfig:
         "SSIM window padding in l_ph: valid (gsplat simple_trainer's fused_ssim call) or same (zero padding, "
         "the original 3DGS).",
     )
+    base_weight: float = _f(1.0, "lambda_base: weight of l_ph in the total loss (JSGS exposes it).")
+    opacity_reg: float = _f(0.0, "Weight of mean(opacity) (gsplat opacity_reg).")
+    scale_reg: float = _f(0.0, "Weight of mean(exp(scales)) (gsplat scale_reg).")
+
+
+@dataclass
+class SpeedConfig:
+    """How the trainer computes (the same values, different kernels); a method's own speed settings are in
+    its method_options (jsgs: method_options.speed)."""
+
     ssim_kernel: Literal["auto", "torch", "cuda"] = _f(
         "auto",
         "SSIM implementation for l_ph and L_obs (same value): auto (the fused CUDA kernel jsgs/csrc/ssim.cu "
         "on a GPU, as gsplat's simple_trainer uses fused-ssim; the torch twin elsewhere), torch (separable "
         "convolutions everywhere) or cuda (the kernel, or an error).",
     )
-    base_weight: float = _f(1.0, "lambda_base: weight of l_ph in the total loss (JSGS exposes it).")
-    opacity_reg: float = _f(0.0, "Weight of mean(opacity) (gsplat opacity_reg).")
-    scale_reg: float = _f(0.0, "Weight of mean(exp(scales)) (gsplat scale_reg).")
 
 
 @dataclass
@@ -198,6 +205,7 @@ class TrainConfig:
     render: RenderConfig = _f(default_factory=RenderConfig, help="Rasterisation.")
     loss: LossConfig = _f(default_factory=LossConfig, help="Loss weights.")
     eval: EvalConfig = _f(default_factory=EvalConfig, help="Evaluation.")
+    speed: SpeedConfig = _f(default_factory=SpeedConfig, help="Speed settings (same results).")
     method_options: dict[str, Any] = _f(
         default_factory=dict,
         help="Settings of the chosen method: its registered options section (jsgs: $defs/jsgs_options), "
@@ -556,7 +564,7 @@ def config_schema() -> dict[str, Any]:
                     "notes": {"type": "array", "items": {"type": "string"}},
                     "ssim_kernel": {
                         "enum": ["torch", "cuda"],
-                        "description": "The SSIM implementation that loss.ssim_kernel resolved to on this "
+                        "description": "The SSIM implementation that speed.ssim_kernel resolved to on this "
                         "device (cuda: the fused kernel, built before training starts).",
                     },
                     "method": {

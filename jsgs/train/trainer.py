@@ -280,7 +280,7 @@ def base_terms(
     from jsgs.jpeg.losses import photometric_terms
 
     ph = photometric_terms(
-        rgb, target, cfg.loss.ssim_lambda, padding=cfg.loss.ssim_padding, ssim_kernel=cfg.loss.ssim_kernel,
+        rgb, target, cfg.loss.ssim_lambda, padding=cfg.loss.ssim_padding, ssim_kernel=cfg.speed.ssim_kernel,
         channels_last=True,
     )  # fmt: skip
     terms = {"l1": ph.l1, "ssim": ph.d_ssim, "photometric": ph.loss}
@@ -490,7 +490,7 @@ class Trainer:
             else int(json_load(paths.config)["derived"]["initial_gaussians"]),
             "notes": scene.notes,
             "ssim_kernel": "cuda"
-            if use_kernels(cfg.loss.ssim_kernel, device, "loss.ssim_kernel")
+            if use_kernels(cfg.speed.ssim_kernel, device, "speed.ssim_kernel")
             else "torch",
             "method": self.hook.describe() if self.hook is not None else {},
         }

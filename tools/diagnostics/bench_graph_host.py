@@ -1,9 +1,9 @@
 """Host time of the JSGS image terms (JO, L_obs, DS) per step, without a profiler, forward call and backward
 call timed separately, for three ways of running them:
 
-- eager: :func:`jsgs.method.graphed.image_terms` and autograd;
+- eager: :func:`jsgs.method.image_terms.image_terms` and autograd;
 - two graphs: ``torch.cuda.make_graphed_callables`` on the same function (a forward graph and a backward
-  graph, with its copies of inputs and upstream gradients; what the trainer used up to session 7);
+  graph, with its copies of inputs and upstream gradients);
 - one graph: ``jsgs.method.graphed.GraphedImageTerms`` (forward and the weighted sum's gradient in one replay;
   the backward scales the stored gradient).
 
@@ -42,8 +42,10 @@ from jsgs.method.options import JsgsOptions  # noqa: E402
 from jsgs.train.config import TrainConfig  # noqa: E402
 
 # the training defaults: paper mode, DS and GC on, the trainer's photometric loss
-_LOSS = TrainConfig().loss
-SETTINGS = image_term_settings(JsgsOptions(), _LOSS.ssim_lambda, _LOSS.ssim_padding, _LOSS.ssim_kernel)
+_CFG = TrainConfig()
+SETTINGS = image_term_settings(
+    JsgsOptions(), _CFG.loss.ssim_lambda, _CFG.loss.ssim_padding, _CFG.speed.ssim_kernel
+)
 
 
 def measure(fn: Callable[[Tensor], Tensor], x: Tensor, steps: int) -> dict[str, float]:

@@ -7,8 +7,7 @@
 Trains each method from scratch to step ``--start`` and then turns on
 ``torch.cuda.set_sync_debug_mode("warn")`` for ``--steps`` steps. Every synchronising call is counted under
 its innermost four frames in jsgs or gsplat. Prints, per method, the syncs per step and their call sites.
-A sync stops the host from running ahead of the GPU, so every one on the step's path shows in its wall time
-(docs/results/speed_session6/syncs_step650.txt is one census).
+A sync stops the host from running ahead of the GPU, so every one on the step's path shows in its wall time.
 """
 
 from __future__ import annotations
