@@ -1,4 +1,4 @@
-"""The extension point for extra loss terms (the JSGS method plugs in here).
+"""The method protocol of the generic trainer (a loss hook and extra render channels) and the method registry.
 
 Each training step the trainer renders the sampled view, computes the baseline photometric loss
 l_ph = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM) and then calls the method's :class:`LossHook` with a
@@ -23,6 +23,12 @@ without a second pass).
 
 Hooks with state (running statistics, schedules) implement ``state_dict``/``load_state_dict`` so that
 ``--resume`` stays bit-exact.
+
+A method is a name (``--method``), a factory (config, scene, device) -> hook or None, and optionally an
+options dataclass for ``method_options`` (parsed and checked by :func:`jsgs.train.config.parse_method_options`
+like every other section). The built-in ones are listed as ``"module:attribute"`` strings in
+:data:`BUILTIN_METHODS` and imported when a run asks for them, so that the trainer never imports a method
+(the JSGS method is the package :mod:`jsgs.method`); others are added with :func:`register_method`.
 """
 
 from __future__ import annotations
