@@ -514,3 +514,20 @@ def test_methods_are_named_not_imported_by_the_trainer() -> None:
         options_class("nerf")
     with pytest.raises(JsgsError, match="config: method gsplat takes no method_options"):
         from_dict({"method": "gsplat", "method_options": {"jo": False}}).check()
+
+
+def test_method_options_are_checked_with_the_method(tmp_path: Path) -> None:
+    """A settings file naming its method gets its method_options checked on load; a partial one without a
+    method (the method given later, e.g. by `jsgs bench --methods`) when the run starts."""
+    named = tmp_path / "named.json"
+    named.write_text(json.dumps({"method": "jsgs", "method_options": {"speed": {"cuda_graph": "on"}}}))
+    match = r'named.json: method_options.speed.cuda_graph must be true, false or "auto"'
+    with pytest.raises(JsgsError, match=match):
+        load_config_file(named)
+    partial = tmp_path / "partial.json"
+    partial.write_text(json.dumps({"method_options": {"lambda_obs": 1.0}}))
+    cfg = load_config_file(partial)
+    with pytest.raises(JsgsError, match="method gsplat takes no method_options"):
+        cfg.check()
+    cfg.method = "jsgs"
+    cfg.check()

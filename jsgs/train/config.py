@@ -212,8 +212,10 @@ class TrainConfig:
         "parsed and checked like every other section; empty for gsplat.",
     )
 
-    def check(self, where: str = "config") -> None:
-        """Raise JsgsError (one line) on inconsistent settings."""
+    def check(self, where: str = "config", method_options: bool = True) -> None:
+        """Raise JsgsError (one line) on inconsistent settings; with ``method_options``, also parse and check
+        ``method_options`` as the options of ``method`` (off for a partial settings file that names no
+        method: the method, and so the options' meaning, is given later, e.g. on the command line)."""
         if self.iterations < 1:
             raise JsgsError(f"{where}: iterations must be >= 1 (got {self.iterations})")
         bad = [s for s in self.eval_at if s < 1 or s > self.iterations]
@@ -243,7 +245,8 @@ class TrainConfig:
             raise JsgsError(f"{where}: strategy.refine_every and strategy.reset_every must be >= 1")
         if not 0.0 < self.optim.means_lr_final_factor:
             raise JsgsError(f"{where}: optim.means_lr_final_factor must be > 0")
-        parse_method_options(self.method, self.method_options, where)
+        if method_options:
+            parse_method_options(self.method, self.method_options, where)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -406,7 +409,7 @@ def load_config_file(path: str | Path) -> TrainConfig:
         # a bare settings object: from_dict checks names, types and choices with one-line messages
         settings = doc
     cfg = from_dict(settings, str(path))
-    cfg.check(str(path))
+    cfg.check(str(path), method_options=isinstance(settings, dict) and "method" in settings)
     return cfg
 
 
