@@ -42,8 +42,8 @@ def config_method(config: Path) -> str:
 def weights(config: Path | None, method: str = "jsgs") -> dict[str, float | None]:
     """λ's of a sweep config over the paper's defaults (None: not used by ``method``), and the
     densification threshold ``grad2d`` (strategy.grow_grad2d)."""
+    from jsgs.method.options import parse_options
     from jsgs.train.config import TrainConfig, load_config_file
-    from jsgs.train.jsgs_method import parse_options
 
     cfg = load_config_file(config) if config else TrainConfig()
     out: dict[str, float | None] = {"base": cfg.loss.base_weight}

@@ -1,4 +1,4 @@
-"""``jsgs train MANIFEST --out RUN``: a thin wrapper over :func:`jsgs.train.loop.train`."""
+"""``jsgs train MANIFEST --out RUN``: a thin wrapper over :func:`jsgs.train.trainer.train`."""
 
 from __future__ import annotations
 
@@ -69,7 +69,7 @@ def _parse_steps(text: str) -> list[int]:
     "compile_backend",
     type=click.Choice(["off", "inductor", "aot_eager"]),
     default=None,
-    help="--method jsgs: torch.compile JO, L_obs and DS (method_options.compile) [default: off].",
+    help="--method jsgs: torch.compile JO, L_obs and DS (method_options.speed.compile) [default: off].",
 )
 @click.option(
     "--no-jo",
@@ -115,7 +115,7 @@ def train_command(
 ) -> None:
     """Train Gaussians on the views of MANIFEST (a jsgs manifest; see `jsgstools manifest`)."""
     from jsgs.train.config import TrainConfig, from_dict, load_config_file
-    from jsgs.train.loop import load_run_settings, train
+    from jsgs.train.trainer import load_run_settings, train
 
     if resume and force:
         raise JsgsError("--resume and --force exclude each other")
@@ -138,7 +138,8 @@ def train_command(
     if jpeg_mode is not None:
         method_flags["jpeg_mode"] = jpeg_mode
     if compile_backend is not None:
-        method_flags["compile"] = compile_backend
+        speed = cfg.method_options.get("speed", {})
+        method_flags["speed"] = {**(speed if isinstance(speed, dict) else {}), "compile": compile_backend}
     for key, off in (("jo", no_jo), ("ds", no_ds), ("gc", no_gc)):
         if off:
             method_flags[key] = False

@@ -1,7 +1,7 @@
 """jsgs's own CUDA kernels (``jsgs/csrc``): the fused SSIM and the fused Gaussian Controller, one Python
 module built on first use with ``torch.utils.cpp_extension`` (nvcc; about a minute, then cached by torch in
 ``$TORCH_EXTENSIONS_DIR``). Each kernel has a torch twin that runs anywhere and is its reference in the
-tests (``jsgs.ssim`` kernel="torch"; ``jsgs.train.controller.fro_from_probe_grad``).
+tests (``jsgs.ssim`` kernel="torch"; ``jsgs.method.controller.fro_from_probe_grad``).
 
 Where the module cannot be built (no nvcc, a CPU-only torch) the callers use the twins, after one line on
 stderr.
@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-#: the values of a setting that picks a kernel or its twin (loss.ssim_kernel, method_options.gc_kernel)
+#: the values of a setting that picks a kernel or its twin (speed.ssim_kernel, method_options.speed.gc_kernel)
 KERNEL_CHOICES = ("auto", "torch", "cuda")
 _SOURCES = ("bindings.cpp", "ssim.cu", "controller.cu")
 _CSRC = Path(__file__).parent / "csrc"

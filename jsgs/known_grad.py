@@ -2,14 +2,14 @@
 
 Two places in a JSGS step know a gradient before the backward starts:
 
-* the JPEG image terms replayed as one CUDA graph (``jsgs.train.graphed``), which computes the weighted sum of
-  L_obs, L_low and L_mid *and* its gradient with respect to the render in the same replay, so the trainer's
+* the JPEG image terms replayed as one CUDA graph (``jsgs.method.graphed``), which computes the weighted sum
+  of L_obs, L_low and L_mid *and* its gradient with respect to the render in the same replay, so the trainer's
   backward only scales that gradient (no second replay, no static-buffer copies of upstream gradients);
 * the Gaussian Controller's probe objective (``jsgs.render.pool.probe_objective``), a sum of products whose
   gradient is the per-pixel upstream map itself and whose value is exactly 0.
 
 On a GPU at training sizes each autograd node and small kernel costs more host time than device time, so
-replacing such chains by one node is a measurable part of a step (``benchmarks/bench_graph_host.py``).
+replacing such chains by one node is a measurable part of a step (``tools/diagnostics/bench_graph_host.py``).
 """
 
 from __future__ import annotations

@@ -46,7 +46,7 @@ class Distortion:
 
 
 @dataclass(frozen=True)
-class Camera:
+class ManifestCamera:
     model: str
     width: int  # pixels
     height: int
@@ -63,11 +63,11 @@ class Camera:
 
 
 @dataclass(frozen=True)
-class View:
+class ManifestView:
     name: str  # image name in the COLMAP model
     image: Path  # the observed image, resolved against the manifest's folder
     split: str  # "train" | "test"
-    camera: Camera
+    camera: ManifestCamera
     R: np.ndarray  # (3, 3) float64 world-to-camera rotation
     t: np.ndarray  # (3,) float64 world-to-camera translation
     jpeg: JpegState | None  # None for a lossless image
@@ -105,16 +105,16 @@ class Manifest:
     path: Path
     producer: dict[str, Any]
     scene: SceneInfo
-    views: tuple[View, ...]
+    views: tuple[ManifestView, ...]
     points_xyz: np.ndarray  # (N, 3) float64 world coordinates
     points_rgb: np.ndarray  # (N, 3) uint8
 
     @property
-    def train_views(self) -> tuple[View, ...]:
+    def train_views(self) -> tuple[ManifestView, ...]:
         return tuple(v for v in self.views if v.split == "train")
 
     @property
-    def test_views(self) -> tuple[View, ...]:
+    def test_views(self) -> tuple[ManifestView, ...]:
         return tuple(v for v in self.views if v.split == "test")
 
 
@@ -208,9 +208,9 @@ def _jpeg(d: dict[str, Any] | None) -> JpegState | None:
     )
 
 
-def _camera(d: dict[str, Any]) -> Camera:
+def _camera(d: dict[str, Any]) -> ManifestCamera:
     dist = d["distortion"]
-    return Camera(
+    return ManifestCamera(
         model=d["model"],
         width=int(d["width"]),
         height=int(d["height"]),
@@ -256,7 +256,7 @@ def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
                     f"{path}: view {v['name']!r}: reference {v['reference']} not found (looked for {ref})"
                 )
         views.append(
-            View(
+            ManifestView(
                 name=v["name"],
                 image=image,
                 split=v["split"],

@@ -54,12 +54,12 @@ def jsgs_step(
     "L_obs" (its photometric loss), "DS" (``dct_supervision``), "backward" (through the three, weighted as in
     training) and "GC (in backward)" (``fro_from_probe_grad``: r̄ from the probe's gradient,
     ``controller_matrix``, L_fro and its gradient, for ``n_gaussians``; what the hook runs eagerly or records
-    as one CUDA graph). ``size`` is (W, H). What ``benchmarks/bench_kernel_count.py`` and
+    as one CUDA graph). ``size`` is (W, H). What ``tools/diagnostics/bench_kernel_count.py`` and
     ``tests/test_opcount.py`` count."""
     from jsgs.jpeg.losses import photometric_loss
     from jsgs.jpeg.observe import jpeg_observe
     from jsgs.jpeg.supervision import dct_supervision
-    from jsgs.train.controller import fro_from_probe_grad
+    from jsgs.method.controller import fro_from_probe_grad
 
     w, h = size
     g = torch.Generator().manual_seed(0)

@@ -133,7 +133,7 @@ if [ -n "$S1_GPUS$PRE" ]; then
             tests) CUDA_VISIBLE_DEVICES=$g JSGS_GPU_MANIFEST=$M python3 -m pytest -m gpu -p no:cacheprovider \
                 tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_lpips.py tests/test_graphed.py -q -s \
                 > "$OUT/gpu_tests.log" 2>&1 ;;
-            overhead) CUDA_VISIBLE_DEVICES=$g python3 benchmarks/bench_train_overhead.py --manifest "$M" \
+            overhead) CUDA_VISIBLE_DEVICES=$g python3 tools/diagnostics/bench_train_overhead.py --manifest "$M" \
                 --iterations "${OVERHEAD_ITERS:-1000}" --repeats 1 --device cuda --jpeg-modes ${OVERHEAD_MODES:-paper} --compile ${OVERHEAD_COMPILE:-off,inductor} --cuda-graph off,on \
                 --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1 ;;
             esac

@@ -25,7 +25,7 @@ for stage in $STAGES; do
     case $stage in
     tests) JSGS_GPU_MANIFEST=$PWD/$M python3 -m pytest -m gpu tests/test_render_gpu.py tests/test_jsgs_method.py tests/test_lpips.py -q -s 2>&1 | tee "$OUT/gpu_tests.log" | tail -40 ;;
     jpeg) python3 benchmarks/bench_jpeg_ops.py --device cuda --compile 2>&1 | tee "$OUT/bench_jpeg.txt" ;;
-    overhead) python3 benchmarks/bench_train_overhead.py --manifest "$M" --iterations 2000 --device cuda \
+    overhead) python3 tools/diagnostics/bench_train_overhead.py --manifest "$M" --iterations 2000 --device cuda \
         --jpeg-modes paper,float,exact --compile off,inductor --out "$OUT/overhead.json" 2>&1 | tee "$OUT/overhead.txt" | tail -30 ;;
     train) for method in gsplat jsgs; do
             python3 -m cli.jsgs_cli train "$M" --out "/tmp/run_$method" --method "$method" --iterations "$ITERS" \

@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # Issue 5's GPU checks in one device call on a single GPU: the GPU tests, the per-iteration overhead of
-# --method jsgs against --method gsplat (benchmarks/bench_train_overhead.py) and the kernel-level profile of
-# a training step (benchmarks/profile_step.py), on llff_flower's gaussian schedule (seed 0).
+# --method jsgs against --method gsplat (tools/diagnostics/bench_train_overhead.py) and the kernel-level profile of
+# a training step (tools/diagnostics/profile_step.py), on llff_flower's gaussian schedule (seed 0).
 #
 #   here:   .venv/bin/python -m cli.jsgs_cli bench llff_flower --out .gpuD --schedules gaussian --fixed= \
 #               --seeds 0 --prepare-only      (after copying a clean base into .gpuD/data/llff_flower/)
 #   device: command "bash scripts/gpu_speed.sh", carry [".whlmin", ".gpuD"], kind nvidia-h200
 #
 # Knobs (environment): STAGES ("tests overhead profile"; "ssim": benchmarks/bench_ssim.py; "graphhost":
-# benchmarks/bench_graph_host.py; "full" trains
+# tools/diagnostics/bench_graph_host.py; "full" trains
 # the FULL_RUNS ("jsgs gsplat"; a name may repeat; METHOD_eager: JSGS without CUDA graphs; METHOD_torchssim:
 # the torch SSIM instead of the fused kernel; METHOD_torchgc: the GC's torch twin, graphed) one after the other for FULL_ITERS (10000) steps each,
 # evaluated at 3000 / 7000 / 10000), ITERS (2000, overhead), GRAPHS (off,jo,on),
@@ -38,15 +38,15 @@ for stage in ${STAGES:-tests overhead profile}; do
         > "$OUT/gpu_tests.log" 2>&1
         tail -n 3 "$OUT/gpu_tests.log" ;;
     ssim) python3 benchmarks/bench_ssim.py > "$OUT/ssim.txt" 2>&1; tail -n 12 "$OUT/ssim.txt" ;;
-    graphhost) python3 benchmarks/bench_graph_host.py > "$OUT/graph_host.txt" 2>&1
+    graphhost) python3 tools/diagnostics/bench_graph_host.py > "$OUT/graph_host.txt" 2>&1
         tail -n 8 "$OUT/graph_host.txt" ;;
-    overhead) python3 benchmarks/bench_train_overhead.py --manifest "$M" --iterations "${ITERS:-2000}" \
+    overhead) python3 tools/diagnostics/bench_train_overhead.py --manifest "$M" --iterations "${ITERS:-2000}" \
         --repeats 1 --device cuda --jpeg-modes "${MODES:-paper}" --cuda-graph "${GRAPHS:-off,jo,on}" \
         --out "$OUT/overhead.json" > "$OUT/overhead.txt" 2>&1
         tail -n 16 "$OUT/overhead.txt" ;;
-    full) echo '{"method_options": {"cuda_graph": false}}' > /tmp/eager.json
-        echo '{"loss": {"ssim_kernel": "torch"}}' > /tmp/torchssim.json
-        echo '{"method_options": {"gc_kernel": "torch"}}' > /tmp/torchgc.json
+    full) echo '{"method_options": {"speed": {"cuda_graph": false}}}' > /tmp/eager.json
+        echo '{"speed": {"ssim_kernel": "torch"}}' > /tmp/torchssim.json
+        echo '{"method_options": {"speed": {"gc_kernel": "torch"}}}' > /tmp/torchgc.json
         i=0
         for m in ${FULL_RUNS:-jsgs gsplat}; do  # METHOD[_eager|_torchssim], in this order; repeats allowed
             i=$((i + 1))
@@ -59,7 +59,7 @@ for stage in ${STAGES:-tests overhead profile}; do
             echo "$i $m: $(tail -n 2 "$OUT/full_${i}_$m.log" | head -n 1)"
             python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print(f\"  {d['time_per_iteration_s']*1e3:.2f} ms/it\")" "$OUT/full_${i}_$m.json"
         done ;;
-    profile) python3 benchmarks/profile_step.py --manifest "$M" --device cuda --out "$OUT/profile.json" \
+    profile) python3 tools/diagnostics/profile_step.py --manifest "$M" --device cuda --out "$OUT/profile.json" \
         > "$OUT/profile.txt" 2>&1
         tail -n 45 "$OUT/profile.txt" ;;
     esac

@@ -47,11 +47,12 @@ def one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(n)
 
 
-def load_benchmark(name: str) -> Any:
-    """``benchmarks/<name>.py`` imported as a module (the benchmarks are scripts, not a package)."""
+def load_benchmark(name: str, folder: str = "benchmarks") -> Any:
+    """``<folder>/<name>.py`` (``benchmarks/`` or ``tools/diagnostics/``) imported as a module (these are
+    scripts, not a package)."""
     import importlib.util
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    path = Path(__file__).resolve().parents[1] / folder / f"{name}.py"
     spec = importlib.util.spec_from_file_location(f"_benchmark_{name}", path)
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)

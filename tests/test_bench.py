@@ -340,8 +340,8 @@ def test_weight_sweep_configs_and_summary(tmp_path: Path) -> None:
     import subprocess
     import sys
 
+    from jsgs.method.options import parse_options
     from jsgs.train.config import load_config_file
-    from jsgs.train.jsgs_method import parse_options
 
     root = Path(__file__).resolve().parents[1]
     configs = sorted((root / "benchmarks" / "weight_sweep").glob("*.json"))

@@ -1,5 +1,5 @@
 """The fused Gaussian Controller (``jsgs/csrc/controller.cu``) against its torch twin
-(``jsgs.train.controller.fro_from_probe_grad``), and ``method_options.gc_kernel``.
+(``jsgs.method.controller.fro_from_probe_grad``), and ``method_options.speed.gc_kernel``.
 
 On CPU: the option's resolution and refusals. On CUDA: gradients and statistics equal to the twin's in
 float64 (tight) and float32, with hard cases (Gaussians behind the near plane and far outside the image,
@@ -19,11 +19,12 @@ from typing import Any
 import pytest
 import torch
 from test_graphed import assert_same_training, train_jsgs_variants
-from test_jsgs_method import make_view, new_hook
+from test_jsgs_method import jsgs_options, make_view, new_hook
 
 from jsgs.errors import JsgsError
-from jsgs.train.controller import fro_from_probe_grad, fro_from_probe_grad_fused, packed_fro_stats
-from jsgs.train.jsgs_method import JsgsHook, parse_options
+from jsgs.method.controller import fro_from_probe_grad, fro_from_probe_grad_fused, packed_fro_stats
+from jsgs.method.hook import JsgsHook
+from jsgs.method.options import parse_options
 
 SETTINGS = dict(weight=0.05, near_plane=0.01, eps_proj=1e-6, tau_s=1.0)
 cuda = pytest.mark.skipif(
@@ -37,14 +38,14 @@ def test_gc_kernel_option_on_cpu() -> None:
     cpu = torch.device("cpu")
     assert JsgsHook(parse_options({}), tables, device=cpu).describe()["gc_kernel"] == "torch"
     with pytest.raises(JsgsError, match="gc_kernel cuda needs a CUDA device"):
-        JsgsHook(parse_options({"gc_kernel": "cuda"}), tables, device=cpu)
+        JsgsHook(parse_options(jsgs_options(gc_kernel="cuda")), tables, device=cpu)
     with pytest.raises(JsgsError, match="gc_kernel must be one of"):
-        parse_options({"gc_kernel": "fast"})
+        parse_options(jsgs_options(gc_kernel="fast"))
 
 
 def test_fused_controller_refusal_words() -> None:
     """The words of a refusal (the C++ side answers only yes or no): each check, on the CPU."""
-    from jsgs.train.controller import _fused_arguments_error
+    from jsgs.method.controller import _fused_arguments_error
 
     n = 10
     good = (torch.zeros(1, n, 2), torch.zeros(n), torch.zeros(n, 3), torch.zeros(n, 3), torch.zeros(n, 4),
@@ -134,7 +135,7 @@ def test_fused_controller_empty_view(n: int) -> None:
 
 _REFUSALS = """
 import torch
-from jsgs.train.controller import fro_from_probe_grad_fused
+from jsgs.method.controller import fro_from_probe_grad_fused
 
 n = 100
 good = [torch.zeros(1, n, 2), torch.zeros(n), torch.zeros(n, 3), torch.zeros(n, 3), torch.zeros(n, 4),

@@ -1,5 +1,5 @@
-"""``method_options.cuda_graph``: JO, L_obs and DS as one pure function of tensors (tested here on the CPU
-against the eager hook) and its CUDA-graph replay (GPU only: the same values and gradients as eager)."""
+"""``method_options.speed.cuda_graph``: JO, L_obs and DS as one pure function of tensors (tested here on the
+CPU against the eager hook) and its CUDA-graph replay (GPU only: the same values and gradients as eager)."""
 
 from __future__ import annotations
 
@@ -10,21 +10,17 @@ from typing import Any
 
 import pytest
 import torch
-from test_jsgs_method import make_splats, make_view, new_hook, train_step
+from test_jsgs_method import jsgs_options, make_splats, make_view, new_hook, train_step
 
 from jsgs.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision
-from jsgs.train.controller import fro_from_probe_grad, packed_fro_stats
-from jsgs.train.graphed import (
-    GraphedController,
-    GraphedImageTerms,
-    _Recording,
-    image_terms,
-    terms_with_gradient,
-)
-from jsgs.train.jsgs_method import JsgsHook, parse_options, use_cuda_graph
+from jsgs.method.controller import fro_from_probe_grad, packed_fro_stats
+from jsgs.method.graphed import GraphedController, GraphedImageTerms, _Recording
+from jsgs.method.hook import JsgsHook
+from jsgs.method.image_terms import image_terms, terms_with_gradient
+from jsgs.method.options import parse_options, use_cuda_graph
 
 SETTINGS = dict(
     mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
@@ -182,13 +178,13 @@ def _no_cuda_streams(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_cuda_graph_is_refused_off_cuda_and_with_compile(tmp_path: Path) -> None:
+    from jsgs.method.hook import make_jsgs_hook
     from jsgs.train.config import TrainConfig
-    from jsgs.train.jsgs_method import make_jsgs_hook
 
     with pytest.raises(JsgsError, match="cannot be combined"):
-        parse_options({"cuda_graph": True, "compile": "inductor"})
+        parse_options(jsgs_options(cuda_graph=True, compile="inductor"))
     cfg = TrainConfig()
-    cfg.method, cfg.method_options = "jsgs", {"cuda_graph": True}
+    cfg.method, cfg.method_options = "jsgs", jsgs_options(cuda_graph=True)
 
     class _Scene:  # make_jsgs_hook refuses before it reads the views
         train_views: list = []
@@ -203,17 +199,17 @@ def test_cuda_graph_auto_resolves_by_device_and_compile() -> None:
     """The default ("auto") graphs exactly when the device is CUDA and compile is off; other values are
     refused with one line."""
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
-    assert parse_options({}).cuda_graph == "auto"
+    assert parse_options({}).speed.cuda_graph == "auto"
     assert use_cuda_graph(parse_options({}), cuda) is True
     assert use_cuda_graph(parse_options({}), cpu) is False
-    assert use_cuda_graph(parse_options({"compile": "inductor"}), cuda) is False
-    assert use_cuda_graph(parse_options({"cuda_graph": False}), cuda) is False
-    assert use_cuda_graph(parse_options({"cuda_graph": True}), cuda) is True
+    assert use_cuda_graph(parse_options(jsgs_options(compile="inductor")), cuda) is False
+    assert use_cuda_graph(parse_options(jsgs_options(cuda_graph=False)), cuda) is False
+    assert use_cuda_graph(parse_options(jsgs_options(cuda_graph=True)), cuda) is True
     with pytest.raises(JsgsError, match="needs a CUDA device"):
-        use_cuda_graph(parse_options({"cuda_graph": True}), cpu)
+        use_cuda_graph(parse_options(jsgs_options(cuda_graph=True)), cpu)
     for bad in ("on", 1, None):
         with pytest.raises(JsgsError, match="must be true, false or") as e:
-            parse_options({"cuda_graph": bad})
+            parse_options(jsgs_options(cuda_graph=bad))
         assert "\n" not in str(e.value)
 
 
@@ -371,13 +367,13 @@ def train_jsgs_variants(tmp_path: Path, variants: dict[str, dict[str, Any]]) -> 
     from _train_scene import make_scene
 
     from jsgs.train.config import TrainConfig
-    from jsgs.train.loop import train
+    from jsgs.train.trainer import train
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
     evals = {}
     for name, options in variants.items():
         c = TrainConfig(method="jsgs", iterations=60, eval_at=[60], device="cuda")
-        c.method_options = dict(options)
+        c.method_options = jsgs_options(**options)
         c.strategy.refine_start_iter, c.strategy.refine_every = 5, 10
         c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
         evals[name] = train(manifest, tmp_path / name, c, progress=False)["evals"][-1]
@@ -415,7 +411,8 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
 
     def described(**options: Any) -> dict[str, Any]:
         tables = {view.index: new_hook(view).tables[view.index]}
-        return JsgsHook(parse_options({"gc_kernel": "torch", **options}), tables, device=cuda).describe()
+        opts = parse_options(jsgs_options(**{"gc_kernel": "torch", **options}))
+        return JsgsHook(opts, tables, device=cuda).describe()
 
     assert described()["cuda_graph_gc"] is True
     assert described(cuda_graph_gc=False) == {
@@ -428,4 +425,4 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
         assert described(gc_kernel="auto")["gc_kernel"] == "cuda"
         assert described(gc_kernel="auto")["cuda_graph_gc"] is False
     with pytest.raises(JsgsError, match="cuda_graph_gc must be true or false"):
-        parse_options({"cuda_graph_gc": "yes"})
+        parse_options(jsgs_options(cuda_graph_gc="yes"))

@@ -1,5 +1,5 @@
-"""``--method jsgs`` (jsgs.train.jsgs_method): every term against a float64 evaluation of its equation written
-here from the paper (independent of jsgs.jpeg / jsgs.render / jsgs.train.controller), r̄ from the training
+"""``--method jsgs`` (jsgs.method): every term against a float64 evaluation of its equation written
+here from the paper (independent of jsgs.jpeg / jsgs.render / jsgs.method.controller), r̄ from the training
 path against the brute-force rasteriser, L_fro's gradients, the ablation switches, the options, and a short
 ``jsgs train --method jsgs`` run on the compressed synthetic scene.
 
@@ -27,13 +27,15 @@ from jsgs.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.tables import ijg_tables
 from jsgs.manifest import JpegState
+from jsgs.method.hook import JsgsHook, make_jsgs_hook
+from jsgs.method.image_terms import view_tables
+from jsgs.method.options import parse_options
 from jsgs.render.bruteforce import render_bruteforce
 from jsgs.train.config import TrainConfig
 from jsgs.train.data import View
-from jsgs.train.hooks import StepContext, make_hook
-from jsgs.train.jsgs_method import JsgsHook, make_jsgs_hook, parse_options, view_tables
-from jsgs.train.loop import weighted_loss
-from jsgs.train.rendering import render_view
+from jsgs.train.method import StepContext, make_hook
+from jsgs.train.render_view import render_view
+from jsgs.train.trainer import weighted_loss
 
 D = torch.float64
 WIDTH, HEIGHT, FOCAL = 27, 19, 30.0
@@ -259,8 +261,17 @@ def target_for(view: View) -> torch.Tensor:
     return torch.tensor(ref_pillow_jpeg(img, j.luma_table, j.chroma_table, j.sampling), dtype=D)[None]
 
 
+SPEED_KEYS = ("compile", "cuda_graph", "cuda_graph_gc", "gc_kernel")
+
+
+def jsgs_options(**options: Any) -> dict[str, Any]:
+    """``method_options`` from keyword arguments, the speed settings (``SPEED_KEYS``) put in ``speed``."""
+    speed = {k: options.pop(k) for k in SPEED_KEYS if k in options}
+    return {**options, "speed": speed} if speed else options
+
+
 def new_hook(view: View, **options: Any) -> JsgsHook:
-    hook = JsgsHook(parse_options(options), view_tables([view], torch.device("cpu"), "test"))
+    hook = JsgsHook(parse_options(jsgs_options(**options)), view_tables([view], torch.device("cpu"), "test"))
     hook.keep_last = True
     return hook
 
@@ -337,7 +348,7 @@ def test_terms_equal_float64_evaluation_of_the_equations(route: str) -> None:
     assert fro_ref > 1e-4  # the scene exercises the term
     assert math.isclose(res["terms"]["fro"], fro_ref, rel_tol=1e-9)
     np.testing.assert_allclose(last["fro"].sbar.numpy()[vis], sbar[vis], rtol=1e-12)
-    # statistics (definitions in jsgs.train.controller.ControllerStats)
+    # statistics (definitions in jsgs.method.controller.ControllerStats)
     assert res["stats"]["gc_visible"] == vis.sum()
     assert math.isclose(res["stats"]["gc_rbar"], rbar[vis].mean(), rel_tol=1e-9)
     assert res["stats"]["gc_damped"] == ((rbar > 0) & vis & (sbar <= 1.0)).sum()
@@ -502,7 +513,9 @@ def test_options_are_validated() -> None:
     assert (o.tau_s, o.eps_sm, o.eps_dct_loss, o.eps_dct_block, o.eps_proj) == (1.0, 1e-3, 1e-6, 1e-6, 1e-6)
     assert (o.jpeg_mode, o.jo, o.ds, o.gc, o.gc_pooling) == ("paper", True, True, True, "deferred")
     bad = [
-        ({"lambda_obz": 1}, "unknown method_options.lambda_obz"),
+        ({"lambda_obz": 1}, "unknown setting method_options.lambda_obz"),
+        ({"cuda_graph": True}, "unknown setting method_options.cuda_graph .known: .*speed"),
+        ({"speed": {"gc_kernel": "fast"}}, "method_options.speed.gc_kernel must be one of"),
         ({"lambda_base": 2}, "loss.base_weight"),
         ({"lambda_fro": -1}, "must be >= 0"),
         ({"lambda_fro": "x"}, "finite number"),
@@ -699,7 +712,7 @@ def test_jsgs_runs_resume_bit_exactly_with_densification(tmp_path: Path) -> None
     from _train_scene import make_scene
 
     from jsgs.train import checkpoint as ckpt
-    from jsgs.train.loop import train
+    from jsgs.train.trainer import train
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
 
@@ -735,8 +748,9 @@ def test_packed_rendering_is_refused_with_gc(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("mode", ["paper", "exact"])
 def test_compiled_jpeg_terms_equal_eager(mode: str) -> None:
-    """method_options.compile traces JO, L_obs's ℓ_ph and DS with torch.compile; "aot_eager" checks on the
-    CPU that the traced graphs (straight-through rounding included) give the eager values and gradients."""
+    """method_options.speed.compile traces JO, L_obs's ℓ_ph and DS with torch.compile; "aot_eager" checks on
+    the CPU that the traced graphs (straight-through rounding included) give the eager values and
+    gradients."""
     view = make_view(50, "4:2:0")
     eager = train_step(new_hook(view, jpeg_mode=mode), view)
     traced = train_step(new_hook(view, jpeg_mode=mode, compile="aot_eager"), view)

@@ -1,6 +1,6 @@
 """The kernel counter, and the number of kernels one JSGS step launches (a regression guard: at real scene
-sizes these terms are launch-bound on a GPU, so the count is their cost; benchmarks/bench_kernel_count.py
-prints it per phase)."""
+sizes these terms are launch-bound on a GPU, so the count is their cost;
+tools/diagnostics/bench_kernel_count.py prints it per phase)."""
 
 from __future__ import annotations
 
@@ -34,8 +34,8 @@ def test_a_jsgs_step_launches_few_kernels() -> None:
     # 64, down from 346 and 144 before the JO/DS/GC code was rewritten for launch count (one coding pass for
     # all planes, colour and DCT as single matrix products, R(q) as one quadratic form, shared factors in the
     # closed-form GC). A change that adds kernels to every step must raise these bounds knowingly. The GC
-    # went to 71 in session 5 (r̄ from the probe's gradient counted with it, and Rw R(q) as one plain GEMM,
-    # whose operand needs a copy, instead of N batched 3x3 GEMMs); on CUDA it is one graph replay anyway.
+    # counts 71 (r̄ from the probe's gradient counted with it, and Rw R(q) as one plain GEMM, whose operand
+    # needs a copy, instead of N batched 3x3 GEMMs); on CUDA it is one graph replay anyway.
     image, gc = _jsgs_step_kernels("paper")
     assert image <= 230, image
     assert gc <= 72, gc

@@ -1,6 +1,6 @@
-"""benchmarks/profile_step.py: the whole benchmark on a tiny synthetic scene on the CPU (gsplat and jsgs, a
-few steps each), its JSON against schemas/profile_step.schema.json, and the reading of CUDA profiler events on
-hand-made ones (CI has no GPU)."""
+"""tools/diagnostics/profile_step.py: the whole benchmark on a tiny synthetic scene on the CPU (gsplat and
+jsgs, a few steps each), its JSON against schemas/profile_step.schema.json, and the reading of CUDA profiler
+events on hand-made ones (CI has no GPU)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 import torch
 from conftest import load_benchmark
 
-ps = load_benchmark("profile_step")
+ps = load_benchmark("profile_step", "tools/diagnostics")
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -24,8 +24,6 @@ TINY = {
 
 
 def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
-    import jsgs.train.data
-    import jsgs.train.loop
     from jsgs.schemas import validate
 
     cfg = tmp_path / "tiny.json"
@@ -66,18 +64,17 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
     assert diff["by_launches"] and all(r["extra_launches_per_step"] > 0 for r in diff["by_launches"])
     assert all(r["name"].startswith("aten::") for r in diff["by_launches"])
 
-    # the Chrome traces of the profiled windows, with Python frames (benchmarks/trace_gaps.py reads them)
+    # the Chrome traces of the profiled windows, with Python frames (tools/diagnostics/trace_gaps.py reads
+    # them)
     traces = sorted(p.name for p in (tmp_path / "traces").iterdir())
     assert traces == ["gsplat.trace.json", "jsgs.trace.json"]
     events = json.loads((tmp_path / "traces" / "jsgs.trace.json").read_text())["traceEvents"]
     assert any(e.get("cat") == "python_function" for e in events)
     assert any(e.get("name", "").startswith("autograd::engine::evaluate_function") for e in events)
 
-    # nothing left behind: no partial JSON beside the output, the runs' temporary folder removed, the
-    # trainer's sampler restored
+    # nothing left behind: no partial JSON beside the output, the runs' temporary folder removed
     assert [p.name for p in out.parent.iterdir()] == ["profile.json"]
     assert list(work.iterdir()) == []
-    assert jsgs.train.loop.ViewSampler is jsgs.train.data.ViewSampler
 
 
 def _ev(
@@ -154,19 +151,20 @@ def test_bad_arguments() -> None:
         ps.parse_args(["--steps", "0"])
     with pytest.raises(SystemExit):
         ps.parse_args(["--jsgs-options", "[1]"])
-    assert ps.parse_args(["--jsgs-options", '{"cuda_graph": false}']).jsgs_options == {"cuda_graph": False}
+    parsed = ps.parse_args(["--jsgs-options", '{"speed": {"cuda_graph": false}}']).jsgs_options
+    assert parsed == {"speed": {"cuda_graph": False}}
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
 def test_sync_census_refuses_without_cuda(capsys: Any) -> None:
-    sc = load_benchmark("sync_census")
+    sc = load_benchmark("sync_census", "tools/diagnostics")
     assert sc.main(["--manifest", "missing.json"]) == 1
     assert capsys.readouterr().err.strip() == "error: sync_census needs CUDA (host syncs are a GPU matter)"
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
 def test_bench_graph_host_refuses_without_cuda(capsys: Any) -> None:
-    bg = load_benchmark("bench_graph_host")
+    bg = load_benchmark("bench_graph_host", "tools/diagnostics")
     assert bg.main(["--steps", "1"]) == 1
     assert capsys.readouterr().err.strip() == (
         "error: bench_graph_host needs CUDA (it times host launches of GPU work)"

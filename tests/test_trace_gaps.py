@@ -1,5 +1,5 @@
-"""benchmarks/trace_gaps.py: device-idle time attributed to Python frames and backward nodes, on a hand-made
-Chrome trace whose answer is known (CI has no GPU to record a real one)."""
+"""tools/diagnostics/trace_gaps.py: device-idle time attributed to Python frames and backward nodes, on a
+hand-made Chrome trace whose answer is known (CI has no GPU to record a real one)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 from conftest import load_benchmark
 
-tg = load_benchmark("trace_gaps")
+tg = load_benchmark("trace_gaps", "tools/diagnostics")
 
 
 def _x(cat: str, name: str, ts: float, dur: float, tid: int = 1, **args: Any) -> dict[str, Any]:

@@ -20,8 +20,7 @@ from _train_scene import make_scene
 from jsgs.errors import JsgsError
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.config import TrainConfig, config_schema, from_dict, load_config_file, to_dict
-from jsgs.train.hooks import HookOutput, LossHook, StepContext
-from jsgs.train.loop import TrainingDiverged, train
+from jsgs.train.method import HookOutput, LossHook, StepContext
 from jsgs.train.model import (
     init_splats,
     knn_sq_dists,
@@ -31,6 +30,7 @@ from jsgs.train.model import (
     sh_degree_at,
 )
 from jsgs.train.normalize import normalize_world
+from jsgs.train.trainer import TrainingDiverged, train
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -416,7 +416,7 @@ def test_trainer_imports_without_dataset_tools() -> None:
     code = (
         "import sys\n"
         "sys.modules['pycolmap'] = None; sys.modules['cv2'] = None\n"
-        "import jsgs.train.loop, cli.train, cli.jsgs_cli\n"
+        "import jsgs.train.trainer, cli.train, cli.jsgs_cli\n"
         "assert 'jsgstools' not in sys.modules\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
@@ -452,7 +452,82 @@ def test_view_camera_tensors_are_made_once_per_device(scene: Path) -> None:
 
 def test_ssim_kernel_cuda_is_refused_without_cuda(scene: Path, tmp_path: Path) -> None:
     cfg = TrainConfig(iterations=1, eval_at=[], device="cpu")
-    cfg.loss.ssim_kernel = "cuda"
-    match = r"config: loss.ssim_kernel cuda needs a CUDA device \(training on cpu\)"
+    cfg.speed.ssim_kernel = "cuda"
+    match = r"config: speed.ssim_kernel cuda needs a CUDA device \(training on cpu\)"
     with pytest.raises(JsgsError, match=match):
         train(scene, tmp_path / "run", cfg, progress=False)
+
+
+def test_callbacks_see_every_event_in_order(scene: Path, tmp_path: Path) -> None:
+    """The Trainer calls its callbacks at step boundaries, evaluations, checkpoint points and the end; a
+    callback's checkpoint point comes after the standard CheckpointSaver wrote the file."""
+    from jsgs.train.callbacks import Callback
+    from jsgs.train.trainer import StepResult, Trainer
+
+    events: list[tuple[str, Any]] = []
+
+    class Recorder(Callback):
+        def on_setup(self, trainer: Trainer) -> None:
+            events.append(("setup", trainer.start_step))
+
+        def on_step_begin(self, trainer: Trainer, step: int) -> None:
+            events.append(("begin", step))
+
+        def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
+            assert math.isfinite(result.loss) and "photometric" in result.terms
+            events.append(("end", result.step))
+
+        def on_eval(self, trainer: Trainer, entry: dict[str, Any]) -> None:
+            events.append(("eval", entry["step"]))
+
+        def on_checkpoint(self, trainer: Trainer, step: int) -> None:
+            assert trainer.last_checkpoint.endswith(f"step_{step:06d}.pt")
+            events.append(("checkpoint", step))
+
+        def on_end(self, trainer: Trainer, doc: dict[str, Any] | None) -> None:
+            events.append(("done", None if doc is None else doc["status"]))
+
+    cfg = tiny_config(iterations=4, eval_at=[2], checkpoint_every=3)
+    train(scene, tmp_path / "run", cfg, progress=False, callbacks=[Recorder()], log=lambda s: None)
+    assert events == [
+        ("setup", 0),
+        ("begin", 0), ("end", 0), ("begin", 1), ("end", 1), ("eval", 2), ("checkpoint", 2),
+        ("begin", 2), ("end", 2), ("checkpoint", 3),
+        ("begin", 3), ("end", 3), ("checkpoint", 4),
+        ("done", "complete"),
+    ]  # fmt: skip
+    events.clear()
+    # resumed from the last checkpoint of a stopped run: setup knows the step it continues from
+    train(scene, tmp_path / "stopped", cfg, progress=False, stop_at=1, log=lambda s: None)
+    rec = [Recorder()]
+    train(scene, tmp_path / "stopped", progress=False, resume=True, callbacks=rec, log=lambda s: None)
+    assert events[0] == ("setup", 1) and events[1] == ("begin", 1) and events[-1] == ("done", "complete")
+
+
+def test_methods_are_named_not_imported_by_the_trainer() -> None:
+    from jsgs.train.method import method_names, options_class
+
+    assert method_names() == ["gsplat", "jsgs"]
+    assert options_class("gsplat") is None
+    assert options_class("jsgs").__name__ == "JsgsOptions"
+    with pytest.raises(JsgsError, match=r"unknown method 'nerf' \(available: gsplat, jsgs\)"):
+        options_class("nerf")
+    with pytest.raises(JsgsError, match="config: method gsplat takes no method_options"):
+        from_dict({"method": "gsplat", "method_options": {"jo": False}}).check()
+
+
+def test_method_options_are_checked_with_the_method(tmp_path: Path) -> None:
+    """A settings file naming its method gets its method_options checked on load; a partial one without a
+    method (the method given later, e.g. by `jsgs bench --methods`) when the run starts."""
+    named = tmp_path / "named.json"
+    named.write_text(json.dumps({"method": "jsgs", "method_options": {"speed": {"cuda_graph": "on"}}}))
+    match = r'named.json: method_options.speed.cuda_graph must be true, false or "auto"'
+    with pytest.raises(JsgsError, match=match):
+        load_config_file(named)
+    partial = tmp_path / "partial.json"
+    partial.write_text(json.dumps({"method_options": {"lambda_obs": 1.0}}))
+    cfg = load_config_file(partial)
+    with pytest.raises(JsgsError, match="method gsplat takes no method_options"):
+        cfg.check()
+    cfg.method = "jsgs"
+    cfg.check()

@@ -187,7 +187,7 @@ def bench(
     out = Path(out)
     if jobs_per_gpu < 1:
         raise JsgsError(f"--jobs-per-gpu {jobs_per_gpu}: must be at least 1")
-    from jsgs.train.jsgs_method import COMPILE_BACKENDS
+    from jsgs.method.options import COMPILE_BACKENDS
 
     if compile_backend not in COMPILE_BACKENDS:
         raise JsgsError(f"--compile {compile_backend!r}: choose one of {', '.join(COMPILE_BACKENDS)}")

@@ -12,6 +12,7 @@ _EXPORTS = {
     "DctSupervision": "supervision",
     "omega": "supervision",
     "photometric_loss": "losses",
+    "photometric_terms": "losses",
     "obs_loss": "losses",
     "ObservationLoss": "losses",
 }

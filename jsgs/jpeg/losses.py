@@ -12,23 +12,40 @@ from ..ssim import ssim
 from .observe import jpeg_observe
 
 LAMBDA_SSIM = 0.2
+#: SSIM window padding of l_ph when none is given: zero-padded "same", as the paper's eq. photometric (the
+#: original 3DGS). The trainer always passes its ``loss.ssim_padding`` (default "valid", gsplat's training
+#: loss).
+SSIM_PADDING = "same"
 
 
-def photometric_loss(
-    x: Tensor, y: Tensor, lambda_ssim: float = LAMBDA_SSIM, reduction: str = "mean", padding: str = "same",
-    ssim_kernel: str = "auto",
-) -> Tensor:
-    """``l_ph(X, Y) = (1 - lambda) ||X - Y||_1 / (3HW) + lambda (1 - SSIM(X, Y))`` (eq. photometric).
+class PhotometricTerms(NamedTuple):
+    """``loss``: l_ph; ``l1``: the mean absolute difference; ``d_ssim``: 1 - SSIM (each a scalar, or ``(B,)``
+    with reduction "none")."""
+
+    loss: Tensor
+    l1: Tensor
+    d_ssim: Tensor
+
+
+def photometric_terms(
+    x: Tensor, y: Tensor, lambda_ssim: float = LAMBDA_SSIM, reduction: str = "mean",
+    padding: str = SSIM_PADDING, ssim_kernel: str = "auto", channels_last: bool = False,
+) -> PhotometricTerms:
+    """``l_ph(X, Y) = (1 - lambda) ||X - Y||_1 / (3HW) + lambda (1 - SSIM(X, Y))`` (eq. photometric) with its
+    two parts: the one l_ph of the project (the trainer's baseline term and JSGS's L_obs).
 
     Args:
-        x, y: ``(B, 3, H, W)`` RGB in [0, 1].
+        x, y: ``(B, 3, H, W)`` RGB in [0, 1], or ``(B, H, W, 3)`` with ``channels_last`` (a render as the
+            rasterizer returns it; the L1 part is taken on it as it is, SSIM on its ``(B, 3, H, W)`` view).
         lambda_ssim: D-SSIM weight (0.2 in the paper).
-        reduction: "mean" -> scalar (mean over views of the per-view loss, equal to the mean over everything
+        reduction: "mean" -> scalars (mean over views of the per-view loss, equal to the mean over everything
             since views share H, W); "none" -> ``(B,)``.
-        padding: SSIM borders, "same" (zero-padded, the original 3DGS) or "valid" (gsplat's training loss).
+        padding: SSIM borders, "same" (zero-padded, the original 3DGS; :data:`SSIM_PADDING`) or "valid"
+            (gsplat's training loss, the trainer's default ``loss.ssim_padding``).
         ssim_kernel: the SSIM implementation, "auto", "torch" or "cuda" (:mod:`jsgs.ssim`; same value).
+        channels_last: x and y are ``(B, H, W, 3)``.
     Returns:
-        The loss (unitless).
+        The loss and its parts (unitless).
     """
     if reduction == "mean":
         l1 = (x - y).abs().mean()
@@ -36,8 +53,18 @@ def photometric_loss(
         l1 = (x - y).abs().flatten(1).mean(1)
     else:
         raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
-    s = ssim(x, y, padding=padding, reduction=reduction, kernel=ssim_kernel)
-    return (1.0 - lambda_ssim) * l1 + lambda_ssim * (1.0 - s)
+    if channels_last:
+        x, y = x.permute(0, 3, 1, 2), y.permute(0, 3, 1, 2)
+    d_ssim = 1.0 - ssim(x, y, padding=padding, reduction=reduction, kernel=ssim_kernel)
+    return PhotometricTerms((1.0 - lambda_ssim) * l1 + lambda_ssim * d_ssim, l1, d_ssim)
+
+
+def photometric_loss(
+    x: Tensor, y: Tensor, lambda_ssim: float = LAMBDA_SSIM, reduction: str = "mean",
+    padding: str = SSIM_PADDING, ssim_kernel: str = "auto",
+) -> Tensor:
+    """l_ph alone: ``photometric_terms(...).loss`` (same arguments)."""
+    return photometric_terms(x, y, lambda_ssim, reduction, padding, ssim_kernel).loss
 
 
 class ObservationLoss(NamedTuple):
@@ -57,6 +84,7 @@ def obs_loss(
     mode: str = "paper",
     lambda_ssim: float = LAMBDA_SSIM,
     reduction: str = "mean",
+    padding: str = SSIM_PADDING,
 ) -> ObservationLoss:
     """``L_obs = l_ph(C_JPEG(rendered; T^Y, T^C), target)`` (eq. obs_loss).
 
@@ -64,6 +92,8 @@ def obs_loss(
         rendered: ``(B, 3, H, W)`` rendered RGB in [0, 1].
         target: ``(B, 3, H, W)`` the decoded training JPEGs, in [0, 1].
         luma_table, chroma_table, sampling, mode: as :func:`jsgs.jpeg.observe.jpeg_observe`.
+        lambda_ssim, reduction, padding: as :func:`photometric_terms`.
     """
     observation = jpeg_observe(rendered, luma_table, chroma_table, sampling, mode)
-    return ObservationLoss(photometric_loss(observation, target, lambda_ssim, reduction), observation)
+    loss = photometric_loss(observation, target, lambda_ssim, reduction, padding)
+    return ObservationLoss(loss, observation)

@@ -1,1 +1,2 @@
-"""The trainer: gsplat-recipe backbone, evaluation, checkpoints; methods plug in through hooks."""
+"""The generic trainer: gsplat-recipe backbone (:mod:`jsgs.train.trainer`), callbacks, evaluation,
+checkpoints; methods plug in through the loss-hook protocol (:mod:`jsgs.train.method`)."""

@@ -24,23 +24,29 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, get_args, get_origin
+from typing import Any, Literal, TypeVar, get_args, get_origin
 
 from jsgs.errors import JsgsError
 
 RUN_CONFIG_FORMAT = "jsgs-run-config"
 RUN_CONFIG_VERSION = 1
+T = TypeVar("T")
 
 
-def _f(default: Any = dataclasses.MISSING, help: str = "", **kw: Any) -> Any:
-    """A dataclass field with a ``help`` text (used for the JSON Schema and the README)."""
+def setting(default: Any = dataclasses.MISSING, help: str = "", **kw: Any) -> Any:
+    """A dataclass field with a ``help`` text (used for the JSON Schema and the docs): every setting of a
+    config section, the methods' option sections included (:func:`section_from_dict`)."""
     if "default_factory" in kw:
         return field(default_factory=kw.pop("default_factory"), metadata={"help": help}, **kw)
     return field(default=default, metadata={"help": help}, **kw)
+
+
+_f = setting
 
 
 @dataclass
@@ -146,15 +152,22 @@ class LossConfig:
         "SSIM window padding in l_ph: valid (gsplat simple_trainer's fused_ssim call) or same (zero padding, "
         "the original 3DGS).",
     )
+    base_weight: float = _f(1.0, "lambda_base: weight of l_ph in the total loss (JSGS exposes it).")
+    opacity_reg: float = _f(0.0, "Weight of mean(opacity) (gsplat opacity_reg).")
+    scale_reg: float = _f(0.0, "Weight of mean(exp(scales)) (gsplat scale_reg).")
+
+
+@dataclass
+class SpeedConfig:
+    """How the trainer computes (the same values, different kernels); a method's own speed settings are in
+    its method_options (jsgs: method_options.speed)."""
+
     ssim_kernel: Literal["auto", "torch", "cuda"] = _f(
         "auto",
         "SSIM implementation for l_ph and L_obs (same value): auto (the fused CUDA kernel jsgs/csrc/ssim.cu "
         "on a GPU, as gsplat's simple_trainer uses fused-ssim; the torch twin elsewhere), torch (separable "
         "convolutions everywhere) or cuda (the kernel, or an error).",
     )
-    base_weight: float = _f(1.0, "lambda_base: weight of l_ph in the total loss (JSGS exposes it).")
-    opacity_reg: float = _f(0.0, "Weight of mean(opacity) (gsplat opacity_reg).")
-    scale_reg: float = _f(0.0, "Weight of mean(exp(scales)) (gsplat scale_reg).")
 
 
 @dataclass
@@ -192,13 +205,17 @@ class TrainConfig:
     render: RenderConfig = _f(default_factory=RenderConfig, help="Rasterisation.")
     loss: LossConfig = _f(default_factory=LossConfig, help="Loss weights.")
     eval: EvalConfig = _f(default_factory=EvalConfig, help="Evaluation.")
+    speed: SpeedConfig = _f(default_factory=SpeedConfig, help="Speed settings (same results).")
     method_options: dict[str, Any] = _f(
         default_factory=dict,
-        help="Settings of the chosen method (validated by the method; empty for gsplat).",
+        help="Settings of the chosen method: its registered options section (jsgs: $defs/jsgs_options), "
+        "parsed and checked like every other section; empty for gsplat.",
     )
 
-    def check(self, where: str = "config") -> None:
-        """Raise JsgsError (one line) on inconsistent settings."""
+    def check(self, where: str = "config", method_options: bool = True) -> None:
+        """Raise JsgsError (one line) on inconsistent settings; with ``method_options``, also parse and check
+        ``method_options`` as the options of ``method`` (off for a partial settings file that names no
+        method: the method, and so the options' meaning, is given later, e.g. on the command line)."""
         if self.iterations < 1:
             raise JsgsError(f"{where}: iterations must be >= 1 (got {self.iterations})")
         bad = [s for s in self.eval_at if s < 1 or s > self.iterations]
@@ -228,6 +245,8 @@ class TrainConfig:
             raise JsgsError(f"{where}: strategy.refine_every and strategy.reset_every must be >= 1")
         if not 0.0 < self.optim.means_lr_final_factor:
             raise JsgsError(f"{where}: optim.means_lr_final_factor must be > 0")
+        if method_options:
+            parse_method_options(self.method, self.method_options, where)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -261,15 +280,16 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
         args = get_args(tp)
         if value is None and type(None) in args:
             return None
-        errors = []
         for a in args:
             if a is type(None):
                 continue
             try:
                 return _coerce(value, a, key, where)
-            except JsgsError as e:
-                errors.append(str(e))
-        raise JsgsError(errors[0] if errors else f"{where}: {key}: bad value {value!r}")
+            except JsgsError:
+                pass
+        parts = [p for a in args if a is not type(None) for p in _expected(a)]
+        what = parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " or " + parts[-1]
+        raise JsgsError(f"{where}: {key} must be {what} (got {value!r})")
     if origin is list:
         (item,) = get_args(tp)
         if not isinstance(value, list):
@@ -288,8 +308,8 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
             raise JsgsError(f"{where}: {key} must be an integer (got {value!r})")
         return value
     if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise JsgsError(f"{where}: {key} must be a number (got {value!r})")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise JsgsError(f"{where}: {key} must be a finite number (got {value!r})")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
@@ -298,6 +318,14 @@ def _coerce(value: Any, tp: Any, key: str, where: str) -> Any:
     if tp is Any:
         return value
     raise TypeError(f"unsupported config type {tp!r} for {key}")
+
+
+def _expected(tp: Any) -> list[str]:
+    """What a value of type ``tp`` may be, in words (for messages)."""
+    if get_origin(tp) is Literal:
+        return [json.dumps(v) for v in get_args(tp)]
+    names = {bool: ["true", "false"], int: ["an integer"], float: ["a number"], str: ["a string"]}
+    return names.get(tp, ["an object" if _is_dataclass_type(tp) or get_origin(tp) is dict else "a list"])
 
 
 def _from_dict(cls: type, doc: dict[str, Any], where: str, prefix: str, base: Any) -> Any:
@@ -318,6 +346,39 @@ def _from_dict(cls: type, doc: dict[str, Any], where: str, prefix: str, base: An
         else:
             setattr(obj, name, _coerce(doc[name], tp, prefix + name, where))
     return obj
+
+
+def section_from_dict(cls: type[T], doc: Any, where: str, prefix: str = "") -> T:
+    """A config section (a dataclass of :func:`setting` fields, e.g. a method's options) from a (possibly
+    partial) dict over its defaults; ``prefix`` names it in messages ("method_options."). JsgsError (one line)
+    on an unknown key, a wrong type or a value outside its choices."""
+    if not isinstance(doc, dict):
+        raise JsgsError(f"{where}: {prefix.rstrip('.') or 'settings'} must be an object")
+    out: T = _from_dict(cls, doc, where, prefix=prefix, base=None)
+    return out
+
+
+def parse_method_options(name: str, raw: dict[str, Any], where: str = "config") -> Any:
+    """``method_options`` of method ``name`` parsed into its options dataclass and checked (None for a method
+    without options, which must then be empty). JsgsError (one line) naming the setting."""
+    from jsgs.train.method import options_class
+
+    cls = options_class(name)
+    if cls is None:
+        if raw:
+            key = sorted(raw)[0]
+            raise JsgsError(f"{where}: method {name} takes no method_options (got {key!r})")
+        return None
+    if "lambda_base" in raw:
+        raise JsgsError(
+            f"{where}: method_options.lambda_base: λ_base is the trainer's loss.base_weight "
+            "(set it there; default 1)"
+        )
+    opts = section_from_dict(cls, raw, where, "method_options.")
+    check = getattr(opts, "check", None)
+    if check is not None:
+        check(where)
+    return opts
 
 
 def from_dict(doc: dict[str, Any], where: str = "config", base: TrainConfig | None = None) -> TrainConfig:
@@ -348,7 +409,7 @@ def load_config_file(path: str | Path) -> TrainConfig:
         # a bare settings object: from_dict checks names, types and choices with one-line messages
         settings = doc
     cfg = from_dict(settings, str(path))
-    cfg.check(str(path))
+    cfg.check(str(path), method_options=isinstance(settings, dict) and "method" in settings)
     return cfg
 
 
@@ -365,9 +426,14 @@ def _schema_of(tp: Any, help_text: str) -> dict[str, Any]:
     elif origin is Literal:
         out = {"enum": list(get_args(tp))}
     elif origin in (typing.Union, types.UnionType):
-        subs = [_schema_of(a, "") for a in get_args(tp) if a is not type(None)]
-        types_ = [s["type"] for s in subs]
-        out = {"type": [*types_, "null"]}
+        args = get_args(tp)
+        subs = [_schema_of(a, "") for a in args if a is not type(None)]
+        if type(None) in args:
+            subs.append({"type": "null"})
+        if all(set(s) == {"type"} for s in subs):
+            out = {"type": [s["type"] for s in subs]}
+        else:
+            out = {"anyOf": subs}
     elif origin is list:
         (item,) = get_args(tp)
         out = {"type": "array", "items": _schema_of(item, "")}
@@ -401,9 +467,35 @@ def _section_schema(cls: type) -> dict[str, Any]:
     }
 
 
+def _method_options_schemas() -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """The registered methods' option sections as $defs (``<method>_options``) and the conditions that tie
+    ``method_options`` to ``method``."""
+    from jsgs.train.method import method_names, options_class
+
+    defs: dict[str, Any] = {}
+    conditions: list[dict[str, Any]] = []
+    for name in method_names():
+        cls = options_class(name)
+        ref: dict[str, Any]
+        if cls is None:
+            ref = {"type": "object", "maxProperties": 0}
+        else:
+            defs[f"{name}_options"] = _section_schema(cls)
+            ref = {"$ref": f"#/$defs/{name}_options"}
+        conditions.append(
+            {
+                "if": {"properties": {"method": {"const": name}}, "required": ["method"]},
+                "then": {"properties": {"method_options": ref}},
+            }
+        )
+    return defs, conditions
+
+
 def config_schema() -> dict[str, Any]:
     """The JSON Schema of ``RUN/config.json`` (and of ``--config`` files, whose settings may be partial)."""
     settings = _section_schema(TrainConfig)
+    option_defs, conditions = _method_options_schemas()
+    settings["allOf"] = conditions
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "$id": "https://jsgs.dev/schemas/config.schema.json",
@@ -475,7 +567,7 @@ def config_schema() -> dict[str, Any]:
                     "notes": {"type": "array", "items": {"type": "string"}},
                     "ssim_kernel": {
                         "enum": ["torch", "cuda"],
-                        "description": "The SSIM implementation that loss.ssim_kernel resolved to on this "
+                        "description": "The SSIM implementation that speed.ssim_kernel resolved to on this "
                         "device (cuda: the fused kernel, built before training starts).",
                     },
                     "method": {
@@ -486,7 +578,7 @@ def config_schema() -> dict[str, Any]:
                 },
             },
         },
-        "$defs": {"settings": settings},
+        "$defs": {"settings": settings, **option_defs},
     }
 
 

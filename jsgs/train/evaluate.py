@@ -26,7 +26,7 @@ from torch import Tensor
 
 from jsgs.train.config import TrainConfig
 from jsgs.train.data import Scene, View
-from jsgs.train.rendering import render_view
+from jsgs.train.render_view import render_view
 
 
 def synchronize(device: torch.device) -> None:

@@ -161,10 +161,6 @@ def activated(splats: torch.nn.ParameterDict) -> dict[str, Tensor]:
     }
 
 
-def num_sh_coeffs(degree: int) -> int:
-    return (degree + 1) ** 2
-
-
 __all__ = [
     "PARAM_NAMES",
     "activated",

@@ -1,8 +1,9 @@
 """Where the GPU waits for the host: device idle time in a Chrome trace of training steps, attributed to the
 Python functions the host was running meanwhile.
 
-    .venv/bin/python benchmarks/profile_step.py --manifest M --device cuda --trace traces/   # GPU machine
-    .venv/bin/python benchmarks/trace_gaps.py traces/gsplat.trace.json traces/jsgs.trace.json --steps 40
+    .venv/bin/python tools/diagnostics/profile_step.py --manifest M --device cuda --trace traces/  # GPU
+    .venv/bin/python tools/diagnostics/trace_gaps.py traces/gsplat.trace.json traces/jsgs.trace.json \
+        --steps 40
 
 A step is host-bound wherever no kernel, copy or memset runs on any stream: every microsecond of that is
 time the host spent launching, deciding, or waiting. This reads the trace ``torch.profiler`` writes with

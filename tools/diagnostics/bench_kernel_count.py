@@ -5,7 +5,7 @@ eager op costs 10-20 µs of host dispatch and launch (measured on an H200: the d
 2.2 ms, about 15 µs each), far more than its arithmetic. The kernel count is then the cost model, and it is
 the same on every device, so this benchmark runs anywhere:
 
-    .venv/bin/python benchmarks/bench_kernel_count.py [--size 96x64] [--gaussians 1000] [--modes paper]
+    .venv/bin/python tools/diagnostics/bench_kernel_count.py [--size 96x64] [--gaussians 1000] [--modes paper]
         [--sampling 4:2:0] [--device cpu] [--repeats 200]
 
 Per phase, for one view (``B = 1``): JO forward (``jpeg_observe``), L_obs's photometric loss, DS forward
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from jsgs.opcount import count_phases, jsgs_step  # noqa: E402
 

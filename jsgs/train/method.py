@@ -1,4 +1,4 @@
-"""The extension point for extra loss terms (the JSGS method plugs in here).
+"""The method protocol of the generic trainer (a loss hook and extra render channels) and the method registry.
 
 Each training step the trainer renders the sampled view, computes the baseline photometric loss
 l_ph = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM) and then calls the method's :class:`LossHook` with a
@@ -23,10 +23,17 @@ without a second pass).
 
 Hooks with state (running statistics, schedules) implement ``state_dict``/``load_state_dict`` so that
 ``--resume`` stays bit-exact.
+
+A method is a name (``--method``), a factory (config, scene, device) -> hook or None, and optionally an
+options dataclass for ``method_options`` (parsed and checked by :func:`jsgs.train.config.parse_method_options`
+like every other section). The built-in ones are listed as ``"module:attribute"`` strings in
+:data:`BUILTIN_METHODS` and imported when a run asks for them, so that the trainer never imports a method
+(the JSGS method is the package :mod:`jsgs.method`); others are added with :func:`register_method`.
 """
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -139,40 +146,66 @@ class LossHook:
 # A method is a factory (config, scene, device) -> LossHook or None (None: the plain gsplat baseline).
 MethodFactory = Callable[["TrainConfig", "Scene", torch.device], "LossHook | None"]
 
-_METHODS: dict[str, MethodFactory] = {}
+@dataclass(frozen=True)
+class MethodEntry:
+    """A method of ``--method``: its hook factory and its options section (a dataclass of
+    :func:`jsgs.train.config.setting` fields, or None for a method without options), each either the object
+    or a ``"module:attribute"`` string imported on first use."""
+
+    factory: MethodFactory | str
+    options: type | str | None = None
 
 
-def register_method(name: str, factory: MethodFactory) -> None:
-    """Make ``--method name`` available."""
-    _METHODS[name] = factory
+#: The built-in methods, named by strings so that the generic trainer imports no method when it is imported.
+BUILTIN_METHODS: dict[str, MethodEntry] = {
+    "gsplat": MethodEntry("jsgs.train.method:gsplat_baseline"),
+    "jsgs": MethodEntry("jsgs.method.hook:make_jsgs_hook", "jsgs.method.options:JsgsOptions"),
+}
+
+_METHODS: dict[str, MethodEntry] = {}
 
 
-def available_methods() -> list[str]:
-    _load_builtin_methods()
-    return sorted(_METHODS)
+def register_method(name: str, factory: MethodFactory, options: type | None = None) -> None:
+    """Make ``--method name`` available (a method defined outside :data:`BUILTIN_METHODS`); ``options``: its
+    options dataclass (``method_options``), parsed by :func:`jsgs.train.config.parse_method_options`, with an
+    optional ``check(where)`` method."""
+    _METHODS[name] = MethodEntry(factory, options)
+
+
+def method_names() -> list[str]:
+    """Every method ``--method`` takes."""
+    return sorted({*BUILTIN_METHODS, *_METHODS})
+
+
+def _resolve(target: Any) -> Any:
+    if isinstance(target, str):
+        module, attr = target.split(":")
+        return getattr(importlib.import_module(module), attr)
+    return target
+
+
+def _entry(name: str) -> MethodEntry:
+    entry = _METHODS.get(name) or BUILTIN_METHODS.get(name)
+    if entry is None:
+        raise JsgsError(f"unknown method {name!r} (available: {', '.join(method_names())})")
+    return entry
+
+
+def options_class(name: str) -> type | None:
+    """The options dataclass of method ``name`` (None: it takes no method_options)."""
+    cls: type | None = _resolve(_entry(name).options)
+    return cls
 
 
 def make_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
     """The hook of ``cfg.method`` (JsgsError naming the available methods when unknown)."""
-    _load_builtin_methods()
-    factory = _METHODS.get(cfg.method)
-    if factory is None:
-        raise JsgsError(f"unknown method {cfg.method!r} (available: {', '.join(sorted(_METHODS))})")
+    factory: MethodFactory = _resolve(_entry(cfg.method).factory)
     return factory(cfg, scene, device)
 
 
-def _gsplat_baseline(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
+def gsplat_baseline(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
+    """``--method gsplat``: no hook (the trainer's own loss only); it takes no method_options."""
     if cfg.method_options:
         key = sorted(cfg.method_options)[0]
         raise JsgsError(f"config: method gsplat takes no method_options (got {key!r})")
     return None
-
-
-def _load_builtin_methods() -> None:
-    register_method("gsplat", _gsplat_baseline)
-    # Methods living in other modules register themselves on import; a missing module is simply absent.
-    try:
-        import jsgs.train.jsgs_method  # noqa: F401
-    except ModuleNotFoundError as e:
-        if e.name != "jsgs.train.jsgs_method":
-            raise

@@ -1,13 +1,16 @@
 """The JSGS image terms (JO, L_obs, DS) and the deferred Gaussian Controller replayed as CUDA graphs:
-``method_options.cuda_graph`` (and ``cuda_graph_gc`` for the GC's own graph, :class:`GraphedController`).
+``method_options.speed.cuda_graph`` (and ``cuda_graph_gc`` for the GC's own graph,
+:class:`GraphedController`).
 
 At training sizes these terms are a few hundred small kernels per step, forward and backward, and on a GPU
-each one costs more to launch than to run (``benchmarks/bench_kernel_count.py``). A CUDA graph records them
+each one costs more to launch than to run (``tools/diagnostics/bench_kernel_count.py``). A CUDA graph records
+them
 once per image size and replays them as one launch. The arithmetic is the eager code's, kernel for kernel,
 so values and gradients are those of the eager path (``tests/test_graphed.py``, GPU only).
 
-The chain itself is :func:`jpeg_terms` (the eager hook runs it too); its tensors-only form is
-:func:`image_terms`, and what is recorded is :func:`terms_with_gradient`: the image terms *and* the gradient
+The chain itself is :func:`jsgs.method.image_terms.jpeg_terms` (the eager hook runs it too); its tensors-only
+form is :func:`~jsgs.method.image_terms.image_terms`, and what is recorded is
+:func:`~jsgs.method.image_terms.terms_with_gradient`: the image terms *and* the gradient
 of their weighted sum with respect to the render, in one graph, so the forward call is the only replay and
 the trainer's backward merely scales the stored gradient (``jsgs.known_grad``). The inputs are the render and
 target of one view and its tables (so every view replays the same graph with its own); the JO mode,
@@ -20,7 +23,6 @@ guarantees (see ``jsgs.jpeg.observe``); they are CUDA-only. Should a recording f
 from __future__ import annotations
 
 from collections.abc import Callable
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from functools import partial
 from typing import Any, NamedTuple
@@ -29,66 +31,8 @@ import torch
 from torch import Tensor
 
 from jsgs.errors import one_line
-from jsgs.jpeg.losses import photometric_loss
-from jsgs.jpeg.observe import jpeg_observe
-from jsgs.jpeg.supervision import DctSupervision, dct_supervision
 from jsgs.known_grad import with_known_gradient
-
-
-def jpeg_terms(
-    x: Tensor,
-    y: Tensor,
-    luma: Tensor,
-    chroma: Tensor,
-    *,
-    sampling: str,
-    mode: str,
-    ssim_lambda: float,
-    ssim_padding: str,
-    ssim_kernel: str = "auto",
-    ds: bool,
-    gc: bool,
-    eps_sm: float,
-    eps_loss: float,
-    eps_block: float,
-    observe: Callable[..., Tensor] = jpeg_observe,
-    photometric: Callable[..., Tensor] = photometric_loss,
-    supervise: Callable[..., DctSupervision] = dct_supervision,
-    phase: Callable[[str], AbstractContextManager[Any]] = lambda name: nullcontext(),
-) -> tuple[Tensor, Tensor, DctSupervision | None]:
-    """JO, L_obs and DS for one view: the one home of that chain, for the eager hook and for the graph.
-
-    Args:
-        x: ``(1, 3, H, W)`` the rendering; y: ``(1, 3, H, W)`` the decoded training JPEG, in [0, 1].
-        luma, chroma: ``(8, 8)`` the view's tables. The settings: as
-            :class:`jsgs.train.jsgs_method.JsgsOptions`.
-        observe, photometric, supervise: the three functions (the hook passes torch.compile'd ones);
-        phase: a profiler's ``phase(name)`` context ("jo" around JO and L_obs, "ds" around DS).
-    Returns:
-        The observation ``(1, 3, H, W)``, L_obs (0-dim) and the DS terms (None without DS and GC; with GC
-        alone they are computed on the detached observation, so no graph runs through DS).
-    """
-    with phase("jo"):
-        obs = observe(x, luma, chroma, sampling, mode)
-        l_obs = photometric(obs, y, ssim_lambda, padding=ssim_padding, ssim_kernel=ssim_kernel)
-    if not (ds or gc):
-        return obs, l_obs, None
-    with phase("ds"):
-        sup = supervise(obs if ds else obs.detach(), y, luma, eps_sm, eps_loss, eps_block)
-    return obs, l_obs, sup
-
-
-def image_terms(
-    x: Tensor, y: Tensor, luma: Tensor, chroma: Tensor, **settings: Any
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """:func:`jpeg_terms` as tensors only (what a CUDA graph can return): L_obs, L_low, L_mid (0-dim; the DS
-    terms 0 without DS), r(p) ``(1, H, W)`` detached (0 without DS and GC) and the observation, detached."""
-    obs, l_obs, sup = jpeg_terms(x, y, luma, chroma, **settings)
-    zero = l_obs.new_zeros(())
-    if sup is None:
-        return l_obs, zero, zero, y.new_zeros(y.shape[0], *y.shape[2:]), obs.detach()
-    low, mid = (sup.loss_low.sum(), sup.loss_mid.sum()) if settings["ds"] else (zero, zero)
-    return l_obs, low, mid, sup.pixel_score, obs.detach()
+from jsgs.method.image_terms import terms_with_gradient
 
 
 class ImageTerms(NamedTuple):
@@ -107,27 +51,6 @@ class ImageTerms(NamedTuple):
     values: Tensor
     r: Tensor
     obs: Tensor
-
-
-def terms_with_gradient(
-    x: Tensor, y: Tensor, tables: Tensor, *, weights: tuple[float, float, float], **settings: Any
-) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
-    """:func:`image_terms` and the gradient of their weighted sum, in one pass (what the graph records).
-
-    Args:
-        x: ``(1, 3, H, W)`` the render (a leaf; needs grad for the gradient); y: ``(1, 3, H, W)`` the target;
-        tables: ``(2, 8, 8)`` the view's luma and chroma tables; weights: (λ_obs, λ_low, λ_mid), the last two
-            0 without DS; settings: :func:`jpeg_terms`'s, with ``sampling``.
-    Returns:
-        values ``(4,)`` (the weighted sum, L_obs, L_low, L_mid), its gradient with respect to ``x`` (None when
-        ``x`` needs none), r(p) ``(1, H, W)`` and the observation ``(1, 3, H, W)``, all detached.
-    """
-    l_obs, low, mid, r, obs = image_terms(x, y, tables[0], tables[1], **settings)
-    w_obs, w_low, w_mid = weights
-    total = w_obs * l_obs + w_low * low + w_mid * mid
-    grad = torch.autograd.grad(total, x)[0] if x.requires_grad else None
-    values = torch.stack([total, l_obs, low, mid]).detach()
-    return values, grad, r, obs
 
 
 class GraphCaptureFailed(RuntimeError):
@@ -222,8 +145,8 @@ class GraphedImageTerms:
 
 
 class GraphedController:
-    """The deferred Gaussian Controller (:func:`jsgs.train.controller.fro_from_probe_grad`) replayed as a CUDA
-    graph: one launch instead of about sixty small kernels inside every backward.
+    """The deferred Gaussian Controller (:func:`jsgs.method.controller.fro_from_probe_grad`) replayed as a
+    CUDA graph: one launch instead of about sixty small kernels inside every backward.
 
     Unlike the image terms, its size changes during training: N changes at densification, when the
     parameters are also replaced by new tensors. The graph reads the parameters where they lie, so it is
@@ -232,7 +155,7 @@ class GraphedController:
     probe's gradient and the camera are copied into the graph's own buffers before each replay. The outputs
     live in the graph's memory, valid until the next call: ``(grad_logit [N], grad_log_scale [N, 3],
     stats [4])`` with ``stats`` = (L_fro, |V_i|, mean r̄, #damped), see
-    :func:`jsgs.train.controller.packed_fro_stats`.
+    :func:`jsgs.method.controller.packed_fro_stats`.
 
     Recording happens inside the trainer's backward (from the probe's post-accumulate-grad hook), on a side
     stream, with no host synchronisation beyond what recording itself needs.
@@ -249,7 +172,7 @@ class GraphedController:
     def _run(
         self, probe_grad: Tensor, viewmat: Tensor, K: Tensor, params: tuple[Tensor, ...], w: int, h: int
     ) -> tuple[Tensor, Tensor, Tensor]:
-        from jsgs.train.controller import fro_from_probe_grad, packed_fro_stats
+        from jsgs.method.controller import fro_from_probe_grad, packed_fro_stats
 
         logits, log_scales, means, quats = params
         out = fro_from_probe_grad(

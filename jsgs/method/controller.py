@@ -213,7 +213,7 @@ def fro_from_probe_grad(
 ) -> DeferredFro:
     """The whole deferred Gaussian Controller of one view, from the probe's gradient to the weighted
     gradients of L_fro: the one home of that chain, for the eager hook and for its CUDA graph
-    (``jsgs.train.graphed.GraphedController``). A pure function of tensors, without host synchronisation.
+    (``jsgs.method.graphed.GraphedController``). A pure function of tensors, without host synchronisation.
 
     Args:
         probe_grad: [1, N, 2] the probe's gradient after a backward in which ``probe_objective`` entered the

@@ -2,9 +2,9 @@
 launch-bound (the host issuing many small kernels) or device-bound (the kernels themselves), and which kernels
 does JSGS add?
 
-    .venv/bin/python benchmarks/profile_step.py                          # synthetic scene, CPU or CUDA (auto)
-    .venv/bin/python benchmarks/profile_step.py --manifest DATA/manifest.json --device cuda \
-        --warmup 600 --steps 50 --jsgs-options '{"cuda_graph": false}' --out profile_step.json
+    .venv/bin/python tools/diagnostics/profile_step.py                  # synthetic scene, CPU or CUDA (auto)
+    .venv/bin/python tools/diagnostics/profile_step.py --manifest DATA/manifest.json --device cuda \
+        --warmup 600 --steps 50 --jsgs-options '{"speed": {"cuda_graph": false}}' --out profile_step.json
 
 Without ``--manifest`` a synthetic scene is built in a temporary folder, as ``bench_train_overhead.py``
 builds it (``--size``, ``--views``). Every method runs the same settings (``--config`` JSON over the
@@ -27,9 +27,8 @@ is averaged into the window, and so is, for JSGS with CUDA graphs, the controlle
 step after it; with the defaults the window holds none (the densification at step 600 and the re-recording
 at 601 fall on the settling steps).
 
-The window is delimited at step boundaries (the device is synchronised at its two ends only); the trainer
-has no per-step callback, so the boundaries come from its view sampler, which is asked for one view at the
-start of every step (``jsgs.train.loop.ViewSampler`` is replaced by a subclass for the duration of a run).
+The window is delimited at step boundaries (the device is synchronised at its two ends only): each timer is a
+training callback (:class:`StepCallback`, ``on_step_begin``) passed to :func:`jsgs.train.trainer.train`.
 
 Columns (per training step, averaged over the window):
 
@@ -68,8 +67,7 @@ import shutil
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -77,19 +75,20 @@ from typing import Any
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_train_overhead import build_scene, variant_config  # noqa: E402
 
 import jsgs  # noqa: E402
-import jsgs.train.loop as loop_mod  # noqa: E402
 from jsgs.errors import JsgsError  # noqa: E402
 from jsgs.io import write_json_atomic  # noqa: E402
 from jsgs.opcount import FREE_OPS  # noqa: E402
+from jsgs.train.callbacks import Callback  # noqa: E402
 from jsgs.train.config import TrainConfig, load_config_file  # noqa: E402
 from jsgs.train.evaluate import synchronize  # noqa: E402
-from jsgs.train.rendering import resolve_device  # noqa: E402
+from jsgs.train.render_view import resolve_device  # noqa: E402
+from jsgs.train.trainer import Trainer, train  # noqa: E402
 
 FORMAT = "jsgs-profile-step"
 FORMAT_VERSION = 1
@@ -223,22 +222,14 @@ class PythonWindow(StepWindow):
         ]  # fmt: skip
 
 
-@contextmanager
-def step_callback(fn: Callable[[], None]) -> Iterator[None]:
-    """Call ``fn`` at the start of every training step of :func:`jsgs.train.loop.train` (the loop asks its
-    ``ViewSampler`` for the next view first thing in a step; its subclass calls ``fn`` then)."""
-    base = loop_mod.ViewSampler
+class StepCallback(Callback):
+    """A training callback that calls ``fn`` at the start of every step (a :class:`StepWindow`'s clock)."""
 
-    class Sampler(base):  # type: ignore[misc, valid-type]
-        def next(self) -> int:
-            fn()
-            return super().next()
+    def __init__(self, fn: Callable[[], None]) -> None:
+        self.fn = fn
 
-    loop_mod.ViewSampler = Sampler  # type: ignore[misc]
-    try:
-        yield
-    finally:
-        loop_mod.ViewSampler = base  # type: ignore[misc]
+    def on_step_begin(self, trainer: Trainer, step: int) -> None:
+        self.fn()
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -434,8 +425,7 @@ def profile_method(
 ) -> tuple[dict[str, Any], WindowStats]:
     """Warm-up run, then the plain and the profiled copy of the window (module docstring); with
     ``python_top``, a third copy under cProfile; with ``trace``, the profiled copy also records Python stacks
-    and its Chrome trace is written there (``benchmarks/trace_gaps.py`` reads it)."""
-    train = loop_mod.train
+    and its Chrome trace is written there (``tools/diagnostics/trace_gaps.py`` reads it)."""
     warm = work / "warm"
     train(manifest, warm, cfg, force=True, stop_at=warmup, progress=False, log=_quiet)
     cuda = device.type == "cuda"
@@ -443,15 +433,16 @@ def profile_method(
     plain = work / "plain"
     shutil.copytree(warm, plain)
     clock = StepWindow(device, settle, steps)
-    with step_callback(clock):
-        doc = train(manifest, plain, resume=True, progress=False, log=_quiet)
+    doc = train(manifest, plain, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(clock)])
     wall = clock.ms_per_step()
 
     # the same window timed inside a run from step 0 (no resume): a check that resuming does not change
-    # the step (session 8 saw a window 1.41x slower for jsgs than the whole runs' own segments)
+    # the step
     fresh_clock = StepWindow(device, warmup + settle, steps)
-    with step_callback(fresh_clock):
-        train(manifest, work / "fresh", cfg, force=True, progress=False, log=_quiet)
+    train(
+        manifest, work / "fresh", cfg, force=True, progress=False, log=_quiet,
+        callbacks=[StepCallback(fresh_clock)],
+    )  # fmt: skip
     wall_fresh = fresh_clock.ms_per_step()
 
     profiled = work / "profiled"
@@ -471,8 +462,9 @@ def profile_method(
         with_stack=trace is not None,
     ) as prof:  # fmt: skip
         pclock = StepWindow(device, settle, steps, prof)
-        with step_callback(pclock):
-            pdoc = train(manifest, profiled, resume=True, progress=False, log=_quiet)
+        pdoc = train(
+            manifest, profiled, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(pclock)]
+        )
     wall_prof = pclock.ms_per_step()
     if "events" not in captured:
         raise JsgsError(f"{cfg.method}: the profiler delivered no trace for the window")
@@ -498,8 +490,7 @@ def profile_method(
         py = work / "python"
         shutil.copytree(warm, py)
         pywin = PythonWindow(device, settle, steps)
-        with step_callback(pywin):
-            train(manifest, py, resume=True, progress=False, log=_quiet)
+        train(manifest, py, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(pywin)])
         result["python_wall_ms_per_step"] = pywin.ms_per_step()
         result["python_top"] = pywin.top(python_top)
     return result, stats
@@ -614,7 +605,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--jsgs-options",
         type=_json_arg,
         default={},
-        help="JSON over method_options for jsgs, e.g. '{\"cuda_graph\": false}'",
+        help="JSON over method_options for jsgs, e.g. '{\"speed\": {\"cuda_graph\": false}}'",
     )
     ap.add_argument("--warmup", type=int, default=600, help="steps trained before the window [600]")
     ap.add_argument("--settle", type=int, default=2, help="resumed steps before the window (>= 1) [2]")

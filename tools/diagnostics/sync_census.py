@@ -1,13 +1,13 @@
 """Where the host-device synchronisations of a training step come from (CUDA only).
 
-    python3 benchmarks/sync_census.py --manifest DATA/manifest.json [--methods gsplat,jsgs] [--start 650]
+    python3 tools/diagnostics/sync_census.py --manifest DATA/manifest.json [--methods gsplat,jsgs] \
+        [--start 650]
         [--steps 20]
 
 Trains each method from scratch to step ``--start`` and then turns on
 ``torch.cuda.set_sync_debug_mode("warn")`` for ``--steps`` steps. Every synchronising call is counted under
 its innermost four frames in jsgs or gsplat. Prints, per method, the syncs per step and their call sites.
-A sync stops the host from running ahead of the GPU, so every one on the step's path shows in its wall time
-(docs/results/speed_session6/syncs_step650.txt is one census).
+A sync stops the host from running ahead of the GPU, so every one on the step's path shows in its wall time.
 """
 
 from __future__ import annotations
@@ -24,13 +24,13 @@ from typing import Any
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from bench_train_overhead import variant_config  # noqa: E402
-from profile_step import step_callback  # noqa: E402
+from profile_step import StepCallback  # noqa: E402
 
-import jsgs.train.loop as loop_mod  # noqa: E402
 from jsgs.train.config import TrainConfig  # noqa: E402
+from jsgs.train.trainer import train  # noqa: E402
 
 
 def census(manifest: Path, method: str, start: int, steps: int) -> collections.Counter[str]:
@@ -54,10 +54,13 @@ def census(manifest: Path, method: str, start: int, steps: int) -> collections.C
 
     cfg = variant_config(TrainConfig(), method, {}, start + steps + 1, "cuda")
     cfg.checkpoint_every = 0
-    with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings(), step_callback(tick):
+    with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("always")
         warnings.showwarning = record
-        loop_mod.train(manifest, Path(tmp) / "run", cfg, force=True, progress=False, log=lambda _: None)
+        train(
+            manifest, Path(tmp) / "run", cfg, force=True, progress=False, log=lambda _: None,
+            callbacks=[StepCallback(tick)],
+        )  # fmt: skip
     return counts
 
 

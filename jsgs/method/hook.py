@@ -26,9 +26,9 @@ values and gradients (tested), chosen by ``gc_pooling``:
 * ``"deferred"`` (default): ``probe_objective`` (value exactly 0) rides in the ``fro`` term, so the main
   backward itself pools ``(o·S_r, ν)`` into the probe's gradient; a post-accumulate hook on the probe then
   computes r̄, V_i, L_fro and L_fro's closed-form gradient and adds ``λ_fro ∂L_fro/∂θ`` to the
-  opacity-logit and log-scale gradients (``jsgs.train.controller.fro_from_probe_grad``; on CUDA the three
-  fused kernels of ``jsgs/csrc/controller.cu``, ``method_options.gc_kernel``, or that function replayed as
-  one graph, ``jsgs.train.graphed.GraphedController``). No extra rasteriser pass of any kind. The ``fro``
+  opacity-logit and log-scale gradients (``jsgs.method.controller.fro_from_probe_grad``; on CUDA the three
+  fused kernels of ``jsgs/csrc/controller.cu``, ``method_options.speed.gc_kernel``, or that function replayed
+  as one graph, ``jsgs.method.graphed.GraphedController``). No extra rasteriser pass of any kind. The ``fro``
   term's value (and the GC statistics) are written in place during that backward: they are correct wherever
   the trainer reads them after ``loss.backward()`` (progress bar, metrics.json), but the total ``loss`` the
   trainer sums *before* the backward does not include ``λ_fro L_fro`` (its logged value; the gradient is
@@ -42,29 +42,32 @@ loss).
 
 from __future__ import annotations
 
-import math
-import sys
-from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
-from jsgs.cuda_ext import KERNEL_CHOICES, use_kernels
-from jsgs.errors import JsgsError, one_line
-from jsgs.train.controller import (
-    EPS_PROJ,
-    TAU_S,
+from jsgs.cuda_ext import use_kernels
+from jsgs.errors import JsgsError
+from jsgs.method.controller import (
     controller_matrix,
     fro_from_probe_grad,
     fro_from_probe_grad_fused,
     fro_loss,
     packed_fro_stats,
 )
-from jsgs.train.graphed import GraphCaptureFailed, GraphedController, GraphedImageTerms, jpeg_terms
-from jsgs.train.hooks import HookOutput, LossHook, StepContext, register_method
-from jsgs.train.loop import Profiler
+from jsgs.method.graphed import GraphCaptureFailed, GraphedController, GraphedImageTerms
+from jsgs.method.image_terms import (
+    ViewJpeg,
+    image_term_settings,
+    jpeg_terms,
+    maybe_compile,
+    view_tables,
+    warn_eager_fallback,
+)
+from jsgs.method.options import JsgsOptions, parse_options, use_cuda_graph
+from jsgs.train.method import HookOutput, LossHook, StepContext
+from jsgs.train.profiler import Profiler
 
 if TYPE_CHECKING:
     from jsgs.train.config import TrainConfig
@@ -74,209 +77,6 @@ if TYPE_CHECKING:
 TERM_NAMES = ("obs", "low", "mid", "fro")
 #: GC statistics in HookOutput.stats (``train.stats``).
 STAT_NAMES = ("gc_visible", "gc_rbar", "gc_damped")
-SUPPORTED_SAMPLING = ("4:4:4", "4:2:2", "4:2:0")
-
-
-@dataclass
-class JsgsOptions:
-    """``method_options`` of ``--method jsgs`` (defaults: the paper's "Implementation details")."""
-
-    lambda_obs: float = 0.2
-    lambda_low: float = 0.02
-    lambda_mid: float = 0.03
-    lambda_fro: float = 0.05
-    jpeg_mode: Literal["paper", "float", "exact"] = "paper"
-    jo: bool = True
-    ds: bool = True
-    gc: bool = True
-    tau_s: float = TAU_S
-    eps_sm: float = 1e-3
-    eps_dct_loss: float = 1e-6
-    eps_dct_block: float = 1e-6
-    eps_proj: float = EPS_PROJ
-    gc_pooling: Literal["deferred", "now"] = "deferred"
-    # torch.compile of JO, L_obs's photometric loss and DS (eager they are launch-bound on a GPU: hundreds of
-    # small kernels). "inductor" is torch's default code generator; "aot_eager" only traces (a check).
-    compile: Literal["off", "inductor", "aot_eager"] = "off"
-    # Replay JO, L_obs and DS and their weighted gradient as one CUDA graph (jsgs.train.graphed): one launch
-    # instead of a few hundred small kernels, which is what they cost on a GPU (measured 2.30x -> 1.32x of
-    # gsplat's step on an H200 with two graphs, session 4). "auto": on for CUDA without compile; true needs
-    # CUDA.
-    cuda_graph: bool | Literal["auto"] = "auto"
-    # With cuda_graph: the deferred Gaussian Controller as a graph of its own too (recorded again whenever
-    # densification changes N; jsgs.train.graphed.GraphedController). false keeps it eager.
-    cuda_graph_gc: bool = True
-    # The deferred GC's implementation: "cuda" = jsgs/csrc/controller.cu, three kernels (no graph, no
-    # re-recording); "torch" = its twin fro_from_probe_grad (graphed per cuda_graph_gc); "auto": cuda on a
-    # GPU where the kernels build, torch elsewhere.
-    gc_kernel: Literal["auto", "torch", "cuda"] = "auto"
-
-    @property
-    def any_active(self) -> bool:
-        return self.jo or self.ds or self.gc
-
-
-#: ``method_options.compile`` (``jsgs train --compile``, ``jsgs bench --compile``)
-COMPILE_BACKENDS = ("off", "inductor", "aot_eager")
-_CHOICES = {
-    "jpeg_mode": ("paper", "float", "exact"),
-    "gc_pooling": ("deferred", "now"),
-    "compile": COMPILE_BACKENDS,
-    "gc_kernel": KERNEL_CHOICES,
-}
-
-
-def use_cuda_graph(opts: JsgsOptions, device: torch.device) -> bool:
-    """Whether JO, L_obs and DS run as CUDA graphs on ``device`` (``method_options.cuda_graph`` resolved);
-    JsgsError (one line) for ``true`` off CUDA."""
-    if opts.cuda_graph == "auto":
-        return device.type == "cuda" and opts.compile == "off"
-    if opts.cuda_graph and device.type != "cuda":
-        raise JsgsError(
-            "config: method jsgs: method_options.cuda_graph needs a CUDA device "
-            f'(training on {device.type}); set it to false or "auto"'
-        )
-    return bool(opts.cuda_graph)
-
-
-class CompiledOrEager:
-    """``torch.compile(fn)`` that falls back to ``fn`` for the rest of the run when compilation fails.
-
-    Compilation is an optimisation, not a result: an internal compiler error (torch 2.11's inductor fails on
-    JO at 504x378 on CUDA: "ModularIndexing ... is not comparable") must not stop a training. It fails before
-    anything runs, so the eager call computes the same step. One line on stderr says so, once."""
-
-    def __init__(self, fn: Any, backend: str) -> None:
-        self.fn = fn
-        # dynamic=False: a scene has few image sizes; static shapes let inductor fuse the 8x8 block math
-        self.compiled = torch.compile(fn, backend=backend, dynamic=False)
-        self.backend = backend
-        self.failure: str | None = None
-
-    def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        if self.failure is None:
-            try:
-                return self.compiled(*args, **kwargs)
-            except torch._dynamo.exc.TorchDynamoException as e:
-                self.failure = one_line(e)
-                name = getattr(self.fn, "__name__", "fn")
-                warn_eager_fallback(f"torch.compile ({self.backend}) of {name}", self.failure, "it")
-        return self.fn(*args, **kwargs)
-
-
-def warn_eager_fallback(what: str, reason: str, pronoun: str) -> None:
-    """The one stderr line of a speed-up that failed and gave way to the eager code (same results)."""
-    print(
-        f"warning: {what} failed ({reason[:200]}); running {pronoun} eagerly for the rest of the run",
-        file=sys.stderr,
-    )
-
-
-def _maybe_compile(fn: Any, backend: str) -> Any:
-    return fn if backend == "off" else CompiledOrEager(fn, backend)
-
-
-def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:
-    """``method_options`` -> :class:`JsgsOptions`; JsgsError (one line) on an unknown key, a wrong type or
-    value, or an ablation combination the paper does not define."""
-    opts = JsgsOptions()
-    known = [f.name for f in fields(JsgsOptions)]
-    for key, value in raw.items():
-        if key == "lambda_base":
-            raise JsgsError(
-                f"{where}: method_options.lambda_base: λ_base is the trainer's loss.base_weight "
-                "(set it there; default 1)"
-            )
-        if key not in known:
-            raise JsgsError(
-                f"{where}: unknown method_options.{key} for method jsgs (known: {', '.join(known)})"
-            )
-        default = getattr(opts, key)
-        if key == "cuda_graph":
-            if not (isinstance(value, bool) or value == "auto"):
-                raise JsgsError(
-                    f'{where}: method_options.cuda_graph must be true, false or "auto" (got {value!r})'
-                )
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise JsgsError(f"{where}: method_options.{key} must be true or false (got {value!r})")
-        elif isinstance(default, float):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise JsgsError(f"{where}: method_options.{key} must be a finite number (got {value!r})")
-            value = float(value)
-            if key.startswith("lambda_") and value < 0:
-                raise JsgsError(f"{where}: method_options.{key} must be >= 0 (got {value})")
-            if not key.startswith("lambda_") and value <= 0:
-                raise JsgsError(f"{where}: method_options.{key} must be > 0 (got {value})")
-        elif key in _CHOICES and value not in _CHOICES[key]:
-            raise JsgsError(
-                f"{where}: method_options.{key} must be one of {list(_CHOICES[key])} (got {value!r})"
-            )
-        setattr(opts, key, value)
-    if opts.cuda_graph is True and opts.compile != "off":
-        raise JsgsError(
-            f"{where}: method_options.cuda_graph and method_options.compile ({opts.compile}) cannot be "
-            "combined yet; use one of them"
-        )
-    if not opts.jo and (opts.ds or opts.gc):
-        on = " and ".join(n for n, v in (("DS", opts.ds), ("GC", opts.gc)) if v)
-        raise JsgsError(
-            f"{where}: method jsgs: {on} operate on the JPEG observation (JO) output, so they need JO "
-            "(paper Table 2); without JO turn them off too (--no-jo --no-ds --no-gc, which is the baseline)"
-        )
-    return opts
-
-
-def image_term_settings(
-    options: JsgsOptions, ssim_lambda: float, ssim_padding: str, ssim_kernel: str
-) -> dict[str, Any]:
-    """The settings that fix the JO / L_obs / DS chain (:func:`jsgs.train.graphed.jpeg_terms` and its
-    graph): the method's options plus the trainer's photometric-loss settings (``loss.ssim_*``)."""
-    return dict(
-        mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding, ssim_kernel=ssim_kernel,
-        ds=options.ds, gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,
-        eps_block=options.eps_dct_block,
-    )  # fmt: skip
-
-
-@dataclass
-class ViewJpeg:
-    """A training view's JPEG state on the training device: ``tables`` [2, 8, 8] float32 (luma, chroma; one
-    tensor so that a graph replay copies them in once), natural order [v, u]."""
-
-    tables: Tensor
-    sampling: str
-
-    @property
-    def luma(self) -> Tensor:
-        return self.tables[0]
-
-    @property
-    def chroma(self) -> Tensor:
-        return self.tables[1]
-
-
-def view_tables(views: list[View], device: torch.device, where: str) -> dict[int, ViewJpeg]:
-    """view index -> its tables and sampling for every JPEG training view. JsgsError naming the view when
-    JO cannot represent its JPEG state (greyscale, or a chroma sampling other than 4:4:4 / 4:2:2 / 4:2:0)."""
-    out: dict[int, ViewJpeg] = {}
-    for v in views:
-        j = v.jpeg
-        if j is None:
-            continue
-        if j.chroma_table is None or j.sampling == "gray":
-            raise JsgsError(
-                f"{where}: view {v.name!r} is a greyscale JPEG; the JPEG observation operator handles colour "
-                "JPEGs only (train it with --method gsplat or --no-jo --no-ds --no-gc)"
-            )
-        if j.sampling not in SUPPORTED_SAMPLING:
-            raise JsgsError(
-                f"{where}: view {v.name!r} has chroma sampling {j.sampling}; the JPEG observation operator "
-                f"supports {', '.join(SUPPORTED_SAMPLING)} (re-encode it, or train with --method gsplat)"
-            )
-        tables = torch.as_tensor(np.stack([np.asarray(j.luma_table), np.asarray(j.chroma_table)]))
-        out[v.index] = ViewJpeg(tables.to(device, torch.float32).reshape(2, 8, 8), j.sampling)
-    return out
 
 
 class JsgsHook(LossHook):
@@ -313,29 +113,29 @@ class JsgsHook(LossHook):
         from jsgs.jpeg.observe import jpeg_observe
         from jsgs.jpeg.supervision import dct_supervision
 
-        # what fixes the JO / L_obs / DS chain (jsgs.train.graphed.jpeg_terms), in both routes
+        # what fixes the JO / L_obs / DS chain (jsgs.method.image_terms.jpeg_terms), in both routes
         self._jpeg_settings = image_term_settings(options, ssim_lambda, ssim_padding, ssim_kernel)
         self._jpeg_functions = {
-            "observe": _maybe_compile(jpeg_observe, options.compile),
-            "photometric": _maybe_compile(photometric_loss, options.compile),
-            "supervise": _maybe_compile(dct_supervision, options.compile),
+            "observe": maybe_compile(jpeg_observe, options.speed.compile),
+            "photometric": maybe_compile(photometric_loss, options.speed.compile),
+            "supervise": maybe_compile(dct_supervision, options.speed.compile),
         }
         self._graphed = None
-        # what fixes the deferred GC (jsgs.train.controller.fro_from_probe_grad), eager or graphed
+        # what fixes the deferred GC (jsgs.method.controller.fro_from_probe_grad), eager or graphed
         self._gc_settings: dict[str, float] = dict(
             weight=options.lambda_fro, near_plane=near_plane, eps_proj=options.eps_proj, tau_s=options.tau_s
         )
         self._gc_graphed: GraphedController | None = None
         self._gc_fused = (
             options.gc and self.gc_route == "deferred"
-            and use_kernels(options.gc_kernel, self.device, "method_options.gc_kernel")
+            and use_kernels(options.speed.gc_kernel, self.device, "method_options.speed.gc_kernel")
         )  # fmt: skip
         self.cuda_graph = use_cuda_graph(options, self.device)
         if self.cuda_graph:
             w = self.weights()
             image_weights = (w["obs"], w.get("low", 0.0), w.get("mid", 0.0))
             self._graphed = GraphedImageTerms(weights=image_weights, **self._jpeg_settings)
-            if self.gc_route == "deferred" and options.cuda_graph_gc and not self._gc_fused:
+            if self.gc_route == "deferred" and options.speed.cuda_graph_gc and not self._gc_fused:
                 self._gc_graphed = GraphedController(**self._gc_settings)
 
     def describe(self) -> dict[str, Any]:
@@ -553,10 +353,8 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
         tables,
         ssim_lambda=cfg.loss.ssim_lambda,
         ssim_padding=cfg.loss.ssim_padding,
-        ssim_kernel=cfg.loss.ssim_kernel,
+        ssim_kernel=cfg.speed.ssim_kernel,
         near_plane=cfg.render.near_plane,
         device=device,
     )
 
-
-register_method("jsgs", make_jsgs_hook)

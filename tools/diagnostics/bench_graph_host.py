@@ -1,15 +1,16 @@
 """Host time of the JSGS image terms (JO, L_obs, DS) per step, without a profiler, forward call and backward
 call timed separately, for three ways of running them:
 
-- eager: :func:`jsgs.train.graphed.image_terms` and autograd;
+- eager: :func:`jsgs.method.image_terms.image_terms` and autograd;
 - two graphs: ``torch.cuda.make_graphed_callables`` on the same function (a forward graph and a backward
-  graph, with its copies of inputs and upstream gradients; what the trainer used up to session 7);
-- one graph: ``jsgs.train.graphed.GraphedImageTerms`` (forward and the weighted sum's gradient in one replay;
+  graph, with its copies of inputs and upstream gradients);
+- one graph: ``jsgs.method.graphed.GraphedImageTerms`` (forward and the weighted sum's gradient in one replay;
   the backward scales the stored gradient).
 
-    python benchmarks/bench_graph_host.py [--size 504x378] [--steps 300]      # CUDA only
+    python tools/diagnostics/bench_graph_host.py [--size 504x378] [--steps 300]      # CUDA only
 
-A training step is partly host-bound (``benchmarks/trace_gaps.py``), and a profiler inflates exactly the
+A training step is partly host-bound (``tools/diagnostics/trace_gaps.py``), and a profiler inflates exactly
+the
 host work it would measure (CUPTI instruments every graph node), so this times the Python calls with
 ``time.perf_counter`` and no synchronisation inside the timed region: the number is what the host spends
 launching, while the device works behind it. The device is synchronised between steps, outside the timing;
@@ -30,15 +31,21 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
+from jsgs.method.graphed import GraphedImageTerms  # noqa: E402
+from jsgs.method.image_terms import (
+    image_term_settings,  # noqa: E402
+    image_terms,  # noqa: E402
+)
+from jsgs.method.options import JsgsOptions  # noqa: E402
 from jsgs.train.config import TrainConfig  # noqa: E402
-from jsgs.train.graphed import GraphedImageTerms, image_terms  # noqa: E402
-from jsgs.train.jsgs_method import JsgsOptions, image_term_settings  # noqa: E402
 
 # the training defaults: paper mode, DS and GC on, the trainer's photometric loss
-_LOSS = TrainConfig().loss
-SETTINGS = image_term_settings(JsgsOptions(), _LOSS.ssim_lambda, _LOSS.ssim_padding, _LOSS.ssim_kernel)
+_CFG = TrainConfig()
+SETTINGS = image_term_settings(
+    JsgsOptions(), _CFG.loss.ssim_lambda, _CFG.loss.ssim_padding, _CFG.speed.ssim_kernel
+)
 
 
 def measure(fn: Callable[[Tensor], Tensor], x: Tensor, steps: int) -> dict[str, float]:

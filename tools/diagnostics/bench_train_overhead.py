@@ -1,8 +1,9 @@
 """Time per training iteration of ``--method jsgs`` against ``--method gsplat`` on the same scene, in one
 call, with a per-phase breakdown (render, ℓ_ph, JO, DS, GC, backward, optimizer, densification).
 
-    .venv/bin/python benchmarks/bench_train_overhead.py                  # synthetic scene, CPU or CUDA (auto)
-    .venv/bin/python benchmarks/bench_train_overhead.py --manifest DATA/manifest.json --iterations 2000 \
+    .venv/bin/python tools/diagnostics/bench_train_overhead.py          # synthetic scene, CPU or CUDA (auto)
+    .venv/bin/python tools/diagnostics/bench_train_overhead.py --manifest DATA/manifest.json \
+        --iterations 2000 \
         --device cuda --jpeg-modes paper,float,exact --gc-pooling deferred,now --out overhead.json
 
 Without ``--manifest`` a synthetic scene is built in a temporary folder (``jsgstools`` synth + compress,
@@ -37,13 +38,13 @@ from typing import Any
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from jsgs.train.config import TrainConfig, from_dict, load_config_file, to_dict  # noqa: E402
 from jsgs.train.data import load_scene  # noqa: E402
-from jsgs.train.hooks import make_hook  # noqa: E402
-from jsgs.train.loop import train  # noqa: E402
-from jsgs.train.rendering import resolve_device  # noqa: E402
+from jsgs.train.method import make_hook  # noqa: E402
+from jsgs.train.render_view import resolve_device  # noqa: E402
+from jsgs.train.trainer import train  # noqa: E402
 
 PHASES = ("render", "l_ph", "JO", "DS", "GC", "backward", "GC-bwd", "optimizer", "densify", "other")
 
@@ -123,13 +124,14 @@ def main() -> None:
     ap.add_argument("--jpeg-modes", default="paper", help="JSGS variants: comma-separated JO modes [paper]")
     ap.add_argument("--gc-pooling", default="deferred", help="JSGS variants: deferred,now [deferred]")
     ap.add_argument(
-        "--compile", default="off", help="JSGS variants: method_options.compile, e.g. off,inductor [off]"
-    )
+        "--compile", default="off",
+        help="JSGS variants: method_options.speed.compile, e.g. off,inductor [off]",
+    )  # fmt: skip
     ap.add_argument(
         "--cuda-graph",
         default="off",
-        help="JSGS variants: method_options.cuda_graph: off, on, or jo (JO/L_obs/DS graphed, the GC eager: "
-        "cuda_graph_gc false), e.g. off,jo,on [off]",
+        help="JSGS variants: method_options.speed.cuda_graph: off, on, or jo (JO/L_obs/DS graphed, the GC "
+        "eager: cuda_graph_gc false), e.g. off,jo,on [off]",
     )
     ap.add_argument("--no-profile", action="store_true", help="skip the profiled runs (breakdown)")
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
@@ -154,10 +156,10 @@ def main() -> None:
                         continue  # not combinable with compile (yet); CUDA graphs need CUDA
                     label = f"jsgs ({mode}, {pooling}" + ("" if comp == "off" else f", compile {comp}")
                     label += {"off": "", "on": ", CUDA graph", "jo": ", CUDA graph w/o GC"}[graph] + ")"
-                    opts = {"jpeg_mode": mode, "gc_pooling": pooling, "compile": comp}
-                    opts["cuda_graph"] = graph != "off"
+                    speed: dict[str, Any] = {"compile": comp, "cuda_graph": graph != "off"}
                     if graph == "jo":
-                        opts["cuda_graph_gc"] = False
+                        speed["cuda_graph_gc"] = False
+                    opts = {"jpeg_mode": mode, "gc_pooling": pooling, "speed": speed}
                     variants.append((label, "jsgs", opts))
 
     with tempfile.TemporaryDirectory() as tmp:

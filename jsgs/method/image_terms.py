@@ -1,0 +1,199 @@
+"""The JO -> L_obs -> DS chain of one view (paper eqs. obs_loss, jsgs_dct_losses) and what it needs: the
+views' JPEG tables on the training device, the chain's settings, and its optional ``torch.compile``.
+
+:func:`jpeg_terms` is the one home of the chain, for the eager hook and for the CUDA graph
+(:mod:`jsgs.method.graphed`); :func:`image_terms` is its tensors-only form and :func:`terms_with_gradient`
+what a graph records (the terms and the gradient of their weighted sum).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from jsgs.errors import JsgsError, one_line
+from jsgs.jpeg.losses import photometric_loss
+from jsgs.jpeg.observe import jpeg_observe
+from jsgs.jpeg.supervision import DctSupervision, dct_supervision
+
+if TYPE_CHECKING:
+    from jsgs.method.options import JsgsOptions
+    from jsgs.train.data import View
+
+SUPPORTED_SAMPLING = ("4:4:4", "4:2:2", "4:2:0")
+
+
+def jpeg_terms(
+    x: Tensor,
+    y: Tensor,
+    luma: Tensor,
+    chroma: Tensor,
+    *,
+    sampling: str,
+    mode: str,
+    ssim_lambda: float,
+    ssim_padding: str,
+    ssim_kernel: str = "auto",
+    ds: bool,
+    gc: bool,
+    eps_sm: float,
+    eps_loss: float,
+    eps_block: float,
+    observe: Callable[..., Tensor] = jpeg_observe,
+    photometric: Callable[..., Tensor] = photometric_loss,
+    supervise: Callable[..., DctSupervision] = dct_supervision,
+    phase: Callable[[str], AbstractContextManager[Any]] = lambda name: nullcontext(),
+) -> tuple[Tensor, Tensor, DctSupervision | None]:
+    """JO, L_obs and DS for one view: the one home of that chain, for the eager hook and for the graph.
+
+    Args:
+        x: ``(1, 3, H, W)`` the rendering; y: ``(1, 3, H, W)`` the decoded training JPEG, in [0, 1].
+        luma, chroma: ``(8, 8)`` the view's tables. The settings: as
+            :class:`jsgs.method.options.JsgsOptions`.
+        observe, photometric, supervise: the three functions (the hook passes torch.compile'd ones);
+        phase: a profiler's ``phase(name)`` context ("jo" around JO and L_obs, "ds" around DS).
+    Returns:
+        The observation ``(1, 3, H, W)``, L_obs (0-dim) and the DS terms (None without DS and GC; with GC
+        alone they are computed on the detached observation, so no graph runs through DS).
+    """
+    with phase("jo"):
+        obs = observe(x, luma, chroma, sampling, mode)
+        l_obs = photometric(obs, y, ssim_lambda, padding=ssim_padding, ssim_kernel=ssim_kernel)
+    if not (ds or gc):
+        return obs, l_obs, None
+    with phase("ds"):
+        sup = supervise(obs if ds else obs.detach(), y, luma, eps_sm, eps_loss, eps_block)
+    return obs, l_obs, sup
+
+
+def image_terms(
+    x: Tensor, y: Tensor, luma: Tensor, chroma: Tensor, **settings: Any
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`jpeg_terms` as tensors only (what a CUDA graph can return): L_obs, L_low, L_mid (0-dim; the DS
+    terms 0 without DS), r(p) ``(1, H, W)`` detached (0 without DS and GC) and the observation, detached."""
+    obs, l_obs, sup = jpeg_terms(x, y, luma, chroma, **settings)
+    zero = l_obs.new_zeros(())
+    if sup is None:
+        return l_obs, zero, zero, y.new_zeros(y.shape[0], *y.shape[2:]), obs.detach()
+    low, mid = (sup.loss_low.sum(), sup.loss_mid.sum()) if settings["ds"] else (zero, zero)
+    return l_obs, low, mid, sup.pixel_score, obs.detach()
+
+
+
+
+def terms_with_gradient(
+    x: Tensor, y: Tensor, tables: Tensor, *, weights: tuple[float, float, float], **settings: Any
+) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+    """:func:`image_terms` and the gradient of their weighted sum, in one pass (what the graph records).
+
+    Args:
+        x: ``(1, 3, H, W)`` the render (a leaf; needs grad for the gradient); y: ``(1, 3, H, W)`` the target;
+        tables: ``(2, 8, 8)`` the view's luma and chroma tables; weights: (λ_obs, λ_low, λ_mid), the last two
+            0 without DS; settings: :func:`jpeg_terms`'s, with ``sampling``.
+    Returns:
+        values ``(4,)`` (the weighted sum, L_obs, L_low, L_mid), its gradient with respect to ``x`` (None when
+        ``x`` needs none), r(p) ``(1, H, W)`` and the observation ``(1, 3, H, W)``, all detached.
+    """
+    l_obs, low, mid, r, obs = image_terms(x, y, tables[0], tables[1], **settings)
+    w_obs, w_low, w_mid = weights
+    total = w_obs * l_obs + w_low * low + w_mid * mid
+    grad = torch.autograd.grad(total, x)[0] if x.requires_grad else None
+    values = torch.stack([total, l_obs, low, mid]).detach()
+    return values, grad, r, obs
+
+
+def image_term_settings(
+    options: JsgsOptions, ssim_lambda: float, ssim_padding: str, ssim_kernel: str
+) -> dict[str, Any]:
+    """The settings that fix the JO / L_obs / DS chain (:func:`jpeg_terms` and its graph): the method's
+    options plus the trainer's photometric-loss settings (``loss.ssim_lambda``, ``loss.ssim_padding``,
+    ``speed.ssim_kernel``)."""
+    return dict(
+        mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding, ssim_kernel=ssim_kernel,
+        ds=options.ds, gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,
+        eps_block=options.eps_dct_block,
+    )  # fmt: skip
+
+
+@dataclass
+class ViewJpeg:
+    """A training view's JPEG state on the training device: ``tables`` [2, 8, 8] float32 (luma, chroma; one
+    tensor so that a graph replay copies them in once), natural order [v, u]."""
+
+    tables: Tensor
+    sampling: str
+
+    @property
+    def luma(self) -> Tensor:
+        return self.tables[0]
+
+    @property
+    def chroma(self) -> Tensor:
+        return self.tables[1]
+
+
+def view_tables(views: list[View], device: torch.device, where: str) -> dict[int, ViewJpeg]:
+    """view index -> its tables and sampling for every JPEG training view. JsgsError naming the view when
+    JO cannot represent its JPEG state (greyscale, or a chroma sampling other than 4:4:4 / 4:2:2 / 4:2:0)."""
+    out: dict[int, ViewJpeg] = {}
+    for v in views:
+        j = v.jpeg
+        if j is None:
+            continue
+        if j.chroma_table is None or j.sampling == "gray":
+            raise JsgsError(
+                f"{where}: view {v.name!r} is a greyscale JPEG; the JPEG observation operator handles colour "
+                "JPEGs only (train it with --method gsplat or --no-jo --no-ds --no-gc)"
+            )
+        if j.sampling not in SUPPORTED_SAMPLING:
+            raise JsgsError(
+                f"{where}: view {v.name!r} has chroma sampling {j.sampling}; the JPEG observation operator "
+                f"supports {', '.join(SUPPORTED_SAMPLING)} (re-encode it, or train with --method gsplat)"
+            )
+        tables = torch.as_tensor(np.stack([np.asarray(j.luma_table), np.asarray(j.chroma_table)]))
+        out[v.index] = ViewJpeg(tables.to(device, torch.float32).reshape(2, 8, 8), j.sampling)
+    return out
+
+
+class CompiledOrEager:
+    """``torch.compile(fn)`` that falls back to ``fn`` for the rest of the run when compilation fails.
+
+    Compilation is an optimisation, not a result: an internal compiler error (torch 2.11's inductor fails on
+    JO at 504x378 on CUDA: "ModularIndexing ... is not comparable") must not stop a training. It fails before
+    anything runs, so the eager call computes the same step. One line on stderr says so, once."""
+
+    def __init__(self, fn: Any, backend: str) -> None:
+        self.fn = fn
+        # dynamic=False: a scene has few image sizes; static shapes let inductor fuse the 8x8 block math
+        self.compiled = torch.compile(fn, backend=backend, dynamic=False)
+        self.backend = backend
+        self.failure: str | None = None
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        if self.failure is None:
+            try:
+                return self.compiled(*args, **kwargs)
+            except torch._dynamo.exc.TorchDynamoException as e:
+                self.failure = one_line(e)
+                name = getattr(self.fn, "__name__", "fn")
+                warn_eager_fallback(f"torch.compile ({self.backend}) of {name}", self.failure, "it")
+        return self.fn(*args, **kwargs)
+
+
+def warn_eager_fallback(what: str, reason: str, pronoun: str) -> None:
+    """The one stderr line of a speed-up that failed and gave way to the eager code (same results)."""
+    print(
+        f"warning: {what} failed ({reason[:200]}); running {pronoun} eagerly for the rest of the run",
+        file=sys.stderr,
+    )
+
+
+def maybe_compile(fn: Any, backend: str) -> Any:
+    return fn if backend == "off" else CompiledOrEager(fn, backend)

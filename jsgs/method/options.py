@@ -1,0 +1,128 @@
+"""The options of ``--method jsgs`` (``method_options`` in the settings): typed sections parsed, checked and
+turned into a JSON Schema by the same code as every other setting (:mod:`jsgs.train.config`).
+
+The algorithm's settings (weights, ablation switches, JO mode, epsilons) are :class:`JsgsOptions`; how fast
+the same results are computed (``torch.compile``, CUDA graphs, the fused controller kernel) is its
+``speed`` section, :class:`JsgsSpeed`: changing it changes no value beyond floating-point rounding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any, Literal
+
+import torch
+
+from jsgs.errors import JsgsError
+from jsgs.method.controller import EPS_PROJ, TAU_S
+from jsgs.train.config import parse_method_options, setting
+
+#: ``method_options.speed.compile`` (``jsgs train --compile``, ``jsgs bench --compile``)
+COMPILE_BACKENDS = ("off", "inductor", "aot_eager")
+
+
+@dataclass
+class JsgsSpeed:
+    """Speed settings of --method jsgs (the same results, computed with fewer kernel launches)."""
+
+    compile: Literal["off", "inductor", "aot_eager"] = setting(
+        "off",
+        "torch.compile of JO, L_obs's photometric loss and DS (eager they are launch-bound on a GPU: "
+        "hundreds of small kernels): inductor (torch's default code generator) or aot_eager (traces only, "
+        "a check).",
+    )
+    cuda_graph: bool | Literal["auto"] = setting(
+        "auto",
+        "Replay JO, L_obs and DS and their weighted gradient as one CUDA graph (jsgs.method.graphed): one "
+        "launch instead of a few hundred small kernels. auto: on for CUDA without compile; true needs CUDA.",
+    )
+    cuda_graph_gc: bool = setting(
+        True,
+        "With cuda_graph: the deferred Gaussian Controller as a graph of its own too (recorded again "
+        "whenever densification changes the number of Gaussians); false keeps it eager.",
+    )
+    gc_kernel: Literal["auto", "torch", "cuda"] = setting(
+        "auto",
+        "The deferred Gaussian Controller's implementation: cuda (jsgs/csrc/controller.cu, three fused "
+        "kernels, no graph), torch (its twin jsgs.method.controller.fro_from_probe_grad, graphed per "
+        "cuda_graph_gc) or auto (cuda on a GPU where the kernels build, torch elsewhere).",
+    )
+
+
+@dataclass
+class JsgsOptions:
+    """method_options of --method jsgs (defaults: the paper's implementation details)."""
+
+    lambda_obs: float = setting(0.2, "λ_obs: weight of L_obs, the photometric loss of the JPEG observation.")
+    lambda_low: float = setting(0.02, "λ_low: weight of L_low (DCT supervision, low band).")
+    lambda_mid: float = setting(0.03, "λ_mid: weight of L_mid (DCT supervision, middle band).")
+    lambda_fro: float = setting(0.05, "λ_fro: weight of L_fro (Gaussian Controller).")
+    jpeg_mode: Literal["paper", "float", "exact"] = setting(
+        "paper", "Forward of the JPEG observation operator's rounding (jsgs.jpeg.observe)."
+    )
+    jo: bool = setting(True, "JPEG observation (L_obs); DS and GC need it.")
+    ds: bool = setting(True, "DCT supervision (L_low, L_mid).")
+    gc: bool = setting(True, "Gaussian Controller (L_fro).")
+    tau_s: float = setting(TAU_S, "τ_s: the Gaussian Controller's projected-scale threshold (pixels).")
+    eps_sm: float = setting(1e-3, "ε of the soft maximum of the DS block scores.")
+    eps_dct_loss: float = setting(1e-6, "ε in the DS losses' denominators.")
+    eps_dct_block: float = setting(1e-6, "ε in the DS block scores' denominators.")
+    eps_proj: float = setting(EPS_PROJ, "ε of the Gaussian Controller's pooled projection weights.")
+    gc_pooling: Literal["deferred", "now"] = setting(
+        "deferred",
+        "deferred: the GC pools inside the main backward (no extra pass); now: one extra rasteriser "
+        "backward before the loss (L_fro an ordinary autograd term).",
+    )
+    speed: JsgsSpeed = setting(
+        default_factory=JsgsSpeed, help="Speed settings (same results): compile, CUDA graphs, kernels."
+    )
+
+    @property
+    def any_active(self) -> bool:
+        return self.jo or self.ds or self.gc
+
+    def check(self, where: str = "config") -> None:
+        """JsgsError (one line) on a value out of range or an ablation combination the paper does not
+        define (types and choices are checked by the parser)."""
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not isinstance(value, float):
+                continue
+            if f.name.startswith("lambda_") and value < 0:
+                raise JsgsError(f"{where}: method_options.{f.name} must be >= 0 (got {value})")
+            if not f.name.startswith("lambda_") and value <= 0:
+                raise JsgsError(f"{where}: method_options.{f.name} must be > 0 (got {value})")
+        if self.speed.cuda_graph is True and self.speed.compile != "off":
+            raise JsgsError(
+                f"{where}: method_options.speed.cuda_graph and method_options.speed.compile "
+                f"({self.speed.compile}) cannot be combined yet; use one of them"
+            )
+        if not self.jo and (self.ds or self.gc):
+            on = " and ".join(n for n, v in (("DS", self.ds), ("GC", self.gc)) if v)
+            raise JsgsError(
+                f"{where}: method jsgs: {on} operate on the JPEG observation (JO) output, so they need JO "
+                "(paper Table 2); without JO turn them off too (--no-jo --no-ds --no-gc, which is the "
+                "baseline)"
+            )
+
+
+def use_cuda_graph(opts: JsgsOptions, device: torch.device) -> bool:
+    """Whether JO, L_obs and DS run as CUDA graphs on ``device`` (``method_options.speed.cuda_graph``
+    resolved); JsgsError (one line) for ``true`` off CUDA."""
+    s = opts.speed
+    if s.cuda_graph == "auto":
+        return device.type == "cuda" and s.compile == "off"
+    if s.cuda_graph and device.type != "cuda":
+        raise JsgsError(
+            "config: method jsgs: method_options.speed.cuda_graph needs a CUDA device "
+            f'(training on {device.type}); set it to false or "auto"'
+        )
+    return bool(s.cuda_graph)
+
+
+def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:
+    """``method_options`` -> :class:`JsgsOptions` (:func:`jsgs.train.config.parse_method_options`: the
+    shared parser, then :meth:`JsgsOptions.check`); JsgsError (one line) on an unknown key, a wrong type or
+    value, or an ablation combination the paper does not define."""
+    opts: JsgsOptions = parse_method_options("jsgs", raw, where)
+    return opts

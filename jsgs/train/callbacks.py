@@ -1,0 +1,142 @@
+"""Training callbacks: what a run does around the :class:`~jsgs.train.trainer.Trainer`'s steps without being
+part of the optimisation (nerfstudio's training callbacks).
+
+A callback subclasses :class:`Callback` and overrides the events it needs; the trainer calls them in list
+order:
+
+- ``on_setup(trainer)``: after :meth:`Trainer.setup` (settings checked, scene and Gaussians ready, resumed);
+- ``on_step_begin(trainer, step)``: before step ``step`` (0-based);
+- ``on_step_end(trainer, result)``: after it (:class:`~jsgs.train.trainer.StepResult`);
+- ``on_eval(trainer, entry)``: after an evaluation (an entry of metrics.json ``evals``);
+- ``on_checkpoint(trainer, step)``: at a checkpoint point after ``step`` steps (evaluation steps, the end,
+  ``checkpoint_every``), after the evaluation of that step;
+- ``on_end(trainer, doc)``: when the run ends, with the final metrics document (``status`` complete,
+  stopped or diverged), or None when an unexpected error stopped it.
+
+The standard ones: :class:`ProgressBar`, :class:`StepProfiler`, :class:`CheckpointSaver`,
+:class:`MetricsWriter` (:func:`jsgs.train.trainer.train` installs them in that order).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from jsgs.io import write_json_atomic
+
+if TYPE_CHECKING:
+    from jsgs.train.trainer import StepResult, Trainer
+
+
+class Callback:
+    """Base class: every event is a no-op."""
+
+    def on_setup(self, trainer: Trainer) -> None:
+        pass
+
+    def on_step_begin(self, trainer: Trainer, step: int) -> None:
+        pass
+
+    def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
+        pass
+
+    def on_eval(self, trainer: Trainer, entry: dict[str, Any]) -> None:
+        pass
+
+    def on_checkpoint(self, trainer: Trainer, step: int) -> None:
+        pass
+
+    def on_end(self, trainer: Trainer, doc: dict[str, Any] | None) -> None:
+        pass
+
+
+def eval_line(e: dict[str, Any]) -> str:
+    """One line of an evaluation entry (PSNR, SSIM, LPIPS, Gaussians, FPS, training time)."""
+
+    def f(x: Any, fmt: str) -> str:
+        return "n/a" if x is None else format(x, fmt)
+
+    return (
+        f"eval @ {e['step']}: PSNR {f(e['psnr'], '.3f')} SSIM {f(e['ssim'], '.4f')} "
+        f"LPIPS {f(e['lpips'], '.4f')} "
+        f"| {e['num_gaussians']} Gaussians | {f(e['fps'], '.1f')} FPS | train {e['train_time_s']:.1f} s"
+    )
+
+
+class ProgressBar(Callback):
+    """A tqdm bar with the loss, the number of Gaussians and the terms (every ``log_every`` steps) and the
+    evaluation lines; without the bar (``enabled`` false) the evaluation lines go to the trainer's log."""
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self.bar: Any = None
+
+    def on_setup(self, trainer: Trainer) -> None:
+        cfg = trainer.cfg
+        assert cfg is not None
+        if self.enabled and trainer.start_step < cfg.iterations:
+            from tqdm import tqdm
+
+            self.bar = tqdm(
+                total=cfg.iterations, initial=trainer.start_step, dynamic_ncols=True, unit="it", desc="train"
+            )
+
+    def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
+        if self.bar is None:
+            return
+        assert trainer.cfg is not None
+        self.bar.update(1)
+        done = result.step + 1
+        if done % trainer.cfg.log_every == 0 or done == trainer.end_step:
+            parts = [f"loss={result.loss:.4f}", f"#G={trainer.splats['means'].shape[0]}"]
+            parts += [f"{k}={v:.4g}" for k, v in result.terms.items() if k not in ("photometric",)]
+            parts += [f"{k}={v:.4g}" for k, v in result.stats.items()]
+            self.bar.set_postfix_str(" ".join(parts), refresh=False)
+
+    def on_eval(self, trainer: Trainer, entry: dict[str, Any]) -> None:
+        if self.bar is not None:
+            self.bar.write(eval_line(entry))
+        else:
+            trainer.say(eval_line(entry))
+
+    def on_end(self, trainer: Trainer, doc: dict[str, Any] | None) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+class StepProfiler(Callback):
+    """Per-phase device-synchronised times of every step (``profile_ms_per_step`` in metrics.json; slows a
+    GPU run). Turns the trainer's :class:`~jsgs.train.profiler.Profiler` on and counts the steps it timed."""
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.enabled = enabled
+
+    def on_setup(self, trainer: Trainer) -> None:
+        trainer.profiler.enabled = self.enabled
+
+    def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
+        trainer.profiler.steps += 1
+
+
+class CheckpointSaver(Callback):
+    """Writes ``checkpoints/step_XXXXXX.pt`` at every checkpoint point (:meth:`Trainer.save_checkpoint`)."""
+
+    def on_checkpoint(self, trainer: Trainer, step: int) -> None:
+        trainer.save_checkpoint(step)
+
+
+class MetricsWriter(Callback):
+    """Writes ``metrics.json`` (validated against its schema) at every checkpoint point and at the end."""
+
+    def _write(self, trainer: Trainer, doc: dict[str, Any]) -> None:
+        from jsgs.schemas import validate
+
+        validate(doc, "metrics", str(trainer.paths.metrics))
+        write_json_atomic(trainer.paths.metrics, doc)
+
+    def on_checkpoint(self, trainer: Trainer, step: int) -> None:
+        self._write(trainer, trainer.metrics_doc(trainer.status_at(step), step))
+
+    def on_end(self, trainer: Trainer, doc: dict[str, Any] | None) -> None:
+        if doc is not None:
+            self._write(trainer, doc)

@@ -1,0 +1,801 @@
+"""The generic trainer: gsplat 1.5.3 simple_trainer's step, evaluation, checkpoints, resume, outputs, as a
+:class:`Trainer` with callbacks (:mod:`jsgs.train.callbacks`). It knows methods only through the loss-hook
+protocol (:mod:`jsgs.train.method`).
+
+One step (0-based ``step``), as simple_trainer's ``train()``:
+
+1. sample a training view (shuffled epochs), SH degree = min(step // 1000, 3);
+2. rasterise it; ``DefaultStrategy.step_pre_backward`` (retain the screen-space means' gradient);
+3. l_ph = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM) (:func:`jsgs.jpeg.losses.photometric_terms`); plus the
+   method hook's terms (see :mod:`jsgs.train.method`); check every term and every gradient for NaN/Inf;
+4. backward, Adam step on every group, the means' LR decay, ``DefaultStrategy.step_post_backward``
+   (densify / prune);
+5. after steps listed in ``eval_at`` (1-based counts): evaluate on the test views, write metrics.json and a
+   checkpoint.
+
+Outputs in RUN/: ``config.json`` (settings, derived values, versions), ``metrics.json`` (schema
+``schemas/metrics.schema.json``), ``point_cloud.ply`` (3DGS layout, in the normalised training world; the
+transform is in config.json), ``renders/step_XXXXXX/*.png`` (test views), ``checkpoints/step_XXXXXX.pt``.
+"""
+
+from __future__ import annotations
+
+import math
+import platform
+import random
+import shutil
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+import jsgs
+from jsgs.cuda_ext import use_kernels
+from jsgs.errors import JsgsError
+from jsgs.io import write_json_atomic
+from jsgs.train import checkpoint as ckpt
+from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, to_dict
+from jsgs.train.data import ViewSampler, load_eval_images, load_scene, load_train_images
+from jsgs.train.evaluate import evaluate, synchronize
+from jsgs.train.method import HookOutput, LossHook, StepContext, make_hook
+from jsgs.train.model import (
+    PARAM_NAMES,
+    init_splats,
+    make_means_scheduler,
+    make_optimizers,
+    sh_degree_at,
+    splats_from_state,
+)
+from jsgs.train.profiler import Profiler
+from jsgs.train.render_view import render_view, resolve_backend, resolve_device
+
+if TYPE_CHECKING:
+    from jsgs.train.callbacks import Callback
+
+METRICS_FORMAT = "jsgs-metrics"
+METRICS_VERSION = 1
+# What a run writes into RUN/ (--force removes exactly these, nothing else).
+RUN_ENTRIES = ("config.json", "metrics.json", "point_cloud.ply", "renders", "checkpoints")
+
+
+class TrainingDiverged(JsgsError):
+    """A loss term or a gradient became NaN/Inf. The message names it and the iteration."""
+
+
+@dataclass
+class RunPaths:
+    root: Path
+
+    @property
+    def config(self) -> Path:
+        return self.root / "config.json"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def ply(self) -> Path:
+        return self.root / "point_cloud.ply"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / "checkpoints"
+
+    def renders(self, step: int) -> Path:
+        return self.root / "renders" / f"step_{step:06d}"
+
+
+@dataclass
+class LogAccumulator:
+    """Sums of each logged value since the last evaluation (floats, so the averages are exact to resume).
+
+    ``per_view`` holds one accumulator per training view (by name) for the loss and the terms, so a run
+    shows which views its loss comes from (whether the worst JPEGs dominate training)."""
+
+    steps: int = 0
+    loss: float = 0.0
+    terms: dict[str, float] = field(default_factory=dict)
+    stats: dict[str, float] = field(default_factory=dict)
+    per_view: dict[str, LogAccumulator] = field(default_factory=dict)
+
+    def add(
+        self, loss: float, terms: dict[str, float], stats: dict[str, float], view: str | None = None
+    ) -> None:
+        self.steps += 1
+        self.loss += loss
+        for k, v in terms.items():
+            self.terms[k] = self.terms.get(k, 0.0) + v
+        for k, v in stats.items():
+            self.stats[k] = self.stats.get(k, 0.0) + v
+        if view is not None:
+            self.per_view.setdefault(view, LogAccumulator()).add(loss, terms, {})
+
+    def means(self) -> dict[str, Any]:
+        n = max(self.steps, 1)
+        views = {name: acc.means() for name, acc in sorted(self.per_view.items())}
+        return {
+            "steps": self.steps,
+            "loss": self.loss / n if self.steps else None,
+            "terms": {k: v / n for k, v in self.terms.items()},
+            "stats": {k: v / n for k, v in self.stats.items()},
+            "per_view": {name: {k: m[k] for k in ("steps", "loss", "terms")} for name, m in views.items()},
+        }
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "steps": self.steps,
+            "loss": self.loss,
+            "terms": dict(self.terms),
+            "stats": dict(self.stats),
+            "per_view": {k: v.state() for k, v in self.per_view.items()},
+        }
+
+    @classmethod
+    def from_state(cls, s: dict[str, Any]) -> LogAccumulator:
+        # checkpoints written before per-view sums existed resume with none for that interval
+        per_view = {k: cls.from_state(v) for k, v in s.get("per_view", {}).items()}
+        return cls(int(s["steps"]), float(s["loss"]), dict(s["terms"]), dict(s["stats"]), per_view)
+
+
+def _versions() -> dict[str, Any]:
+    try:
+        import gsplat
+
+        gv: str | None = gsplat.__version__
+    except Exception:  # gsplat is optional on a CPU-only install
+        gv = None
+    return {
+        "jsgs": jsgs.__version__,
+        "torch": torch.__version__,
+        "gsplat": gv,
+        "python": platform.python_version(),
+    }
+
+
+def _strategy(cfg: TrainConfig) -> Any:
+    from gsplat.strategy import DefaultStrategy
+
+    s = cfg.strategy
+    return DefaultStrategy(
+        prune_opa=s.prune_opa,
+        grow_grad2d=s.grow_grad2d,
+        grow_scale3d=s.grow_scale3d,
+        grow_scale2d=s.grow_scale2d,
+        prune_scale3d=s.prune_scale3d,
+        prune_scale2d=s.prune_scale2d,
+        refine_scale2d_stop_iter=s.refine_scale2d_stop_iter,
+        refine_start_iter=s.refine_start_iter,
+        refine_stop_iter=s.refine_stop_iter,
+        reset_every=s.reset_every,
+        refine_every=s.refine_every,
+        pause_refine_after_reset=s.pause_refine_after_reset,
+        absgrad=s.absgrad,
+        revised_opacity=s.revised_opacity,
+        verbose=False,
+    )
+
+
+def _seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % (2**32))
+    torch.manual_seed(seed)
+
+
+def _diff_settings(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> str | None:
+    """The first dotted key whose value differs between two settings dicts."""
+    for k in sorted(set(a) | set(b)):
+        va, vb = a.get(k), b.get(k)
+        if isinstance(va, dict) and isinstance(vb, dict) and k != "method_options":
+            d = _diff_settings(va, vb, prefix + k + ".")
+            if d:
+                return d
+        elif va != vb:
+            return f"{prefix}{k} ({va!r} in the run, {vb!r} now)"
+    return None
+
+
+def _check_out(paths: RunPaths, resume: bool, force: bool) -> None:
+    """Refuse a RUN that cannot be used, before anything is read or written."""
+    root = paths.root
+    if root.exists() and not root.is_dir():
+        raise JsgsError(f"{root}: exists and is not a folder")
+    if resume:
+        if not paths.config.exists():
+            raise JsgsError(f"{root}: nothing to resume (no config.json); start the run without --resume")
+        return
+    if root.exists() and any(root.iterdir()) and not force:
+        raise JsgsError(
+            f"{root}: folder is not empty; pass --resume to continue that run or --force to overwrite it"
+        )
+
+
+def _clear_out(paths: RunPaths) -> None:
+    """--force: remove what an earlier run wrote (RUN_ENTRIES only; anything else in RUN is left alone)."""
+    for name in RUN_ENTRIES:
+        p = paths.root / name
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+    paths.root.mkdir(parents=True, exist_ok=True)
+
+
+def load_run_settings(run_dir: str | Path) -> TrainConfig:
+    """The settings of an existing run (``RUN/config.json``)."""
+    from jsgs.train.config import load_config_file
+
+    path = Path(run_dir) / "config.json"
+    if not path.exists():
+        raise JsgsError(
+            f"{Path(run_dir)}: nothing to resume (no config.json); start the run without --resume"
+        )
+    return load_config_file(path)
+
+
+def _finite_check(
+    step: int,
+    names: list[str],
+    values: list[float],
+    grad_names: list[str],
+    grad_ok: list[float],
+    last_ckpt: str,
+) -> None:
+    for n, v in zip(names, values, strict=True):
+        if not math.isfinite(v):
+            kind = "NaN" if math.isnan(v) else "Inf"
+            raise TrainingDiverged(
+                f"iteration {step + 1}: loss term {n!r} is {kind}; training stopped (last good checkpoint: "
+                f"{last_ckpt})"
+            )
+    for n, ok in zip(grad_names, grad_ok, strict=True):
+        if not ok:
+            raise TrainingDiverged(
+                f"iteration {step + 1}: the gradient of {n!r} has NaN/Inf values (loss terms finite); "
+                "training "
+                f"stopped (last good checkpoint: {last_ckpt})"
+            )
+
+
+def _stat_tensor(value: Any, device: torch.device) -> torch.Tensor:
+    if isinstance(value, torch.Tensor):
+        return value.detach().float().reshape(()).to(device)
+    return torch.tensor(float(value), dtype=torch.float32, device=device)
+
+
+def base_terms(
+    rgb: Tensor, target: Tensor, splats: torch.nn.ParameterDict, cfg: TrainConfig
+) -> tuple[dict[str, Tensor], dict[str, float]]:
+    """gsplat's photometric loss (and its optional regularisers): unweighted terms and their weights.
+
+    rgb, target: [1, H, W, 3]. ``photometric`` (l_ph, :func:`jsgs.jpeg.losses.photometric_terms`) carries
+    weight ``loss.base_weight``; ``l1`` and ``ssim`` (= 1 - SSIM) are logged with weight 0 (they are inside
+    ``photometric``)."""
+    from jsgs.jpeg.losses import photometric_terms
+
+    ph = photometric_terms(
+        rgb, target, cfg.loss.ssim_lambda, padding=cfg.loss.ssim_padding, ssim_kernel=cfg.speed.ssim_kernel,
+        channels_last=True,
+    )  # fmt: skip
+    terms = {"l1": ph.l1, "ssim": ph.d_ssim, "photometric": ph.loss}
+    weights = {"l1": 0.0, "ssim": 0.0, "photometric": cfg.loss.base_weight}
+    if cfg.loss.opacity_reg > 0.0:
+        terms["opacity_reg"] = torch.sigmoid(splats["opacities"]).mean()
+        weights["opacity_reg"] = cfg.loss.opacity_reg
+    if cfg.loss.scale_reg > 0.0:
+        terms["scale_reg"] = torch.exp(splats["scales"]).mean()
+        weights["scale_reg"] = cfg.loss.scale_reg
+    return terms, weights
+
+
+def weighted_loss(
+    terms: dict[str, torch.Tensor],
+    weights: dict[str, float],
+    folded: frozenset[str] = frozenset(),
+    folded_loss: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The step's loss Σ weights[k]·terms[k] (terms of weight 0 left out) with the terms in ``folded``
+    replaced by their ready-made weighted sum ``folded_loss`` (:class:`jsgs.train.method.HookOutput`).
+
+    Each multiplication and addition is a kernel and an autograd node, which on a GPU cost more host time
+    than device time, so a weight of 1 is not multiplied and the sum starts from the first part, not 0."""
+    parts = [
+        terms[k] if weights[k] == 1.0 else weights[k] * terms[k]
+        for k in weights
+        if weights[k] != 0.0 and k not in folded
+    ]
+    if folded_loss is not None:
+        parts.append(folded_loss)
+    if not parts:
+        raise JsgsError("every loss term has weight 0: nothing to optimise")
+    loss = parts[0]
+    for p in parts[1:]:
+        loss = loss + p
+    return loss
+
+
+def _weighted_sum(names: list[str], values: list[float], weights: dict[str, float]) -> float:
+    pairs = zip(names, values, strict=True)
+    return float(sum(weights[n] * v for n, v in pairs if weights.get(n, 0.0) != 0.0))
+
+
+def _device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return platform.processor() or platform.machine() or "cpu"
+
+
+def json_load(path: Path) -> dict[str, Any]:
+    import json
+
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise JsgsError(f"{path}: cannot read ({e})") from None
+
+
+
+@dataclass
+class StepResult:
+    """What one training step logged: ``step`` (0-based), the view's name, the total loss, the terms and
+    statistics (host floats, read after the backward)."""
+
+    step: int
+    view: str
+    loss: float
+    terms: dict[str, float]
+    stats: dict[str, float]
+
+
+class Trainer:
+    """One training run: :meth:`setup` (settings, scene, Gaussians, optimizers, resume), :meth:`step` (one
+    view), :meth:`evaluate` (test views), :meth:`save_checkpoint` / :meth:`resume` (bit-exact), :meth:`train`
+    (the loop, which calls the callbacks; :mod:`jsgs.train.callbacks`).
+
+    Arguments as :func:`train`; ``callbacks`` receive the events in list order."""
+
+    def __init__(
+        self,
+        manifest: str | Path,
+        out: str | Path,
+        cfg: TrainConfig | None = None,
+        *,
+        resume: bool = False,
+        force: bool = False,
+        stop_at: int | None = None,
+        command: str | None = None,
+        hook: LossHook | None = None,
+        log: Callable[[str], None] | None = None,
+        callbacks: Sequence[Callback] = (),
+    ) -> None:
+        self.say: Callable[[str], None] = log or (lambda s: print(s, file=sys.stderr))
+        self.paths = RunPaths(Path(out))
+        self.manifest = Path(manifest)
+        self.cfg = cfg
+        self.resuming = resume
+        self.force = force
+        self.stop_at = stop_at
+        self.command = command
+        self.hook = hook
+        self.callbacks = list(callbacks)
+        self.profiler = Profiler(False, torch.device("cpu"))
+        self.evals: list[dict[str, Any]] = []
+        self.acc = LogAccumulator()
+        self.train_time = 0.0
+        self.setup_time = 0.0
+        self.start_step = 0
+        self.last_checkpoint = "none"
+        self._clock = 0.0
+
+    # -- events ---------------------------------------------------------------------------------------
+    def fire(self, event: str, *args: Any) -> None:
+        """Call ``event`` (e.g. "on_step_end") on every callback, in order."""
+        for cb in self.callbacks:
+            getattr(cb, event)(self, *args)
+
+    # -- setup ----------------------------------------------------------------------------------------
+    def setup(self) -> None:
+        """Check RUN and the settings, load the scene, build the Gaussians, optimizers and strategy, resume
+        from the last checkpoint (``resume``) or write ``config.json``; then ``on_setup``."""
+        paths = self.paths
+        _check_out(paths, self.resuming, self.force)
+        cfg = self.cfg
+        start_ckpt: dict[str, Any] | None = None
+        if self.resuming:
+            stored = load_run_settings(paths.root)
+            if cfg is not None:
+                d = _diff_settings(to_dict(stored), to_dict(cfg))
+                if d:
+                    raise JsgsError(
+                        f"{paths.root}: --resume continues the run with its own settings; differs: {d}"
+                    )
+            cfg = stored
+            found = ckpt.list_checkpoints(paths.checkpoints)
+            if not found:
+                raise JsgsError(
+                    f"{paths.checkpoints}: no checkpoint to resume from; start the run again with --force"
+                )
+            start_ckpt = ckpt.load_checkpoint(found[-1][1])
+            start_ckpt["_path"] = str(found[-1][1])
+        cfg = cfg if cfg is not None else TrainConfig()
+        cfg.check()
+        self.cfg = cfg
+        if self.stop_at is not None and not 1 <= self.stop_at <= cfg.iterations:
+            raise JsgsError(f"stop_at must lie in 1..{cfg.iterations} (got {self.stop_at})")
+        self.end_step = cfg.iterations if self.stop_at is None else self.stop_at
+
+        t_setup = time.perf_counter()
+        self.device = device = resolve_device(cfg.device)
+        self.profiler.device = device
+        self.backend = resolve_backend(cfg, device)
+        _seed_everything(cfg.seed)
+        self.scene = scene = load_scene(self.manifest, cfg)
+        for note in scene.notes:
+            self.say(f"note: {note}")
+        if self.resuming:
+            old = json_load(paths.config)
+            if old.get("manifest", {}).get("sha256") != scene.manifest_sha256:
+                raise JsgsError(
+                    f"{self.manifest}: differs from the manifest the run in {paths.root} was started with"
+                )
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+            # IEEE float32 convolutions for the whole run (SSIM in the losses and metrics; jsgs.precision),
+            # also where torch.compile'd code cannot enter jsgs.precision's context
+            torch.backends.cudnn.allow_tf32 = False
+        self.train_views = scene.train_views
+        self.train_images = load_train_images(scene, device)
+        self.eval_images = load_eval_images(scene, device) if cfg.eval_at else {}
+        if self.hook is None:
+            # the method's own random draws (if any) must not shift the initialisation: every method starts
+            # from the same Gaussians as the baseline for a given seed
+            with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+                self.hook = make_hook(cfg, scene, device)
+        self.strategy = _strategy(cfg)
+        self.sampler = ViewSampler(len(self.train_views), cfg.seed)
+
+        if start_ckpt is None:
+            self.splats = init_splats(
+                torch.from_numpy(scene.points),
+                torch.from_numpy(scene.points_rgb).float() / 255.0,
+                cfg,
+                scene.scene_scale,
+                device,
+            )
+        else:
+            self.splats = splats_from_state(start_ckpt["splats"], device)
+        self.optimizers = make_optimizers(self.splats, cfg, scene.scene_scale)
+        self.scheduler = make_means_scheduler(self.optimizers["means"], cfg)
+        self.strategy.check_sanity(self.splats, self.optimizers)
+        self.strategy_state = self.strategy.initialize_state(scene_scale=scene.scene_scale)
+        if start_ckpt is not None:
+            self.resume(start_ckpt)
+
+        derived = {
+            "device": str(device),
+            "backend": self.backend,
+            "scene_scale": scene.scene_scale,
+            "camera_extent": scene.camera_extent,
+            "normalization": scene.transform.tolist(),
+            "num_train_views": len(self.train_views),
+            "num_test_views": len(scene.test_views),
+            "initial_gaussians": int(self.splats["means"].shape[0])
+            if start_ckpt is None
+            else int(json_load(paths.config)["derived"]["initial_gaussians"]),
+            "notes": scene.notes,
+            "ssim_kernel": "cuda"
+            if use_kernels(cfg.speed.ssim_kernel, device, "speed.ssim_kernel")
+            else "torch",
+            "method": self.hook.describe() if self.hook is not None else {},
+        }
+        if not self.resuming:
+            _clear_out(paths)  # only now that the settings and the manifest have been checked
+            run_config = {
+                "format": RUN_CONFIG_FORMAT,
+                "format_version": RUN_CONFIG_VERSION,
+                "versions": _versions(),
+                "command": self.command or "",
+                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "manifest": {"path": str(scene.manifest_path), "sha256": scene.manifest_sha256},
+                "settings": to_dict(cfg),
+                "derived": derived,
+            }
+            from jsgs.schemas import validate
+
+            validate(run_config, "config", str(paths.config))
+            write_json_atomic(paths.config, run_config)
+        self.setup_time = time.perf_counter() - t_setup
+        self.fire("on_setup")
+
+    # -- checkpoints ----------------------------------------------------------------------------------
+    def checkpoint_state(self, step_done: int) -> dict[str, Any]:
+        """Everything :meth:`resume` needs to continue after ``step_done`` steps bit for bit."""
+        cfg = self.cfg
+        assert cfg is not None
+        return {
+            "step": step_done,
+            "settings": to_dict(cfg),
+            "manifest_sha256": self.scene.manifest_sha256,
+            "splats": {n: self.splats[n].data for n in PARAM_NAMES},
+            "optimizers": {n: o.state_dict() for n, o in self.optimizers.items()},
+            "scheduler": self.scheduler.state_dict(),
+            "strategy": self.strategy_state,
+            "rng": ckpt.rng_state(),
+            "sampler": self.sampler.state_dict(),
+            "hook": self.hook.state_dict() if self.hook is not None else {},
+            "evals": self.evals,
+            "log": self.acc.state(),
+            "train_time_s": self.train_time,
+        }
+
+    def save_checkpoint(self, step_done: int) -> str:
+        """Write ``checkpoints/step_XXXXXX.pt`` (:meth:`checkpoint_state`); returns its path."""
+        path = ckpt.checkpoint_path(self.paths.checkpoints, step_done)
+        ckpt.save_checkpoint(path, self.checkpoint_state(step_done))
+        self.last_checkpoint = str(path)
+        return str(path)
+
+    def resume(self, state: dict[str, Any]) -> None:
+        """Continue from a checkpoint (:meth:`checkpoint_state`; ``_path``: the file it was read from):
+        optimizers, scheduler, strategy, RNGs, view order, the method's state, evaluations and log sums.
+        The Gaussians themselves are built from ``state["splats"]`` by :meth:`setup`."""
+        device = self.device
+        for name in PARAM_NAMES:
+            self.optimizers[name].load_state_dict(state["optimizers"][name])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.strategy_state = ckpt.to_device(state["strategy"], device)
+        ckpt.set_rng_state(state["rng"])
+        self.sampler.load_state_dict(state["sampler"])
+        if self.hook is not None:
+            self.hook.load_state_dict(ckpt.to_device(state["hook"], device))
+        elif state["hook"]:
+            raise JsgsError(f"{state['_path']}: holds method state but the method has no hook")
+        self.evals = list(state["evals"])
+        self.acc = LogAccumulator.from_state(state["log"])
+        self.train_time = float(state["train_time_s"])
+        self.start_step = int(state["step"])
+        self.last_checkpoint = state["_path"]
+        assert self.cfg is not None
+        self.say(f"resuming {self.paths.root} at step {self.start_step} of {self.cfg.iterations}")
+
+    # -- one step -------------------------------------------------------------------------------------
+    def step(self, step: int) -> StepResult:
+        """Train on one view (gsplat simple_trainer's step; module docstring). TrainingDiverged on NaN/Inf."""
+        cfg, device, splats, hook, profiler = self.cfg, self.device, self.splats, self.hook, self.profiler
+        assert cfg is not None
+        optimizers, strategy = self.optimizers, self.strategy
+        with profiler.phase("data"):
+            view = self.train_views[self.sampler.next()]
+            target = self.train_images[view.index].float()[None] / 255.0
+            sh_degree = sh_degree_at(step, cfg)
+            extra_feats = hook.extra_channels(step, view, splats) if hook is not None else None
+            extra_kw = hook.render_kwargs(step, view) if hook is not None else None
+        with profiler.phase("render"):
+            r = render_view(
+                splats,
+                view.viewmat_tensor(device),
+                view.K_tensor(device),
+                view.width,
+                view.height,
+                sh_degree,
+                cfg,
+                self.backend,
+                extra_feats,
+                extra_kw,
+            )
+            rgb = r.rgb
+            if cfg.render.random_background:
+                bkgd = torch.rand(1, 3, device=device)
+                rgb = rgb + bkgd * (1.0 - r.alpha)
+            strategy.step_pre_backward(splats, optimizers, self.strategy_state, step, r.info)
+        with profiler.phase("loss"):
+            terms, weights = base_terms(rgb, target, splats, cfg)
+        stats: dict[str, Any] = {}
+        folded: frozenset[str] = frozenset()
+        folded_loss = None
+        if hook is not None:
+            with profiler.phase("hook"):
+                ctx = StepContext(
+                    step=step,
+                    view=view,
+                    render=rgb,
+                    alpha=r.alpha,
+                    target=target,
+                    info=r.info,
+                    splats=splats,
+                    extra=r.extra,
+                    base_terms=dict(terms),
+                    sh_degree=sh_degree,
+                )
+                hout: HookOutput = hook.losses(ctx)
+                hout.check(cfg.method)
+                terms.update(hout.terms)
+                weights.update(hout.weights)
+                stats = dict(hout.stats)
+                folded, folded_loss = hout.folded, hout.folded_loss
+        loss = weighted_loss(terms, weights, folded, folded_loss)
+        with profiler.phase("backward"):
+            loss.backward()
+        # one host sync per step: every logged value and the gradients' finiteness together
+        names = list(terms)
+        grad_names = [n for n in PARAM_NAMES if splats[n].grad is not None]
+        packed_vals = torch.stack(
+            [loss.detach().float()]
+            + [terms[n].detach().float().reshape(()) for n in names]
+            + [_stat_tensor(stats[k], device) for k in stats]
+            + [torch.isfinite(splats[n].grad).all().float() for n in grad_names]
+        ).tolist()
+        term_v = packed_vals[1 : 1 + len(names)]
+        # Summed from the term values read *after* the backward: a method may fill a term's value during
+        # the backward (JSGS's deferred L_fro), which the pre-backward total cannot include.
+        loss_v = packed_vals[0] if hook is None else _weighted_sum(names, term_v, weights)
+        stat_v = packed_vals[1 + len(names) : 1 + len(names) + len(stats)]
+        grad_ok = packed_vals[1 + len(names) + len(stats) :]
+        _finite_check(step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_ok, self.last_checkpoint)
+        with profiler.phase("optimizer"):
+            for o in optimizers.values():
+                o.step()
+                o.zero_grad(set_to_none=True)
+            self.scheduler.step()
+        with profiler.phase("densify"):
+            strategy.step_post_backward(
+                splats, optimizers, self.strategy_state, step, r.info, packed=cfg.render.packed
+            )
+        result = StepResult(
+            step,
+            view.name,
+            loss_v,
+            dict(zip(names, term_v, strict=True)),
+            dict(zip(stats, stat_v, strict=True)),
+        )
+        self.acc.add(result.loss, result.terms, result.stats, view.name)
+        return result
+
+    # -- evaluation -----------------------------------------------------------------------------------
+    def evaluate(self, step_done: int) -> dict[str, Any]:
+        """Evaluate on the test views after ``step_done`` steps (an entry of metrics.json ``evals``, with the
+        training log's means since the last one); then ``on_eval``."""
+        assert self.cfg is not None
+        entry = evaluate(
+            self.splats, self.scene, self.eval_images, self.cfg, self.backend, self.device, step_done,
+            self.paths.renders(step_done),
+        )  # fmt: skip
+        entry["train_time_s"] = self.train_time
+        entry["time_per_iteration_s"] = self.train_time / step_done
+        entry["train"] = self.acc.means()
+        self.evals.append(entry)
+        self.acc = LogAccumulator()
+        self.fire("on_eval", entry)
+        return entry
+
+    # -- the loop -------------------------------------------------------------------------------------
+    def checkpoint_due(self, step_done: int) -> bool:
+        """Whether a checkpoint follows ``step_done`` steps (evaluation steps, the end,
+        ``checkpoint_every``)."""
+        cfg = self.cfg
+        assert cfg is not None
+        return (
+            step_done in cfg.eval_at
+            or step_done == cfg.iterations
+            or step_done == self.end_step
+            or (cfg.checkpoint_every > 0 and step_done % cfg.checkpoint_every == 0)
+        )
+
+    def status_at(self, step_done: int) -> str:
+        """metrics.json ``status`` after ``step_done`` steps."""
+        assert self.cfg is not None
+        if step_done == self.cfg.iterations:
+            return "complete"
+        return "stopped" if step_done == self.end_step else "running"
+
+    def metrics_doc(self, status: str, step: int, error: str | None = None) -> dict[str, Any]:
+        """The metrics document (``schemas/metrics.schema.json``) of the run so far."""
+        cfg, device = self.cfg, self.device
+        assert cfg is not None
+        return {
+            "format": METRICS_FORMAT,
+            "format_version": METRICS_VERSION,
+            "status": status,
+            "error": error,
+            "method": cfg.method,
+            "scene": self.scene.name,
+            "manifest": str(self.scene.manifest_path),
+            "device": str(device),
+            "device_name": _device_name(device),
+            "backend": self.backend,
+            "iterations": cfg.iterations,
+            "step": step,
+            "num_gaussians": int(self.splats["means"].shape[0]),
+            "train_time_s": self.train_time,
+            "setup_time_s": self.setup_time,
+            "time_per_iteration_s": self.train_time / max(step, 1) if step else None,
+            "profile_ms_per_step": self.profiler.summary(),
+            "evals": self.evals,
+        }
+
+    def export_ply(self) -> None:
+        """Write ``point_cloud.ply`` (3DGS layout, normalised training world)."""
+        from jsgs.ply import save_ply
+
+        s = self.splats
+        save_ply(self.paths.ply, s["means"], s["scales"], s["quats"], s["opacities"], s["sh0"], s["shN"])
+
+    def train(self) -> dict[str, Any]:
+        """Set up, run the steps up to ``stop_at`` (or the end) with evaluations and checkpoints, write the
+        PLY at the end of the run; returns the final metrics document (callbacks: ``on_end`` with it)."""
+        self.setup()
+        cfg = self.cfg
+        assert cfg is not None
+        if self.start_step >= cfg.iterations:
+            self.say(f"{self.paths.root}: the run is already complete ({cfg.iterations} iterations)")
+            doc = self.metrics_doc("complete", self.start_step)
+            self.fire("on_end", doc)
+            return doc
+        self._clock = time.perf_counter()
+        step = self.start_step
+        try:
+            for step in range(self.start_step, self.end_step):
+                self.fire("on_step_begin", step)
+                result = self.step(step)
+                self.fire("on_step_end", result)
+                done = step + 1
+                if self.checkpoint_due(done):
+                    synchronize(self.device)
+                    self.train_time += time.perf_counter() - self._clock
+                    if done in cfg.eval_at:
+                        self.evaluate(done)
+                    self.fire("on_checkpoint", done)
+                    self._clock = time.perf_counter()
+        except TrainingDiverged as e:
+            self.fire("on_end", self.metrics_doc("diverged", step, str(e)))
+            raise
+        except BaseException:
+            self.fire("on_end", None)
+            raise
+        doc = self.metrics_doc(self.status_at(self.end_step), self.end_step)
+        if self.end_step == cfg.iterations:
+            self.export_ply()
+        self.fire("on_end", doc)
+        return doc
+
+
+def train(
+    manifest: str | Path,
+    out: str | Path,
+    cfg: TrainConfig | None = None,
+    *,
+    resume: bool = False,
+    force: bool = False,
+    stop_at: int | None = None,
+    progress: bool = True,
+    profile: bool = False,
+    command: str | None = None,
+    hook: LossHook | None = None,
+    log: Callable[[str], None] | None = None,
+    callbacks: Sequence[Callback] = (),
+) -> dict[str, Any]:
+    """Train on ``manifest`` into the folder ``out``; returns the metrics document (also in RUN/metrics.json).
+
+    ``cfg``: the settings (defaults when None). With ``resume``, the run's own settings are used; ``cfg``,
+    when given, must equal them. ``stop_at``: stop (with a checkpoint) after that many steps, as an
+    interruption would (for tests and time-boxed jobs). ``progress``: a progress bar. ``profile``: record
+    per-phase times (synchronises the device at each phase; slower). ``hook``: a loss hook to use instead of
+    the method's own (tests). ``log``: where one-line notes go (stderr by default). ``callbacks``: more
+    callbacks, after the standard ones (progress, step profiler, checkpoints, metrics.json). Raises
+    JsgsError on bad input, TrainingDiverged on NaN/Inf."""
+    from jsgs.train.callbacks import CheckpointSaver, MetricsWriter, ProgressBar, StepProfiler
+
+    standard: list[Callback] = [
+        ProgressBar(progress), StepProfiler(profile), CheckpointSaver(), MetricsWriter()
+    ]
+    trainer = Trainer(
+        manifest, out, cfg, resume=resume, force=force, stop_at=stop_at, command=command, hook=hook, log=log,
+        callbacks=[*standard, *callbacks],
+    )  # fmt: skip
+    return trainer.train()
