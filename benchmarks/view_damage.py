@@ -20,7 +20,7 @@ Printed as markdown tables (the progress bar goes to stderr):
 2. per schedule, the mean of table 1's rows over the scenes;
 3. per quality level and schedule, pooled over scenes and seeds: number of views, mean PSNR.
 
-``--out FILE.json`` also writes everything (with every view) as ``schemas/view_damage.schema.json``.
+``--out FILE.json`` also writes everything (with every view) as ``jsgs/schemas/view_damage.schema.json``.
 """
 
 from __future__ import annotations
@@ -125,7 +125,7 @@ def analyse(
     command: str | None = None,
 ) -> dict[str, Any]:
     """Build every (scene, schedule, seed) dataset and measure it: the document of
-    ``schemas/view_damage.schema.json``."""
+    ``jsgs/schemas/view_damage.schema.json``."""
     import PIL
     from tqdm import tqdm
 

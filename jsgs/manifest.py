@@ -1,4 +1,4 @@
-"""Reading a training manifest (``schemas/manifest.schema.json``) into typed, numpy-backed objects.
+"""Reading a training manifest (``jsgs/schemas/manifest.schema.json``) into typed, numpy-backed objects.
 
 The trainer's only view of a dataset. Imports numpy, json and (lazily) jsonschema — never pycolmap, OpenCV or
 Pillow — so a GPU machine needs none of the dataset tools.

@@ -225,7 +225,7 @@ class JpegHeader:
         return self.tables[self.components[1].table]
 
     def to_json(self) -> dict[str, Any]:
-        """JSON-ready dict (the per-file object of ``schemas/dqt_report.schema.json``)."""
+        """JSON-ready dict (the per-file object of ``jsgs/schemas/dqt_report.schema.json``)."""
         used: dict[int, list[str]] = {t: [] for t in self.tables}
         for c in self.components:
             if c.table is not None:
@@ -269,7 +269,7 @@ class JpegHeader:
         }
 
     def manifest_state(self) -> dict[str, Any]:
-        """The manifest's ``jpeg`` object (schemas/manifest.schema.json ``$defs/jpeg``); tables natural order.
+        """The manifest's ``jpeg`` object (jsgs/schemas/manifest.schema.json, ``$defs/jpeg``).
 
         ``precision`` is 16 when the luma or chroma table is 16-bit. Raises JsgsError for lossless frames.
         """
@@ -863,7 +863,7 @@ class Inspection:
         }
 
     def to_json(self) -> dict[str, Any]:
-        """The whole ``--json`` document (``schemas/dqt_report.schema.json``)."""
+        """The whole ``--json`` document (``jsgs/schemas/dqt_report.schema.json``)."""
         files: list[dict[str, Any]] = []
         for path, res in self.results:
             if isinstance(res, JpegHeader):

@@ -1,4 +1,4 @@
-"""``jsgstools manifest``: write the training manifest (``schemas/manifest.schema.json``) of a COLMAP scene.
+"""``jsgstools manifest``: write the training manifest (jsgs/schemas/manifest.schema.json) of a scene.
 
 Works for a scene made by ``compress`` (its ``compress.json`` supplies the split, schedule, seed and the rest
 of the provenance) and for a user's own collection (JPEG or lossless images with their COLMAP cameras), where

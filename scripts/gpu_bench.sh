@@ -58,7 +58,7 @@ t=$(date +%s)
 python3 -c "from gsplat.cuda._backend import _C; print('gsplat CUDA ready')" 2>&1 | tail -1
 echo "gsplat build/load: $(($(date +%s) - t)) s" | tee -a "$OUT/log_$TAG.txt"
 
-JSGS="python3 -m cli.jsgs_cli"
+JSGS="python3 -m jsgs.cli"
 ABL=""
 [ -d "$R0/data/llff_flower" ] && ABL="--ablation llff_flower"
 S0_ARGS="--seeds 0 --schedules uniform,gaussian,descending,clean --fixed=${S0_FIXED-30,50} $ABL"

@@ -28,7 +28,7 @@ for stage in $STAGES; do
     overhead) python3 tools/diagnostics/bench_train_overhead.py --manifest "$M" --iterations 2000 --device cuda \
         --jpeg-modes paper,float,exact --compile off,inductor --out "$OUT/overhead.json" 2>&1 | tee "$OUT/overhead.txt" | tail -30 ;;
     train) for method in gsplat jsgs; do
-            python3 -m cli.jsgs_cli train "$M" --out "/tmp/run_$method" --method "$method" --iterations "$ITERS" \
+            python3 -m jsgs.cli train "$M" --out "/tmp/run_$method" --method "$method" --iterations "$ITERS" \
                 --device cuda --quiet --force && cp "/tmp/run_$method/metrics.json" "$OUT/flower_$method.json"
         done ;;
     esac

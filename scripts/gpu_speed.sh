@@ -3,7 +3,7 @@
 # --method jsgs against --method gsplat (tools/diagnostics/bench_train_overhead.py) and the kernel-level profile of
 # a training step (tools/diagnostics/profile_step.py), on llff_flower's gaussian schedule (seed 0).
 #
-#   here:   .venv/bin/python -m cli.jsgs_cli bench llff_flower --out .gpuD --schedules gaussian --fixed= \
+#   here:   .venv/bin/python -m jsgs.cli bench llff_flower --out .gpuD --schedules gaussian --fixed= \
 #               --seeds 0 --prepare-only      (after copying a clean base into .gpuD/data/llff_flower/)
 #   device: command "bash scripts/gpu_speed.sh", carry [".whlmin", ".gpuD"], kind nvidia-h200
 #
@@ -52,7 +52,7 @@ for stage in ${STAGES:-tests overhead profile}; do
             i=$((i + 1))
             cfg=(); case $m in *_eager) cfg=(--config /tmp/eager.json) ;; *_torchssim) cfg=(--config /tmp/torchssim.json) ;;
                 *_torchgc) cfg=(--config /tmp/torchgc.json) ;; esac
-            python3 -m cli.jsgs_cli train "$M" --out "/tmp/full_$m" --method "${m%%_*}" "${cfg[@]}" \
+            python3 -m jsgs.cli train "$M" --out "/tmp/full_$m" --method "${m%%_*}" "${cfg[@]}" \
                 --iterations "${FULL_ITERS:-10000}" --eval-at 3000,7000,10000 --device cuda --quiet --force \
                 > "$OUT/full_${i}_$m.log" 2>&1
             cp "/tmp/full_$m/metrics.json" "$OUT/full_${i}_$m.json"

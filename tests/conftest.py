@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,6 +13,62 @@ import pytest
 
 #: ``../shared`` beside the checkout (real scenes, the paper, LPIPS weights); tests that need it skip without.
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """No test downloads anything: LPIPS's AlexNet download is off, and torch's hub cache is a fresh folder
+    (so a backbone cached by an earlier, non-test run cannot change what the tests see). Set here, in the
+    environment, so that the CLI subprocesses of the end-to-end tests inherit it."""
+    import tempfile
+
+    os.environ["JSGS_LPIPS_DOWNLOAD"] = "0"
+    os.environ["TORCH_HOME"] = tempfile.mkdtemp(prefix="jsgs-test-torch-home-")
+
+
+# A test needs ../shared when its body names one of these (the helpers below, the module constants that point
+# into ../shared) or it uses a fixture built from it; such tests get the ``needs_data`` marker at collection,
+# so ``-m needs_data`` / ``-m "not needs_data"`` select them, and the session's end counts how many ran.
+_DATA_NAMES = ("shared_scene(", "shared_images(", "SHARED", "SCENES", "WEIGHTS", "needs_shared")
+_DATA_FIXTURES = {"model"}  # tests/test_lpips.py: the LPIPS model on the real backbone
+_data_outcomes: dict[str, int] = {"ran": 0, "skipped": 0}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    import inspect
+
+    for item in items:
+        fn = getattr(item, "function", None)
+        try:
+            src = inspect.getsource(fn) if fn is not None else ""
+        except (OSError, TypeError):
+            src = ""
+        fixtures = set(getattr(item, "fixturenames", ()))
+        if any(n in src for n in _DATA_NAMES) or fixtures & _DATA_FIXTURES:
+            item.add_marker(pytest.mark.needs_data)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if "needs_data" not in report.keywords:
+        return
+    if report.when == "call":
+        _data_outcomes["ran"] += 1
+    elif report.skipped:
+        _data_outcomes["skipped"] += 1
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    ran, skipped = _data_outcomes["ran"], _data_outcomes["skipped"]
+    where = "present" if SHARED.is_dir() else "absent"
+    terminalreporter.write_line(f"needs_data: {ran} ran, {skipped} skipped (../shared is {where}: {SHARED})")
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """With ../shared present, a run that selected data tests but ran none of them has not tested what it
+    claims: fail it (a moved folder or a broken skip condition would otherwise pass silently)."""
+    ran, skipped = _data_outcomes["ran"], _data_outcomes["skipped"]
+    if SHARED.is_dir() and ran == 0 and skipped > 0:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+        print(f"\nneeds_data: ../shared is present ({SHARED}) but all {skipped} data tests skipped")
 
 
 @pytest.fixture(scope="session")

@@ -26,7 +26,7 @@ LEADING = (
 
 
 def _bench(scene: Path, out: Path, cfg: Path) -> object:
-    from cli.jsgs_cli import main
+    from jsgs.cli import main
 
     args = [
         "bench", str(scene), "--out", str(out), "--schedules", "gaussian,clean", "--fixed", "",
@@ -166,7 +166,7 @@ def test_plan_layout_and_ablation(tmp_path: Path, synth_scene: Path) -> None:
 
 def test_prepare_only_then_plan_without_the_source(synth_scene: Path, tmp_path: Path) -> None:
     """The CPU half of a GPU session compresses; the GPU machine (no ../shared) plans on the prepared data."""
-    from cli.jsgs_cli import main
+    from jsgs.cli import main
     from jsgs.errors import JsgsError
 
     out = tmp_path / "results"
@@ -195,8 +195,8 @@ def test_prepare_derives_from_the_clean_base(
     import shutil
 
     import jsgstools.compress
-    from cli.jsgs_cli import main
     from jsgs.bench.harness import prepare_datasets
+    from jsgs.cli import main
     from jsgs.manifest import load_manifest
 
     out = tmp_path / "results"
@@ -238,7 +238,7 @@ def test_prepare_derives_from_the_clean_base(
 def test_report_only_collects_what_is_there(synth_scene: Path, tmp_path: Path) -> None:
     """--report-only trains nothing: runs copied back from elsewhere are collected, the others listed as
     not run (the way results from several GPU calls are merged into one report)."""
-    from cli.jsgs_cli import main
+    from jsgs.cli import main
     from jsgs.schemas import validate
 
     cfg = tmp_path / "tiny.json"

@@ -14,9 +14,9 @@ from click.testing import CliRunner
 from conftest import shared_scene
 from PIL import Image
 
-from cli.jsgstools_cli import main
 from jsgs.errors import JsgsError
 from jsgstools import compress as C
+from jsgstools.cli import main
 from jsgstools.compress import QUALITIES, compress, largest_remainder, plan, schedule_weights
 
 

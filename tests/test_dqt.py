@@ -17,10 +17,10 @@ import pytest
 from click.testing import CliRunner
 from PIL import ExifTags, Image, JpegImagePlugin
 
-from cli.inspect_dqt import inspect_dqt
 from jsgs.errors import JsgsError
 from jsgs.jpeg.tables import BASE_LUMA, ZIGZAG, estimate_quality, ijg_tables
 from jsgs.schemas import load_schema
+from jsgstools.cli.inspect_dqt import inspect_dqt
 from jsgstools.dqt import (
     JpegHeader,
     clear_caches,
@@ -722,7 +722,7 @@ def test_console_script_end_to_end(good_files: tuple[Path, Path], tmp_path: Path
     bad = tmp_path / "cut.jpg"
     bad.write_bytes(a.read_bytes()[:100])
     proc = subprocess.run(
-        [sys.executable, "-c", "from cli.jsgstools_cli import main; main()", "inspect-dqt", str(a), str(bad)],
+        [sys.executable, "-c", "from jsgstools.cli import main; main()", "inspect-dqt", str(a), str(bad)],
         capture_output=True,
         text=True,
         cwd=ROOT,

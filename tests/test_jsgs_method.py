@@ -546,7 +546,7 @@ def test_unsupported_jpeg_states_are_refused_naming_the_view(
 
 
 def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path) -> None:
-    from cli.jsgs_cli import main
+    from jsgs.cli import main
 
     cfg = {
         "init": {"type": "random", "num_points": 300, "scale": 0.3},
@@ -761,6 +761,7 @@ def test_compiled_jpeg_terms_equal_eager(mode: str) -> None:
         assert torch.allclose(traced["grads"][k], g, rtol=1e-7, atol=1e-12), k
 
 
+@pytest.mark.slow
 def test_inductor_compiled_jpeg_terms_equal_eager() -> None:
     """The same with inductor itself (CPU code generation): its tracing of replication padding's backward on
     the colour transform's strided planes failed before jsgs.jpeg.sampling.pad_replicate made them

@@ -94,11 +94,24 @@ def test_env_var_batch_symmetry_identity(monkeypatch: pytest.MonkeyPatch) -> Non
 
 
 @needs_shared
-def test_gradient_reaches_input(model: L.LpipsAlex) -> None:
-    x = torch.rand(1, 3, 40, 48, generator=torch.Generator().manual_seed(0)).requires_grad_()
-    y = torch.rand(1, 3, 40, 48, generator=torch.Generator().manual_seed(1))
-    model(x, y).sum().backward()
-    assert x.grad is not None and torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+def test_gradient_matches_finite_differences(model: L.LpipsAlex) -> None:
+    """The input gradient (what a perceptual loss would use) equals central differences, in float64."""
+    import copy
+
+    m = copy.deepcopy(model).double()
+    g64 = torch.Generator().manual_seed(0)
+    x = (torch.rand(1, 3, 40, 48, generator=g64, dtype=torch.float64) * 2 - 1).requires_grad_()
+    y = torch.rand(1, 3, 40, 48, generator=g64, dtype=torch.float64) * 2 - 1
+    m(x, y).sum().backward()
+    assert x.grad is not None
+    eps = 1e-6
+    for idx in [(0, 0, 5, 7), (0, 1, 20, 30), (0, 2, 39, 47), (0, 0, 33, 2)]:
+        xp, xm = x.detach().clone(), x.detach().clone()
+        xp[idx] += eps
+        xm[idx] -= eps
+        with torch.no_grad():
+            fd = float((m(xp, y).sum() - m(xm, y).sum()) / (2 * eps))
+        assert abs(fd - float(x.grad[idx])) <= 1e-5 * max(1e-3, abs(fd)), (idx, fd, float(x.grad[idx]))
 
 
 def test_no_weights_warns_once_and_returns_none() -> None:
@@ -111,6 +124,64 @@ def test_no_weights_warns_once_and_returns_none() -> None:
     msgs = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     assert msgs == [L.UNAVAILABLE_MESSAGE]
     assert L.ENV_VAR in msgs[0]
+
+
+def _hub_file(tmp_path: Path, state: dict[str, torch.Tensor], corrupt: bool = False) -> str:
+    """A weights file named as torchvision names its downloads (``-<SHA-256 prefix>.pth``); ``corrupt``
+    names it with a prefix that does not match. Returns its file:// URL."""
+    raw = tmp_path / "raw.pth"
+    torch.save(state, raw)
+    digest = hashlib.sha256(raw.read_bytes()).hexdigest()[:8]
+    if corrupt:
+        digest = "0" * 8 if digest != "0" * 8 else "1" * 8
+    named = tmp_path / "srv" / f"alexnet-owt-{digest}.pth"
+    named.parent.mkdir()
+    raw.rename(named)
+    return named.as_uri()
+
+
+def test_download_keeps_the_convolutions_in_the_hub_cache(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No path and no variable: the backbone is downloaded once (hash checked), its ``features.*`` kept in
+    torch's hub cache, the full file deleted; the next call reads the cache without downloading."""
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv(L.DOWNLOAD_ENV_VAR, "1")
+    full = {**random_backbone(3), "classifier.1.weight": torch.zeros(4, 4)}
+    monkeypatch.setattr(L, "ALEXNET_URL", _hub_file(tmp_path, full))
+    path = L.resolve_weights()
+    assert path == tmp_path / "home" / "hub" / "checkpoints" / L.CACHE_NAME
+    kept = torch.load(path, weights_only=True)
+    assert sorted(kept) == sorted(k for k in full if k.startswith("features."))
+    for k, v in kept.items():
+        assert torch.equal(v, full[k])
+    assert [p.name for p in path.parent.iterdir()] == [L.CACHE_NAME]  # no full copy, no temp folder left
+    monkeypatch.setattr(L, "download_backbone", lambda *a: pytest.fail("downloaded twice"))
+    assert L.resolve_weights() == path
+
+
+def test_download_with_a_wrong_hash_is_refused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "home"))
+    url = _hub_file(tmp_path, random_backbone(4), corrupt=True)
+    with pytest.raises(JsgsError, match="download rejected: .*invalid hash value"):
+        L.download_backbone(url)
+    assert not (tmp_path / "home" / "hub" / "checkpoints" / L.CACHE_NAME).exists()
+
+
+def test_download_offline_warns_and_gives_null(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "home"))
+    missing = (tmp_path / "nowhere" / "alexnet-owt-7be5be79.pth").as_uri()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert L.download_backbone(missing) is None
+    assert any("could not download" in str(w.message) for w in caught)
+
+
+def test_download_off_gives_null(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv(L.DOWNLOAD_ENV_VAR, "0")
+    monkeypatch.setattr(L, "download_backbone", lambda *a: pytest.fail("download attempted"))
+    assert L.resolve_weights() is None
 
 
 def test_named_missing_weights_is_an_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

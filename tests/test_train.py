@@ -92,7 +92,7 @@ def test_defaults_are_gsplat_simple_trainer() -> None:
 
 
 def test_config_schema_file_is_current() -> None:
-    on_disk = json.loads((ROOT / "schemas" / "config.schema.json").read_text())
+    on_disk = json.loads((ROOT / "jsgs" / "schemas" / "config.schema.json").read_text())
     assert on_disk == json.loads(json.dumps(config_schema())), "regenerate: python -m jsgs.train.config"
 
 
@@ -416,7 +416,7 @@ def test_trainer_imports_without_dataset_tools() -> None:
     code = (
         "import sys\n"
         "sys.modules['pycolmap'] = None; sys.modules['cv2'] = None\n"
-        "import jsgs.train.trainer, cli.train, cli.jsgs_cli\n"
+        "import jsgs.train.trainer, jsgs.cli.train, jsgs.cli\n"
         "assert 'jsgstools' not in sys.modules\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)

@@ -13,7 +13,7 @@ import pytest
 from _train_scene import edit_manifest, make_scene
 from click.testing import CliRunner
 
-from cli.jsgs_cli import main
+from jsgs.cli import main
 
 FAST = {"eval": {"fps_passes": 1, "fps_warmup": 0}, "strategy": {"refine_start_iter": 10_000}}
 

@@ -12,8 +12,8 @@ from click.testing import CliRunner
 from conftest import shared_scene
 from PIL import Image
 
-from cli.jsgstools_cli import main
 from jsgs.errors import JsgsError
+from jsgstools.cli import main
 from jsgstools.scene import resolve_image
 from jsgstools.validate import require_valid, validate_scene
 

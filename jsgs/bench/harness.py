@@ -1,6 +1,6 @@
 """:func:`bench`: plan -> datasets (``jsgstools.compress``, or ``jsgstools.derive`` from a clean base) ->
 worker pool (``jsgs train`` subprocesses) -> ``results.csv`` -> ``report.md`` + plots, recording everything in
-``RESULTS/bench.json`` (``schemas/bench.schema.json``)."""
+``RESULTS/bench.json`` (``jsgs/schemas/bench.schema.json``)."""
 
 from __future__ import annotations
 

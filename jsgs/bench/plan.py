@@ -210,7 +210,7 @@ def build_plan(
 
 def train_argv(run: Run, device: str, config: str | None, resume: bool) -> list[str]:
     """The ``jsgs train`` subprocess for ``run`` (``--resume`` continues a stopped run, else ``--force``)."""
-    head = [sys.executable, "-c", "from cli.jsgs_cli import main; main(prog_name='jsgs')", "train"]
+    head = [sys.executable, "-c", "from jsgs.cli import main; main(prog_name='jsgs')", "train"]
     if resume:  # the run's own settings (config.json); flags that would change them are refused
         return head + [run.manifest, "--out", run.out, "--resume", "--quiet"]
     argv = head + [

@@ -14,10 +14,14 @@ The network is the reference implementation's (``lpips.LPIPS(net='alex', version
 Weights come from two files:
 
 - the AlexNet backbone (ImageNet, ~10 MB, not in the repository): a path given by the caller, else the
-  environment variable ``JSGS_LPIPS_WEIGHTS``. A plain ``torch.save`` dict in torchvision's layout,
-  ``features.{0,3,6,8,10}.{weight,bias}``; a full torchvision AlexNet state dict works too
-  (``classifier.*`` is ignored). With neither given, :func:`load_lpips` and :func:`lpips` warn once and
-  return ``None``: a missing metric is reported as missing, never replaced by a made-up number.
+  environment variable ``JSGS_LPIPS_WEIGHTS``, else the copy kept in torch's hub cache
+  (``$TORCH_HOME/hub/checkpoints/jsgs_lpips_alexnet_features.pth``), else torchvision's ImageNet AlexNet file
+  downloaded once with ``torch.hub.load_state_dict_from_url`` (its SHA-256 checked against the prefix in its
+  name, as torchvision does), of which only the convolution layers are kept in that cache file. A plain
+  ``torch.save`` dict in torchvision's layout, ``features.{0,3,6,8,10}.{weight,bias}``; a full torchvision
+  AlexNet state dict works too (``classifier.*`` is ignored). With no file and no network (or
+  ``JSGS_LPIPS_DOWNLOAD=0``), :func:`load_lpips` and :func:`lpips` warn once and return ``None``: a missing
+  metric is reported as missing, never replaced by a made-up number.
 - the linear heads: ``jsgs/metrics/weights/lpips_v0.1_alex.pth``, the ``lpips`` package's own file
   (BSD-2, see the README next to it), checked against its SHA-256 when loaded.
 
@@ -41,6 +45,12 @@ from jsgs.errors import JsgsError, one_line
 from jsgs.precision import ieee_fp32
 
 ENV_VAR = "JSGS_LPIPS_WEIGHTS"
+# "0" turns the download off (tests, air-gapped machines); anything else, or unset, allows it.
+DOWNLOAD_ENV_VAR = "JSGS_LPIPS_DOWNLOAD"
+# torchvision's AlexNet IMAGENET1K_V1 weights; "7be5be79" is the start of the file's SHA-256, which
+# torch.hub checks (check_hash=True).
+ALEXNET_URL = "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth"
+CACHE_NAME = "jsgs_lpips_alexnet_features.pth"
 HEADS_PATH = Path(__file__).resolve().parent / "weights" / "lpips_v0.1_alex.pth"
 HEADS_SHA256 = "df73285e35b22355a2df87cdb6b70b343713b667eddbda73e1977e0c860835c0"
 
@@ -65,7 +75,8 @@ _EPS = 1e-10  # lpips.normalize_tensor's eps: added to the norm, not under the s
 
 UNAVAILABLE_MESSAGE = (
     "LPIPS unavailable: no AlexNet backbone weights (pass a path or set "
-    f"${ENV_VAR}, e.g. to ../shared/lpips/alexnet_features.pth); LPIPS is reported as null"
+    f"${ENV_VAR}, e.g. to ../shared/lpips/alexnet_features.pth; the download of {ALEXNET_URL} "
+    "was not possible); LPIPS is reported as null"
 )
 
 
@@ -207,16 +218,59 @@ def load_heads(path: str | os.PathLike[str] | None = None) -> list[Tensor]:
     return heads
 
 
+def cached_backbone_path() -> Path:
+    """Where a downloaded backbone's convolution layers are kept: torch's hub cache (``$TORCH_HOME``)."""
+    return Path(torch.hub.get_dir()) / "checkpoints" / CACHE_NAME
+
+
+def download_backbone(url: str | None = None) -> Path | None:
+    """Download torchvision's AlexNet weights from ``url`` (hash checked by ``torch.hub`` against the hex
+    prefix in the file name), keep only ``features.*`` in :func:`cached_backbone_path` (written atomically)
+    and delete the full download. Returns None when the file cannot be fetched (offline); raises JsgsError
+    when it was fetched but its hash or content is wrong."""
+    import tempfile
+    import urllib.error
+
+    url = url or ALEXNET_URL
+    target = cached_backbone_path()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=target.parent, prefix=".jsgs-download-") as tmp:
+        try:
+            state = torch.hub.load_state_dict_from_url(
+                url, model_dir=tmp, map_location="cpu", progress=False, check_hash=True, weights_only=True
+            )
+        except (urllib.error.URLError, ConnectionError, TimeoutError) as e:
+            warn_once(f"LPIPS: could not download {url}: {one_line(e)}")
+            return None
+        except RuntimeError as e:  # torch.hub: "invalid hash value (expected ..., got ...)"
+            raise JsgsError(f"{url}: download rejected: {one_line(e)}") from None
+        features = {k: v for k, v in state.items() if k.startswith("features.")}
+        part = Path(tmp) / CACHE_NAME
+        torch.save(features, part)
+        try:
+            load_backbone(part)
+        except JsgsError as e:
+            raise JsgsError(f"{url}: downloaded file is not torchvision's AlexNet ({e})") from None
+        os.replace(part, target)
+    return target
+
+
 def resolve_weights(weights: str | os.PathLike[str] | None = None) -> Path | None:
     """The backbone weights file: ``weights`` if given, else ``$JSGS_LPIPS_WEIGHTS`` if set and non-empty,
-    else None. A file that is *named* but does not exist is an error (JsgsError), not a silent null: a typo
-    in a config should not quietly drop a metric."""
+    else the hub-cache copy, else a download (unless ``$JSGS_LPIPS_DOWNLOAD`` is ``0``); None when none of
+    these gives a file. A file that is *named* but does not exist is an error (JsgsError), not a silent
+    null: a typo in a config should not quietly drop a metric."""
     if weights is not None and str(weights) != "":
         p, source = Path(weights), "given path"
     elif os.environ.get(ENV_VAR):
         p, source = Path(os.environ[ENV_VAR]), f"${ENV_VAR}"
     else:
-        return None
+        cached = cached_backbone_path()
+        if cached.is_file():
+            return cached
+        if os.environ.get(DOWNLOAD_ENV_VAR, "1") == "0":
+            return None
+        return download_backbone()
     if not p.is_file():
         raise JsgsError(f"{p}: LPIPS AlexNet weights file not found (from the {source})")
     return p

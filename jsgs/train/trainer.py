@@ -14,7 +14,7 @@ One step (0-based ``step``), as simple_trainer's ``train()``:
    checkpoint.
 
 Outputs in RUN/: ``config.json`` (settings, derived values, versions), ``metrics.json`` (schema
-``schemas/metrics.schema.json``), ``point_cloud.ply`` (3DGS layout, in the normalised training world; the
+``jsgs/schemas/metrics.schema.json``), ``point_cloud.ply`` (3DGS layout, in the normalised training world; the
 transform is in config.json), ``renders/step_XXXXXX/*.png`` (test views), ``checkpoints/step_XXXXXX.pt``.
 """
 
@@ -695,7 +695,7 @@ class Trainer:
         return "stopped" if step_done == self.end_step else "running"
 
     def metrics_doc(self, status: str, step: int, error: str | None = None) -> dict[str, Any]:
-        """The metrics document (``schemas/metrics.schema.json``) of the run so far."""
+        """The metrics document (``jsgs/schemas/metrics.schema.json``) of the run so far."""
         cfg, device = self.cfg, self.device
         assert cfg is not None
         return {

@@ -634,7 +634,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    """Profile every method; returns the output document (schemas/profile_step.schema.json)."""
+    """Profile every method; returns the output document (jsgs/schemas/profile_step.schema.json)."""
     if args.threads:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from cli._common import user_errors
+from jsgs.cli._common import user_errors
 
 
 def _emit(text: str, err: bool = False) -> None:
@@ -27,7 +27,8 @@ def _emit(text: str, err: bool = False) -> None:
     "--json",
     "as_json",
     is_flag=True,
-    help="Print one JSON document (schemas/dqt_report.schema.json) instead of the table; tables in natural "
+    help="Print one JSON document (jsgs/schemas/dqt_report.schema.json) instead of the table; tables in "
+    "natural "
     "row-major order.",
 )
 @click.option("--tables", "show_tables", is_flag=True, help="Also print every 8x8 table below the summary.")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from cli._common import invocation, user_errors
+from jsgs.cli._common import invocation, user_errors
 
 SCHEDULE_HELP = (
     "uniform: the nine qualities 10..90 equally; gaussian: weights exp(-x^2/2) at x = -2..2 (q=10..90); "
@@ -200,7 +200,7 @@ def validate_cmd(scene: Path, test_every: int) -> None:
 @user_errors
 def manifest_cmd(scene: Path, out: Path, test_every: int | None, force: bool) -> None:
     """Write the training manifest of SCENE (one made by compress, or your own JPEG/PNG collection with its
-    COLMAP cameras) to OUT, validated against schemas/manifest.schema.json.
+    COLMAP cameras) to OUT, validated against jsgs/schemas/manifest.schema.json.
 
     Per view: image path, split, camera scaled to the file (distortion recorded, not removed), world-to-camera
     R and t (x_cam = R x_world + t, OpenCV axes), the JPEG state read from the header (null for lossless) and

@@ -1,4 +1,5 @@
-"""Load and apply the JSON Schemas in the top-level ``schemas/`` folder."""
+"""The JSON Schemas of every file jsgs and jsgstools write or read (``*.schema.json`` beside this module,
+shipped as package data), and the one-line validation error built from them."""
 
 from __future__ import annotations
 
@@ -9,12 +10,12 @@ from typing import Any
 
 from jsgs.errors import JsgsError
 
-SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
+SCHEMA_DIR = Path(__file__).resolve().parent
 
 
 @cache
 def load_schema(name: str) -> dict[str, Any]:
-    """``name`` without extension, e.g. ``"manifest"`` -> schemas/manifest.schema.json."""
+    """``name`` without extension, e.g. ``"manifest"`` -> ``jsgs/schemas/manifest.schema.json``."""
     path = SCHEMA_DIR / f"{name}.schema.json"
     return json.loads(path.read_text())
 

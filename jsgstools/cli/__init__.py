@@ -16,14 +16,10 @@ def main() -> None:
 
 def _register() -> None:
     # Each module adds its commands to ``main``; kept apart so each command's wrapper stays small.
-    from cli import dataset, inspect_dqt
+    from jsgstools.cli import dataset, inspect_dqt
 
     inspect_dqt.register(main)
     dataset.register(main)
 
 
 _register()
-
-
-if __name__ == "__main__":  # python -m cli.<name>, where the console scripts are not installed (GPU machine)
-    main()

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from cli._common import invocation, user_errors
+from jsgs.cli._common import invocation, user_errors
 from jsgs.errors import JsgsError
 
 

@@ -14,14 +14,10 @@ def main() -> None:
 
 
 def _register() -> None:
-    from cli import bench, train
+    from jsgs.cli import bench, train
 
     train.register(main)
     bench.register(main)
 
 
 _register()
-
-
-if __name__ == "__main__":  # python -m cli.<name>, where the console scripts are not installed (GPU machine)
-    main()

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from cli._common import invocation, user_errors
+from jsgs.cli._common import invocation, user_errors
 
 
 @click.command("bench")

@@ -1,1 +1,0 @@
-"""Thin click front ends over the jsgstools and jsgs libraries. No logic lives here."""
