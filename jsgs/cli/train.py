@@ -51,6 +51,14 @@ def _parse_steps(text: str) -> list[int]:
     help="JSON settings (partial, over the defaults) or an earlier RUN/config.json.",
 )
 @click.option(
+    "--preset",
+    type=click.Choice(["default", "mcmc"]),
+    default=None,
+    help="Starting settings under --config and the options: mcmc is gsplat simple_trainer's mcmc recipe "
+    "(strategy.type mcmc with refine_stop_iter 25000, init.opacity 0.5, init.scale 0.1, loss.opacity_reg "
+    "0.01, loss.scale_reg 0.01; the budget is strategy.cap_max) [default: default].",
+)
+@click.option(
     "--device",
     type=click.Choice(["auto", "cuda", "cpu"]),
     default=None,
@@ -100,6 +108,7 @@ def train_command(
     iterations: int | None,
     eval_at: str | None,
     config_file: Path | None,
+    preset: str | None,
     device: str | None,
     jpeg_mode: str | None,
     compile_backend: str | None,
@@ -115,6 +124,7 @@ def train_command(
 ) -> None:
     """Train Gaussians on the views of MANIFEST (a jsgs manifest; see `jsgstools manifest`)."""
     from jsgs.train.config import TrainConfig, from_dict, load_config_file
+    from jsgs.train.config import preset as preset_settings
     from jsgs.train.trainer import load_run_settings, train
 
     if resume and force:
@@ -126,12 +136,15 @@ def train_command(
     if eval_at is not None:
         overrides["eval_at"] = _parse_steps(eval_at)
 
+    if resume and preset is not None:
+        raise JsgsError("--preset applies to a new run; --resume takes the run's own settings")
+    start = preset_settings(preset) if preset is not None else TrainConfig()
     if config_file is not None:
-        base = load_config_file(config_file)
+        base = load_config_file(config_file, base=start)
     elif resume:
         base = load_run_settings(out)
     else:
-        base = TrainConfig()
+        base = start
     cfg = from_dict(overrides, "command line", base=base)
     # --method jsgs switches: merged over the config's method_options (the rest of them stay)
     method_flags: dict[str, Any] = {}

@@ -90,8 +90,19 @@ class OptimConfig:
 
 @dataclass
 class StrategyConfig:
-    """gsplat's ``DefaultStrategy`` (densify by screen-space gradient, prune by opacity and size)."""
+    """Densification (``jsgs.strategy``): gsplat's ``DefaultStrategy`` (densify by screen-space gradient,
+    prune by opacity and size) or ``MCMCStrategy`` (a fixed budget of Gaussians, ``cap_max``)."""
 
+    type: Literal["default", "mcmc"] = _f(
+        "default",
+        "default: gsplat DefaultStrategy (the count grows as the heuristics decide); mcmc: gsplat "
+        "MCMCStrategy, at most cap_max Gaussians (equal model sizes for comparisons; --preset mcmc).",
+    )
+    cap_max: int = _f(1_000_000, "mcmc: the budget, the largest number of Gaussians.")
+    noise_lr: float = _f(
+        5e5, "mcmc: position noise scale, times the means' learning rate (gsplat MCMCStrategy noise_lr)."
+    )
+    min_opacity: float = _f(0.005, "mcmc: Gaussians at or below this opacity are relocated.")
     prune_opa: float = _f(0.005, "Prune Gaussians with opacity below this.")
     grow_grad2d: float = _f(
         0.0002, "Duplicate/split Gaussians whose mean screen-space gradient exceeds this."
@@ -101,10 +112,12 @@ class StrategyConfig:
     prune_scale3d: float = _f(0.1, "Prune Gaussians larger than this x scene scale (after reset_every).")
     prune_scale2d: float = _f(0.15, "Prune by screen radius (only before refine_scale2d_stop_iter).")
     refine_scale2d_stop_iter: int = _f(0, "Use the 2D-radius criteria before this step (0: never).")
-    refine_start_iter: int = _f(500, "Refine only after this step.")
-    refine_stop_iter: int = _f(15_000, "Stop refining at this step.")
-    reset_every: int = _f(3000, "Opacity reset period (see DefaultStrategy).")
-    refine_every: int = _f(100, "Refine every this many steps.")
+    refine_start_iter: int = _f(500, "Refine (default) or relocate and add (mcmc) only after this step.")
+    refine_stop_iter: int = _f(
+        15_000, "Stop refining at this step (gsplat's MCMCStrategy default, set by --preset mcmc: 25000)."
+    )
+    reset_every: int = _f(3000, "default: opacity reset period (see DefaultStrategy).")
+    refine_every: int = _f(100, "Refine (default) or relocate and add (mcmc) every this many steps.")
     pause_refine_after_reset: int = _f(0, "Pause refinement this many steps after a reset.")
     absgrad: bool = _f(False, "Use absolute screen-space gradients (AbsGS).")
     revised_opacity: bool = _f(False, "Revised opacity heuristic of arXiv:2404.06109 when splitting.")
@@ -200,7 +213,7 @@ class TrainConfig:
     log_every: int = _f(10, "Refresh the progress bar every this many steps.")
     init: InitConfig = _f(default_factory=InitConfig, help="Initial Gaussians.")
     optim: OptimConfig = _f(default_factory=OptimConfig, help="Optimizer.")
-    strategy: StrategyConfig = _f(default_factory=StrategyConfig, help="Densification (DefaultStrategy).")
+    strategy: StrategyConfig = _f(default_factory=StrategyConfig, help="Densification strategy.")
     scene: SceneConfig = _f(default_factory=SceneConfig, help="World normalisation.")
     render: RenderConfig = _f(default_factory=RenderConfig, help="Rasterisation.")
     loss: LossConfig = _f(default_factory=LossConfig, help="Loss weights.")
@@ -243,6 +256,14 @@ class TrainConfig:
             raise JsgsError(f"{where}: init.opacity must lie in (0, 1) (got {self.init.opacity})")
         if self.strategy.refine_every < 1 or self.strategy.reset_every < 1:
             raise JsgsError(f"{where}: strategy.refine_every and strategy.reset_every must be >= 1")
+        if self.strategy.cap_max < 1:
+            raise JsgsError(f"{where}: strategy.cap_max must be >= 1 (got {self.strategy.cap_max})")
+        if self.strategy.noise_lr < 0.0:
+            raise JsgsError(f"{where}: strategy.noise_lr must not be negative (got {self.strategy.noise_lr})")
+        if not 0.0 <= self.strategy.min_opacity < 1.0:
+            raise JsgsError(
+                f"{where}: strategy.min_opacity must lie in [0, 1) (got {self.strategy.min_opacity})"
+            )
         if not 0.0 < self.optim.means_lr_final_factor:
             raise JsgsError(f"{where}: optim.means_lr_final_factor must be > 0")
         if method_options:
@@ -390,9 +411,29 @@ def from_dict(doc: dict[str, Any], where: str = "config", base: TrainConfig | No
     return cfg
 
 
-def load_config_file(path: str | Path) -> TrainConfig:
+#: Named starting points for the settings (``jsgs train --preset NAME``); a config file and the command line
+#: apply over them. ``mcmc`` is gsplat simple_trainer's ``mcmc`` recipe (with its MCMCStrategy defaults).
+PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "mcmc": {
+        "init": {"opacity": 0.5, "scale": 0.1},
+        "loss": {"opacity_reg": 0.01, "scale_reg": 0.01},
+        "strategy": {"type": "mcmc", "refine_stop_iter": 25_000},
+    },
+}
+
+
+def preset(name: str) -> TrainConfig:
+    """The settings of preset ``name`` (over the defaults)."""
+    if name not in PRESETS:
+        raise JsgsError(f"--preset: {name!r} is not one of {', '.join(PRESETS)}")
+    return from_dict(PRESETS[name], f"preset {name}")
+
+
+def load_config_file(path: str | Path, base: TrainConfig | None = None) -> TrainConfig:
     """Read ``--config FILE``: either a ``RUN/config.json`` of an earlier run (validated against the schema;
-    its ``settings`` are taken whole) or a JSON object of (partial) settings over the defaults."""
+    its ``settings`` are taken whole) or a JSON object of (partial) settings over ``base`` (default: the
+    defaults)."""
     from jsgs.schemas import validate
 
     path = Path(path)
@@ -408,7 +449,7 @@ def load_config_file(path: str | Path) -> TrainConfig:
     else:
         # a bare settings object: from_dict checks names, types and choices with one-line messages
         settings = doc
-    cfg = from_dict(settings, str(path))
+    cfg = from_dict(settings, str(path), base=base if "format" not in doc else None)
     cfg.check(str(path), method_options=isinstance(settings, dict) and "method" in settings)
     return cfg
 

@@ -39,6 +39,7 @@ import jsgs
 from jsgs.cuda_ext import use_kernels
 from jsgs.errors import JsgsError
 from jsgs.io import write_json_atomic
+from jsgs.strategy import Densifier, initial_subset
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, to_dict
 from jsgs.train.data import ViewSampler, load_eval_images, load_scene, load_train_images
@@ -157,29 +158,6 @@ def _versions() -> dict[str, Any]:
         "gsplat": gv,
         "python": platform.python_version(),
     }
-
-
-def _strategy(cfg: TrainConfig) -> Any:
-    from gsplat.strategy import DefaultStrategy
-
-    s = cfg.strategy
-    return DefaultStrategy(
-        prune_opa=s.prune_opa,
-        grow_grad2d=s.grow_grad2d,
-        grow_scale3d=s.grow_scale3d,
-        grow_scale2d=s.grow_scale2d,
-        prune_scale3d=s.prune_scale3d,
-        prune_scale2d=s.prune_scale2d,
-        refine_scale2d_stop_iter=s.refine_scale2d_stop_iter,
-        refine_start_iter=s.refine_start_iter,
-        refine_stop_iter=s.refine_stop_iter,
-        reset_every=s.reset_every,
-        refine_every=s.refine_every,
-        pause_refine_after_reset=s.pause_refine_after_reset,
-        absgrad=s.absgrad,
-        revised_opacity=s.revised_opacity,
-        verbose=False,
-    )
 
 
 def _seed_everything(seed: int) -> None:
@@ -457,17 +435,20 @@ class Trainer:
             # from the same Gaussians as the baseline for a given seed
             with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
                 self.hook = make_hook(cfg, scene, device)
-        self.strategy = _strategy(cfg)
+        self.strategy = Densifier(cfg.strategy)
         self.sampler = ViewSampler(len(self.train_views), cfg.seed)
 
         if start_ckpt is None:
-            self.splats = init_splats(
-                torch.from_numpy(scene.points),
-                torch.from_numpy(scene.points_rgb).float() / 255.0,
-                cfg,
-                scene.scene_scale,
-                device,
-            )
+            points = torch.from_numpy(scene.points)
+            colors = torch.from_numpy(scene.points_rgb).float() / 255.0
+            keep = initial_subset(len(points), self.strategy.cap_max, cfg.seed)
+            if keep is not None:
+                self.say(
+                    f"note: {len(points)} initial points exceed strategy.cap_max = {self.strategy.cap_max}; "
+                    f"starting from a random {len(keep)} of them (seed {cfg.seed})"
+                )
+                points, colors = points[keep], colors[keep]
+            self.splats = init_splats(points, colors, cfg, scene.scene_scale, device)
         else:
             self.splats = splats_from_state(start_ckpt["splats"], device)
         self.optimizers = make_optimizers(self.splats, cfg, scene.scene_scale)
@@ -645,7 +626,13 @@ class Trainer:
             self.scheduler.step()
         with profiler.phase("densify"):
             strategy.step_post_backward(
-                splats, optimizers, self.strategy_state, step, r.info, packed=cfg.render.packed
+                splats,
+                optimizers,
+                self.strategy_state,
+                step,
+                r.info,
+                lr=self.scheduler.get_last_lr()[0],
+                packed=cfg.render.packed,
             )
         result = StepResult(
             step,

@@ -1,0 +1,293 @@
+"""Densification strategies (jsgs.strategy): gsplat's MCMCStrategy on the CPU through the torch twins of its
+CUDA ops, the Gaussian budget, the mcmc preset, resume, and the twins against float64 and gsplat's kernels."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+from _train_scene import make_scene
+from test_train import tiny_config
+
+from jsgs.errors import JsgsError
+from jsgs.strategy import Densifier, initial_subset
+from jsgs.strategy.relocation import compute_relocation, cpu_twins, quat_scale_to_covar
+from jsgs.train import checkpoint as ckpt
+from jsgs.train.callbacks import Callback
+from jsgs.train.config import PRESETS, TrainConfig, from_dict, preset
+from jsgs.train.trainer import train
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_scene(tmp_path_factory.mktemp("scene"))
+
+
+@pytest.fixture(scope="module")
+def jpeg_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_scene(tmp_path_factory.mktemp("jscene"), jpeg_train=True)
+
+
+def binoms(n_max: int = 51, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    b = torch.zeros(n_max, n_max, dtype=dtype)
+    for n in range(n_max):
+        for k in range(n + 1):
+            b[n, k] = math.comb(n, k)
+    return b
+
+
+def relocation_direct(o: float, n: int) -> tuple[float, float]:
+    """Equation (9) of the MCMC paper, term by term in Python floats (float64), as gsplat's kernel loops."""
+    new_o = 1.0 - (1.0 - o) ** (1.0 / n)
+    denom = 0.0
+    for i in range(1, n + 1):
+        for k in range(i):
+            denom += math.comb(i - 1, k) * (-1.0) ** k / math.sqrt(k + 1) * new_o ** (k + 1)
+    return new_o, o / denom
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the twins
+
+
+def test_relocation_twin_equals_the_formula_in_float64() -> None:
+    g = torch.Generator().manual_seed(0)
+    o = torch.rand(200, generator=g, dtype=torch.float64) * 0.98 + 0.01
+    scales = torch.rand(200, 3, generator=g, dtype=torch.float64) + 0.01
+    ratios = torch.randint(1, 30, (200,), generator=g)
+    ratios[:3] = torch.tensor([1, 2, 29])
+    new_o, new_s = compute_relocation(o, scales, ratios.clone(), binoms(dtype=torch.float64))
+    for i in range(200):
+        eo, coeff = relocation_direct(float(o[i]), int(ratios[i]))
+        assert float(new_o[i]) == pytest.approx(eo, rel=1e-12, abs=1e-15)
+        assert torch.allclose(new_s[i], coeff * scales[i], rtol=1e-10, atol=0)
+    # n = 1 leaves a Gaussian as it is
+    one = ratios == 1
+    assert torch.allclose(new_o[one], o[one], rtol=1e-14) and torch.allclose(new_s[one], scales[one])
+
+
+def test_relocation_twin_clamps_ratios_and_keeps_dtype() -> None:
+    o = torch.tensor([0.5, 0.5, 0.999], dtype=torch.float32)
+    s = torch.ones(3, 3)
+    r = torch.tensor([0, 80, 51])
+    new_o, new_s = compute_relocation(o, s, r, binoms())
+    assert r.tolist() == [1, 51, 51]  # in place, as gsplat's wrapper does
+    assert new_o.dtype == torch.float32 and new_s.dtype == torch.float32
+    assert torch.isfinite(new_o).all() and torch.isfinite(new_s).all() and (new_s > 0).all()
+    assert float(new_o[0]) == 0.5
+    with pytest.raises(ValueError, match="expected"):
+        compute_relocation(o, torch.ones(3, 2), r, binoms())
+
+
+def test_covariance_twin_is_r_s2_rt() -> None:
+    g = torch.Generator().manual_seed(1)
+    q = torch.randn(50, 4, generator=g, dtype=torch.float64)
+    s = torch.rand(50, 3, generator=g, dtype=torch.float64) + 0.05
+    cov = quat_scale_to_covar(q, s)
+    qn = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = qn.unbind(-1)
+    R = torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(50, 3, 3)  # fmt: skip
+    ref = R @ torch.diag_embed(s * s) @ R.transpose(1, 2)
+    assert torch.allclose(cov, ref, rtol=1e-12, atol=1e-14)
+
+
+def test_cpu_twins_are_routed_and_restored() -> None:
+    from gsplat.strategy import ops
+
+    before = ops.compute_relocation, ops.quat_scale_to_covar_preci
+    with cpu_twins():
+        o, s = ops.compute_relocation(
+            opacities=torch.tensor([0.3]), scales=torch.ones(1, 3), ratios=torch.tensor([2]), binoms=binoms()
+        )
+        cov, preci = ops.quat_scale_to_covar_preci(
+            torch.tensor([[1.0, 0, 0, 0]]), torch.ones(1, 3) * 2, compute_covar=True, compute_preci=False
+        )
+        assert preci is None and torch.allclose(cov, torch.eye(3) * 4)
+        assert float(o[0]) == pytest.approx(1 - 0.7**0.5, rel=1e-6)
+    assert (ops.compute_relocation, ops.quat_scale_to_covar_preci) == before
+
+
+@pytest.mark.gpu
+def test_relocation_twin_matches_gsplat_cuda() -> None:
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
+    from gsplat.relocation import compute_relocation as gsplat_relocation
+
+    g = torch.Generator().manual_seed(2)
+    o = (torch.rand(5000, generator=g) * 0.98 + 0.01).cuda()
+    s = (torch.rand(5000, 3, generator=g) + 0.01).cuda()
+    r = torch.randint(1, 20, (5000,), generator=g).cuda()
+    b = binoms().cuda()
+    go, gs = gsplat_relocation(o.clone(), s.clone(), r.clone(), b)
+    to, ts = compute_relocation(o.clone(), s.clone(), r.clone(), b)
+    assert torch.allclose(go, to, rtol=1e-5, atol=1e-7)
+    assert torch.allclose(gs, ts, rtol=1e-4, atol=1e-7)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# settings
+
+
+def test_mcmc_preset_is_gsplat_simple_trainer_mcmc() -> None:
+    from gsplat.strategy import MCMCStrategy
+
+    cfg = preset("mcmc")
+    ref = MCMCStrategy()
+    assert cfg.strategy.type == "mcmc"
+    assert (cfg.init.opacity, cfg.init.scale) == (0.5, 0.1)
+    assert (cfg.loss.opacity_reg, cfg.loss.scale_reg) == (0.01, 0.01)
+    s = cfg.strategy
+    assert (s.cap_max, s.noise_lr, s.min_opacity) == (ref.cap_max, ref.noise_lr, ref.min_opacity)
+    assert (s.refine_start_iter, s.refine_stop_iter, s.refine_every) == (
+        ref.refine_start_iter, ref.refine_stop_iter, ref.refine_every,
+    )  # fmt: skip
+    assert preset("default") == TrainConfig() and set(PRESETS) == {"default", "mcmc"}
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        ({"strategy": {"type": "mcmc", "cap_max": 0}}, "strategy.cap_max must be >= 1"),
+        ({"strategy": {"type": "mcmc", "noise_lr": -1.0}}, "strategy.noise_lr must not be negative"),
+        ({"strategy": {"min_opacity": 1.0}}, r"strategy.min_opacity must lie in \[0, 1\)"),
+        ({"strategy": {"type": "relocate"}}, "strategy.type"),
+    ],
+)
+def test_bad_strategy_settings_are_one_line_errors(settings: dict[str, Any], message: str) -> None:
+    with pytest.raises(JsgsError, match=message) as e:
+        from_dict(settings, "cfg.json").check("cfg.json")
+    assert "\n" not in str(e.value) and "cfg.json" in str(e.value)
+
+
+def test_preset_under_config_file_and_cli(scene: Path, tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from jsgs.cli import main
+
+    cfg_file = tmp_path / "c.json"
+    cfg_file.write_text(json.dumps({"strategy": {"cap_max": 90}, "init": {"opacity": 0.2}}))
+    r = CliRunner().invoke(
+        main,
+        ["train", str(scene), "--out", str(tmp_path / "run"), "--preset", "mcmc", "--config", str(cfg_file),
+         "--iterations", "3", "--eval-at", "", "--device", "cpu", "--quiet"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    s = json.loads((tmp_path / "run" / "config.json").read_text())["settings"]
+    assert s["strategy"]["type"] == "mcmc" and s["strategy"]["cap_max"] == 90  # the file over the preset
+    assert s["init"]["opacity"] == 0.2 and s["init"]["scale"] == 0.1 and s["loss"]["scale_reg"] == 0.01
+    r = CliRunner().invoke(main, ["train", str(scene), "--out", str(tmp_path / "run"), "--preset", "mcmc",
+                                  "--resume"])  # fmt: skip
+    assert r.exit_code == 1 and "--preset applies to a new run" in r.output
+
+
+def test_initial_subset() -> None:
+    assert initial_subset(10, None, 0) is None and initial_subset(10, 10, 0) is None
+    keep = initial_subset(100, 30, 3)
+    assert keep is not None and len(keep) == 30 and len(set(keep.tolist())) == 30
+    assert keep.tolist() == sorted(keep.tolist()) and torch.equal(keep, initial_subset(100, 30, 3))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# training
+
+
+class Counts(Callback):
+    def __init__(self) -> None:
+        self.counts: list[int] = []
+
+    def on_step_end(self, trainer: Any, result: Any) -> None:
+        self.counts.append(len(trainer.splats["means"]))
+
+
+def mcmc_config(**kw: Any) -> TrainConfig:
+    cfg = from_dict(PRESETS["mcmc"], "preset", base=tiny_config(**kw))
+    cfg.strategy.refine_start_iter = 1
+    cfg.strategy.refine_every = 2
+    return cfg
+
+
+def test_mcmc_grows_to_the_cap_and_no_further(scene: Path, tmp_path: Path) -> None:
+    """Each refinement adds 5 % (at least one) until cap_max; dead Gaussians are relocated, never removed."""
+    start = len(json.loads(Path(scene).read_text())["points"]["xyz"])
+    cap = start + 6
+    cfg = mcmc_config(iterations=16)
+    cfg.strategy.cap_max = cap
+    cb = Counts()
+    train(scene, tmp_path / "run", cfg, progress=False, callbacks=[cb])
+    assert cb.counts[0] == start
+    assert max(cb.counts) == cap and cb.counts[-1] == cap
+    assert cb.counts == sorted(cb.counts)  # never pruned
+    for a, b in zip(cb.counts, cb.counts[1:], strict=False):
+        assert b in (a, min(cap, int(1.05 * a))), (a, b)  # gsplat's rule: +5 % per refinement, up to the cap
+    state = ckpt.load_checkpoint(tmp_path / "run" / "checkpoints" / "step_000016.pt")
+    assert state["optimizers"]["means"]["state"][0]["exp_avg"].shape == (cap, 3)
+    assert "binoms" in state["strategy"]
+
+
+def test_budget_below_the_initial_points_starts_from_a_subset(scene: Path, tmp_path: Path) -> None:
+    cfg = mcmc_config(iterations=4)
+    cfg.strategy.cap_max = 25
+    lines: list[str] = []
+    cb = Counts()
+    train(scene, tmp_path / "run", cfg, progress=False, callbacks=[cb], log=lines.append)
+    assert cb.counts and max(cb.counts) <= 25
+    assert any("exceed strategy.cap_max = 25" in s for s in lines), lines
+
+
+def test_mcmc_resume_is_bit_exact(scene: Path, tmp_path: Path) -> None:
+    """Relocation and sampling draw from the global generator and change the optimizer states' shapes: a
+    run cut at step 7 and resumed equals the uninterrupted one exactly."""
+
+    def cfg() -> TrainConfig:
+        c = mcmc_config(iterations=14, eval_at=[7, 14])
+        c.strategy.cap_max = 120
+        c.strategy.min_opacity = 0.3  # relocations happen in these few steps
+        return c
+
+    train(scene, tmp_path / "a", cfg(), progress=False)
+    train(scene, tmp_path / "b", cfg(), stop_at=7, progress=False)
+    train(scene, tmp_path / "b", None, resume=True, progress=False)
+    ca = ckpt.load_checkpoint(tmp_path / "a" / "checkpoints" / "step_000014.pt")
+    cb = ckpt.load_checkpoint(tmp_path / "b" / "checkpoints" / "step_000014.pt")
+    n7 = ckpt.load_checkpoint(tmp_path / "a" / "checkpoints" / "step_000007.pt")["splats"]["means"].shape[0]
+    assert n7 < ca["splats"]["means"].shape[0], "the model should grow after the cut"
+    for name, t in ca["splats"].items():
+        assert torch.equal(t, cb["splats"][name]), name
+    for name in ca["optimizers"]:
+        sa, sb = ca["optimizers"][name]["state"][0], cb["optimizers"][name]["state"][0]
+        for k in sa:
+            assert torch.equal(sa[k], sb[k]), (name, k)
+
+
+def test_jsgs_trains_with_relocated_gaussians(jpeg_scene: Path, tmp_path: Path) -> None:
+    """The JSGS method (JO, DS and the Gaussian Controller) on a model whose Gaussians are relocated and
+    added every other step: finite terms, the GC active, the budget kept."""
+    cfg = mcmc_config(iterations=12, eval_at=[12])
+    cfg.method = "jsgs"
+    cfg.strategy.cap_max = 90
+    cfg.strategy.min_opacity = 0.3
+    cb = Counts()
+    doc = train(jpeg_scene, tmp_path / "run", cfg, progress=False, callbacks=[cb])
+    assert doc["status"] == "complete"
+    assert max(cb.counts) == 90
+    e = doc["evals"][-1]
+    assert math.isfinite(e["psnr"]) and e["num_gaussians"] == 90
+    assert all(math.isfinite(v) for v in e["train"]["terms"].values()), e["train"]
+
+
+def test_densifier_refuses_an_unknown_type() -> None:
+    cfg = TrainConfig()
+    cfg.strategy.type = "relocate"  # type: ignore[assignment]
+    with pytest.raises(JsgsError, match="strategy.type"):
+        Densifier(cfg.strategy)
