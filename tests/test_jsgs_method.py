@@ -803,3 +803,62 @@ def test_compile_failure_falls_back_to_eager(monkeypatch: pytest.MonkeyPatch, ca
     err = capsys.readouterr().err
     assert err.count("warning: torch.compile (inductor) of jpeg_observe failed") == 1
     assert "running it eagerly" in err and "second line" not in err
+
+
+def test_quantization_noise_variance_of_ijg_tables() -> None:
+    """Q²/12 per coefficient, averaged over Y and twice the chroma table, /3 channels: against Pillow's
+    own tables, and monotone in the quality."""
+    import io
+
+    from PIL import Image
+
+    from jsgs.method.image_terms import quantization_noise_variance
+
+    values = []
+    for q in (95, 90, 75, 50, 30, 10):
+        buf = io.BytesIO()
+        Image.new("RGB", (16, 16)).save(buf, "JPEG", quality=q)
+        t = Image.open(buf).quantization
+        qy, qc = np.array(t[0], dtype=np.float64), np.array(t[1], dtype=np.float64)
+        v = quantization_noise_variance(qy, qc)
+        assert v == pytest.approx((np.mean(qy**2) / 12 + 2 * np.mean(qc**2) / 12) / 3, rel=1e-12)
+        values.append(v)
+    assert values == sorted(values)
+    assert 20 < values[1] < 26 and 500 < values[3] < 650  # q = 90, q = 50
+
+
+def test_base_by_view_scales_the_photometric_weight(tmp_path: Path) -> None:
+    """With base_by_view, each JPEG view's step loss carries λ_base·σ_ref²/(σ_ref²+σ²)·ℓ_ph: recomputed
+    from the logged terms of every step."""
+    from _train_scene import make_scene
+
+    from jsgs.method.image_terms import quantization_noise_variance
+    from jsgs.train.callbacks import Callback
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.trainer import train
+
+    manifest = make_scene(tmp_path / "scene", jpeg_train=True)
+    doc = json.loads(manifest.read_text())
+    noise = {
+        v["name"]: quantization_noise_variance(
+            np.array(v["jpeg"]["luma_table"]), np.array(v["jpeg"]["chroma_table"])
+        )
+        for v in doc["views"]
+        if v.get("jpeg")
+    }
+    seen: list[tuple[str, float, dict[str, float]]] = []
+
+    class Spy(Callback):
+        def on_step_end(self, trainer: Any, result: Any) -> None:
+            seen.append((result.view, result.loss, dict(result.terms)))
+
+    cfg = TrainConfig(iterations=4, eval_at=[], device="cpu", method="jsgs")
+    cfg.method_options = {"base_by_view": True, "base_noise_ref": 6.0, "gc": False}
+    cfg.strategy.refine_start_iter = 10_000
+    train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[Spy()])
+    assert len(seen) == 4
+    for view, loss, terms in seen:
+        w = 36.0 / (36.0 + noise[view])
+        assert 0.0 < w < 1.0
+        expect = w * terms["photometric"] + 0.2 * terms["obs"] + 0.02 * terms["low"] + 0.03 * terms["mid"]
+        assert loss == pytest.approx(expect, rel=1e-6)

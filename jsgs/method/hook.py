@@ -161,6 +161,13 @@ class JsgsHook(LossHook):
         w = {"obs": o.lambda_obs, "low": o.lambda_low, "mid": o.lambda_mid, "fro": o.lambda_fro}
         return {k: w[k] for k in self.active_terms()}
 
+    def base_scale(self, tab: ViewJpeg) -> float:
+        """The multiplier on λ_base for a JPEG view: 1, or with ``base_by_view`` σ_ref² / (σ_ref² + σ²)."""
+        if not self.opts.base_by_view:
+            return 1.0
+        ref2 = self.opts.base_noise_ref**2
+        return ref2 / (ref2 + tab.noise_variance)
+
     def render_kwargs(self, step: int, view: View) -> dict[str, Any]:
         return {"pool_probe": True} if self.opts.gc and view.index in self.tables else {}
 
@@ -238,7 +245,7 @@ class JsgsHook(LossHook):
                 else:
                     terms["fro"], gc_stats = self._gc_deferred(ctx, r_map)
                 stats.update(gc_stats)
-        return HookOutput(terms, self.weights(), stats, folded, folded_loss)
+        return HookOutput(terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab))
 
     # ------------------------------------------------------------------------------------------------
     def _camera(self, ctx: StepContext) -> tuple[Tensor, Tensor, int, int]:

@@ -57,6 +57,16 @@ class JsgsOptions:
     lambda_low: float = setting(0.02, "λ_low: weight of L_low (DCT supervision, low band).")
     lambda_mid: float = setting(0.03, "λ_mid: weight of L_mid (DCT supervision, middle band).")
     lambda_fro: float = setting(0.05, "λ_fro: weight of L_fro (Gaussian Controller).")
+    base_by_view: bool = setting(
+        False,
+        "Scale λ_base per JPEG view by how much its tables trust its pixels: w = σ_ref² / (σ_ref² + σ²), σ² "
+        "the quantisation-noise variance its luma and chroma tables imply (jsgs.method.image_terms."
+        "quantization_noise_variance); near-lossless views keep ℓ_ph, coarse ones are supervised through "
+        "JO. Lossless views keep λ_base.",
+    )
+    base_noise_ref: float = setting(
+        8.0, "σ_ref of base_by_view, in 8-bit units: the noise level at which a view's ℓ_ph weight halves."
+    )
     jpeg_mode: Literal["paper", "float", "exact"] = setting(
         "paper", "Forward of the JPEG observation operator's rounding (jsgs.jpeg.observe)."
     )

@@ -95,6 +95,9 @@ class HookOutput:
     stats: dict[str, float | Tensor] = field(default_factory=dict)
     folded: frozenset[str] = frozenset()
     folded_loss: Tensor | None = None
+    #: this step's multiplier on the weight of the baseline's l_ph (``loss.base_weight``): a method may
+    #: trust some views' pixels less than others
+    base_scale: float = 1.0
 
     def check(self, hook_name: str) -> None:
         missing = sorted(set(self.terms) - set(self.weights))

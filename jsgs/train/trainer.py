@@ -598,6 +598,8 @@ class Trainer:
                 hout.check(cfg.method)
                 terms.update(hout.terms)
                 weights.update(hout.weights)
+                if hout.base_scale != 1.0:
+                    weights["photometric"] *= hout.base_scale
                 stats = dict(hout.stats)
                 folded, folded_loss = hout.folded, hout.folded_loss
         loss = weighted_loss(terms, weights, folded, folded_loss)
