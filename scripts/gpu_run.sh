@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# Runs a command on a lent GPU machine whose Python has CUDA torch but lacks gsplat and jsonschema: installs
+# the wheels carried in $WHL (made here by `scripts/gpu_prepare.sh`) into /tmp/site once per machine, points
+# torch's extension cache at a folder of the checkout (a warm machine reuses gsplat's and jsgs's CUDA builds),
+# then runs the command.
+#   bash scripts/gpu_run.sh python3 -m pytest -m gpu tests
+#   bash scripts/gpu_run.sh python3 -m jsgs.cli bench ...
+set -euo pipefail
+cd "$(dirname "$0")/.."
+WHL=${WHL:-.whl}
+if [ ! -f /tmp/site/.jsgs_ok ]; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
+        "$WHL"/*.whl
+    touch /tmp/site/.jsgs_ok
+fi
+export PYTHONPATH=/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-4}
+export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-$PWD/.torch_ext} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
+export MAX_JOBS=${MAX_JOBS:-16} JSGS_LPIPS_DOWNLOAD=0
+if [ -z "${JSGS_LPIPS_WEIGHTS:-}" ] && [ -f "${GPU_DIR:-.gpu}/alexnet_features.pth" ]; then
+    export JSGS_LPIPS_WEIGHTS=$PWD/${GPU_DIR:-.gpu}/alexnet_features.pth
+fi
+exec "$@"
