@@ -136,7 +136,7 @@ def test_scene_exercises_every_rule(scene: dict[str, torch.Tensor]) -> None:
     bins = ref.bin_tiles(proj.means2d, proj.radii, proj.depths, W, H)
     c = proj.means2d[0, 0]
     px = torch.floor(c)
-    w = ref._weights(
+    w = ref.block_weights(
         proj.means2d[0, :4][None],
         proj.conics[0, :4][None],
         scene["opacities"][:4][None],

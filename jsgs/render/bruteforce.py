@@ -2,7 +2,7 @@
 
 Slow (Python loops over pixels); meant for a handful of Gaussians on tiny images in float64, as the ground
 truth of the tests (values and, through autograd, gradients) and of the pooled sums. Independent of
-``reference.py``: it shares constants only.
+``reference``: it shares constants only.
 """
 
 from __future__ import annotations
