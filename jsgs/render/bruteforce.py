@@ -72,7 +72,7 @@ def render_bruteforce(
     """Render by the definitions. colors: [N, D] (or [N, K, 3] SH with ``sh_degree``). r: optional [C, H, W].
 
     Returns image [C, H, W, D], alpha [C, H, W, 1], radii [C, N, 2] (int) and, when r is given, a dict of
-    pooled sums {"s_r", "s_1", "nu"} each [C, N] (see ``jsgs.render.pool``)."""
+    pooled sums {"s_r", "s_1", "nu"} each [C, N] (see ``jsgs.method.pooling``)."""
     C, N = viewmats.shape[0], means.shape[0]
     images, alphas, radii_all = [], [], []
     pooled = {k: torch.zeros(C, N, dtype=means.dtype) for k in ("s_r", "s_1", "nu")}

@@ -123,7 +123,7 @@ class LossHook:
         return None
 
     def render_kwargs(self, step: int, view: View) -> dict[str, Any]:
-        """Extra keyword arguments for this step's ``jsgs.render.rasterize`` call (e.g. ``pool_probe=True``;
+        """Extra keyword arguments for this step's ``jsgs.render.rasterize`` call (e.g. ``render_mode``;
         what it adds to ``info`` reaches :meth:`losses` through ``StepContext.info``)."""
         return {}
 

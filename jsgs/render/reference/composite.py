@@ -29,7 +29,6 @@ CHUNK_PAIRS = 1 << 20
 SAVE_PAIRS = 1 << 26
 
 
-
 def tile_origins(tiles: Tensor, tw: int, th: int, dtype: torch.dtype) -> Tensor:
     """Centre of the top-left pixel [B, 2] (x, y) of global tile ids [B]."""
     local = tiles % (tw * th)
