@@ -254,7 +254,7 @@ def target_for(view: View) -> torch.Tensor:
             0.4 * torch.randn(sp["sh0"].shape, generator=torch.Generator().manual_seed(3), dtype=D)
         )
         sp["means"][:, 0] += 0.05
-        img = render(sp, {}).rgb[0].numpy() + 0.3
+        img = render(sp, None).rgb[0].numpy() + 0.3
     j = view.jpeg
     if j is None:
         return torch.tensor(np.clip(img, 0, 1), dtype=D)[None]
