@@ -25,7 +25,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jsgs.render import pool_direct, pool_from_grad, pool_now, probe_objective, rasterize  # noqa: E402
+from jsgs.method.pooling import (  # noqa: E402
+    new_probe,
+    pool_direct,
+    pool_from_grad,
+    pool_now,
+    probe_objective,
+)
+from jsgs.render import rasterize  # noqa: E402
 
 
 def make_scene(n: int, width: int, height: int, kind: str, device: torch.device, seed: int = 0) -> dict:
@@ -74,9 +81,12 @@ def bench_case(s: dict, width: int, height: int, backend: str, reps: int) -> dic
     leaves = {k: s[k].clone().requires_grad_(True) for k in ("means", "quats", "scales", "opacities", "sh")}
 
     def render(probe: bool = False):
+        extra = (
+            new_probe(s["means"].shape[0], s["means"], n_cameras=s["viewmats"].shape[0]) if probe else None
+        )
         return rasterize(
             leaves["means"], leaves["quats"], leaves["scales"], leaves["opacities"], leaves["sh"],
-            s["viewmats"], s["Ks"], width, height, sh_degree=3, backend=backend, pool_probe=probe,
+            s["viewmats"], s["Ks"], width, height, sh_degree=3, backend=backend, extra=extra,
         )  # fmt: skip
 
     def fwd() -> None:

@@ -5,7 +5,7 @@ Two places in a JSGS step know a gradient before the backward starts:
 * the JPEG image terms replayed as one CUDA graph (``jsgs.method.graphed``), which computes the weighted sum
   of L_obs, L_low and L_mid *and* its gradient with respect to the render in the same replay, so the trainer's
   backward only scales that gradient (no second replay, no static-buffer copies of upstream gradients);
-* the Gaussian Controller's probe objective (``jsgs.render.pool.probe_objective``), a sum of products whose
+* the Gaussian Controller's probe objective (``jsgs.method.pooling.probe_objective``), a sum of products whose
   gradient is the per-pixel upstream map itself and whose value is exactly 0.
 
 On a GPU at training sizes each autograd node and small kernel costs more host time than device time, so

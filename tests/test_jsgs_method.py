@@ -237,11 +237,11 @@ def make_view(quality: int | None, sampling: str = "4:2:0", index: int = 0) -> V
     return View(index, f"v{index}", "train", Path("x.jpg"), None, jpeg, WIDTH, HEIGHT, K, c2w, viewmat)
 
 
-def render(splats: torch.nn.ParameterDict, kw: dict[str, Any]) -> Any:
+def render(splats: torch.nn.ParameterDict, extra: torch.Tensor | None) -> Any:
     viewmat, K = camera()
     return render_view(
         splats, torch.tensor(viewmat, dtype=D)[None], torch.tensor(K, dtype=D)[None], WIDTH, HEIGHT, 0,
-        TrainConfig(), "torch", None, kw,
+        TrainConfig(), "torch", extra,
     )  # fmt: skip
 
 
@@ -254,7 +254,7 @@ def target_for(view: View) -> torch.Tensor:
             0.4 * torch.randn(sp["sh0"].shape, generator=torch.Generator().manual_seed(3), dtype=D)
         )
         sp["means"][:, 0] += 0.05
-        img = render(sp, {}).rgb[0].numpy() + 0.3
+        img = render(sp, None).rgb[0].numpy() + 0.3
     j = view.jpeg
     if j is None:
         return torch.tensor(np.clip(img, 0, 1), dtype=D)[None]
@@ -282,7 +282,7 @@ def train_step(hook: JsgsHook, view: View, splats: torch.nn.ParameterDict | None
     the screen-space means' gradient."""
     splats = splats if splats is not None else make_splats()
     target = target_for(view)
-    out = render(splats, hook.render_kwargs(0, view))
+    out = render(splats, hook.extra_channels(0, view, splats))
     out.info["means2d"].retain_grad()
     ctx = StepContext(0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0)
     h = hook.losses(ctx)
@@ -396,7 +396,7 @@ def test_fro_gradients_reach_only_opacity_and_scale() -> None:
     # the term alone, by autograd (route "now")
     hook = new_hook(view, gc_pooling="now")
     sp = make_splats()
-    out = render(sp, hook.render_kwargs(0, view))
+    out = render(sp, hook.extra_channels(0, view, sp))
     ctx = StepContext(0, view, out.rgb, out.alpha, target_for(view), out.info, sp, None, {}, 0)
     fro = hook.losses(ctx).terms["fro"]
     names = list(sp.keys())
@@ -435,12 +435,12 @@ def test_a_step_leaves_nothing_alive_for_the_cycle_collector(backward: bool) -> 
         refs = []
         for _ in range(2):
             sp = make_splats()
-            out = render(sp, hook.render_kwargs(0, view))
+            out = render(sp, hook.extra_channels(0, view, sp))
             ctx = StepContext(0, view, out.rgb, out.alpha, target_for(view), out.info, sp, None, {}, 0)
             h = hook.losses(ctx)
             if backward:
                 (out.rgb.sum() + sum(w * h.terms[k] for k, w in h.weights.items())).backward()
-            refs.append(weakref.ref(out.info["pool_probe"]))
+            refs.append(weakref.ref(out.info["extra_features"]))
             del out, ctx, h, sp
         # the second step's outputs may wait for its backward (or the next step); the first's are gone
         assert refs[0]() is None
@@ -501,7 +501,7 @@ def test_all_switches_off_is_the_baseline_and_no_jo_alone_is_refused(tmp_path: P
 def test_lossless_views_get_the_photometric_loss_only() -> None:
     view = make_view(None)
     hook = new_hook(view)
-    assert hook.render_kwargs(0, view) == {}
+    assert hook.extra_channels(0, view, make_splats()) is None
     res = train_step(hook, view)
     assert res["terms"] == {"obs": 0.0, "low": 0.0, "mid": 0.0, "fro": 0.0}
     assert res["stats"] == {"gc_visible": 0.0, "gc_rbar": 0.0, "gc_damped": 0.0}
@@ -626,7 +626,7 @@ def rbar_parity(manifest: Path, backend: str, device: torch.device, n_views: int
     """r̄ and V of the JSGS training path (``render_view`` with the hook's probe, both GC routes, float32) on
     the first training views at SfM initialisation, against the reference rasteriser's direct pooling
     (``pool_direct``, float64) with the same r(p). Returns the worst figures over views and routes."""
-    from jsgs.render import pool_direct
+    from jsgs.method.pooling import pool_direct
     from jsgs.train.data import load_image, load_scene
     from jsgs.train.model import activated, init_splats
 
@@ -647,7 +647,7 @@ def rbar_parity(manifest: Path, backend: str, device: torch.device, n_views: int
             hook.keep_last = True
             out = render_view(
                 splats, view.viewmat_tensor(device), view.K_tensor(device), view.width, view.height, 0, cfg,
-                backend, None, hook.render_kwargs(0, view),
+                backend, hook.extra_channels(0, view, splats),
             )  # fmt: skip
             ctx = StepContext(0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0)
             h = hook.losses(ctx)

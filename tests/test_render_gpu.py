@@ -10,7 +10,8 @@ import math
 import pytest
 import torch
 
-from jsgs.render import pool_direct, pool_from_grad, pool_now, probe_objective, rasterize
+from jsgs.method.pooling import new_probe, pool_direct, pool_from_grad, pool_now, probe_objective
+from jsgs.render import rasterize
 
 pytestmark = [
     pytest.mark.gpu,
@@ -52,9 +53,10 @@ def _run(
 ):
     """Render with ``backend`` (absgrad on), back-propagate a fixed random loss; images, info, gradients."""
     lv = {k: s[k].clone().requires_grad_(True) for k in _KEYS}
+    extra = new_probe(s["means"].shape[0], s["means"], n_cameras=s["viewmats"].shape[0]) if probe else None
     img, alpha, info = rasterize(
         lv["means"], lv["quats"], lv["scales"], lv["opacities"], lv["sh"], s["viewmats"], s["Ks"], W, H,
-        sh_degree=3, backgrounds=s["bg"], backend=backend, pool_probe=probe, absgrad=True,
+        sh_degree=3, backgrounds=s["bg"], backend=backend, extra=extra, absgrad=True,
         render_mode=mode or "RGB",
     )  # fmt: skip
     info["means2d"].retain_grad()
@@ -114,9 +116,10 @@ def test_pooled_sums_gsplat_probe_match_reference() -> None:
     r = torch.rand(2, H, W, device="cuda", generator=torch.Generator(device="cuda").manual_seed(0))
     _, _, ginfo, _ = _run(s, "gsplat", probe=True, r=r)
     via_grad = pool_from_grad(ginfo)
+    probe = new_probe(s["means"].shape[0], s["means"], n_cameras=2)
     ginfo_now = rasterize(
         s["means"], s["quats"], s["scales"], s["opacities"], s["sh"], s["viewmats"], s["Ks"], W, H,
-        sh_degree=3, backgrounds=s["bg"], backend="gsplat", pool_probe=True,
+        sh_degree=3, backgrounds=s["bg"], backend="gsplat", extra=probe,
     )[2]  # fmt: skip
     now = pool_now(ginfo_now, r)
     direct = pool_direct(s["means"], s["quats"], s["scales"], s["opacities"], s["viewmats"], s["Ks"], W, H, r)
@@ -149,3 +152,21 @@ def test_gsplat_probe_leaves_gradients_alone() -> None:
         noise = (base[1][3][k] - v).abs().max().item()  # atomics make gsplat's backward order-dependent
         diff = (with_probe[3][k] - v).abs().max().item()
         assert diff <= max(4 * noise, 1e-6 * v.abs().max().item()), (k, diff, noise)
+
+
+def test_gsplat_extra_channels_match_reference() -> None:
+    """Generic extra channels on gsplat: ones render the alpha, and the channels equal the reference's."""
+    s = _scene(seed=4)
+    N = s["means"].shape[0]
+    feats = torch.rand(N, 3, device="cuda", generator=torch.Generator(device="cuda").manual_seed(2))
+    feats[:, 0] = 1.0
+    outs = {}
+    for backend in ("gsplat", "torch"):
+        outs[backend] = rasterize(
+            s["means"], s["quats"], s["scales"], s["opacities"], s["sh"], s["viewmats"], s["Ks"], W, H,
+            sh_degree=3, backgrounds=s["bg"], backend=backend, extra=feats,
+        )  # fmt: skip
+    _, alpha, info = outs["gsplat"]
+    assert info["extra"].shape == (2, H, W, 3)
+    assert (info["extra"][..., :1] - alpha).abs().max().item() < 1e-5
+    assert _rel(info["extra"], outs["torch"][2]["extra"]) < 1e-4

@@ -1,5 +1,5 @@
 """The reference rasterizer against the per-pixel brute force (values and gradients, float64), gsplat's own
-torch formulas, and the pooled sums of the Gaussian Controller."""
+torch formulas, its generic extra channels, and the Gaussian Controller's pooled sums made through them."""
 
 from __future__ import annotations
 
@@ -8,15 +8,8 @@ import math
 import pytest
 import torch
 
-from jsgs.render import (
-    pool_direct,
-    pool_from_grad,
-    pool_now,
-    probe_objective,
-    project_gaussians,
-    rasterize,
-    spherical_harmonics,
-)
+from jsgs.method.pooling import new_probe, pool_direct, pool_from_grad, pool_now, probe_objective
+from jsgs.render import project_gaussians, rasterize, spherical_harmonics
 from jsgs.render import reference as ref
 from jsgs.render.bruteforce import _sh_rgb, render_bruteforce
 
@@ -136,7 +129,7 @@ def test_scene_exercises_every_rule(scene: dict[str, torch.Tensor]) -> None:
     bins = ref.bin_tiles(proj.means2d, proj.radii, proj.depths, W, H)
     c = proj.means2d[0, 0]
     px = torch.floor(c)
-    w = ref._weights(
+    w = ref.block_weights(
         proj.means2d[0, :4][None],
         proj.conics[0, :4][None],
         scene["opacities"][:4][None],
@@ -270,10 +263,71 @@ def test_render_modes(scene: dict[str, torch.Tensor]) -> None:
     assert torch.allclose(d, d_ref, atol=1e-12)
     assert torch.allclose(ed, d_ref / alpha.clamp(min=1e-10), atol=1e-10)
     assert torch.allclose(rgbd[..., :3], rgb) and torch.allclose(rgbd[..., 3:], ed)
-    probed, _, pinfo = rasterize(*args, W, H, backend="torch", render_mode="RGB+ED", pool_probe=True)
-    assert torch.equal(probed, rgbd) and pinfo["pool_channels"].shape == (2, H, W, 2)
-    with pytest.raises(ValueError, match="pool_probe"):
-        rasterize(*args, W, H, backend="torch", render_mode="D", pool_probe=True)
+    feats = torch.rand(args[0].shape[0], 2, dtype=F64)
+    with_extra, _, xinfo = rasterize(*args, W, H, backend="torch", render_mode="RGB+ED", extra=feats)
+    assert torch.equal(with_extra, rgbd) and xinfo["extra"].shape == (2, H, W, 2)
+    assert xinfo["extra_features"] is feats
+    with pytest.raises(ValueError, match="colour render_mode"):
+        rasterize(*args, W, H, backend="torch", render_mode="D", extra=feats)
+    with pytest.raises(ValueError, match="extra must be"):
+        rasterize(*args, W, H, backend="torch", extra=feats[:-1])
+
+
+def test_split_modules_match_bruteforce(scene: dict[str, torch.Tensor]) -> None:
+    """projection → SH colours → tile binning → compositing, called one module at a time, equal the
+    per-pixel brute force (SH degree 3, a background)."""
+    from jsgs.render.reference import projection, sh, tiles
+    from jsgs.render.reference.composite import composite
+
+    s = scene
+    args = (s["means"], s["quats"], s["scales"], s["opacities"])
+    proj = projection.project_gaussians(*args, s["viewmats"], s["Ks"], W, H)
+    colors = sh.prepare_colors(s["means"], s["sh"], s["viewmats"], 3)
+    bins = tiles.bin_tiles(proj.means2d, proj.radii, proj.depths, W, H)
+    img, alpha = composite(proj, bins, s["opacities"], colors, s["bg"], W, H)
+    bf_img, bf_alpha, bf_radii, _ = render_bruteforce(
+        *args, s["sh"], s["viewmats"], s["Ks"], W, H, sh_degree=3, backgrounds=s["bg"]
+    )
+    assert torch.equal(proj.radii, bf_radii)
+    _close(img, bf_img, 1e-12, "image")
+    _close(alpha, bf_alpha, 1e-12, "alpha")
+
+
+@pytest.mark.parametrize("shape", ["per_gaussian", "per_camera"])
+def test_extra_channels(scene: dict[str, torch.Tensor], shape: str) -> None:
+    """Extra channels of ones render the alpha; other features render as they would as colours (over a
+    zero background), whatever the colours and background are; their gradient is Σ_p t·α·g(p)."""
+    s = scene
+    N = s["means"].shape[0]
+    g = torch.Generator().manual_seed(11)
+    feats = torch.rand(N, 3, generator=g, dtype=F64)
+    feats[:, 0] = 1.0
+    if shape == "per_camera":
+        feats = torch.stack([feats, torch.rand(N, 3, generator=g, dtype=F64)])
+        feats[:, :, 0] = 1.0
+    feats.requires_grad_(True)
+    geo = (s["means"], s["quats"], s["scales"], s["opacities"])
+    cams = (s["viewmats"], s["Ks"], W, H)
+    img, alpha, info = rasterize(*geo, s["sh"], *cams, sh_degree=3, backgrounds=s["bg"], backend="torch",
+                                 extra=feats)  # fmt: skip
+    ones = info["extra"][..., :1]
+    _close(ones, alpha, 1e-14, "ones vs alpha")
+    assert alpha.amax() > 0.5 and (alpha == 0).any()  # covered and empty pixels both present
+    plain, _, _ = rasterize(*geo, s["sh"], *cams, sh_degree=3, backgrounds=s["bg"], backend="torch")
+    _close(img, plain, 1e-14, "colours with and without extra channels")
+    as_colours, _, _ = rasterize(*geo, feats.detach(), *cams, backend="torch")
+    _close(info["extra"], as_colours, 1e-14, "extra vs colours")
+    up = torch.rand(info["extra"].shape, generator=g, dtype=F64)
+    (info["extra"] * up).sum().backward()
+    # against the brute force's pooled sums: Σ_p t·α·g(p) = o·S_g for every channel
+    bf_args = (*geo, s["sh"], *cams)
+    for c in range(3):
+        _, _, _, bf = render_bruteforce(*bf_args, sh_degree=3, r=up[..., c])
+        want = bf["s_r"] * s["opacities"][None]
+        got = feats.grad[..., c] if shape == "per_camera" else feats.grad[None, :, c]
+        if shape == "per_gaussian":
+            want = want.sum(0, keepdim=True)
+        _close(got, want, 1e-12, f"gradient of channel {c}")
 
 
 def test_absgrad_is_sum_of_per_pixel_magnitudes(scene: dict[str, torch.Tensor]) -> None:
@@ -310,7 +364,8 @@ def test_pooled_sums_match_bruteforce(scene: dict[str, torch.Tensor]) -> None:
 
     # the probe, through an immediate backward, and through the loss's own backward
     lv = _leaf(s, ("means", "quats", "scales", "opacities", "colors"))
-    img, alpha, info = rasterize(*lv.values(), *args[5:], W, H, backend="torch", pool_probe=True)
+    probe = new_probe(s["means"].shape[0], s["means"], n_cameras=2)
+    img, alpha, info = rasterize(*lv.values(), *args[5:], W, H, backend="torch", extra=probe)
     now = pool_now(info, r)
     (img.sum() + probe_objective(info, r)).backward()
     later = pool_from_grad(info)
@@ -328,12 +383,13 @@ def test_probe_changes_neither_image_nor_gradients(scene: dict[str, torch.Tensor
     res = []
     for probe in (False, True):
         lv = _leaf(s, keys)
+        extra = new_probe(s["means"].shape[0], s["means"], n_cameras=2) if probe else None
         img, alpha, info = rasterize(*lv.values(), s["viewmats"], s["Ks"], W, H, backend="torch",
-                                     backgrounds=s["bg"], pool_probe=probe)  # fmt: skip
+                                     backgrounds=s["bg"], extra=extra)  # fmt: skip
         info["means2d"].retain_grad()
         loss = (img * img).sum() + alpha.sum()
         if probe:
-            assert info["pool_channels"].abs().max() == 0
+            assert info["extra"].abs().max() == 0
             loss = loss + probe_objective(info, r)
         loss.backward()
         res.append((img.detach(), info["means2d"].grad, {k: v.grad for k, v in lv.items()}))

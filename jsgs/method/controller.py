@@ -4,7 +4,7 @@ For view i and Gaussian j (all per-Gaussian tensors are [N], one camera):
 
 * ``r̄_j`` — the block score map r(p) pooled over the pixels j touches in this pass with the footprint weight
   ``κ = t·a`` (opacity excluded), ``r̄ = sg[Σ κ r / (Σ κ + ε_proj)]``; ``V_i = {j : ν_j > 0}`` with
-  ``ν = Σ t·α·a``. The pooled sums come from the rasteriser (``jsgs.render.pool``); here they are inputs.
+  ``ν = Σ t·α·a``. The pooled sums come from the rasteriser (``jsgs.method.pooling``); here they are inputs.
 * ``A_j = sg[J_j W R(q_j)]`` (2 x 3, pixels per world unit): W the rotation of the world-to-camera map,
   R(q) the Gaussian's rotation, J the perspective Jacobian at the camera-space mean ``(x, y, z)``::
 
@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from jsgs.render.pool import PooledSums, sums_from_probe_grad
+from jsgs.method.pooling import PooledSums, sums_from_probe_grad
 from jsgs.render.reference import quat_to_rotmat
 
 TAU_S = 1.0  # τ_s, pixels at the training resolution

@@ -19,8 +19,8 @@ DS and GC are defined on the JO output, so ``jo: false`` requires ``ds: false`` 
 three off the method is the baseline (the factory returns no hook). Without DS but with GC, the block scores
 are still computed (detached) because GC needs them; L_low and L_mid are then neither logged nor optimised.
 
-The Gaussian Controller pools the block-score map r(p) per Gaussian with the rasteriser's pool probe
-(``rasterize(..., pool_probe=True)``, ``jsgs.render.pool``), in the same rasterisation pass. Two routes, equal
+The Gaussian Controller pools the block-score map r(p) per Gaussian with a probe (zero extra channels
+rendered with the colours, ``jsgs.method.pooling``), in the same rasterisation pass. Two routes, equal
 values and gradients (tested), chosen by ``gc_pooling``:
 
 * ``"deferred"`` (default): ``probe_objective`` (value exactly 0) rides in the ``fro`` term, so the main
@@ -168,8 +168,14 @@ class JsgsHook(LossHook):
         ref2 = self.opts.base_noise_ref**2
         return ref2 / (ref2 + tab.noise_variance)
 
-    def render_kwargs(self, step: int, view: View) -> dict[str, Any]:
-        return {"pool_probe": True} if self.opts.gc and view.index in self.tables else {}
+    def extra_channels(self, step: int, view: View, splats: torch.nn.ParameterDict) -> Tensor | None:
+        """The Gaussian Controller's probe (``jsgs.method.pooling.new_probe``) on views it runs on."""
+        if not (self.opts.gc and view.index in self.tables):
+            return None
+        from jsgs.method.pooling import new_probe
+
+        means = splats["means"]
+        return new_probe(means.shape[0], means)
 
     @property
     def profile(self) -> bool:
@@ -258,7 +264,7 @@ class JsgsHook(LossHook):
         return viewmat, v.K_tensor(means.device, means.dtype)[0], v.width, v.height
 
     def _gc_now(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-        from jsgs.render.pool import pool_now
+        from jsgs.method.pooling import pool_now
 
         sums = pool_now(ctx.info, r_map)
         rbar = sums.rbar(self.opts.eps_proj)[0]
@@ -273,7 +279,7 @@ class JsgsHook(LossHook):
         return ft.loss, {"gc_visible": s.visible, "gc_rbar": s.rbar_mean, "gc_damped": s.damped}
 
     def _gc_deferred(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-        from jsgs.render.pool import probe_objective
+        from jsgs.method.pooling import probe_objective
 
         # The hook lives on the probe tensor, which ``term``'s graph holds (through the probe's
         # AccumulateGrad): a closure over ``term`` (or ``info``) would make a reference cycle that keeps
@@ -296,14 +302,14 @@ class JsgsHook(LossHook):
             if term is None:
                 return
             with self.profiler.phase("gc_backward"), torch.no_grad():
-                grad = probe.grad
+                grad = probe.grad[None]  # [1, N, 2]
                 probe.grad = None  # served its purpose; keeps memory flat
                 params = (splats["opacities"], splats["scales"], splats["means"], splats["quats"])
                 packed = self._controller(grad, params, viewmat, K, w, h)
                 term.copy_(packed[0])
                 stat_vec.copy_(packed[1:])
 
-        ctx.info["pool_probe"].register_post_accumulate_grad_hook(on_probe_grad)
+        ctx.info["extra_features"].register_post_accumulate_grad_hook(on_probe_grad)
         return term, stat_t
 
     def _controller(
@@ -364,4 +370,3 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
         near_plane=cfg.render.near_plane,
         device=device,
     )
-

@@ -1,12 +1,11 @@
 """Rasterisers: gsplat 1.5.3's semantics on CUDA (gsplat) and anywhere (pure-torch reference).
 
-``rasterize`` is the entry point (``backend="auto"|"torch"|"gsplat"``); ``jsgs.render.pool`` pools
-per-pixel maps per Gaussian for the Gaussian Controller; ``jsgs.render.bruteforce`` is the per-pixel ground
-truth used by the tests.
+``rasterize`` is the entry point (``backend="auto"|"torch"|"gsplat"``), with generic extra channels
+(per-Gaussian features composited like the colours); ``jsgs.render.reference`` is the pure-torch twin of
+gsplat's CUDA rasterizer; ``jsgs.render.bruteforce`` is the per-pixel ground truth used by the tests.
 """
 
 from .backend import rasterize, resolve_backend
-from .pool import PooledSums, pool_direct, pool_from_grad, pool_now, probe_objective
 from .reference import (
     ALPHA_MAX,
     ALPHA_THRESHOLD,
@@ -24,12 +23,7 @@ __all__ = [
     "ALPHA_THRESHOLD",
     "T_STOP",
     "TILE_SIZE",
-    "PooledSums",
     "Projected",
-    "pool_direct",
-    "pool_from_grad",
-    "pool_now",
-    "probe_objective",
     "project_gaussians",
     "quat_to_rotmat",
     "rasterize",

@@ -2,8 +2,10 @@
 
 Both backends take gsplat 1.5.3 ``rasterization``'s arguments (a subset: pinhole, classic mode, no batch
 dimensions) and return the same three things, so that the trainer and gsplat's ``DefaultStrategy`` see no
-difference. ``pool_probe=True`` adds two zero-valued feature channels per Gaussian whose gradients carry
-the Gaussian Controller's pooled sums (see ``jsgs.render.pool``).
+difference. ``extra`` ([N, E] or [C, N, E] per-Gaussian features) are composited with the same weights as the
+colours and returned as E extra image channels ``info["extra"]``; the gradient of a loss on those channels
+with respect to the features is the per-Gaussian sum Σ_p t·α·∂L/∂extra(p), which is how a method pools
+per-pixel maps per Gaussian (for instance ``jsgs.method.pooling``).
 """
 
 from __future__ import annotations
@@ -95,7 +97,7 @@ def rasterize(
     packed: bool = False,
     absgrad: bool = False,
     render_mode: RenderMode = "RGB",
-    pool_probe: bool = False,
+    extra: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """Rasterise N 3D Gaussians into C pinhole cameras (gsplat 1.5.3 ``rasterization`` semantics).
 
@@ -114,9 +116,10 @@ def rasterize(
         packed: gsplat's packed layout (gsplat backend only). absgrad: also accumulate
             ``info["means2d"].absgrad`` = Σ_pixels |∂L/∂means2d| during backward (AbsGS).
         render_mode: "RGB", "D" (accumulated depth), "ED" (expected depth), "RGB+D", "RGB+ED".
-        pool_probe: add the Gaussian Controller's probe (``info["pool_probe"]`` [C, N, 2] leaf,
-            ``info["pool_channels"]`` [C, H, W, 2], ``info["pool_opacities"]`` [N]); see ``jsgs.render.pool``.
-            Rendered colours and all other gradients are unchanged by it.
+        extra: [N, E] or [C, N, E] per-Gaussian features composited like the colours over a zero
+            background and returned as ``info["extra"]`` [C, H, W, E] (not in render_colors); the features
+            themselves are ``info["extra_features"]``. Needs a colour render_mode. Rendered colours are
+            unchanged by it; zero-valued features leave every other gradient unchanged too.
 
     Returns:
         render_colors [C, H, W, D(+1 with depth)], render_alphas [C, H, W, 1], info: gsplat's meta keys
@@ -126,12 +129,14 @@ def rasterize(
     """
     _check(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, backgrounds, render_mode)
     which = resolve_backend(backend, means.device)
-    if pool_probe and render_mode in ("D", "ED"):
-        raise ValueError("pool_probe needs a colour render_mode ('RGB', 'RGB+D' or 'RGB+ED')")
     C, N = viewmats.shape[0], means.shape[0]
-    probe = None
-    if pool_probe:
-        probe = torch.zeros(C, N, 2, dtype=means.dtype, device=means.device, requires_grad=True)
+    feats = None
+    if extra is not None:
+        if render_mode in ("D", "ED"):
+            raise ValueError("extra channels need a colour render_mode ('RGB', 'RGB+D' or 'RGB+ED')")
+        if extra.dim() not in (2, 3) or extra.shape[-2] != N or (extra.dim() == 3 and extra.shape[0] != C):
+            raise ValueError(f"extra must be [N, E] or [C, N, E] with N={N}, C={C}; got {tuple(extra.shape)}")
+        feats = extra if extra.dim() == 3 else extra[None].expand(C, -1, -1)
 
     if which == "torch":
         if packed:
@@ -140,21 +145,18 @@ def rasterize(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, backgrounds=backgrounds,
             eps2d=eps2d, radius_clip=radius_clip, absgrad=absgrad, render_mode=render_mode,
-            extra_channels=probe,
+            extra_channels=feats,
         )  # fmt: skip
-        if probe is not None:
-            info["pool_channels"] = info.pop("extra")
     else:
         img, alpha, info = _rasterize_gsplat(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, backgrounds=backgrounds,
             eps2d=eps2d, radius_clip=radius_clip, packed=packed, absgrad=absgrad, render_mode=render_mode,
-            probe=probe,
+            extra=feats,
         )  # fmt: skip
     info["backend"] = which
-    if probe is not None:
-        info["pool_probe"] = probe
-        info["pool_opacities"] = opacities.detach()
+    if extra is not None:
+        info["extra_features"] = extra
     return img, alpha, info
 
 
@@ -178,17 +180,17 @@ def _rasterize_gsplat(
     packed: bool,
     absgrad: bool,
     render_mode: str,
-    probe: Tensor | None,
+    extra: Tensor | None,
 ) -> tuple[Tensor, Tensor, dict]:
-    """gsplat.rasterization in classic mode; with a probe, SH are evaluated here (gsplat's own CUDA op) so
-    that the two probe channels can be appended to the colour features."""
+    """gsplat.rasterization in classic mode; with extra features [C, N, E], SH are evaluated here (gsplat's
+    own CUDA op) so that the extra channels can be appended to the colour features."""
     import gsplat  # imported lazily: the package imports on CPU, but only this path needs it
 
     kw = dict(
         near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d, packed=packed,
         tile_size=reference.TILE_SIZE, absgrad=absgrad, rasterize_mode="classic",
     )  # fmt: skip
-    if probe is None:
+    if extra is None:
         return gsplat.rasterization(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree=sh_degree, backgrounds=backgrounds, render_mode=render_mode, **kw,
@@ -209,15 +211,16 @@ def _rasterize_gsplat(
         rgb = colors if colors.dim() == 3 else colors[None].expand(C, -1, -1)
     n_col = rgb.shape[-1]
     bg = backgrounds if backgrounds is not None else rgb.new_zeros(C, n_col)
-    feats = [rgb, probe]
-    bgs = [bg, probe.new_zeros(C, 2)]
+    E = extra.shape[-1]
+    feats = [rgb, extra.to(rgb.dtype)]
+    bgs = [bg, rgb.new_zeros(C, E)]
     # gsplat appends the depth channel after our features in "RGB+D"/"RGB+ED"
     img, alpha, info = gsplat.rasterization(
         means, quats, scales, opacities, torch.cat(feats, dim=-1), viewmats, Ks, width, height,
         sh_degree=None, backgrounds=torch.cat(bgs, dim=-1), render_mode=render_mode, **kw,
     )  # fmt: skip
     # one split (its backward is one cat of the parts' gradients); a depth channel, if any, is re-attached
-    parts = img.split([n_col, 2, img.shape[-1] - n_col - 2], dim=-1)
-    info["pool_channels"] = parts[1]
+    parts = img.split([n_col, E, img.shape[-1] - n_col - E], dim=-1)
+    info["extra"] = parts[1]
     img = parts[0] if parts[2].shape[-1] == 0 else torch.cat([parts[0], parts[2]], dim=-1)
     return img, alpha, info

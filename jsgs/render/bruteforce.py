@@ -2,7 +2,7 @@
 
 Slow (Python loops over pixels); meant for a handful of Gaussians on tiny images in float64, as the ground
 truth of the tests (values and, through autograd, gradients) and of the pooled sums. Independent of
-``reference.py``: it shares constants only.
+``reference``: it shares constants only.
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ def render_bruteforce(
     """Render by the definitions. colors: [N, D] (or [N, K, 3] SH with ``sh_degree``). r: optional [C, H, W].
 
     Returns image [C, H, W, D], alpha [C, H, W, 1], radii [C, N, 2] (int) and, when r is given, a dict of
-    pooled sums {"s_r", "s_1", "nu"} each [C, N] (see ``jsgs.render.pool``)."""
+    pooled sums {"s_r", "s_1", "nu"} each [C, N] (see ``jsgs.method.pooling``)."""
     C, N = viewmats.shape[0], means.shape[0]
     images, alphas, radii_all = [], [], []
     pooled = {k: torch.zeros(C, N, dtype=means.dtype) for k in ("s_r", "s_1", "nu")}

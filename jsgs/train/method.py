@@ -15,11 +15,11 @@ the step. Term values and stats are shown on the progress bar and averaged into 
 evaluations (``train`` of each entry of ``evals``).
 
 A hook may also ask for extra rasterised channels (:meth:`LossHook.extra_channels`): per-Gaussian features
-[N, E] that are composited with the same weights t * alpha * a as the colours, in the *same* rasterisation
-pass; the trainer then evaluates the SH colours itself, renders RGB + E channels and hands the E channels to
-the hook as ``StepContext.extra`` [1, H, W, E]. Gradients of a loss on ``extra`` with respect to the features
-are the per-Gaussian pooled sums sum_p t alpha a dL/dextra(p) (how a Gaussian Controller can pool block scores
-without a second pass).
+[N, E] that are composited with the same weights t * alpha as the colours, in the *same* rasterisation
+pass (the rasterizer's generic extra channels, ``jsgs.render.rasterize(..., extra=...)``); the trainer hands
+the E rendered channels to the hook as ``StepContext.extra`` [1, H, W, E]. Gradients of a loss on ``extra``
+with respect to the features are the per-Gaussian pooled sums sum_p t alpha dL/dextra(p) (how a Gaussian
+Controller can pool block scores without a second pass, ``jsgs.method.pooling``).
 
 Hooks with state (running statistics, schedules) implement ``state_dict``/``load_state_dict`` so that
 ``--resume`` stays bit-exact.
@@ -126,7 +126,7 @@ class LossHook:
         return None
 
     def render_kwargs(self, step: int, view: View) -> dict[str, Any]:
-        """Extra keyword arguments for this step's ``jsgs.render.rasterize`` call (e.g. ``pool_probe=True``;
+        """Extra keyword arguments for this step's ``jsgs.render.rasterize`` call (e.g. ``render_mode``;
         what it adds to ``info`` reaches :meth:`losses` through ``StepContext.info``)."""
         return {}
 

@@ -46,15 +46,6 @@ def resolve_backend(cfg: TrainConfig, device: torch.device) -> str:
     return resolved
 
 
-def eval_sh_colors(sh_degree: int, coeffs: Tensor, means: Tensor, viewmat: Tensor) -> Tensor:
-    """View-dependent RGB of each Gaussian as gsplat's rasterization computes it before compositing:
-    ``clamp_min(SH(dirs) + 0.5, 0)`` with dirs = means - camera centre. coeffs [N, K, 3]; means [N, 3];
-    viewmat [1, 4, 4]. Returns [1, N, 3]."""
-    from jsgs.render.reference import sh_colors
-
-    return sh_colors(means, coeffs, viewmat, sh_degree)
-
-
 def render_view(
     splats: torch.nn.ParameterDict,
     viewmat: Tensor,
@@ -69,10 +60,9 @@ def render_view(
 ) -> RenderOut:
     """Rasterise one camera. viewmat [1, 4, 4] world-to-camera, K [1, 3, 3] pixels.
 
-    Without ``extra_features`` the SH coefficients go to the rasterizer (``sh_degree`` given). With them
-    ([N, E] per-Gaussian features), the SH colours are evaluated here, exactly as gsplat does internally,
-    and RGB + E channels are rasterised together in one pass. ``extra_kwargs`` go to ``rasterize`` as they
-    are (a method's options such as ``pool_probe``)."""
+    ``extra_features`` ([N, E] per-Gaussian features, optional) are the rasterizer's extra channels,
+    composited in the same pass as RGB (``rasterize(..., extra=...)``). ``extra_kwargs`` go to ``rasterize``
+    as they are."""
     from jsgs.render import rasterize
 
     p = activated(splats)
@@ -85,24 +75,18 @@ def render_view(
     )
     if extra_kwargs:
         kwargs.update(extra_kwargs)
-    if extra_features is None:
-        colors, sh = p["colors"], sh_degree
-    else:
-        rgb = eval_sh_colors(sh_degree, p["colors"], p["means"], viewmat)
-        colors = torch.cat([rgb, extra_features[None].to(rgb.dtype)], dim=-1)
-        sh = None
     renders, alphas, info = rasterize(
         p["means"],
         p["quats"],
         p["scales"],
         p["opacities"],
-        colors,
+        p["colors"],
         viewmat,
         K,
         width,
         height,
-        sh_degree=sh,
+        sh_degree=sh_degree,
+        extra=extra_features,
         **kwargs,
     )
-    extra = renders[..., 3:] if extra_features is not None else None
-    return RenderOut(rgb=renders[..., :3], alpha=alphas, extra=extra, info=info)
+    return RenderOut(rgb=renders, alpha=alphas, extra=info.get("extra"), info=info)

@@ -13,10 +13,12 @@ Three ways to get them, all equal to ``jsgs.render.bruteforce.pool_bruteforce``:
 
 * ``pool_direct`` — the reference rasterizer's tiles evaluated again without autograd (any device; the
   brute-force-checked definition; a second pass).
-* The probe (``rasterize(..., pool_probe=True)``) — two extra feature channels per (camera, Gaussian),
-  ``info["pool_probe"]`` [C, N, 2], all zero. Because a rendered channel is Σ_j t·α·c_j, its gradient with
-  respect to c_j is Σ_p t·α·g(p) for an upstream gradient g; with g = r for channel 0 and g = 1 for
-  channel 1 the probe's gradient is (o·S_r, ν). Works for both backends (gsplat: no second rasterisation).
+* The probe — two zero-valued extra feature channels per Gaussian (``new_probe``, [N, 2] or [C, N, 2]),
+  rendered through the rasterizer's generic extra channels (``rasterize(..., extra=probe)``, which puts the
+  features in ``info["extra_features"]`` and the rendered channels in ``info["extra"]``). Because a rendered
+  channel is Σ_j t·α·c_j, its gradient with respect to c_j is Σ_p t·α·g(p) for an upstream gradient g; with
+  g = r for channel 0 and g = 1 for channel 1 the probe's gradient is (o·S_r, ν). Works for both backends
+  (gsplat: no second rasterisation).
   - ``pool_now(info, r)`` runs that backward at once (``torch.autograd.grad`` through the rasteriser's
     backward only, graph retained) — use it when the loss needs r̄ before the main backward (L_fro does).
   - or add ``probe_objective(info, r)`` (value exactly 0) to the loss and call ``pool_from_grad(info)``
@@ -42,8 +44,15 @@ import torch
 from torch import Tensor
 
 from jsgs.known_grad import with_known_gradient
-
-from . import reference
+from jsgs.render.reference import Projected, TileBins, bin_tiles, project_gaussians
+from jsgs.render.reference.composite import (
+    CHUNK_PAIRS,
+    block_weights,
+    gather_block,
+    image_to_tiles,
+    tile_blocks,
+    tile_origins,
+)
 
 EPS_PROJ = 1e-6  # the paper's ε_proj
 
@@ -68,26 +77,48 @@ class PooledSums:
 
 def sums_from_probe_grad(grad: Tensor, opacities: Tensor, weight: float = 1.0) -> PooledSums:
     """Pooled sums from the probe's gradient ``grad`` [C, N, 2] = weight·(o·S_r, ν) (``probe_objective``
-    entered the loss with the factor ``weight``), ``opacities`` [N] the activated o the pass rendered with.
+    entered the loss with the factor ``weight``), ``opacities`` [N] or [C, N] the activated o the pass
+    rendered with.
 
     Contributors have o >= 1/255 (others are culled); ν == 0 ⇔ no contribution, and the sums are 0 there."""
     g = grad.detach()
     if weight != 1.0:
         g = g / weight
     nu = g[..., 1]
-    o = opacities.detach().to(g.dtype)[None, :].expand_as(nu)
+    o = opacities.detach().to(g.dtype)
+    o = (o[None, :] if o.dim() == 1 else o).expand_as(nu)
     o_safe = torch.where(nu > 0, o, 1.0)
     return PooledSums(s_r=g[..., 0] / o_safe, s_1=nu / o_safe, nu=nu)
 
 
+def new_probe(n_gaussians: int, like: Tensor, n_cameras: int | None = None) -> Tensor:
+    """The probe: zero features [N, 2] (or [C, N, 2] for per-camera sums over several cameras), a leaf that
+    requires grad, in ``like``'s dtype and device; pass it as ``rasterize(..., extra=probe)``."""
+    shape = (n_gaussians, 2) if n_cameras is None else (n_cameras, n_gaussians, 2)
+    return torch.zeros(shape, dtype=like.dtype, device=like.device, requires_grad=True)
+
+
+def _opacities(info: dict) -> Tensor:
+    """[C, N] the activated opacities the pass rendered with (gsplat's meta; packed: scattered back)."""
+    o = info["opacities"].detach()
+    if info.get("gaussian_ids") is None:
+        return o
+    C, N = info["n_cameras"], info["extra_features"].shape[-2]
+    full = o.new_zeros(C, N)
+    full[info["camera_ids"], info["gaussian_ids"]] = o
+    return full
+
+
 def _sums_from_probe_grad(grad: Tensor, info: dict) -> PooledSums:
-    return sums_from_probe_grad(grad, info["pool_opacities"])
+    """[N, 2] probes (one camera) are read as [1, N, 2]."""
+    return sums_from_probe_grad(grad if grad.dim() == 3 else grad[None], _opacities(info))
 
 
 def _upstream(info: dict, r: Tensor) -> Tensor:
-    ch = info.get("pool_channels")
-    if ch is None or "pool_probe" not in info:
-        raise ValueError("rasterize(..., pool_probe=True) is needed for probe pooling")
+    ch = info.get("extra")
+    probe = info.get("extra_features")
+    if ch is None or probe is None or ch.shape[-1] != 2 or not probe.requires_grad:
+        raise ValueError("probe pooling needs rasterize(..., extra=new_probe(...))")
     C, H, W, _ = ch.shape
     if r.shape != (C, H, W):
         raise ValueError(f"r must be [C, H, W] = {(C, H, W)}, got {tuple(r.shape)}")
@@ -105,14 +136,15 @@ def probe_objective(info: dict, r: Tensor) -> Tensor:
     that known gradient rather than a product and a sum (``jsgs.known_grad``).
     """
     up = _upstream(info, r)
-    return with_known_gradient(info["pool_channels"], up.new_zeros(()), up)
+    return with_known_gradient(info["extra"], up.new_zeros(()), up)
 
 
 def pool_from_grad(info: dict) -> PooledSums:
-    """Pooled sums from ``info["pool_probe"].grad`` after a backward that included ``probe_objective``."""
-    g = info["pool_probe"].grad
+    """Pooled sums from the probe's gradient ``info["extra_features"].grad`` after a backward that included
+    ``probe_objective``."""
+    g = info["extra_features"].grad
     if g is None:
-        raise ValueError("pool_probe has no gradient: add probe_objective(info, r) to the loss first")
+        raise ValueError("the probe has no gradient: add probe_objective(info, r) to the loss first")
     return _sums_from_probe_grad(g, info)
 
 
@@ -122,7 +154,7 @@ def pool_now(info: dict, r: Tensor) -> PooledSums:
     Call it before ``loss.backward()``: gsplat *assigns* ``means2d.absgrad`` in every rasteriser backward,
     so a later call would overwrite the loss's absgrad with this backward's (zero) one."""
     (g,) = torch.autograd.grad(
-        info["pool_channels"], info["pool_probe"], grad_outputs=_upstream(info, r), retain_graph=True
+        info["extra"], info["extra_features"], grad_outputs=_upstream(info, r), retain_graph=True
     )
     return _sums_from_probe_grad(g, info)
 
@@ -147,10 +179,47 @@ def pool_direct(
     """Pooled sums by evaluating the reference rasterizer's weights directly (no autograd, any device).
 
     Same arguments as ``rasterize`` (colours are not needed); r: [C, H, W]."""
-    proj = reference.project_gaussians(
+    proj = project_gaussians(
         means, quats, scales, opacities, viewmats, Ks, width, height,
         eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
     )  # fmt: skip
-    bins = reference.bin_tiles(proj.means2d, proj.radii, proj.depths, width, height)
-    s_r, s_1, nu = reference.pooled_sums(proj, bins, opacities, r, width, height)
+    bins = bin_tiles(proj.means2d, proj.radii, proj.depths, width, height)
+    s_r, s_1, nu = pooled_sums(proj, bins, opacities, r, width, height)
     return PooledSums(s_r, s_1, nu)
+
+
+@torch.no_grad()
+def pooled_sums(
+    proj: Projected,
+    bins: TileBins,
+    opacities: Tensor,
+    r: Tensor,
+    width: int,
+    height: int,
+    *,
+    chunk_pairs: int = CHUNK_PAIRS,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per (camera, Gaussian) sums over the pixels it contributes to in this pass (same skip/stop rules):
+    ``S_r = Σ_p t·a·r(p)``, ``S_1 = Σ_p t·a``, ``ν = Σ_p t·α(p)``, each [C, N], where t is the transmittance
+    before the Gaussian and ``a = α(p)/o`` the footprint without opacity (``exp(−σ)`` except in the rare
+    core where α hit the 0.999 clamp). r: [C, H, W] per-pixel map."""
+    C, N = proj.depths.shape
+    TH, TW = bins.tile_height, bins.tile_width
+    dt = proj.means2d.dtype
+    r_t = image_to_tiles(r.detach().to(dt), TH, TW)
+    in_t = image_to_tiles(torch.ones(C, height, width, dtype=dt, device=r.device), TH, TW)
+    m_f = proj.means2d.detach().reshape(C * N, 2)
+    con_f = proj.conics.detach().reshape(C * N, 3)
+    op = opacities.detach()
+    s_r = torch.zeros(C * N, dtype=dt, device=m_f.device)
+    nu = torch.zeros_like(s_r)
+    for tiles, K in tile_blocks(bins.counts, chunk_pairs):
+        ids, slot_ok = gather_block(bins, tiles, K)
+        op_b = torch.where(slot_ok, op[ids % N], torch.zeros_like(ids, dtype=dt))
+        w = block_weights(m_f[ids], con_f[ids], op_b, tile_origins(tiles, TW, TH, dt))
+        vis = (w.alpha * w.T).reshape(len(tiles), -1, K)  # exactly zero on padding slots
+        s_r.index_add_(0, ids.flatten(), torch.bmm(r_t[tiles][:, None, :], vis).flatten())
+        nu.index_add_(0, ids.flatten(), torch.bmm(in_t[tiles][:, None, :], vis).flatten())
+    o = op[None, :].expand(C, N).reshape(-1)
+    o_safe = torch.where(nu > 0, o, torch.ones_like(o))
+    return (s_r / o_safe).reshape(C, N), (nu / o_safe).reshape(C, N), nu.reshape(C, N)
