@@ -83,12 +83,17 @@ def test_defaults_are_gsplat_simple_trainer() -> None:
     assert cfg.seed == 42
     # the paper's protocol
     assert cfg.iterations == 10_000 and cfg.eval_at == [3000, 7000, 10_000]
-    # DefaultStrategy: every field we expose has gsplat's own default
-    from gsplat.strategy import DefaultStrategy
+    # DefaultStrategy (the default type): every field it shares with ours has gsplat's own default; the
+    # MCMC-only fields have MCMCStrategy's
+    from gsplat.strategy import DefaultStrategy, MCMCStrategy
 
-    ref = DefaultStrategy()
+    assert cfg.strategy.type == "default"
+    ref, mcmc = DefaultStrategy(), MCMCStrategy()
     for f in dataclasses.fields(cfg.strategy):
-        assert getattr(cfg.strategy, f.name) == getattr(ref, f.name), f.name
+        if f.name in ("cap_max", "noise_lr", "min_opacity"):
+            assert getattr(cfg.strategy, f.name) == getattr(mcmc, f.name), f.name
+        elif f.name != "type":
+            assert getattr(cfg.strategy, f.name) == getattr(ref, f.name), f.name
 
 
 def test_config_schema_file_is_current() -> None:
