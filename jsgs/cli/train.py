@@ -123,50 +123,32 @@ def train_command(
     stop_at: int | None,
 ) -> None:
     """Train Gaussians on the views of MANIFEST (a jsgs manifest; see `jsgstools manifest`)."""
-    from jsgs.train.config import TrainConfig, from_dict, load_config_file
-    from jsgs.train.config import preset as preset_settings
+    from jsgs.train.config import command_settings
     from jsgs.train.trainer import load_run_settings, train
 
     if resume and force:
         raise JsgsError("--resume and --force exclude each other")
-    overrides: dict[str, Any] = {}
-    for key, value in (("method", method), ("iterations", iterations), ("device", device), ("seed", seed)):
-        if value is not None:
-            overrides[key] = value
+    overrides = {
+        k: v
+        for k, v in (("method", method), ("iterations", iterations), ("device", device), ("seed", seed))
+        if v is not None
+    }
     if eval_at is not None:
         overrides["eval_at"] = _parse_steps(eval_at)
-
-    if resume and preset is not None:
-        raise JsgsError("--preset applies to a new run; --resume takes the run's own settings")
-    start = preset_settings(preset) if preset is not None else TrainConfig()
-    if config_file is not None:
-        base = load_config_file(config_file, base=start)
-    elif resume:
-        base = load_run_settings(out)
-    else:
-        base = start
-    cfg = from_dict(overrides, "command line", base=base)
-    # --method jsgs switches: merged over the config's method_options (the rest of them stay)
     method_flags: dict[str, Any] = {}
     if jpeg_mode is not None:
         method_flags["jpeg_mode"] = jpeg_mode
     if compile_backend is not None:
-        speed = cfg.method_options.get("speed", {})
-        method_flags["speed"] = {**(speed if isinstance(speed, dict) else {}), "compile": compile_backend}
-    for key, off in (("jo", no_jo), ("ds", no_ds), ("gc", no_gc)):
-        if off:
-            method_flags[key] = False
-    if method_flags:
-        if cfg.method != "jsgs":
-            raise JsgsError(
-                "--jpeg-mode, --compile, --no-jo, --no-ds and --no-gc apply to --method jsgs "
-                f"(method is {cfg.method!r})"
-            )
-        cfg.method_options = {**cfg.method_options, **method_flags}
-    if iterations is not None and eval_at is None and any(s > cfg.iterations for s in cfg.eval_at):
-        # the default schedule (or the config's) cut at the requested length, which is always evaluated
-        cfg.eval_at = [s for s in cfg.eval_at if s < cfg.iterations] + [cfg.iterations]
-
+        method_flags["speed"] = {"compile": compile_backend}
+    method_flags.update({k: False for k, off in (("jo", no_jo), ("ds", no_ds), ("gc", no_gc)) if off})
+    cfg = command_settings(
+        preset_name=preset,
+        config_file=config_file,
+        resume_settings=load_run_settings(out) if resume and config_file is None else None,
+        overrides=overrides,
+        method_flags=method_flags,
+        eval_at_given=eval_at is not None,
+    )
     ctx = click.get_current_context()
     doc = train(
         manifest, out, cfg, resume=resume, force=force, stop_at=stop_at, progress=not quiet, profile=profile,

@@ -181,8 +181,8 @@ std::vector<at::Tensor> controller_forward(at::Tensor probe_grad, at::Tensor log
                                            at::Tensor means, at::Tensor quats, at::Tensor viewmat,
                                            at::Tensor K, int64_t width, int64_t height, double weight,
                                            double near_plane, double eps_proj, double tau_s) {
-  // the arguments were checked by the caller in bindings.cpp: an exception thrown from this nvcc-compiled
-  // translation unit did not reach Python cleanly (it crashed the process in session 6)
+  // the arguments are checked by the caller in bindings.cpp: an exception thrown from this nvcc-compiled
+  // translation unit does not reach Python cleanly (it ends the process)
   const int64_t n = logits.size(0);
   const c10::cuda::CUDAGuard guard(logits.device());
   auto grad_logit = at::empty({n}, logits.options());

@@ -430,6 +430,47 @@ def preset(name: str) -> TrainConfig:
     return from_dict(PRESETS[name], f"preset {name}")
 
 
+def command_settings(
+    *,
+    preset_name: str | None = None,
+    config_file: str | Path | None = None,
+    resume_settings: TrainConfig | None = None,
+    overrides: dict[str, Any] | None = None,
+    method_flags: dict[str, Any] | None = None,
+    eval_at_given: bool = False,
+) -> TrainConfig:
+    """The settings of a ``jsgs train`` invocation, in layers: the defaults, the preset, the config file (or,
+    when resuming, the run's own settings), the command line's ``overrides`` (dotted-free top-level keys),
+    then ``method_flags`` merged over ``method_options`` (the JSGS switches; ``speed`` merged one level
+    deeper). With ``iterations`` overridden and no ``eval_at`` given, the evaluation steps are cut at the new
+    length, which is always evaluated. JsgsError (one line) on conflicting choices."""
+    overrides = dict(overrides or {})
+    if resume_settings is not None and preset_name is not None:
+        raise JsgsError("--preset applies to a new run; --resume takes the run's own settings")
+    start = preset(preset_name) if preset_name is not None else TrainConfig()
+    if config_file is not None:
+        base = load_config_file(config_file, base=start)
+    elif resume_settings is not None:
+        base = resume_settings
+    else:
+        base = start
+    cfg = from_dict(overrides, "command line", base=base)
+    if method_flags:
+        if cfg.method != "jsgs":
+            raise JsgsError(
+                "--jpeg-mode, --compile, --no-jo, --no-ds and --no-gc apply to --method jsgs "
+                f"(method is {cfg.method!r})"
+            )
+        flags = dict(method_flags)
+        if isinstance(flags.get("speed"), dict):
+            speed = cfg.method_options.get("speed", {})
+            flags["speed"] = {**(speed if isinstance(speed, dict) else {}), **flags["speed"]}
+        cfg.method_options = {**cfg.method_options, **flags}
+    if "iterations" in overrides and not eval_at_given and any(s > cfg.iterations for s in cfg.eval_at):
+        cfg.eval_at = [s for s in cfg.eval_at if s < cfg.iterations] + [cfg.iterations]
+    return cfg
+
+
 def load_config_file(path: str | Path, base: TrainConfig | None = None) -> TrainConfig:
     """Read ``--config FILE``: either a ``RUN/config.json`` of an earlier run (validated against the schema;
     its ``settings`` are taken whole) or a JSON object of (partial) settings over ``base`` (default: the
