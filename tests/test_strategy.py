@@ -159,8 +159,8 @@ def test_mcmc_preset_is_gsplat_simple_trainer_mcmc() -> None:
     ("settings", "message"),
     [
         ({"strategy": {"type": "mcmc", "cap_max": 0}}, "strategy.cap_max must be >= 1"),
-        ({"strategy": {"type": "mcmc", "noise_lr": -1.0}}, "strategy.noise_lr must not be negative"),
-        ({"strategy": {"min_opacity": 1.0}}, r"strategy.min_opacity must lie in \[0, 1\)"),
+        ({"strategy": {"type": "mcmc", "noise_lr": -1.0}}, r"strategy.noise_lr must be >= 0.0 \(got -1.0\)"),
+        ({"strategy": {"min_opacity": 1.0}}, r"strategy.min_opacity must be < 1.0"),
         ({"strategy": {"type": "relocate"}}, "strategy.type"),
     ],
 )

@@ -536,3 +536,34 @@ def test_method_options_are_checked_with_the_method(tmp_path: Path) -> None:
         cfg.check()
     cfg.method = "jsgs"
     cfg.check()
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        ({"optim": {"beta1": 5}}, r"optim.beta1 must be < 1.0 \(got 5.0\)"),
+        ({"optim": {"means_lr": -1}}, r"optim.means_lr must be >= 0.0 \(got -1.0\)"),
+        ({"render": {"near_plane": -1}}, r"render.near_plane must be > 0.0 \(got -1.0\)"),
+        ({"render": {"near_plane": 2.0, "far_plane": 1.0}}, "render.far_plane .* must exceed render.near_plane"),
+        ({"log_every": 0}, r"log_every must be >= 1 \(got 0\)"),
+        ({"eval_at": [0, 5]}, r"eval_at must be >= 1 \(got 0\)"),
+        ({"render": {"sh_degree": 5}}, r"render.sh_degree must be <= 4 \(got 5\)"),
+        ({"method": "jsgs", "method_options": {"lambda_obs": -1}}, r"method_options.lambda_obs must be >= 0.0"),
+    ],
+)
+def test_settings_out_of_range_are_one_line_errors(settings: dict[str, Any], message: str) -> None:
+    """Bounds are checked when settings are read, before anything runs (an optimiser would otherwise fail
+    with its own traceback, or a negative near plane train silently)."""
+    with pytest.raises(JsgsError, match=message) as e:
+        from_dict(settings, "cfg.json").check("cfg.json")
+    assert str(e.value).startswith("cfg.json: ") and "\n" not in str(e.value)
+
+
+def test_bounds_are_in_the_schema_and_hold_for_the_defaults() -> None:
+    from jsgs.train.config import check_bounds, config_schema
+
+    check_bounds(TrainConfig(), "defaults")
+    props = config_schema()["$defs"]["settings"]["properties"]
+    assert props["optim"]["properties"]["beta1"]["exclusiveMaximum"] == 1.0
+    assert props["render"]["properties"]["near_plane"]["exclusiveMinimum"] == 0.0
+    assert props["eval_at"]["items"]["minimum"] == 1

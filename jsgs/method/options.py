@@ -8,14 +8,14 @@ the same results are computed (``torch.compile``, CUDA graphs, the fused control
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
 
 from jsgs.errors import JsgsError
 from jsgs.method.controller import EPS_PROJ, TAU_S
-from jsgs.train.config import parse_method_options, setting
+from jsgs.train.config import check_bounds, parse_method_options, setting
 
 #: ``method_options.speed.compile`` (``jsgs train --compile``, ``jsgs bench --compile``)
 COMPILE_BACKENDS = ("off", "inductor", "aot_eager")
@@ -53,10 +53,12 @@ class JsgsSpeed:
 class JsgsOptions:
     """method_options of --method jsgs (defaults: the paper's implementation details)."""
 
-    lambda_obs: float = setting(0.2, "λ_obs: weight of L_obs, the photometric loss of the JPEG observation.")
-    lambda_low: float = setting(0.02, "λ_low: weight of L_low (DCT supervision, low band).")
-    lambda_mid: float = setting(0.03, "λ_mid: weight of L_mid (DCT supervision, middle band).")
-    lambda_fro: float = setting(0.05, "λ_fro: weight of L_fro (Gaussian Controller).")
+    lambda_obs: float = setting(
+        0.2, "λ_obs: weight of L_obs, the photometric loss of the JPEG observation.", ge=0.0
+    )
+    lambda_low: float = setting(0.02, "λ_low: weight of L_low (DCT supervision, low band).", ge=0.0)
+    lambda_mid: float = setting(0.03, "λ_mid: weight of L_mid (DCT supervision, middle band).", ge=0.0)
+    lambda_fro: float = setting(0.05, "λ_fro: weight of L_fro (Gaussian Controller).", ge=0.0)
     base_by_view: bool = setting(
         False,
         "Scale λ_base per JPEG view by how much its tables trust its pixels: w = σ_ref² / (σ_ref² + σ²), σ² "
@@ -65,7 +67,9 @@ class JsgsOptions:
         "JO. Lossless views keep λ_base.",
     )
     base_noise_ref: float = setting(
-        8.0, "σ_ref of base_by_view, in 8-bit units: the noise level at which a view's ℓ_ph weight halves."
+        8.0,
+        "σ_ref of base_by_view, in 8-bit units: the noise level at which a view's ℓ_ph weight halves.",
+        gt=0.0,
     )
     jpeg_mode: Literal["paper", "float", "exact"] = setting(
         "paper", "Forward of the JPEG observation operator's rounding (jsgs.jpeg.observe)."
@@ -73,11 +77,13 @@ class JsgsOptions:
     jo: bool = setting(True, "JPEG observation (L_obs); DS and GC need it.")
     ds: bool = setting(True, "DCT supervision (L_low, L_mid).")
     gc: bool = setting(True, "Gaussian Controller (L_fro).")
-    tau_s: float = setting(TAU_S, "τ_s: the Gaussian Controller's projected-scale threshold (pixels).")
-    eps_sm: float = setting(1e-3, "ε of the soft maximum of the DS block scores.")
-    eps_dct_loss: float = setting(1e-6, "ε in the DS losses' denominators.")
-    eps_dct_block: float = setting(1e-6, "ε in the DS block scores' denominators.")
-    eps_proj: float = setting(EPS_PROJ, "ε of the Gaussian Controller's pooled projection weights.")
+    tau_s: float = setting(
+        TAU_S, "τ_s: the Gaussian Controller's projected-scale threshold (pixels).", gt=0.0
+    )
+    eps_sm: float = setting(1e-3, "ε of the soft maximum of the DS block scores.", gt=0.0)
+    eps_dct_loss: float = setting(1e-6, "ε in the DS losses' denominators.", gt=0.0)
+    eps_dct_block: float = setting(1e-6, "ε in the DS block scores' denominators.", gt=0.0)
+    eps_proj: float = setting(EPS_PROJ, "ε of the Gaussian Controller's pooled projection weights.", gt=0.0)
     gc_pooling: Literal["deferred", "now"] = setting(
         "deferred",
         "deferred: the GC pools inside the main backward (no extra pass); now: one extra rasteriser "
@@ -94,14 +100,7 @@ class JsgsOptions:
     def check(self, where: str = "config") -> None:
         """JsgsError (one line) on a value out of range or an ablation combination the paper does not
         define (types and choices are checked by the parser)."""
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not isinstance(value, float):
-                continue
-            if f.name.startswith("lambda_") and value < 0:
-                raise JsgsError(f"{where}: method_options.{f.name} must be >= 0 (got {value})")
-            if not f.name.startswith("lambda_") and value <= 0:
-                raise JsgsError(f"{where}: method_options.{f.name} must be > 0 (got {value})")
+        check_bounds(self, where, "method_options.")
         if self.speed.cuda_graph is True and self.speed.compile != "off":
             raise JsgsError(
                 f"{where}: method_options.speed.cuda_graph and method_options.speed.compile "

@@ -38,12 +38,48 @@ RUN_CONFIG_VERSION = 1
 T = TypeVar("T")
 
 
+#: range bounds a numeric setting may carry (JSON Schema's keyword for each)
+_BOUNDS = {"ge": "minimum", "gt": "exclusiveMinimum", "le": "maximum", "lt": "exclusiveMaximum"}
+_BOUND_WORDS = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<"}
+
+
 def setting(default: Any = dataclasses.MISSING, help: str = "", **kw: Any) -> Any:
     """A dataclass field with a ``help`` text (used for the JSON Schema and the docs): every setting of a
-    config section, the methods' option sections included (:func:`section_from_dict`)."""
+    config section, the methods' option sections included (:func:`section_from_dict`). Numeric settings may
+    carry bounds ``ge``, ``gt``, ``le``, ``lt``: checked when settings are read (a one-line error naming the
+    key) and written into the JSON Schema."""
+    meta: dict[str, Any] = {"help": help}
+    for b in _BOUNDS:
+        if b in kw:
+            meta[b] = kw.pop(b)
     if "default_factory" in kw:
-        return field(default_factory=kw.pop("default_factory"), metadata={"help": help}, **kw)
-    return field(default=default, metadata={"help": help}, **kw)
+        return field(default_factory=kw.pop("default_factory"), metadata=meta, **kw)
+    return field(default=default, metadata=meta, **kw)
+
+
+def check_bounds(section: Any, where: str, prefix: str = "") -> None:
+    """Every numeric setting of ``section`` (a config dataclass, nested sections included) within its
+    bounds; JsgsError (one line) naming the first that is not."""
+    for f in dataclasses.fields(section):
+        value = getattr(section, f.name)
+        if dataclasses.is_dataclass(value):
+            check_bounds(value, where, prefix + f.name + ".")
+        else:
+            _check_bounds(value, f, prefix + f.name, where)
+
+
+def _check_bounds(value: Any, f: dataclasses.Field[Any], key: str, where: str) -> None:
+    values = value if isinstance(value, list) else [value]
+    for v in values:
+        if not isinstance(v, (int, float)) or isinstance(v, bool):
+            continue
+        for b, words in _BOUND_WORDS.items():
+            if b not in f.metadata:
+                continue
+            bound = f.metadata[b]
+            ok = {"ge": v >= bound, "gt": v > bound, "le": v <= bound, "lt": v < bound}[b]
+            if not ok:
+                raise JsgsError(f"{where}: {key} must be {words} {bound} (got {v!r})")
 
 
 _f = setting
@@ -56,17 +92,20 @@ class InitConfig:
     type: Literal["sfm", "random"] = _f(
         "sfm", "sfm: one Gaussian per manifest point; random: uniform in a cube."
     )
-    num_points: int = _f(100_000, "Number of Gaussians for type=random (ignored for sfm).")
-    extent: float = _f(3.0, "Half-side of the random cube, as a multiple of the scene scale (type=random).")
-    opacity: float = _f(0.1, "Initial opacity (after the sigmoid).")
-    scale: float = _f(1.0, "Multiplier on the kNN scale.")
+    num_points: int = _f(100_000, "Number of Gaussians for type=random (ignored for sfm).", ge=1)
+    extent: float = _f(
+        3.0, "Half-side of the random cube, as a multiple of the scene scale (type=random).", gt=0.0
+    )
+    opacity: float = _f(0.1, "Initial opacity (after the sigmoid).", gt=0.0, lt=1.0)
+    scale: float = _f(1.0, "Multiplier on the kNN scale.", gt=0.0)
     knn_neighbors: int = _f(
-        3, "Initial scale = sqrt(mean of squared distances to this many nearest other points)."
+        3, "Initial scale = sqrt(mean of squared distances to this many nearest other points).", ge=1
     )
     min_distance: float = _f(
         1e-7,
         "Floor on that kNN distance (world units, normalised world): duplicated SfM points would otherwise "
         "give log(0) = -inf scales (gsplat has no floor; it only matters for exact duplicates).",
+        gt=0.0,
     )
 
 
@@ -74,18 +113,20 @@ class InitConfig:
 class OptimConfig:
     """Adam, one optimizer per parameter group, as gsplat (batch size 1)."""
 
-    means_lr: float = _f(1.6e-4, "Means learning rate, multiplied by the scene scale.")
+    means_lr: float = _f(1.6e-4, "Means learning rate, multiplied by the scene scale.", ge=0.0)
     means_lr_final_factor: float = _f(
-        0.01, "The means' learning rate decays exponentially to this fraction of its start over the run."
+        0.01,
+        "The means' learning rate decays exponentially to this fraction of its start over the run.",
+        gt=0.0,
     )
-    scales_lr: float = _f(5e-3, "Log-scales learning rate.")
-    quats_lr: float = _f(1e-3, "Quaternions learning rate.")
-    opacities_lr: float = _f(5e-2, "Opacity-logits learning rate.")
-    sh0_lr: float = _f(2.5e-3, "SH band 0 learning rate.")
-    shN_lr: float = _f(2.5e-3 / 20, "Higher SH bands learning rate.")
-    eps: float = _f(1e-15, "Adam epsilon.")
-    beta1: float = _f(0.9, "Adam beta1.")
-    beta2: float = _f(0.999, "Adam beta2.")
+    scales_lr: float = _f(5e-3, "Log-scales learning rate.", ge=0.0)
+    quats_lr: float = _f(1e-3, "Quaternions learning rate.", ge=0.0)
+    opacities_lr: float = _f(5e-2, "Opacity-logits learning rate.", ge=0.0)
+    sh0_lr: float = _f(2.5e-3, "SH band 0 learning rate.", ge=0.0)
+    shN_lr: float = _f(2.5e-3 / 20, "Higher SH bands learning rate.", ge=0.0)
+    eps: float = _f(1e-15, "Adam epsilon.", gt=0.0)
+    beta1: float = _f(0.9, "Adam beta1.", ge=0.0, lt=1.0)
+    beta2: float = _f(0.999, "Adam beta2.", ge=0.0, lt=1.0)
 
 
 @dataclass
@@ -98,27 +139,37 @@ class StrategyConfig:
         "default: gsplat DefaultStrategy (the count grows as the heuristics decide); mcmc: gsplat "
         "MCMCStrategy, at most cap_max Gaussians (equal model sizes for comparisons; --preset mcmc).",
     )
-    cap_max: int = _f(1_000_000, "mcmc: the budget, the largest number of Gaussians.")
+    cap_max: int = _f(1_000_000, "mcmc: the budget, the largest number of Gaussians.", ge=1)
     noise_lr: float = _f(
-        5e5, "mcmc: position noise scale, times the means' learning rate (gsplat MCMCStrategy noise_lr)."
+        5e5,
+        "mcmc: position noise scale, times the means' learning rate (gsplat MCMCStrategy noise_lr).",
+        ge=0.0,
     )
-    min_opacity: float = _f(0.005, "mcmc: Gaussians at or below this opacity are relocated.")
-    prune_opa: float = _f(0.005, "Prune Gaussians with opacity below this.")
+    min_opacity: float = _f(0.005, "mcmc: Gaussians at or below this opacity are relocated.", ge=0.0, lt=1.0)
+    prune_opa: float = _f(0.005, "Prune Gaussians with opacity below this.", ge=0.0, lt=1.0)
     grow_grad2d: float = _f(
-        0.0002, "Duplicate/split Gaussians whose mean screen-space gradient exceeds this."
+        0.0002, "Duplicate/split Gaussians whose mean screen-space gradient exceeds this.", ge=0.0
     )
-    grow_scale3d: float = _f(0.01, "Duplicate if max scale <= this x scene scale, else split.")
-    grow_scale2d: float = _f(0.05, "Split if the screen radius (fraction of image size) exceeds this.")
-    prune_scale3d: float = _f(0.1, "Prune Gaussians larger than this x scene scale (after reset_every).")
-    prune_scale2d: float = _f(0.15, "Prune by screen radius (only before refine_scale2d_stop_iter).")
-    refine_scale2d_stop_iter: int = _f(0, "Use the 2D-radius criteria before this step (0: never).")
-    refine_start_iter: int = _f(500, "Refine (default) or relocate and add (mcmc) only after this step.")
+    grow_scale3d: float = _f(0.01, "Duplicate if max scale <= this x scene scale, else split.", ge=0.0)
+    grow_scale2d: float = _f(
+        0.05, "Split if the screen radius (fraction of image size) exceeds this.", ge=0.0
+    )
+    prune_scale3d: float = _f(
+        0.1, "Prune Gaussians larger than this x scene scale (after reset_every).", ge=0.0
+    )
+    prune_scale2d: float = _f(0.15, "Prune by screen radius (only before refine_scale2d_stop_iter).", ge=0.0)
+    refine_scale2d_stop_iter: int = _f(0, "Use the 2D-radius criteria before this step (0: never).", ge=0)
+    refine_start_iter: int = _f(
+        500, "Refine (default) or relocate and add (mcmc) only after this step.", ge=0
+    )
     refine_stop_iter: int = _f(
-        15_000, "Stop refining at this step (gsplat's MCMCStrategy default, set by --preset mcmc: 25000)."
+        15_000,
+        "Stop refining at this step (gsplat's MCMCStrategy default, set by --preset mcmc: 25000).",
+        ge=0,
     )
-    reset_every: int = _f(3000, "default: opacity reset period (see DefaultStrategy).")
-    refine_every: int = _f(100, "Refine (default) or relocate and add (mcmc) every this many steps.")
-    pause_refine_after_reset: int = _f(0, "Pause refinement this many steps after a reset.")
+    reset_every: int = _f(3000, "default: opacity reset period (see DefaultStrategy).", ge=1)
+    refine_every: int = _f(100, "Refine (default) or relocate and add (mcmc) every this many steps.", ge=1)
+    pause_refine_after_reset: int = _f(0, "Pause refinement this many steps after a reset.", ge=0)
     absgrad: bool = _f(False, "Use absolute screen-space gradients (AbsGS).")
     revised_opacity: bool = _f(False, "Revised opacity heuristic of arXiv:2404.06109 when splitting.")
 
@@ -130,9 +181,9 @@ class SceneConfig:
     normalize_world: bool = _f(
         True, "Similarity transform of gsplat's Parser (up axis, recentre, unit camera distance, PCA axes)."
     )
-    global_scale: float = _f(1.0, "Multiplier on the scene scale.")
+    global_scale: float = _f(1.0, "Multiplier on the scene scale.", gt=0.0)
     scene_scale_margin: float = _f(
-        1.1, "Scene scale = this x largest camera distance from the cameras' mean."
+        1.1, "Scene scale = this x largest camera distance from the cameras' mean.", gt=0.0
     )
     require_lossless_reference: bool = _f(
         True,
@@ -147,10 +198,10 @@ class RenderConfig:
     backend: Literal["auto", "torch", "gsplat"] = _f(
         "auto", "auto: gsplat on CUDA, the torch reference rasterizer on CPU."
     )
-    sh_degree: int = _f(3, "Final spherical-harmonics degree.")
-    sh_degree_interval: int = _f(1000, "Raise the SH degree by one every this many steps.")
-    near_plane: float = _f(0.01, "Near clipping plane (normalised world units).")
-    far_plane: float = _f(1e10, "Far clipping plane.")
+    sh_degree: int = _f(3, "Final spherical-harmonics degree.", ge=0, le=4)
+    sh_degree_interval: int = _f(1000, "Raise the SH degree by one every this many steps.", ge=1)
+    near_plane: float = _f(0.01, "Near clipping plane (normalised world units).", gt=0.0)
+    far_plane: float = _f(1e10, "Far clipping plane.", gt=0.0)
     packed: bool = _f(False, "gsplat packed mode.")
     random_background: bool = _f(False, "Composite renders over a random colour while training.")
 
@@ -159,15 +210,15 @@ class RenderConfig:
 class LossConfig:
     """l_ph = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM), and gsplat's optional regularisers."""
 
-    ssim_lambda: float = _f(0.2, "Weight of 1 - SSIM in l_ph.")
+    ssim_lambda: float = _f(0.2, "Weight of 1 - SSIM in l_ph.", ge=0.0, le=1.0)
     ssim_padding: Literal["valid", "same"] = _f(
         "valid",
         "SSIM window padding in l_ph: valid (gsplat simple_trainer's fused_ssim call) or same (zero padding, "
         "the original 3DGS).",
     )
-    base_weight: float = _f(1.0, "lambda_base: weight of l_ph in the total loss (JSGS exposes it).")
-    opacity_reg: float = _f(0.0, "Weight of mean(opacity) (gsplat opacity_reg).")
-    scale_reg: float = _f(0.0, "Weight of mean(exp(scales)) (gsplat scale_reg).")
+    base_weight: float = _f(1.0, "lambda_base: weight of l_ph in the total loss (JSGS exposes it).", ge=0.0)
+    opacity_reg: float = _f(0.0, "Weight of mean(opacity) (gsplat opacity_reg).", ge=0.0)
+    scale_reg: float = _f(0.0, "Weight of mean(exp(scales)) (gsplat scale_reg).", ge=0.0)
 
 
 @dataclass
@@ -190,8 +241,10 @@ class EvalConfig:
     lpips_weights: str | None = _f(
         None, "AlexNet backbone for LPIPS (else $JSGS_LPIPS_WEIGHTS; none: LPIPS is null)."
     )
-    fps_passes: int = _f(5, "Timed rendering passes over the test views (FPS = views / median pass time).")
-    fps_warmup: int = _f(1, "Untimed passes before those.")
+    fps_passes: int = _f(
+        5, "Timed rendering passes over the test views (FPS = views / median pass time).", ge=1
+    )
+    fps_warmup: int = _f(1, "Untimed passes before those.", ge=0)
     save_renders: bool = _f(True, "Write the test renders as PNG.")
 
 
@@ -200,17 +253,18 @@ class TrainConfig:
     """All settings of a run. Nested sections mirror the JSON (``RUN/config.json`` ``settings``)."""
 
     method: str = _f("gsplat", "Training method: gsplat (baseline) or a registered method (e.g. jsgs).")
-    iterations: int = _f(10_000, "Training steps (one view each).")
+    iterations: int = _f(10_000, "Training steps (one view each).", ge=1)
     eval_at: list[int] = _f(
         default_factory=lambda: [3000, 7000, 10_000],
         help="Evaluate and checkpoint after these steps (1-based: 3000 = after 3000 steps).",
+        ge=1,
     )
     checkpoint_every: int = _f(
-        0, "Also checkpoint every this many steps (0: only at eval steps and the end)."
+        0, "Also checkpoint every this many steps (0: only at eval steps and the end).", ge=0
     )
-    seed: int = _f(42, "Seed of every random number generator.")
+    seed: int = _f(42, "Seed of every random number generator.", ge=0)
     device: Literal["auto", "cpu", "cuda"] = _f("auto", "auto: cuda when available, else cpu.")
-    log_every: int = _f(10, "Refresh the progress bar every this many steps.")
+    log_every: int = _f(10, "Refresh the progress bar every this many steps.", ge=1)
     init: InitConfig = _f(default_factory=InitConfig, help="Initial Gaussians.")
     optim: OptimConfig = _f(default_factory=OptimConfig, help="Optimizer.")
     strategy: StrategyConfig = _f(default_factory=StrategyConfig, help="Densification strategy.")
@@ -229,43 +283,17 @@ class TrainConfig:
         """Raise JsgsError (one line) on inconsistent settings; with ``method_options``, also parse and check
         ``method_options`` as the options of ``method`` (off for a partial settings file that names no
         method: the method, and so the options' meaning, is given later, e.g. on the command line)."""
-        if self.iterations < 1:
-            raise JsgsError(f"{where}: iterations must be >= 1 (got {self.iterations})")
-        bad = [s for s in self.eval_at if s < 1 or s > self.iterations]
+        check_bounds(self, where)
+        bad = [s for s in self.eval_at if s > self.iterations]
         if bad:
             raise JsgsError(f"{where}: eval_at steps must lie in 1..iterations={self.iterations} (got {bad})")
         if list(self.eval_at) != sorted(set(self.eval_at)):
             raise JsgsError(f"{where}: eval_at must be increasing without repeats (got {self.eval_at})")
-        for name, value in (
-            ("checkpoint_every", self.checkpoint_every),
-            ("log_every", self.log_every - 1),
-            ("render.sh_degree", self.render.sh_degree),
-            ("eval.fps_warmup", self.eval.fps_warmup),
-        ):
-            if value < 0:
-                raise JsgsError(f"{where}: {name} must not be negative")
-        if self.render.sh_degree > 4:
-            raise JsgsError(f"{where}: render.sh_degree must be 0..4 (got {self.render.sh_degree})")
-        if self.render.sh_degree_interval < 1:
-            raise JsgsError(f"{where}: render.sh_degree_interval must be >= 1")
-        if self.eval.fps_passes < 1:
-            raise JsgsError(f"{where}: eval.fps_passes must be >= 1")
-        if self.init.knn_neighbors < 1:
-            raise JsgsError(f"{where}: init.knn_neighbors must be >= 1")
-        if not 0.0 < self.init.opacity < 1.0:
-            raise JsgsError(f"{where}: init.opacity must lie in (0, 1) (got {self.init.opacity})")
-        if self.strategy.refine_every < 1 or self.strategy.reset_every < 1:
-            raise JsgsError(f"{where}: strategy.refine_every and strategy.reset_every must be >= 1")
-        if self.strategy.cap_max < 1:
-            raise JsgsError(f"{where}: strategy.cap_max must be >= 1 (got {self.strategy.cap_max})")
-        if self.strategy.noise_lr < 0.0:
-            raise JsgsError(f"{where}: strategy.noise_lr must not be negative (got {self.strategy.noise_lr})")
-        if not 0.0 <= self.strategy.min_opacity < 1.0:
+        if self.render.far_plane <= self.render.near_plane:
             raise JsgsError(
-                f"{where}: strategy.min_opacity must lie in [0, 1) (got {self.strategy.min_opacity})"
+                f"{where}: render.far_plane ({self.render.far_plane}) must exceed render.near_plane "
+                f"({self.render.near_plane})"
             )
-        if not 0.0 < self.optim.means_lr_final_factor:
-            raise JsgsError(f"{where}: optim.means_lr_final_factor must be > 0")
         if method_options:
             parse_method_options(self.method, self.method_options, where)
 
@@ -356,7 +384,8 @@ def _from_dict(cls: type, doc: dict[str, Any], where: str, prefix: str, base: An
     if unknown:
         raise JsgsError(f"{where}: unknown setting {prefix}{unknown[0]} (known: {', '.join(names)})")
     obj = base if base is not None else cls()
-    for name in names:
+    for f in dataclasses.fields(cls):
+        name = f.name
         if name not in doc:
             continue
         tp = hints[name]
@@ -365,7 +394,9 @@ def _from_dict(cls: type, doc: dict[str, Any], where: str, prefix: str, base: An
                 raise JsgsError(f"{where}: {prefix}{name} must be an object")
             setattr(obj, name, _from_dict(tp, doc[name], where, prefix + name + ".", getattr(obj, name)))
         else:
-            setattr(obj, name, _coerce(doc[name], tp, prefix + name, where))
+            value = _coerce(doc[name], tp, prefix + name, where)
+            _check_bounds(value, f, prefix + name, where)
+            setattr(obj, name, value)
     return obj
 
 
@@ -540,7 +571,13 @@ def _section_schema(cls: type) -> dict[str, Any]:
     hints = _hints(cls)
     props = {}
     for f in dataclasses.fields(cls):
-        props[f.name] = _schema_of(hints[f.name], f.metadata.get("help", ""))
+        prop = _schema_of(hints[f.name], f.metadata.get("help", ""))
+        bounds = {kw: f.metadata[b] for b, kw in _BOUNDS.items() if b in f.metadata}
+        if bounds and prop.get("type") == "array":
+            prop["items"] = {**prop["items"], **bounds}
+        elif bounds:
+            prop.update(bounds)
+        props[f.name] = prop
     return {
         "type": "object",
         "description": (cls.__doc__ or "").strip().splitlines()[0],
