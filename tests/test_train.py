@@ -544,11 +544,11 @@ def test_method_options_are_checked_with_the_method(tmp_path: Path) -> None:
         ({"optim": {"beta1": 5}}, r"optim.beta1 must be < 1.0 \(got 5.0\)"),
         ({"optim": {"means_lr": -1}}, r"optim.means_lr must be >= 0.0 \(got -1.0\)"),
         ({"render": {"near_plane": -1}}, r"render.near_plane must be > 0.0 \(got -1.0\)"),
-        ({"render": {"near_plane": 2.0, "far_plane": 1.0}}, "render.far_plane .* must exceed render.near_plane"),
+        ({"render": {"near_plane": 2.0, "far_plane": 1.0}}, "far_plane .* must exceed render.near_plane"),
         ({"log_every": 0}, r"log_every must be >= 1 \(got 0\)"),
         ({"eval_at": [0, 5]}, r"eval_at must be >= 1 \(got 0\)"),
         ({"render": {"sh_degree": 5}}, r"render.sh_degree must be <= 4 \(got 5\)"),
-        ({"method": "jsgs", "method_options": {"lambda_obs": -1}}, r"method_options.lambda_obs must be >= 0.0"),
+        ({"method": "jsgs", "method_options": {"lambda_obs": -1}}, r"lambda_obs must be >= 0.0"),
     ],
 )
 def test_settings_out_of_range_are_one_line_errors(settings: dict[str, Any], message: str) -> None:
