@@ -567,3 +567,26 @@ def test_bounds_are_in_the_schema_and_hold_for_the_defaults() -> None:
     assert props["optim"]["properties"]["beta1"]["exclusiveMaximum"] == 1.0
     assert props["render"]["properties"]["near_plane"]["exclusiveMinimum"] == 0.0
     assert props["eval_at"]["items"]["minimum"] == 1
+
+
+@pytest.mark.parametrize("method", ["gsplat", "jsgs"])
+def test_a_view_that_sees_no_gaussian_is_a_counted_step(tmp_path: Path, method: str) -> None:
+    """A training camera turned away from the scene renders nothing differentiable: its steps are logged and
+    counted (train stats ``empty_view``: their fraction), never a crash; the other views train as usual."""
+    manifest = make_scene(tmp_path / "scene", jpeg_train=method == "jsgs")
+    doc = json.loads(manifest.read_text())
+    away = next(v for v in doc["views"] if v["split"] == "train")
+    R = np.asarray(away["R"])
+    flip = np.diag([-1.0, 1.0, -1.0])  # half a turn about the camera's y axis: it looks the other way
+    away["R"] = (flip @ R).tolist()
+    away["t"] = (flip @ np.asarray(away["t"])).tolist()
+    manifest.write_text(json.dumps(doc))
+    n_train = sum(v["split"] == "train" for v in doc["views"])
+    lines: list[str] = []
+    cfg = tiny_config(iterations=2 * n_train, eval_at=[2 * n_train], method=method)
+    out = train(manifest, tmp_path / "run", cfg, progress=False, log=lines.append)
+    assert out["status"] == "complete"
+    train_log = out["evals"][-1]["train"]
+    assert train_log["stats"]["empty_view"] == pytest.approx(2 / (2 * n_train))  # each view twice
+    assert train_log["per_view"][away["name"]]["steps"] == 2
+    assert sum("sees no Gaussian" in s for s in lines) == 1

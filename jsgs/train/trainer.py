@@ -368,6 +368,7 @@ class Trainer:
         self.train_time = 0.0
         self.setup_time = 0.0
         self.start_step = 0
+        self.empty_views: set[str] = set()
         self.last_checkpoint = "none"
         self._clock = 0.0
 
@@ -603,8 +604,20 @@ class Trainer:
                 stats = dict(hout.stats)
                 folded, folded_loss = hout.folded, hout.folded_loss
         loss = weighted_loss(terms, weights, folded, folded_loss)
-        with profiler.phase("backward"):
-            loss.backward()
+        # a view that sees no Gaussian (a camera looking away, everything culled) renders a constant: no
+        # gradient reaches any parameter, so the step only logs itself
+        empty = not loss.requires_grad
+        if empty:
+            stats["empty_view"] = 1.0
+            if view.name not in self.empty_views:
+                self.empty_views.add(view.name)
+                self.say(
+                    f"note: step {step}: view {view.name!r} sees no Gaussian; its steps are skipped and "
+                    "counted (train stats empty_view)"
+                )
+        else:
+            with profiler.phase("backward"):
+                loss.backward()
         # one host sync per step: every logged value and the gradients' finiteness together
         names = list(terms)
         grad_names = [n for n in PARAM_NAMES if splats[n].grad is not None]
@@ -627,15 +640,16 @@ class Trainer:
                 o.zero_grad(set_to_none=True)
             self.scheduler.step()
         with profiler.phase("densify"):
-            strategy.step_post_backward(
-                splats,
-                optimizers,
-                self.strategy_state,
-                step,
-                r.info,
-                lr=self.scheduler.get_last_lr()[0],
-                packed=cfg.render.packed,
-            )
+            if not empty:  # the strategies read the screen-space gradients this step does not have
+                strategy.step_post_backward(
+                    splats,
+                    optimizers,
+                    self.strategy_state,
+                    step,
+                    r.info,
+                    lr=self.scheduler.get_last_lr()[0],
+                    packed=cfg.render.packed,
+                )
         result = StepResult(
             step,
             view.name,
