@@ -590,3 +590,33 @@ def test_a_view_that_sees_no_gaussian_is_a_counted_step(tmp_path: Path, method: 
     assert train_log["stats"]["empty_view"] == pytest.approx(2 / (2 * n_train))  # each view twice
     assert train_log["per_view"][away["name"]]["steps"] == 2
     assert sum("sees no Gaussian" in s for s in lines) == 1
+
+
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_a_signal_stops_after_the_step_with_a_checkpoint(scene: Path, tmp_path: Path, signame: str) -> None:
+    """Ctrl-C (or SIGTERM) before the first evaluation keeps the training: the step in progress finishes, a
+    checkpoint is written, metrics.json says stopped, and --resume ends where an uninterrupted run ends."""
+    import os
+    import signal
+
+    from jsgs.train.callbacks import Callback
+    from jsgs.train.trainer import TrainingInterrupted
+
+    class Kill(Callback):
+        def on_step_end(self, trainer: Any, result: Any) -> None:
+            if result.step == 3:
+                os.kill(os.getpid(), getattr(signal, signame))
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    with pytest.raises(TrainingInterrupted, match=f"interrupted by {signame} after step 4 of 10"):
+        train(scene, tmp_path / "b", tiny_config(iterations=10, eval_at=[10]), progress=False, callbacks=[Kill()])
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    m = json.loads((tmp_path / "b" / "metrics.json").read_text())
+    assert m["status"] == "stopped" and m["step"] == 4 and "continue with --resume" in m["error"]
+    assert (tmp_path / "b" / "checkpoints" / "step_000004.pt").is_file()
+    train(scene, tmp_path / "b", None, resume=True, progress=False)
+    train(scene, tmp_path / "a", tiny_config(iterations=10, eval_at=[10]), progress=False)
+    ca = ckpt.load_checkpoint(tmp_path / "a" / "checkpoints" / "step_000010.pt")
+    cb = ckpt.load_checkpoint(tmp_path / "b" / "checkpoints" / "step_000010.pt")
+    for name, t in ca["splats"].items():
+        assert torch.equal(t, cb["splats"][name]), name

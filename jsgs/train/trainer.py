@@ -69,6 +69,10 @@ class TrainingDiverged(JsgsError):
     """A loss term or a gradient became NaN/Inf. The message names it and the iteration."""
 
 
+class TrainingInterrupted(JsgsError):
+    """SIGINT (Ctrl-C) or SIGTERM stopped the run after a whole step, with a checkpoint to resume from."""
+
+
 @dataclass
 class RunPaths:
     root: Path
@@ -369,6 +373,7 @@ class Trainer:
         self.setup_time = 0.0
         self.start_step = 0
         self.empty_views: set[str] = set()
+        self.interrupted: str | None = None
         self.last_checkpoint = "none"
         self._clock = 0.0
 
@@ -678,6 +683,30 @@ class Trainer:
         return entry
 
     # -- the loop -------------------------------------------------------------------------------------
+    def _catch_signals(self) -> Callable[[], None]:
+        """SIGINT and SIGTERM end the run after the step in progress, with a checkpoint (a second signal
+        stops at once, as usual). Returns the function that puts the previous handlers back. Only the main
+        thread can install handlers; elsewhere signals keep their default behaviour."""
+        import signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+
+        def request_stop(signum: int, frame: Any) -> None:
+            if self.interrupted is not None:
+                raise KeyboardInterrupt
+            self.interrupted = signal.Signals(signum).name
+            self.say(f"{self.interrupted}: stopping after this step with a checkpoint (again: stop at once)")
+
+        previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+        def restore() -> None:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+
+        return restore
+
     def checkpoint_due(self, step_done: int) -> bool:
         """Whether a checkpoint follows ``step_done`` steps (evaluation steps, the end,
         ``checkpoint_every``)."""
@@ -742,25 +771,36 @@ class Trainer:
             return doc
         self._clock = time.perf_counter()
         step = self.start_step
+        restore = self._catch_signals()
         try:
             for step in range(self.start_step, self.end_step):
                 self.fire("on_step_begin", step)
                 result = self.step(step)
                 self.fire("on_step_end", result)
                 done = step + 1
-                if self.checkpoint_due(done):
+                if self.checkpoint_due(done) or self.interrupted is not None:
                     synchronize(self.device)
                     self.train_time += time.perf_counter() - self._clock
                     if done in cfg.eval_at:
                         self.evaluate(done)
                     self.fire("on_checkpoint", done)
                     self._clock = time.perf_counter()
-        except TrainingDiverged as e:
-            self.fire("on_end", self.metrics_doc("diverged", step, str(e)))
+                if self.interrupted is not None and done < self.end_step:
+                    message = (
+                        f"{self.paths.root}: interrupted by {self.interrupted} after step {done} of "
+                        f"{cfg.iterations}; checkpoint saved, continue with --resume"
+                    )
+                    self.fire("on_end", self.metrics_doc("stopped", done, message))
+                    raise TrainingInterrupted(message)
+        except (TrainingDiverged, TrainingInterrupted) as e:
+            if isinstance(e, TrainingDiverged):
+                self.fire("on_end", self.metrics_doc("diverged", step, str(e)))
             raise
         except BaseException:
             self.fire("on_end", None)
             raise
+        finally:
+            restore()
         doc = self.metrics_doc(self.status_at(self.end_step), self.end_step)
         if self.end_step == cfg.iterations:
             self.export_ply()
