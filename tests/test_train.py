@@ -609,7 +609,8 @@ def test_a_signal_stops_after_the_step_with_a_checkpoint(scene: Path, tmp_path: 
 
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     with pytest.raises(TrainingInterrupted, match=f"interrupted by {signame} after step 4 of 10"):
-        train(scene, tmp_path / "b", tiny_config(iterations=10, eval_at=[10]), progress=False, callbacks=[Kill()])
+        cfg = tiny_config(iterations=10, eval_at=[10])
+        train(scene, tmp_path / "b", cfg, progress=False, callbacks=[Kill()])
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
     m = json.loads((tmp_path / "b" / "metrics.json").read_text())
     assert m["status"] == "stopped" and m["step"] == 4 and "continue with --resume" in m["error"]
