@@ -50,7 +50,14 @@ from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
 from jsgs.schemas import validate as schema_validate
 
-from .scene import LOSSLESS_FORMATS, Camera, image_stem, prepare_output_dir, undistorted_camera, view_camera
+from .scene import (
+    LOSSLESS_FORMATS,
+    ColmapCamera,
+    image_stem,
+    prepare_output_dir,
+    undistorted_camera,
+    view_camera,
+)
 
 QUALITIES: tuple[int, ...] = tuple(range(10, 100, 10))
 SCHEDULES = ("uniform", "gaussian", "descending", "fixed", "clean")
@@ -116,7 +123,7 @@ def split_names(names: Sequence[str], test_every: int) -> dict[str, str]:
 
 
 @dataclass(frozen=True)
-class Plan:
+class CompressionPlan:
     """Which view gets what. ``quality[name]`` is None for lossless (test views; train views under clean)."""
 
     schedule: str
@@ -128,7 +135,7 @@ class Plan:
 
 def plan(
     names: Sequence[str], schedule: str, quality: int | None = None, seed: int = 0, test_every: int = 8
-) -> Plan:
+) -> CompressionPlan:
     """The split, the per-level counts and the seeded assignment, without touching any file."""
     if schedule not in SCHEDULES:
         raise JsgsError(f"--schedule {schedule!r}: choose one of {', '.join(SCHEDULES)}")
@@ -145,7 +152,7 @@ def plan(
     train = [n for n in sorted(names) if split[n] == "train"]
     q_of: dict[str, int | None] = {n: None for n in names}
     if schedule == "clean":
-        return Plan(schedule, split, q_of, {}, [])
+        return CompressionPlan(schedule, split, q_of, {}, [])
     if schedule == "fixed":
         assert quality is not None
         counts = {quality: len(train)}
@@ -158,7 +165,7 @@ def plan(
     dealt = np.random.default_rng(seed).permutation(pool)
     for name, q in zip(train, dealt, strict=True):
         q_of[name] = int(q)
-    return Plan(schedule, split, q_of, counts, weights)
+    return CompressionPlan(schedule, split, q_of, counts, weights)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -169,8 +176,8 @@ def plan(
 class Task:
     name: str  # model image name in the source
     src: str  # source image file
-    camera: Camera  # the source camera scaled to the file (may be distorted)
-    pinhole: Camera  # the output camera (PINHOLE, same size)
+    camera: ColmapCamera  # the source camera scaled to the file (may be distorted)
+    pinhole: ColmapCamera  # the output camera (PINHOLE, same size)
     reference: str  # output reference PNG
     image: str  # output observed image (.jpg, or .png when quality is None)
     quality: int | None
@@ -272,7 +279,7 @@ class CompressResult:
     manifest: dict[str, Any]
 
 
-def _camera_doc(cam: Camera) -> dict[str, Any]:
+def _camera_doc(cam: ColmapCamera) -> dict[str, Any]:
     return {
         "camera_id": cam.camera_id,
         "model": cam.model,
@@ -283,7 +290,7 @@ def _camera_doc(cam: Camera) -> dict[str, Any]:
 
 
 def _output_model(
-    scene: Any, out_names: dict[str, str], cams_in: dict[int, Camera], cams_out: dict[int, Camera]
+    scene: Any, out_names: dict[str, str], cams_in: dict[int, ColmapCamera], cams_out: dict[int, ColmapCamera]
 ) -> Any:
     """A new pycolmap model: PINHOLE cameras ``cams_out``, the registered images renamed to ``out_names`` with
     keypoints moved to the output pixel grid, points3D with their tracks (observations of dropped, unposed
@@ -341,7 +348,7 @@ def compress(
     command: str | None = None,
 ) -> CompressResult:
     """Build the dataset described in the module docstring from ``scene_dir`` into ``out``."""
-    from . import manifest as manifest_mod
+    from . import manifest_writer as manifest_mod
     from .scene import write_model_atomic
     from .validate import require_valid
 
@@ -379,8 +386,8 @@ def compress(
         )
 
     # Cameras: scaled to the files, then undistorted to PINHOLE.
-    cams_in: dict[int, Camera] = {}
-    cams_out: dict[int, Camera] = {}
+    cams_in: dict[int, ColmapCamera] = {}
+    cams_out: dict[int, ColmapCamera] = {}
     zoom: dict[int, float] = {}
     for v in scene.views:
         if v.camera_id not in cams_in:
@@ -481,7 +488,9 @@ def compress(
     return CompressResult(out, record, doc)
 
 
-def schedule_settings(the_plan: Plan, schedule: str, quality: int | None, ss_name: str) -> dict[str, Any]:
+def schedule_settings(
+    the_plan: CompressionPlan, schedule: str, quality: int | None, ss_name: str
+) -> dict[str, Any]:
     """What a dataset records of its quality schedule and encoder (shared by ``compress`` and ``derive``,
     whose JPEGs are the same)."""
     return {

@@ -10,8 +10,8 @@ assignment — :func:`jsgstools.compress.plan` — and the same encoder call,
 ``clean``) and every ``reference`` point at the base's reference PNGs by relative path, so one base per scene
 serves every schedule and seed.
 
-This module imports neither pycolmap nor OpenCV (``jsgstools.compress`` and ``jsgstools.manifest`` import them
-only inside the functions that need them), so it runs on a machine with torch and Pillow alone.
+This module imports neither pycolmap nor OpenCV (``jsgstools.compress`` and ``jsgstools.manifest_writer``
+import them only inside the functions that need them), so it runs on a machine with torch and Pillow alone.
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def derive(
 ) -> dict[str, Any]:
     """Write ``out/images/<stem>.jpg`` (train views) and ``out/manifest.json`` from the clean dataset whose
     manifest is ``base_manifest``; returns the manifest document. See the module docstring."""
-    from . import manifest as manifest_mod
+    from . import manifest_writer as manifest_mod
 
     if subsampling not in SUBSAMPLING:
         raise JsgsError(f"--subsampling {subsampling!r}: choose one of {', '.join(SUBSAMPLING)}")

@@ -14,7 +14,6 @@ Conventions (the same as COLMAP's, and the manifest's):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -40,7 +39,7 @@ _FACTOR_SNAP = 5e-3
 
 
 @dataclass(frozen=True)
-class Camera:
+class ColmapCamera:
     """One COLMAP camera. ``params`` in COLMAP's order for ``model`` (pixels for focal lengths and principal
     point, COLMAP pixel convention; distortion coefficients are dimensionless)."""
 
@@ -85,7 +84,7 @@ class Camera:
         cx, cy = self.principal_point
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
-    def scaled(self, width: int, height: int) -> Camera:
+    def scaled(self, width: int, height: int) -> ColmapCamera:
         """This camera for an image resized to ``width`` x ``height``: the same as COLMAP's
         ``Camera::Rescale`` (focal lengths and principal point times width/height ratios; a single focal
         length times their mean; distortion unchanged because it acts on normalized coordinates)."""
@@ -105,7 +104,7 @@ class Camera:
         p[iy] *= sy
         return replace(self, width=width, height=height, params=tuple(float(v) for v in p))
 
-    def as_pinhole(self) -> Camera:
+    def as_pinhole(self) -> ColmapCamera:
         """The same intrinsics as a PINHOLE camera; only for models without distortion."""
         if not self.is_pinhole:
             raise ValueError(f"camera {self.camera_id} ({self.model}) is distorted")
@@ -141,7 +140,7 @@ class ColmapScene:
     model_dir: Path
     model_format: str  # "binary" | "text"
     images_dir: Path
-    cameras: dict[int, Camera]
+    cameras: dict[int, ColmapCamera]
     views: list[SceneView]
     unregistered: list[str]
     points_xyz: np.ndarray  # (N, 3) float64, world coordinates
@@ -233,7 +232,7 @@ def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
     model_dir, fmt = find_model_dir(root)
     rec = read_reconstruction(model_dir)
     cameras = {
-        int(cid): Camera(
+        int(cid): ColmapCamera(
             int(cid), str(c.model_name), int(c.width), int(c.height), tuple(float(v) for v in c.params)
         )
         for cid, c in rec.cameras.items()
@@ -305,7 +304,7 @@ def detect_downscale(scene: ColmapScene) -> Downscale:
     all. The scene's factor is the median of the views' factors, snapped to an integer when within 0.5 % of
     one; every view must match it to within one pixel in both directions. Views whose camera is unknown or
     whose file is missing are skipped here (they are reported elsewhere)."""
-    measured: list[tuple[SceneView, Camera, float]] = []
+    measured: list[tuple[SceneView, ColmapCamera, float]] = []
     problems: list[tuple[str, str]] = []
     for v in scene.views:
         cam = scene.cameras.get(v.camera_id)
@@ -340,7 +339,7 @@ def detect_downscale(scene: ColmapScene) -> Downscale:
     return Downscale(factor, tuple(problems))
 
 
-def view_camera(scene: ColmapScene, view: SceneView) -> Camera:
+def view_camera(scene: ColmapScene, view: SceneView) -> ColmapCamera:
     """The view's camera scaled to the size of its file (COLMAP's rescale semantics)."""
     cam = scene.cameras[view.camera_id]
     if view.size is None:
@@ -352,7 +351,7 @@ def view_camera(scene: ColmapScene, view: SceneView) -> Camera:
 # Undistortion (OpenCV)
 
 
-def opencv_intrinsics(cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+def opencv_intrinsics(cam: ColmapCamera) -> tuple[np.ndarray, np.ndarray]:
     """(K, dist) for OpenCV: K with OpenCV's integer pixel centres (principal point - 0.5), and the distortion
     vector for ``cv2.initUndistortRectifyMap``/``cv2.projectPoints``. COLMAP's SIMPLE_RADIAL (k), RADIAL
     (k1, k2), OPENCV (k1, k2, p1, p2) and FULL_OPENCV (k1, k2, p1, p2, k3, k4, k5, k6) use OpenCV's formulas
@@ -377,7 +376,7 @@ def opencv_intrinsics(cam: Camera) -> tuple[np.ndarray, np.ndarray]:
     return K, dist
 
 
-def _source_coords(cam: Camera, new: Camera, pts: np.ndarray) -> np.ndarray:
+def _source_coords(cam: ColmapCamera, new: ColmapCamera, pts: np.ndarray) -> np.ndarray:
     """Where output pixels ``pts`` ((N, 2), OpenCV convention, of pinhole ``new``) sample the distorted image
     of ``cam`` ((N, 2), OpenCV convention)."""
     import cv2
@@ -406,7 +405,7 @@ def _probe_points(w: int, h: int) -> np.ndarray:
     return np.concatenate(border + [np.stack([gx.ravel(), gy.ravel()], 1)])
 
 
-def undistorted_camera(cam: Camera) -> tuple[Camera, float]:
+def undistorted_camera(cam: ColmapCamera) -> tuple[ColmapCamera, float]:
     """The PINHOLE camera the undistorted image is resampled into, and its zoom.
 
     Choice: same image size and principal point, focal lengths times the smallest zoom ``s`` for which every
@@ -420,7 +419,7 @@ def undistorted_camera(cam: Camera) -> tuple[Camera, float]:
     cx, cy = cam.principal_point
     pts = _probe_points(cam.width, cam.height)
 
-    def pinhole(s: float) -> Camera:
+    def pinhole(s: float) -> ColmapCamera:
         return replace(cam, model="PINHOLE", params=(fx * s, fy * s, cx, cy))
 
     def inside(s: float) -> bool:
@@ -450,7 +449,7 @@ def undistorted_camera(cam: Camera) -> tuple[Camera, float]:
     return pinhole(hi), hi
 
 
-def undistort_maps(cam: Camera, new: Camera) -> tuple[np.ndarray, np.ndarray]:
+def undistort_maps(cam: ColmapCamera, new: ColmapCamera) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.remap`` maps (each (H, W) float32, OpenCV convention) from the distorted image of ``cam`` to the
     pinhole image of ``new`` (same size)."""
     import cv2
@@ -460,7 +459,7 @@ def undistort_maps(cam: Camera, new: Camera) -> tuple[np.ndarray, np.ndarray]:
     return cv2.initUndistortRectifyMap(K, dist, None, Kn, (new.width, new.height), cv2.CV_32FC1)
 
 
-def undistort_image(img: np.ndarray, cam: Camera, new: Camera) -> np.ndarray:
+def undistort_image(img: np.ndarray, cam: ColmapCamera, new: ColmapCamera) -> np.ndarray:
     """Resample ``img`` ((H, W, C) uint8, taken with ``cam``) to the pinhole camera ``new``. Lanczos-4 keeps
     the high frequencies that the JPEG study is about; samples are inside the image by construction of
     ``new`` (border replication only absorbs rounding)."""
@@ -472,7 +471,7 @@ def undistort_image(img: np.ndarray, cam: Camera, new: Camera) -> np.ndarray:
     return cv2.remap(img, mx, my, interpolation=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
 
 
-def undistort_points(xy: np.ndarray, cam: Camera, new: Camera) -> np.ndarray:
+def undistort_points(xy: np.ndarray, cam: ColmapCamera, new: ColmapCamera) -> np.ndarray:
     """Keypoints ((N, 2), COLMAP pixel convention) of ``cam`` moved to the pinhole camera ``new``: through
     OpenCV's iterative undistortion for distorted models, by the intrinsics alone for pinhole ones."""
     import cv2
@@ -496,10 +495,6 @@ def fmt_factor(f: float | None) -> str:
     if f is None:
         return "unknown"
     return str(int(f)) if float(f).is_integer() else f"{f:.4g}"
-
-
-def is_identity_factor(f: float | None) -> bool:
-    return f is None or math.isclose(f, 1.0)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -467,7 +467,7 @@ def test_undistortion_of_llff_fern(tmp_path: Path) -> None:
     import cv2
     import pycolmap
 
-    from jsgstools.scene import Camera, opencv_intrinsics, undistort_maps, undistort_points
+    from jsgstools.scene import ColmapCamera, opencv_intrinsics, undistort_maps, undistort_points
 
     fern = shared_scene("llff_fern")
     before = _tree(fern)
@@ -476,8 +476,8 @@ def test_undistortion_of_llff_fern(tmp_path: Path) -> None:
     rec = res.record
     assert rec["source"]["downscale"] == 8.0 and rec["settings"]["undistorted"]
     cam = rec["cameras"][0]
-    src = Camera(1, "SIMPLE_RADIAL", 504, 378, tuple(cam["scaled"]["params"]))
-    out = Camera(1, "PINHOLE", 504, 378, tuple(cam["output"]["params"]))
+    src = ColmapCamera(1, "SIMPLE_RADIAL", 504, 378, tuple(cam["scaled"]["params"]))
+    out = ColmapCamera(1, "PINHOLE", 504, 378, tuple(cam["output"]["params"]))
     assert src.params[0] == pytest.approx(3260.5263328805895 / 8)
     assert 1.0 < cam["zoom"] < 1.03
     counts = largest_remainder(schedule_weights("gaussian"), 17)

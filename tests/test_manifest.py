@@ -21,7 +21,7 @@ from PIL import Image
 from jsgs.errors import JsgsError
 from jsgs.manifest import load_manifest, validate_document
 from jsgstools.cli import main
-from jsgstools.manifest import build_manifest, manifest, write_manifest
+from jsgstools.manifest_writer import build_manifest, manifest, write_manifest
 
 ROOT = Path(__file__).resolve().parents[1]
 

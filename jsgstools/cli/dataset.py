@@ -205,7 +205,7 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, force: bool) ->
     Per view: image path, split, camera scaled to the file (distortion recorded, not removed), world-to-camera
     R and t (x_cam = R x_world + t, OpenCV axes), the JPEG state read from the header (null for lossless) and
     the reference/<stem>.png path when it exists; points3D and provenance per scene."""
-    from jsgstools.manifest import manifest
+    from jsgstools.manifest_writer import manifest
 
     command = invocation(click.get_current_context(), "jsgstools")
     doc = manifest(scene, out, test_every=test_every, force=force, command=command)
