@@ -48,3 +48,65 @@ def write_with_atomic(final: str | os.PathLike[str], writer: Callable[[Path], No
     """Call ``writer(tmp_path)`` (e.g. ``img.save``) and move the result onto ``final``."""
     with atomic_path(final) as tmp:
         writer(tmp)
+
+
+LOCK_NAME = ".jsgs.lock"
+
+
+class OutputLock:
+    """One writer per output folder: ``FOLDER/.jsgs.lock`` holds the writer's PID and what it is doing,
+    created exclusively (``O_EXCL``) and removed by :meth:`release`. A second writer gets a one-line
+    JsgsError naming the holder; a lock whose PID no longer runs on this machine (a killed writer) is taken
+    over."""
+
+    def __init__(self, folder: str | os.PathLike[str], what: str) -> None:
+        from jsgs.errors import JsgsError
+
+        self.path = Path(folder) / LOCK_NAME
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        record = json.dumps({"pid": os.getpid(), "what": what}) + "\n"
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                holder = _lock_holder(self.path)
+                if holder is not None and holder[0] != os.getpid() and _alive(holder[0]):
+                    raise JsgsError(
+                        f"{self.path.parent}: in use by {holder[1]} (PID {holder[0]}); wait for it to end or "
+                        f"stop it (a lock left by a killed writer is taken over: {self.path})"
+                    ) from None
+                self.path.unlink(missing_ok=True)  # stale: its writer is gone
+                continue
+            with os.fdopen(fd, "w") as f:
+                f.write(record)
+            return
+        raise JsgsError(f"{self.path}: could not take the output lock (another writer keeps taking it)")
+
+    def release(self) -> None:
+        holder = _lock_holder(self.path)
+        if holder is not None and holder[0] == os.getpid():
+            self.path.unlink(missing_ok=True)
+
+    def __enter__(self) -> OutputLock:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def _lock_holder(path: Path) -> tuple[int, str] | None:
+    try:
+        doc = json.loads(path.read_text())
+        return int(doc["pid"]), str(doc.get("what", "another process"))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -621,3 +622,33 @@ def test_a_signal_stops_after_the_step_with_a_checkpoint(scene: Path, tmp_path: 
     cb = ckpt.load_checkpoint(tmp_path / "b" / "checkpoints" / "step_000010.pt")
     for name, t in ca["splats"].items():
         assert torch.equal(t, cb["splats"][name]), name
+
+
+def test_one_writer_per_run_folder(scene: Path, tmp_path: Path) -> None:
+    """A run folder is locked while a run writes it: a second writer is refused naming the holder; a lock
+    left by a writer that no longer runs is taken over; the lock is gone when the run ends."""
+    from jsgs.io import LOCK_NAME
+
+    run = tmp_path / "run"
+    run.mkdir()
+    # a live process holds it (this test's parent stands in for another jsgs command)
+    (run / LOCK_NAME).write_text(json.dumps({"pid": os.getppid(), "what": "jsgstools compress (into run)"}))
+    holder = rf"in use by jsgstools compress \(into run\) \(PID {os.getppid()}\)"
+    with pytest.raises(JsgsError, match=holder) as e:
+        train(scene, run, tiny_config(iterations=2), progress=False)
+    assert "\n" not in str(e.value) and sorted(p.name for p in run.iterdir()) == [LOCK_NAME]
+    (run / LOCK_NAME).write_text(json.dumps({"pid": 2**22 + 12345, "what": "a killed run"}))  # no such PID
+    train(scene, run, tiny_config(iterations=2), progress=False)
+    assert not (run / LOCK_NAME).exists()
+    assert json.loads((run / "metrics.json").read_text())["status"] == "complete"
+
+
+def test_force_refuses_a_folder_that_holds_no_run(scene: Path, tmp_path: Path) -> None:
+    other = tmp_path / "photos"
+    other.mkdir()
+    (other / "IMG_0001.jpg").write_bytes(b"not ours")
+    (other / "config.json").write_text('{"camera": "mine"}')
+    with pytest.raises(JsgsError, match="holds none .* choose another --out"):
+        train(scene, other, tiny_config(iterations=2), progress=False, force=True)
+    assert (other / "IMG_0001.jpg").read_bytes() == b"not ours"
+    assert (other / "config.json").read_text() == '{"camera": "mine"}'

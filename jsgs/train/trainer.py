@@ -20,6 +20,7 @@ transform is in config.json), ``renders/step_XXXXXX/*.png`` (test views), ``chec
 
 from __future__ import annotations
 
+import json
 import math
 import platform
 import random
@@ -38,7 +39,7 @@ from torch import Tensor
 import jsgs
 from jsgs.cuda_ext import use_kernels
 from jsgs.errors import JsgsError
-from jsgs.io import write_json_atomic
+from jsgs.io import LOCK_NAME, OutputLock, write_json_atomic
 from jsgs.strategy import Densifier, initial_subset
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, to_dict
@@ -192,10 +193,25 @@ def _check_out(paths: RunPaths, resume: bool, force: bool) -> None:
         if not paths.config.exists():
             raise JsgsError(f"{root}: nothing to resume (no config.json); start the run without --resume")
         return
-    if root.exists() and any(root.iterdir()) and not force:
+    entries = [p for p in root.iterdir() if p.name != LOCK_NAME] if root.exists() else []
+    if entries and not force:
         raise JsgsError(
             f"{root}: folder is not empty; pass --resume to continue that run or --force to overwrite it"
         )
+    if entries and force:
+        ours = paths.config.is_file() and _is_run_config(paths.config)
+        if not ours:
+            raise JsgsError(
+                f"{root}: --force replaces an earlier run of jsgs train, and this folder holds none (no "
+                "config.json of a run); choose another --out"
+            )
+
+
+def _is_run_config(path: Path) -> bool:
+    try:
+        return json.loads(path.read_text()).get("format") == RUN_CONFIG_FORMAT
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def _clear_out(paths: RunPaths) -> None:
@@ -389,6 +405,7 @@ class Trainer:
         from the last checkpoint (``resume``) or write ``config.json``; then ``on_setup``."""
         paths = self.paths
         _check_out(paths, self.resuming, self.force)
+        self.lock = OutputLock(paths.root, f"jsgs train (into {paths.root})")
         cfg = self.cfg
         start_ckpt: dict[str, Any] | None = None
         if self.resuming:
@@ -801,6 +818,7 @@ class Trainer:
             raise
         finally:
             restore()
+            self.lock.release()
         doc = self.metrics_doc(self.status_at(self.end_step), self.end_step)
         if self.end_step == cfg.iterations:
             self.export_ply()
