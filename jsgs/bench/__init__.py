@@ -1,4 +1,4 @@
-"""``jsgs bench``: the reproduction harness for the paper's tables (issues 6 and 7).
+"""``jsgs bench``: the reproduction harness for the paper's tables.
 
 - :mod:`jsgs.bench.plan`: which datasets and training runs a bench needs, where they live, their commands;
 - :mod:`jsgs.bench.workers`: N ``jsgs train`` subprocesses per GPU, skip-if-finished, failures;
