@@ -274,7 +274,7 @@ def test_report_only_collects_what_is_there(synth_scene: Path, tmp_path: Path) -
 
 
 def test_slots_follow_cuda_visible_devices(monkeypatch: pytest.MonkeyPatch) -> None:
-    from jsgs.bench.pool import detect_slots
+    from jsgs.bench.workers import detect_slots
 
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "1,3")
     assert detect_slots("cuda", 2) == ["1", "1", "3", "3"]
@@ -286,7 +286,7 @@ def test_no_run_starts_that_the_time_limit_would_cut(tmp_path: Path, monkeypatch
     started (a cut run is lost work on a machine that is given back); JSGS runs are queued first."""
     import time
 
-    from jsgs.bench import pool
+    from jsgs.bench import workers as pool
 
     started: list[str] = []
 

@@ -13,10 +13,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from jsgs.bench import pool as pool_mod
 from jsgs.bench import report as report_mod
 from jsgs.bench import results as results_mod
-from jsgs.bench.plan import Dataset, Plan, build_plan, train_argv
+from jsgs.bench import workers as pool_mod
+from jsgs.bench.plan import BenchPlan, Dataset, build_plan, train_argv
 from jsgs.errors import JsgsError
 from jsgs.io import write_json_atomic
 
@@ -96,7 +96,7 @@ def clean_base(d: Dataset) -> Path:
     return Path(d.out).parent / "clean_s0" / "manifest.json"
 
 
-def prepare_datasets(plan: Plan, progress: bool = True) -> dict[str, dict[str, Any]]:
+def prepare_datasets(plan: BenchPlan, progress: bool = True) -> dict[str, dict[str, Any]]:
     """Build every dataset not already there; ``{key: {"status": ..., "error"?: ...}}``.
 
     With the source scene present: ``jsgstools.compress`` (pycolmap, OpenCV). Without it (a GPU machine) but

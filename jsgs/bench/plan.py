@@ -92,7 +92,7 @@ class Run:
 
 
 @dataclass
-class Plan:
+class BenchPlan:
     datasets: list[Dataset]
     runs: list[Run]
 
@@ -128,7 +128,7 @@ def build_plan(
     seeds: list[int],
     iterations: int,
     eval_at: list[int],
-) -> Plan:
+) -> BenchPlan:
     """Every dataset and run of the bench, in the order they are queued (longest-lived first is not
     attempted: runs of one scene and schedule stay together so partial results are usable early)."""
     out = Path(out)
@@ -205,7 +205,7 @@ def build_plan(
         if scene == ablation:
             for variant in ABLATIONS:
                 add(scene, ABLATION_SCHEDULE, ABLATION_ALIAS.get(variant, variant), seeds[0])
-    return Plan(list(datasets.values()), runs)
+    return BenchPlan(list(datasets.values()), runs)
 
 
 def train_argv(run: Run, device: str, config: str | None, resume: bool) -> list[str]:

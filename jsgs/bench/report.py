@@ -6,7 +6,7 @@ seeds (and its spread: max - min over seeds, "sd" the sample standard deviation)
 means of the per-scene means, over the scenes where every method of the table has a result (their count is
 shown).
 
-"Damage recovered" (issue 7), per scene x schedule, on seed means:
+"Damage recovered", per scene x schedule, on seed means:
 ``R_LPIPS = (baseline - JSGS) / (baseline - clean)``, ``R_PSNR = (JSGS - baseline) / (clean - baseline)``,
 where baseline = gsplat on the schedule and clean = gsplat on the uncompressed training views. The noise
 rule: when ``|baseline - clean|`` is not larger than the seed spread (the larger of the baseline's and the
@@ -494,7 +494,7 @@ def write_report(
     pngs = rep.plots(results_dir / "plots") if plots and rows else []
     md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
     md += ["## Table 1: mixed-quality schedules (means over scenes, last step)", "", *rep.table1(), ""]
-    md += ["## Damage recovered and relative LPIPS reduction (issue 7)", "",
+    md += ["## Damage recovered and relative LPIPS reduction", "",
            "R_LPIPS = (gsplat − JSGS) / (gsplat − clean), R_PSNR = (JSGS − gsplat) / (clean − gsplat), on "
            "seed means; ΔLPIPS % = 100 (1 − JSGS / gsplat), the paper's relative reduction. Where |gsplat − "
            "clean| is not larger than the seed spread (max − min over seeds, the larger of gsplat's and "
