@@ -1,4 +1,4 @@
-"""Which training views dominate the JPEG damage (issue 6)? Per scene and compression schedule, how the
+"""Which training views dominate the JPEG damage? Per scene and compression schedule, how the
 squared error of the training JPEGs is spread over the views and the quality levels. CPU only, no training.
 
     .venv/bin/python benchmarks/view_damage.py SCENE... [--schedules uniform,gaussian,descending] \

@@ -1,4 +1,4 @@
-"""Which training views dominate the *training loss* (issue 6)? The training-side twin of
+"""Which training views dominate the *training loss*? The training-side twin of
 ``benchmarks/view_damage.py`` (which measures the JPEG damage itself): from the per-view means that
 ``jsgs train`` logs (metrics.json ``evals[].train.per_view``), the share of each loss term that the
 low-quality views contribute, per evaluation interval.

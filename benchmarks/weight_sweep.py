@@ -1,5 +1,5 @@
 """The loss-weight sweep of the reproduction issue: one `jsgs bench --methods jsgs` per config of
-``benchmarks/weight_sweep/*.json`` (run by ``SWEEP=1 scripts/gpu_bench.sh`` on the GPU), summarised here
+``benchmarks/weight_sweep/*.json`` (run with ``jsgs bench --config CONFIG`` per config on a GPU machine), summarised here
 against the gsplat baseline and the clean ceiling of a finished bench (``docs/results/results.csv``).
 
     .venv/bin/python benchmarks/weight_sweep.py SWEEP_DIR [--reference docs/results/results.csv] \
@@ -8,10 +8,11 @@ against the gsplat baseline and the clean ceiling of a finished bench (``docs/re
 ``SWEEP_DIR/<config name>/results.csv`` are the sweep's benches. Prints, per scene, one markdown row per
 config (and the reference's own gsplat and paper-weights JSGS rows): λ_base, λ_obs, λ_low, λ_mid, λ_fro, the
 densification threshold grad2d, PSNR / SSIM / LPIPS at the final step, ΔLPIPS against gsplat, the damage
-recovered R_LPIPS, R_PSNR (issue 7's definitions) and the number of Gaussians. Configs named ``gsplat_*``
+recovered R_LPIPS, R_PSNR (as in ``jsgs bench``'s report) and the number of Gaussians. Configs named ``gsplat_*``
 train the baseline (controls: the same loss scale or threshold without the JPEG terms). Two config sets:
-``benchmarks/weight_sweep`` (run in session 3, ``docs/results/sweep``) and ``benchmarks/densify_control``
-(next: does JSGS gain from JPEG awareness or from the extra densification that its larger loss causes?).
+``benchmarks/weight_sweep`` (``docs/results/weight_sweep``) and ``benchmarks/densify_control`` (does JSGS
+gain from JPEG awareness or from the extra densification that its larger loss causes?
+``docs/results/densification_control``).
 """
 
 from __future__ import annotations

@@ -145,21 +145,23 @@ def _shade(normal: np.ndarray) -> float:
     return float(0.55 + 0.45 * abs(normal @ light))
 
 
-def default_scene(rng: np.random.Generator) -> list[Box]:
+def default_scene(rng: np.random.Generator, texture_scale: float = 1.0) -> list[Box]:
     """The room and its three boxes. At the default 160x120 views, texture periods span about 3 to 12 pixels
-    (the boxes at about 2.5 units, the walls at 4 to 7)."""
+    (the boxes at about 2.5 units, the walls at 4 to 7); ``texture_scale`` multiplies every period (coarser
+    textures are learnt by fewer Gaussians)."""
+    k = texture_scale
     room = Box(
         centre=np.array([0.0, 0.0, 1.5]),
         half=np.array([4.0, 4.0, 1.5]),
         yaw=0.0,
         inside=True,
         textures=(
-            stripes(0.2, 0.0, (0.85, 0.75, 0.55), (0.35, 0.25, 0.2)),  # wall x = -4
-            stripes(0.25, 90.0, (0.5, 0.7, 0.85), (0.15, 0.2, 0.35)),  # wall x = +4
-            mosaic(0.15, rng, (0.6, 0.55, 0.45)),  # wall y = -4
-            stripes(0.18, 35.0, (0.8, 0.8, 0.8), (0.25, 0.3, 0.25)),  # wall y = +4
-            checker(0.3, (0.92, 0.9, 0.85), (0.18, 0.18, 0.2)),  # floor
-            mosaic(0.3, rng, (0.7, 0.7, 0.75), spread=0.25),  # ceiling
+            stripes(0.2 * k, 0.0, (0.85, 0.75, 0.55), (0.35, 0.25, 0.2)),  # wall x = -4
+            stripes(0.25 * k, 90.0, (0.5, 0.7, 0.85), (0.15, 0.2, 0.35)),  # wall x = +4
+            mosaic(0.15 * k, rng, (0.6, 0.55, 0.45)),  # wall y = -4
+            stripes(0.18 * k, 35.0, (0.8, 0.8, 0.8), (0.25, 0.3, 0.25)),  # wall y = +4
+            checker(0.3 * k, (0.92, 0.9, 0.85), (0.18, 0.18, 0.2)),  # floor
+            mosaic(0.3 * k, rng, (0.7, 0.7, 0.75), spread=0.25),  # ceiling
         ),
     )
     box_a = Box(
@@ -168,12 +170,12 @@ def default_scene(rng: np.random.Generator) -> list[Box]:
         yaw=np.radians(20.0),
         inside=False,
         textures=(
-            checker(0.07, (0.9, 0.2, 0.15), (0.95, 0.9, 0.8)),
-            stripes(0.08, 45.0, (0.1, 0.35, 0.8), (0.9, 0.85, 0.3)),
-            stripes(0.06, 0.0, (0.1, 0.1, 0.1), (0.95, 0.95, 0.95)),
-            mosaic(0.05, rng, (0.3, 0.7, 0.35)),
+            checker(0.07 * k, (0.9, 0.2, 0.15), (0.95, 0.9, 0.8)),
+            stripes(0.08 * k, 45.0, (0.1, 0.35, 0.8), (0.9, 0.85, 0.3)),
+            stripes(0.06 * k, 0.0, (0.1, 0.1, 0.1), (0.95, 0.95, 0.95)),
+            mosaic(0.05 * k, rng, (0.3, 0.7, 0.35)),
             None,  # bottom, on the floor
-            checker(0.1, (0.2, 0.6, 0.65), (0.95, 0.75, 0.2)),
+            checker(0.1 * k, (0.2, 0.6, 0.65), (0.95, 0.75, 0.2)),
         ),
     )
     box_b = Box(
@@ -182,12 +184,12 @@ def default_scene(rng: np.random.Generator) -> list[Box]:
         yaw=np.radians(-35.0),
         inside=False,
         textures=(
-            mosaic(0.05, rng, (0.8, 0.4, 0.6)),
-            stripes(0.07, 90.0, (0.95, 0.6, 0.1), (0.3, 0.1, 0.4)),
-            checker(0.06, (0.1, 0.1, 0.6), (0.85, 0.85, 0.95)),
-            stripes(0.06, -30.0, (0.2, 0.6, 0.2), (0.95, 0.95, 0.7)),
+            mosaic(0.05 * k, rng, (0.8, 0.4, 0.6)),
+            stripes(0.07 * k, 90.0, (0.95, 0.6, 0.1), (0.3, 0.1, 0.4)),
+            checker(0.06 * k, (0.1, 0.1, 0.6), (0.85, 0.85, 0.95)),
+            stripes(0.06 * k, -30.0, (0.2, 0.6, 0.2), (0.95, 0.95, 0.7)),
             None,
-            mosaic(0.06, rng, (0.55, 0.5, 0.35)),
+            mosaic(0.06 * k, rng, (0.55, 0.5, 0.35)),
         ),
     )
     box_c = Box(
@@ -196,12 +198,12 @@ def default_scene(rng: np.random.Generator) -> list[Box]:
         yaw=np.radians(50.0),
         inside=False,
         textures=(
-            stripes(0.06, 60.0, (0.9, 0.9, 0.2), (0.15, 0.15, 0.15)),
-            checker(0.07, (0.6, 0.2, 0.7), (0.9, 0.95, 0.9)),
-            stripes(0.08, 0.0, (0.2, 0.7, 0.9), (0.9, 0.3, 0.3), duty=0.3),
-            mosaic(0.06, rng, (0.45, 0.55, 0.75)),
+            stripes(0.06 * k, 60.0, (0.9, 0.9, 0.2), (0.15, 0.15, 0.15)),
+            checker(0.07 * k, (0.6, 0.2, 0.7), (0.9, 0.95, 0.9)),
+            stripes(0.08 * k, 0.0, (0.2, 0.7, 0.9), (0.9, 0.3, 0.3), duty=0.3),
+            mosaic(0.06 * k, rng, (0.45, 0.55, 0.75)),
             None,
-            checker(0.06, (0.1, 0.1, 0.1), (0.9, 0.9, 0.9)),
+            checker(0.06 * k, (0.1, 0.1, 0.1), (0.9, 0.9, 0.9)),
         ),
     )
     return [room, box_a, box_b, box_c]
@@ -414,6 +416,7 @@ def synth(
     k1: float = 0.0,
     camera_scale: int = 1,
     point_density: float = 1.0,
+    texture_scale: float = 1.0,
 ) -> SynthResult:
     """Write the synthetic scene into ``out`` (see the module docstring). ``size`` = (width, height) pixels;
     the focal length is 0.85 x width (a 61 degree horizontal field of view at 4:3).
@@ -421,7 +424,8 @@ def synth(
     For tests of the real-scene paths (library only): ``k1`` renders through a SIMPLE_RADIAL camera, and
     ``camera_scale`` writes the model's camera at that many times the image size (like LLFF's cameras at
     4032x3024 for 504x378 images). ``point_density`` scales the number of points3D (the trainer starts from
-    one Gaussian per point, so fewer points make a quicker CPU run)."""
+    one Gaussian per point, so fewer points make a quicker CPU run). ``texture_scale`` multiplies every
+    texture's period (coarser detail)."""
     import pycolmap
     from PIL import Image
     from tqdm import tqdm
@@ -434,7 +438,9 @@ def synth(
     w, h = size
     prepare_output_dir(out, force, OWNED)
     rng = np.random.default_rng(seed)
-    boxes = default_scene(rng)
+    if not 0.1 <= texture_scale <= 100.0:
+        raise JsgsError(f"--texture-scale {texture_scale}: must be within 0.1..100")
+    boxes = default_scene(rng, texture_scale)
     poses = camera_ring(views, rng)
     if not 0.01 <= point_density <= 100:
         raise JsgsError(f"--point-density {point_density}: must be within 0.01..100")

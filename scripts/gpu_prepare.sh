@@ -5,7 +5,7 @@
 # The GPU image already has torch 2.11 + CUDA, click, tqdm, rich, pytest, ninja, matplotlib, Pillow and numpy
 # (see the device tool's KINDS.md); it lacks gsplat and jsonschema. It compiles gsplat's CUDA code on first
 # use (about 60-80 s). One call carries at most 64 MiB: two scenes' clean bases (8-16 MB each), the 9.9 MB
-# LPIPS backbone and 7 MB of wheels fit; four do not. Then run scripts/gpu_bench.sh (or gpu_session.sh) there.
+# LPIPS backbone and 7 MB of wheels fit; four do not. Then run `bash scripts/gpu_run.sh <command>` there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 G=${GPU_DIR:-.gpu}

@@ -686,7 +686,7 @@ def test_rbar_parity_helper_on_the_synthetic_scene(compressed_scene: Path) -> No
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (gsplat's kernels do not run on CPU)")
 def test_gpu_rbar_of_the_gsplat_path_matches_the_reference_on_a_real_scene(tmp_path: Path) -> None:
-    # A lent GPU machine has neither ../shared nor pycolmap: scripts/gpu_session.sh points this at a dataset
+    # A lent GPU machine has neither ../shared nor pycolmap: a GPU run points this at a dataset
     # derived there from a carried clean base (JSGS_GPU_MANIFEST).
     env = os.environ.get("JSGS_GPU_MANIFEST")
     if env:

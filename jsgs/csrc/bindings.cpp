@@ -18,7 +18,7 @@ namespace {
 
 // The fused controller's argument checks, as a yes/no: nothing in this extension builds an error message or
 // throws. On the GPU machine (torch 2.11, CUDA 13) both a failed TORCH_CHECK and a c10::str message built
-// here crashed the process (SIGSEGV; sessions 6 and 8), so the Python caller words the refusal itself.
+// here ends the process (SIGSEGV), so the Python caller words the refusal itself.
 bool like(const at::Tensor& t, const at::Tensor& ref, std::initializer_list<int64_t> shape) {
   return t.is_cuda() && t.device() == ref.device() && t.scalar_type() == ref.scalar_type() &&
          t.sizes() == at::IntArrayRef(shape) && t.is_contiguous();

@@ -30,10 +30,23 @@ SCHEDULE_HELP = (
     show_default=True,
     help="Scale of the number of points3D (one initial Gaussian each; 0.3 for a quick CPU demo).",
 )
+@click.option(
+    "--texture-scale",
+    default=1.0,
+    show_default=True,
+    help="Multiplier on every texture's period (0.1..100; 4 gives detail a few hundred Gaussians can learn).",
+)
 @click.option("--force", is_flag=True, help="Replace images/ and sparse/ of a non-empty OUT.")
 @user_errors
 def synth_cmd(
-    out: Path, views: int, size: str, seed: int, supersample: int, point_density: float, force: bool
+    out: Path,
+    views: int,
+    size: str,
+    seed: int,
+    supersample: int,
+    point_density: float,
+    texture_scale: float,
+    force: bool,
 ) -> None:
     """Write a small synthetic COLMAP scene into OUT: a textured room with three boxes (checkers, stripes,
     random mosaics: the high frequencies JPEG destroys), rendered exactly with numpy from VIEWS cameras on a
@@ -50,6 +63,7 @@ def synth_cmd(
         force=force,
         progress=sys.stderr.isatty(),
         point_density=point_density,
+        texture_scale=texture_scale,
     )
     c = res.camera
     click.echo(
