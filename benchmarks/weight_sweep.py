@@ -1,15 +1,17 @@
-"""The loss-weight sweep of the reproduction issue: one `jsgs bench --methods jsgs` per config of
-``benchmarks/weight_sweep/*.json`` (run with ``jsgs bench --config CONFIG`` per config on a GPU machine), summarised here
-against the gsplat baseline and the clean ceiling of a finished bench (``docs/results/results.csv``).
+"""A loss-weight sweep: one ``jsgs bench --methods jsgs --config CONFIG`` per config of
+``benchmarks/weight_sweep/*.json`` (on a GPU machine), summarised here against the gsplat baseline and the
+clean ceiling of a finished bench (``docs/results/paper_protocol/results.csv``).
 
-    .venv/bin/python benchmarks/weight_sweep.py SWEEP_DIR [--reference docs/results/results.csv] \
+    .venv/bin/python benchmarks/weight_sweep.py SWEEP_DIR \
+        [--reference docs/results/paper_protocol/results.csv] \
         [--configs benchmarks/weight_sweep] [--scenes llff_flower,...] [--schedule gaussian] [--seed 0]
 
 ``SWEEP_DIR/<config name>/results.csv`` are the sweep's benches. Prints, per scene, one markdown row per
 config (and the reference's own gsplat and paper-weights JSGS rows): λ_base, λ_obs, λ_low, λ_mid, λ_fro, the
 densification threshold grad2d, PSNR / SSIM / LPIPS at the final step, ΔLPIPS against gsplat, the damage
-recovered R_LPIPS, R_PSNR (as in ``jsgs bench``'s report) and the number of Gaussians. Configs named ``gsplat_*``
-train the baseline (controls: the same loss scale or threshold without the JPEG terms). Two config sets:
+recovered R_LPIPS, R_PSNR (as in ``jsgs bench``'s report) and the number of Gaussians. Configs named
+``gsplat_*`` train the baseline (controls: the same loss scale or threshold without the JPEG terms). Two
+config sets:
 ``benchmarks/weight_sweep`` (``docs/results/weight_sweep``) and ``benchmarks/densify_control`` (does JSGS
 gain from JPEG awareness or from the extra densification that its larger loss causes?
 ``docs/results/densification_control``).
@@ -64,7 +66,7 @@ def _cell(v: float | None) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("sweep_dir", type=Path)
-    ap.add_argument("--reference", type=Path, default=Path("docs/results/results.csv"))
+    ap.add_argument("--reference", type=Path, default=Path("docs/results/paper_protocol/results.csv"))
     ap.add_argument("--configs", type=Path, default=Path(__file__).resolve().parent / "weight_sweep")
     ap.add_argument("--scenes", default="llff_flower", help="comma list [llff_flower]")
     ap.add_argument("--schedule", default="gaussian")
