@@ -9,8 +9,6 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import click
-
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "cli"
 
@@ -24,7 +22,11 @@ def pages() -> dict[str, str]:
     for program, group in (("jsgstools", tools_main), ("jsgs", jsgs_main)):
         for name in sorted(group.commands):
             cmd = group.commands[name]
-            ctx = click.Context(cmd, info_name=f"{program} {name}", terminal_width=110, max_content_width=110)
+            # the group's context settings (-h, the width) reach the command as they do on a terminal
+            parent = group.make_context(
+                program, [], resilient_parsing=True, terminal_width=110, max_content_width=110
+            )
+            ctx = cmd.make_context(name, [], parent=parent, resilient_parsing=True)
             text = cmd.get_help(ctx)
             out[f"{program}_{name}.md"] = (
                 f"# `{program} {name}`\n\n"

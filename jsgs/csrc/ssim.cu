@@ -1,7 +1,7 @@
 // Fused SSIM (11x11 Gaussian window) for jsgs.ssim: one kernel for the forward, one for the
 // backward, instead of the separable-convolution twin's cuDNN depthwise convolutions, layout transposes and
 // about twenty elementwise kernels each way. The twin (jsgs/ssim.py) is the reference these are tested
-// against (tests/test_ssim_cuda.py).
+// against (tests/jsgs/jpeg/test_ssim_cuda.py).
 //
 // Forward, per output pixel p of one plane (image x channel): the five windowed moments
 //   mu_x, mu_y, E[x^2], E[y^2], E[xy]  (window w(a) w(b), zero outside the image),

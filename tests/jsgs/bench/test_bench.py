@@ -343,7 +343,7 @@ def test_weight_sweep_configs_and_summary(tmp_path: Path) -> None:
     from jsgs.method.options import parse_options
     from jsgs.train.config import load_config_file
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[3]
     configs = sorted((root / "benchmarks" / "weight_sweep").glob("*.json"))
     assert len(configs) >= 4
     for folder in ("weight_sweep", "densify_control"):
@@ -357,7 +357,7 @@ def test_weight_sweep_configs_and_summary(tmp_path: Path) -> None:
                    o.lambda_mid, o.lambda_fro, cfg.strategy.grow_grad2d)  # fmt: skip
             assert lam != (False, 1.0, 0.2, 0.02, 0.03, 0.05, 0.0002) and lam not in seen, c.name
             seen.add(lam)
-    ref = root / "docs" / "results" / "results.csv"
+    ref = root / "docs" / "results" / "paper_protocol" / "results.csv"
     script = root / "benchmarks" / "weight_sweep.py"
     r = subprocess.run(
         [sys.executable, str(script), str(tmp_path), "--reference", str(ref)],

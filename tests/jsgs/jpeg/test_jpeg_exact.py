@@ -18,7 +18,7 @@ from PIL import Image
 
 from jsgs.jpeg.observe import jpeg_observe
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+SHARED = Path(__file__).resolve().parents[3].parent / "shared"
 SCENES = SHARED / "scenes"
 SUBSAMPLING = {"4:4:4": 0, "4:2:2": 1, "4:2:0": 2}
 

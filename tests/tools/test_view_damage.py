@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import load_benchmark, shared_scene
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "benchmarks" / "view_damage.py"
 
 

@@ -23,7 +23,7 @@ from jsgs.manifest import load_manifest, validate_document
 from jsgstools.cli import main
 from jsgstools.manifest_writer import build_manifest, manifest, write_manifest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_round_trip_of_a_compressed_scene(compressed_scene: Path) -> None:

@@ -17,7 +17,7 @@ from PIL import Image
 from jsgs.errors import JsgsError
 from jsgs.metrics import lpips as L
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "lpips"
+SHARED = Path(__file__).resolve().parents[4] / "shared" / "lpips"
 WEIGHTS = SHARED / "alexnet_features.pth"
 REF = SHARED / "reference"
 needs_shared = pytest.mark.skipif(

@@ -15,7 +15,7 @@ import torch
 from jsgs.metrics import ImageMetrics, evaluate_images, psnr
 from jsgs.metrics import lpips as L
 
-SHARED_WEIGHTS = Path(__file__).resolve().parents[2] / "shared" / "lpips" / "alexnet_features.pth"
+SHARED_WEIGHTS = Path(__file__).resolve().parents[4] / "shared" / "lpips" / "alexnet_features.pth"
 HAVE_SSIM = importlib.util.find_spec("jsgs.ssim") is not None
 
 

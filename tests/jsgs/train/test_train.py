@@ -33,7 +33,7 @@ from jsgs.train.model import (
 from jsgs.train.normalize import normalize_world
 from jsgs.train.trainer import TrainingDiverged, train
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def tiny_config(**kw: Any) -> TrainConfig:

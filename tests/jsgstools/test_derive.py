@@ -14,7 +14,7 @@ import pytest
 
 from jsgs.errors import JsgsError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

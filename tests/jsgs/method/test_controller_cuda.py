@@ -166,7 +166,7 @@ def test_fused_controller_refuses_bad_input() -> None:
     refuses with an empty result; the words are Python's). Run in a child process: an exception or a message
     built in the extension crashed the process on the GPU machine, and a crash must fail this test, not end
     the test session."""
-    repo = Path(__file__).resolve().parents[1]
+    repo = Path(__file__).resolve().parents[3]
     path = os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")])
     r = subprocess.run(
         [sys.executable, "-X", "faulthandler", "-c", _REFUSALS], capture_output=True, text=True, timeout=600,

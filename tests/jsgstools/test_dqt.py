@@ -32,7 +32,7 @@ from jsgstools.dqt import (
     read_header_from,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SHARED_SCENES = ROOT.parent / "shared" / "scenes"
 
 
