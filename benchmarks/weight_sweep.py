@@ -26,8 +26,8 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jsgs.bench.report import final_rows  # noqa: E402
 from jsgs.bench.results import read_csv  # noqa: E402
+from jsgs.bench.stats import final_rows  # noqa: E402
 
 
 def final(

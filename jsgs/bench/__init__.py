@@ -3,7 +3,8 @@
 - :mod:`jsgs.bench.plan`: which datasets and training runs a bench needs, where they live, their commands;
 - :mod:`jsgs.bench.workers`: N ``jsgs train`` subprocesses per GPU, skip-if-finished, failures;
 - :mod:`jsgs.bench.results`: ``RESULTS/results.csv`` from the runs' ``metrics.json``;
-- :mod:`jsgs.bench.report`: ``RESULTS/report.md`` (Tables 1-4 layout, per scene, damage recovered) and plots;
+- :mod:`jsgs.bench.stats` (seed means, damage recovered), :mod:`jsgs.bench.markdown` (``RESULTS/report.md``:
+  Tables 1-4 layout, per scene), :mod:`jsgs.bench.plots` (``RESULTS/plots/``);
 - :mod:`jsgs.bench.harness`: :func:`bench`, all of it in order, with ``RESULTS/bench.json``.
 """
 

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from jsgs.bench import report as report_mod
+from jsgs.bench import markdown as report_mod
 from jsgs.bench import results as results_mod
 from jsgs.bench import workers as pool_mod
 from jsgs.bench.plan import BenchPlan, Dataset, build_plan, train_argv

@@ -12,7 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from jsgs.bench import plan as plan_mod
-from jsgs.bench.report import Agg, damage_recovered, worse_beyond_spread
+from jsgs.bench.stats import Agg, damage_recovered, worse_beyond_spread
 
 TINY = {
     "init": {"type": "random", "num_points": 200, "scale": 0.3},
@@ -312,7 +312,8 @@ def test_no_run_starts_that_the_time_limit_would_cut(tmp_path: Path, monkeypatch
 def test_runs_that_stopped_early_are_kept_out_of_the_final_tables(tmp_path: Path) -> None:
     """A run cut at step 7000 is not compared at 7000 with runs finished at 10000: it is listed apart, and
     the tables are repeated at the last step every run reached."""
-    from jsgs.bench.report import common_step, final_rows, unfinished, write_report
+    from jsgs.bench.markdown import write_report
+    from jsgs.bench.stats import common_step, final_rows, unfinished
 
     def row(sc: str, m: str, step: int, lp: float) -> dict[str, object]:
         return {"scene": sc, "schedule": "gaussian", "method": m, "seed": 0, "step": step, "psnr": 25.0,

@@ -1,4 +1,5 @@
-"""``RESULTS/report.md`` and ``RESULTS/plots/*.png`` from the rows of ``results.csv``.
+"""``RESULTS/report.md`` from the rows of ``results.csv`` (statistics: :mod:`jsgs.bench.stats`; plots:
+:mod:`jsgs.bench.plots`).
 
 Numbers at the bench's **final evaluation step** (runs that stopped earlier are listed apart, and the
 main tables are repeated at the last step every run reached); per scene x schedule x method the mean over
@@ -16,140 +17,28 @@ there is no spread, R is computed and marked "1 seed".
 
 from __future__ import annotations
 
-import math
-import statistics
 from collections import defaultdict
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from jsgs.bench.plan import ABLATION_ALIAS, ABLATION_PARTS, ABLATION_SCHEDULE, MIXED_SCHEDULES
-
-METRICS = ("psnr", "ssim", "lpips")
-HIGHER_BETTER = {"psnr": True, "ssim": True, "lpips": False}
-DIGITS = {"psnr": 2, "ssim": 4, "lpips": 4}
-NAMES = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓"}
-METHOD_NAMES = {"gsplat": "gsplat", "jsgs": "JSGS"}
-
-
-@dataclass
-class Agg:
-    """A quantity over seeds."""
-
-    values: list[float]
-
-    @property
-    def n(self) -> int:
-        return len(self.values)
-
-    @property
-    def mean(self) -> float | None:
-        return statistics.fmean(self.values) if self.values else None
-
-    @property
-    def sd(self) -> float | None:
-        return statistics.stdev(self.values) if len(self.values) > 1 else None
-
-    @property
-    def spread(self) -> float | None:
-        """max - min over seeds; None with fewer than two seeds."""
-        return max(self.values) - min(self.values) if len(self.values) > 1 else None
-
-
-def agg(values: list[Any]) -> Agg:
-    return Agg([float(v) for v in values if v is not None and math.isfinite(float(v))])
-
-
-RunKey = tuple[str, str, str, int]
-
-
-def _key(r: dict[str, Any]) -> RunKey:
-    return (r["scene"], r["schedule"], r["method"], int(r["seed"]))
-
-
-def last_step(rows: list[dict[str, Any]]) -> int:
-    """The bench's final step: the largest evaluation step of any run."""
-    return max((int(r["step"]) for r in rows), default=0)
-
-
-def steps_by_run(rows: list[dict[str, Any]]) -> dict[RunKey, set[int]]:
-    """(scene, schedule, method, seed) -> the steps it was evaluated at."""
-    steps: dict[RunKey, set[int]] = defaultdict(set)
-    for r in rows:
-        steps[_key(r)].add(int(r["step"]))
-    return steps
-
-
-def common_step(rows: list[dict[str, Any]]) -> int:
-    """The largest evaluation step that every run reached (0: none)."""
-    steps = steps_by_run(rows)
-    return max(set.intersection(*steps.values()) if steps else set(), default=0)
-
-
-def unfinished(rows: list[dict[str, Any]]) -> list[tuple[RunKey, int]]:
-    """Runs without an evaluation at the final step, with the last step they reached."""
-    final = last_step(rows)
-    return sorted((k, max(s)) for k, s in steps_by_run(rows).items() if max(s) < final)
-
-
-def final_rows(rows: list[dict[str, Any]], step: int | None = None) -> dict[RunKey, dict[str, Any]]:
-    """(scene, schedule, method, seed) -> the run's row at ``step`` (default: the bench's final step). A run
-    that stopped earlier is left out: comparing it at its own last step with finished runs would mix
-    training lengths."""
-    step = last_step(rows) if step is None else step
-    return {_key(r): r for r in rows if int(r["step"]) == step}
-
-
-def by_seed(
-    rows: list[dict[str, Any]], step: int | None = None
-) -> dict[tuple[str, str, str], list[dict[str, Any]]]:
-    """(scene, schedule, method) -> the rows of its seeds at ``step`` (default: the final step)."""
-    out: dict[tuple[str, str, str], list[dict[str, Any]]] = defaultdict(list)
-    for (sc, sch, m, _), r in sorted(final_rows(rows, step).items()):
-        out[(sc, sch, m)].append(r)
-    return out
-
-
-@dataclass
-class Recovered:
-    value: float | None  # R, or None where not computed
-    gap: float | None  # clean's advantage over the baseline (positive: clean better)
-    spread: float | None
-    note: str  # "", "within noise", "1 seed", "no clean run", "clean no better"
-
-
-def damage_recovered(baseline: Agg, method: Agg, clean: Agg, higher_is_better: bool) -> Recovered:
-    """R for one scene x schedule and one metric (see the module docstring for the noise rule)."""
-    b, m, c = baseline.mean, method.mean, clean.mean
-    if b is None or m is None:
-        return Recovered(None, None, None, "missing runs")
-    if c is None:
-        return Recovered(None, None, None, "no clean run")
-    sign = 1.0 if higher_is_better else -1.0
-    gap = sign * (c - b)
-    spreads = [s for s in (baseline.spread, clean.spread) if s is not None]
-    spread = max(spreads) if spreads else None
-    if spread is not None and abs(gap) <= spread:
-        return Recovered(None, gap, spread, "within noise")
-    if gap == 0:
-        return Recovered(None, gap, spread, "within noise")
-    value = sign * (m - b) / gap
-    note = "1 seed" if spread is None else ""
-    if gap < 0:
-        note = (note + "; " if note else "") + "clean no better"
-    return Recovered(value, gap, spread, note)
-
-
-def worse_beyond_spread(baseline: Agg, method: Agg, higher_is_better: bool) -> bool | None:
-    """Is the method worse than the baseline by more than the seed spread? None: one seed (unknown)."""
-    b, m = baseline.mean, method.mean
-    if b is None or m is None:
-        return None
-    worse = (b - m) if higher_is_better else (m - b)
-    spreads = [s for s in (baseline.spread, method.spread) if s is not None]
-    if not spreads:
-        return None
-    return worse > max(spreads)
+from jsgs.bench.plots import write_plots
+from jsgs.bench.stats import (
+    DIGITS,
+    HIGHER_BETTER,
+    METHOD_NAMES,
+    METRICS,
+    NAMES,
+    Agg,
+    agg,
+    by_seed,
+    common_step,
+    damage_recovered,
+    last_step,
+    mean_of,
+    unfinished,
+    worse_beyond_spread,
+)
 
 
 def _f(v: float | None, digits: int, signed: bool = False) -> str:
@@ -173,10 +62,6 @@ def _table(header: list[str], rows: list[list[str]], align: str | None = None) -
     ]
 
 
-def _mean(xs: list[float | None]) -> float | None:
-    ys = [x for x in xs if x is not None]
-    return statistics.fmean(ys) if ys else None
-
 
 class Report:
     def __init__(self, rows: list[dict[str, Any]], step: int | None = None):
@@ -193,7 +78,7 @@ class Report:
         return [s for s in self.scenes if all((s, schedule, m) in self.seeds for m in methods)]
 
     def over_scenes(self, schedule: str, method: str, key: str, scenes: list[str]) -> float | None:
-        return _mean([self.a(s, schedule, method, key).mean for s in scenes])
+        return mean_of([self.a(s, schedule, method, key).mean for s in scenes])
 
     # -------------------------------------------------------------------------------------------------
     def table1(self) -> list[str]:
@@ -231,7 +116,7 @@ class Report:
         mb = self.over_scenes(schedule, "gsplat", "lpips", scenes)
         mj = self.over_scenes(schedule, "jsgs", "lpips", scenes)
         of_means = 100 * (1 - mj / mb) if mb and mj is not None else None
-        return _mean(per), of_means
+        return mean_of(per), of_means
 
     def damage(self) -> list[str]:
         scheds = [s for s in MIXED_SCHEDULES if s in self.schedules]
@@ -283,7 +168,7 @@ class Report:
             ok = []
             for k in ("lpips", "psnr"):
                 vals = per_sched[sch][k]
-                mr = _mean(vals)
+                mr = mean_of(vals)
                 txt = _f(mr, 2) + f" (n = {len(vals)} of {len(sc)})"
                 if notes[sch][k]:
                     txt += "; not computed for " + ", ".join(notes[sch][k])
@@ -363,11 +248,11 @@ class Report:
         pairs = [(sc, s) for s in scheds for sc in self.common_scenes(s, ["gsplat", "jsgs"])]
         if not pairs:
             return ["No runs with both methods."]
-        base_tpi = _mean([self.a(sc, s, "gsplat", "time_per_iteration_s").mean for sc, s in pairs])
+        base_tpi = mean_of([self.a(sc, s, "gsplat", "time_per_iteration_s").mean for sc, s in pairs])
         for m in ("gsplat", "jsgs"):
 
             def over(key: str, m: str = m) -> float | None:
-                return _mean([self.a(sc, s, m, key).mean for sc, s in pairs])
+                return mean_of([self.a(sc, s, m, key).mean for sc, s in pairs])
 
             tpi = over("time_per_iteration_s")
             t = over("train_seconds")
@@ -420,66 +305,6 @@ class Report:
             body.append([sc, sch, m] + [_f(agg([r.get(k) for r in rs]).mean, 5) for k in keys])
         return _table(["Scene", "Schedule", "Method", *keys], body, "lll" + "r" * len(keys))
 
-    def plots(self, outdir: Path) -> list[Path]:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        outdir.mkdir(parents=True, exist_ok=True)
-        written = []
-        colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
-        styles = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
-        for sc in self.scenes:
-            fig, axes = plt.subplots(2, 2, figsize=(11, 8))
-            any_line = False
-            for (s, sch, m), _ in sorted(self.seeds.items()):
-                if s != sc or m not in colors:
-                    continue
-                steps: dict[int, list[dict[str, Any]]] = defaultdict(list)
-                for r in self.rows:
-                    if r["scene"] == sc and r["schedule"] == sch and r["method"] == m:
-                        steps[r["step"]].append(r)
-                pts = sorted(steps)
-
-                def series(key: str, steps: dict[int, list[dict[str, Any]]] = steps, pts: list[int] = pts):
-                    return [agg([r.get(key) for r in steps[p]]).mean for p in pts]
-
-                color = "gray" if sch == "clean" else colors[m]
-                style = styles.get(sch, "-")
-                label = f"{m} {sch}"
-                for ax, (xk, yk) in zip(
-                    axes.flat,
-                    [("train_seconds", "lpips"), ("train_seconds", "psnr"), ("num_gaussians", "lpips"),
-                     ("num_gaussians", "psnr")],
-                    strict=True,
-                ):  # fmt: skip
-                    xs, ys = series(xk), series(yk)
-                    xy = [(x, y) for x, y in zip(xs, ys, strict=True) if x is not None and y is not None]
-                    if xy:
-                        ax.plot(*zip(*xy, strict=True), style, marker="o", ms=3, color=color, label=label)
-                        any_line = True
-            if not any_line:
-                plt.close(fig)
-                continue
-            for ax, (xl, yl) in zip(
-                axes.flat,
-                [("training time (s)", "LPIPS"), ("training time (s)", "PSNR (dB)"), ("#Gaussians", "LPIPS"),
-                 ("#Gaussians", "PSNR (dB)")],
-                strict=True,
-            ):  # fmt: skip
-                ax.set_xlabel(xl)
-                ax.set_ylabel(yl)
-                ax.grid(alpha=0.3)
-            axes[0, 0].legend(fontsize=7)
-            fig.suptitle(f"{sc}: test metrics at each evaluation step (means over seeds)")
-            fig.tight_layout()
-            path = outdir / f"{sc}.png"
-            fig.savefig(path, dpi=110)
-            plt.close(fig)
-            written.append(path)
-        return written
-
 
 def write_report(
     rows: list[dict[str, Any]],
@@ -491,7 +316,7 @@ def write_report(
     """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path."""
     results_dir = Path(results_dir)
     rep = Report(rows)
-    pngs = rep.plots(results_dir / "plots") if plots and rows else []
+    pngs = write_plots(rep, results_dir / "plots") if plots and rows else []
     md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
     md += ["## Table 1: mixed-quality schedules (means over scenes, last step)", "", *rep.table1(), ""]
     md += ["## Damage recovered and relative LPIPS reduction", "",

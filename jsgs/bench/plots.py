@@ -1,0 +1,75 @@
+"""The bench's plots (matplotlib, written headless)."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from jsgs.bench.stats import agg
+
+if TYPE_CHECKING:
+    from jsgs.bench.markdown import Report
+
+
+def write_plots(rep: Report, outdir: Path) -> list[Path]:
+    """One figure per scene (LPIPS and PSNR against training time and against the number of Gaussians, per
+    method and schedule, means over seeds) in ``outdir``; returns the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    outdir.mkdir(parents=True, exist_ok=True)
+    written = []
+    colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
+    styles = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
+    for sc in rep.scenes:
+        fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+        any_line = False
+        for (s, sch, m), _ in sorted(rep.seeds.items()):
+            if s != sc or m not in colors:
+                continue
+            steps: dict[int, list[dict[str, Any]]] = defaultdict(list)
+            for r in rep.rows:
+                if r["scene"] == sc and r["schedule"] == sch and r["method"] == m:
+                    steps[r["step"]].append(r)
+            pts = sorted(steps)
+
+            def series(key: str, steps: dict[int, list[dict[str, Any]]] = steps, pts: list[int] = pts):
+                return [agg([r.get(key) for r in steps[p]]).mean for p in pts]
+
+            color = "gray" if sch == "clean" else colors[m]
+            style = styles.get(sch, "-")
+            label = f"{m} {sch}"
+            for ax, (xk, yk) in zip(
+                axes.flat,
+                [("train_seconds", "lpips"), ("train_seconds", "psnr"), ("num_gaussians", "lpips"),
+                 ("num_gaussians", "psnr")],
+                strict=True,
+            ):  # fmt: skip
+                xs, ys = series(xk), series(yk)
+                xy = [(x, y) for x, y in zip(xs, ys, strict=True) if x is not None and y is not None]
+                if xy:
+                    ax.plot(*zip(*xy, strict=True), style, marker="o", ms=3, color=color, label=label)
+                    any_line = True
+        if not any_line:
+            plt.close(fig)
+            continue
+        for ax, (xl, yl) in zip(
+            axes.flat,
+            [("training time (s)", "LPIPS"), ("training time (s)", "PSNR (dB)"), ("#Gaussians", "LPIPS"),
+             ("#Gaussians", "PSNR (dB)")],
+            strict=True,
+        ):  # fmt: skip
+            ax.set_xlabel(xl)
+            ax.set_ylabel(yl)
+            ax.grid(alpha=0.3)
+        axes[0, 0].legend(fontsize=7)
+        fig.suptitle(f"{sc}: test metrics at each evaluation step (means over seeds)")
+        fig.tight_layout()
+        path = outdir / f"{sc}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written
