@@ -80,18 +80,31 @@ def test_deterministic(tmp_path: Path) -> None:
         assert (tmp_path / "a/sparse/0" / f).read_bytes() == (tmp_path / "b/sparse/0" / f).read_bytes()
 
 
-def test_high_frequency_content(synth_scene: Path) -> None:
-    """The textures put energy where JPEG quantizes hardest: many 8x8 blocks have strong high-band DCT
-    terms."""
+def _high_band_share(png: Path) -> float:
+    """Median over the 8x8 blocks of the share of DCT magnitude in the high band (u, v >= 4)."""
     import cv2
 
-    img = np.asarray(Image.open(synth_scene / "images" / "view_000.png").convert("L"), dtype=np.float32)
+    img = np.asarray(Image.open(png).convert("L"), dtype=np.float32)
+    h, w = img.shape
     hi = []
-    for y in range(0, 48, 8):
-        for x in range(0, 64, 8):
+    for y in range(0, h - h % 8, 8):
+        for x in range(0, w - w % 8, 8):
             d = np.abs(cv2.dct(img[y : y + 8, x : x + 8] - 128))
             hi.append(d[4:, 4:].sum() / (d.sum() + 1e-6))
-    assert np.median(hi) > 0.05
+    return float(np.median(hi))
+
+
+def test_high_frequency_content_and_texture_scale(synth_scene: Path, tmp_path: Path) -> None:
+    """The default textures put energy where JPEG quantizes hardest (many 8x8 blocks with strong high-band
+    DCT terms); ``texture_scale`` 8 makes every period 8x longer, and the high-band share falls to well under
+    half of it in the same view."""
+    default = _high_band_share(synth_scene / "images" / "view_000.png")
+    synth(tmp_path / "coarse", views=12, size=(64, 48), seed=0, texture_scale=8.0)
+    coarse = _high_band_share(tmp_path / "coarse" / "images" / "view_000.png")
+    assert default > 0.05
+    assert coarse < 0.5 * default, (coarse, default)
+    with pytest.raises(JsgsError, match="--texture-scale 0.01: must be within 0.1..100"):
+        synth(tmp_path / "bad", views=2, size=(16, 12), texture_scale=0.01)
 
 
 def test_refuses_and_validates_arguments(tmp_path: Path) -> None:
