@@ -13,6 +13,9 @@ from jsgs.errors import JsgsError
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+#: every group and command answers -h as well as --help, also when a command is invoked on its own
+CONTEXT: dict[str, Any] = {"help_option_names": ["-h", "--help"]}
+
 
 def fail(message: str, code: int = 1) -> None:
     click.echo(f"error: {message}", err=True)

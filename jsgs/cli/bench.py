@@ -6,10 +6,10 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import invocation, user_errors
+from jsgs.cli._common import CONTEXT, invocation, user_errors
 
 
-@click.command("bench")
+@click.command("bench", context_settings=CONTEXT)
 @click.argument("scenes", nargs=-1, required=True, type=click.Path(path_type=Path, file_okay=False))
 @click.option(
     "--out",

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from jsgs.cli._common import invocation, user_errors
+from jsgs.cli._common import CONTEXT, invocation, user_errors
 from jsgs.errors import JsgsError
 
 
@@ -23,7 +23,7 @@ def _parse_steps(text: str) -> list[int]:
         ) from None
 
 
-@click.command("train")
+@click.command("train", context_settings=CONTEXT)
 @click.argument("manifest", type=click.Path(path_type=Path, dir_okay=False))
 @click.option(
     "--out",

@@ -5,9 +5,10 @@ from __future__ import annotations
 import click
 
 from jsgs import __version__
+from jsgs.cli._common import CONTEXT
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(context_settings=CONTEXT)
 @click.version_option(__version__, prog_name="jsgstools")
 def main() -> None:
     """Prepare JPEG datasets for JSGS: inspect quantization tables, build mixed-quality scenes,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import invocation, user_errors
+from jsgs.cli._common import CONTEXT, invocation, user_errors
 
 SCHEDULE_HELP = (
     "uniform: the nine qualities 10..90 equally; gaussian: weights exp(-x^2/2) at x = -2..2 (q=10..90); "
@@ -18,7 +18,7 @@ SCHEDULE_HELP = (
 )
 
 
-@click.command("synth")
+@click.command("synth", context_settings=CONTEXT)
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option("--views", default=32, show_default=True, help="Number of cameras on the ring (2..1000).")
 @click.option("--size", default="160x120", show_default=True, help="Image size WIDTHxHEIGHT in pixels.")
@@ -73,7 +73,7 @@ def synth_cmd(
     click.echo(f"wrote {out}/images/ ({res.views} PNG) and {out}/sparse/0/")
 
 
-@click.command("compress")
+@click.command("compress", context_settings=CONTEXT)
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder DIR.")
 @click.option(
@@ -168,7 +168,7 @@ def compress_cmd(
     )
 
 
-@click.command("validate")
+@click.command("validate", context_settings=CONTEXT)
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option("--test-every", default=8, show_default=True, help="Only for the split line of the summary.")
 @user_errors
@@ -194,7 +194,7 @@ def validate_cmd(scene: Path, test_every: int) -> None:
     click.echo("ok")
 
 
-@click.command("manifest")
+@click.command("manifest", context_settings=CONTEXT)
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option(
     "--out",

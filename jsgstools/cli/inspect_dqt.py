@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import user_errors
+from jsgs.cli._common import CONTEXT, user_errors
 
 
 def _emit(text: str, err: bool = False) -> None:
@@ -21,7 +21,7 @@ def _emit(text: str, err: bool = False) -> None:
         sys.exit(1)
 
 
-@click.command("inspect-dqt")
+@click.command("inspect-dqt", context_settings=CONTEXT)
 @click.argument("images", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option(
     "--json",
