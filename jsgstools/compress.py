@@ -119,6 +119,11 @@ def split_names(names: Sequence[str], test_every: int) -> dict[str, str]:
     """name -> "train" | "test" (see SPLIT_RULE)."""
     if test_every < 1:
         raise JsgsError(f"--test-every {test_every}: must be at least 1")
+    if test_every == 1 and names:
+        raise JsgsError(
+            f"--test-every 1: every one of the {len(names)} views would be a test view and none left to "
+            "train on"
+        )
     return {name: ("test" if i % test_every == 0 else "train") for i, name in enumerate(sorted(names))}
 
 

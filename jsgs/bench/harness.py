@@ -185,6 +185,8 @@ def bench(
     from jsgs.bench.plan import default_eval_at
 
     out = Path(out)
+    if time_limit is not None and time_limit <= 0:
+        raise JsgsError(f"--time-limit {time_limit:g}: must be a positive number of seconds")
     if jobs_per_gpu < 1:
         raise JsgsError(f"--jobs-per-gpu {jobs_per_gpu}: must be at least 1")
     from jsgs.method.options import COMPILE_BACKENDS

@@ -560,3 +560,11 @@ def test_pinhole_real_scene_is_not_resampled(tmp_path: Path) -> None:
         assert np.array_equal(np.asarray(Image.open(tmp_path / "out" / v["reference"])), src)
     sizes = {(v["camera"]["width"], v["camera"]["height"]) for v in res2.manifest["views"]}
     assert sizes <= {(640, 480), (480, 640)}
+
+
+def test_a_split_with_no_training_view_is_refused() -> None:
+    from jsgstools.compress import split_names
+
+    with pytest.raises(JsgsError, match="--test-every 1: every one of the 3 views would be a test view"):
+        split_names(["a.png", "b.png", "c.png"], 1)
+    assert split_names(["a.png", "b.png", "c.png"], 2) == {"a.png": "test", "b.png": "train", "c.png": "test"}

@@ -376,3 +376,14 @@ def test_weight_sweep_configs_and_summary(tmp_path: Path) -> None:
     assert r.stdout.count("not run") == 2 * len(control)
     assert "llff_fern, gaussian schedule, seed 1" in r.stdout
     assert "| gsplat_base2.1 | 2.1 | – | – | – | – | 0.0002 | not run |" in r.stdout
+
+
+def test_time_limit_must_be_positive(tmp_path: Path) -> None:
+    from jsgs.bench.harness import bench
+    from jsgs.errors import JsgsError
+
+    with pytest.raises(JsgsError, match="--time-limit -1: must be a positive number of seconds"):
+        bench(
+            [str(tmp_path / "scene")], tmp_path / "out", ["gaussian"], [], ["gsplat"], None, [0], 10,
+            time_limit=-1.0,
+        )  # fmt: skip
