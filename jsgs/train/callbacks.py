@@ -63,34 +63,61 @@ def eval_line(e: dict[str, Any]) -> str:
 
 
 class ProgressBar(Callback):
-    """A tqdm bar with the loss, the number of Gaussians and the terms (every ``log_every`` steps) and the
-    evaluation lines; without the bar (``enabled`` false) the evaluation lines go to the trainer's log."""
+    """Progress: on a terminal a tqdm bar with the loss, the number of Gaussians and the terms (every
+    ``log_every`` steps); elsewhere (a log file, a pipe) one plain line every twentieth of the run, so logs
+    hold no carriage-return redraws. Evaluation lines go to the bar or the trainer's log; ``enabled`` false:
+    only those."""
 
-    def __init__(self, enabled: bool = True) -> None:
+    def __init__(self, enabled: bool = True, terminal: bool | None = None) -> None:
+        import sys
+
         self.enabled = enabled
+        self.terminal = sys.stderr.isatty() if terminal is None else terminal
         self.bar: Any = None
+        self._t0 = 0.0
+        self._step0 = 0
 
     def on_setup(self, trainer: Trainer) -> None:
         cfg = trainer.cfg
         assert cfg is not None
-        if self.enabled and trainer.start_step < cfg.iterations:
+        if not (self.enabled and trainer.start_step < cfg.iterations):
+            return
+        if self.terminal:
             from tqdm import tqdm
 
             self.bar = tqdm(
                 total=cfg.iterations, initial=trainer.start_step, dynamic_ncols=True, unit="it", desc="train"
             )
+        import time
+
+        self._t0, self._step0 = time.perf_counter(), trainer.start_step
+
+    def _summary(self, trainer: Trainer, result: StepResult) -> str:
+        parts = [f"loss={result.loss:.4f}", f"#G={trainer.splats['means'].shape[0]}"]
+        parts += [f"{k}={v:.4g}" for k, v in result.terms.items() if k not in ("photometric",)]
+        parts += [f"{k}={v:.4g}" for k, v in result.stats.items()]
+        return " ".join(parts)
 
     def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
-        if self.bar is None:
+        cfg = trainer.cfg
+        assert cfg is not None
+        if not self.enabled:
             return
-        assert trainer.cfg is not None
-        self.bar.update(1)
         done = result.step + 1
-        if done % trainer.cfg.log_every == 0 or done == trainer.end_step:
-            parts = [f"loss={result.loss:.4f}", f"#G={trainer.splats['means'].shape[0]}"]
-            parts += [f"{k}={v:.4g}" for k, v in result.terms.items() if k not in ("photometric",)]
-            parts += [f"{k}={v:.4g}" for k, v in result.stats.items()]
-            self.bar.set_postfix_str(" ".join(parts), refresh=False)
+        if self.bar is not None:
+            self.bar.update(1)
+            if done % cfg.log_every == 0 or done == trainer.end_step:
+                self.bar.set_postfix_str(self._summary(trainer, result), refresh=False)
+            return
+        every = max(cfg.log_every, cfg.iterations // 20)
+        if done % every == 0 or done == trainer.end_step:
+            import time
+
+            rate = (done - self._step0) / max(time.perf_counter() - self._t0, 1e-9)
+            trainer.say(
+                f"train: step {done}/{cfg.iterations} ({100 * done // cfg.iterations}%), {rate:.1f} it/s, "
+                + self._summary(trainer, result)
+            )
 
     def on_eval(self, trainer: Trainer, entry: dict[str, Any]) -> None:
         if self.bar is not None:

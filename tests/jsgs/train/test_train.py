@@ -652,3 +652,14 @@ def test_force_refuses_a_folder_that_holds_no_run(scene: Path, tmp_path: Path) -
         train(scene, other, tiny_config(iterations=2), progress=False, force=True)
     assert (other / "IMG_0001.jpg").read_bytes() == b"not ours"
     assert (other / "config.json").read_text() == '{"camera": "mine"}'
+
+
+def test_progress_without_a_terminal_is_plain_lines(scene: Path, tmp_path: Path) -> None:
+    """Where stderr is not a terminal (a log file), progress is one plain line every twentieth of the run:
+    no carriage returns, the step, the rate and the loss."""
+    lines: list[str] = []
+    train(scene, tmp_path / "run", tiny_config(iterations=40), progress=True, log=lines.append)
+    steps = [s for s in lines if s.startswith("train: step ")]
+    # every max(log_every, iterations // 20) = max(5, 2) steps
+    assert [s.split()[2] for s in steps] == [f"{k}/40" for k in range(5, 41, 5)]
+    assert all("\r" not in s and "it/s" in s and "loss=" in s and "#G=" in s for s in steps)
