@@ -20,9 +20,14 @@ def _umask() -> int:
 @contextmanager
 def atomic_path(final: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path in the same folder as ``final``; rename it onto ``final`` only on success."""
+    from jsgs.errors import JsgsError
+
     final = Path(final)
-    final.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part" + final.suffix, dir=final.parent)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part" + final.suffix, dir=final.parent)
+    except OSError as e:
+        raise JsgsError(f"{final}: cannot write ({e.strerror or e})") from None
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -30,6 +35,9 @@ def atomic_path(final: str | os.PathLike[str]) -> Iterator[Path]:
         # mkstemp creates 0600 files; give the result the permissions a plain open() would have.
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, final)
+    except OSError as e:
+        # a full disk or a read-only file system shows up on the temporary file: name the file asked for
+        raise JsgsError(f"{final}: cannot write ({e.strerror or e})") from None
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

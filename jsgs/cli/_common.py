@@ -31,8 +31,8 @@ def user_errors(func: F) -> F:
             return func(*args, **kwargs)
         except JsgsError as e:
             fail(str(e))
-        except (FileNotFoundError, PermissionError, IsADirectoryError) as e:
-            fail(f"{e.filename}: {e.strerror}")
+        except OSError as e:  # a missing file, no permission, a full disk, a read-only file system, ...
+            fail(f"{e.filename}: {e.strerror}" if e.filename else f"{e.strerror or e}")
         except KeyboardInterrupt:
             fail("interrupted", 130)
 

@@ -663,3 +663,23 @@ def test_progress_without_a_terminal_is_plain_lines(scene: Path, tmp_path: Path)
     # every max(log_every, iterations // 20) = max(5, 2) steps
     assert [s.split()[2] for s in steps] == [f"{k}/40" for k in range(5, 41, 5)]
     assert all("\r" not in s and "it/s" in s and "loss=" in s and "#G=" in s for s in steps)
+
+
+def test_a_write_that_fails_names_the_file_asked_for(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full disk (or a read-only file system) shows up on the temporary file of an atomic write: the error
+    names the file asked for, in one line, and leaves no temporary file behind."""
+    import errno
+
+    from jsgs.io import write_json_atomic
+
+    real_replace = os.replace
+
+    def full(src: Any, dst: Any) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device", str(src))
+
+    monkeypatch.setattr(os, "replace", full)
+    with pytest.raises(JsgsError, match=r"out.json: cannot write \(No space left on device\)$") as e:
+        write_json_atomic(tmp_path / "out.json", {"a": 1})
+    assert "\n" not in str(e.value) and ".part" not in str(e.value)
+    monkeypatch.setattr(os, "replace", real_replace)
+    assert list(tmp_path.iterdir()) == []
