@@ -403,7 +403,19 @@ def test_fro_gradients_reach_only_opacity_and_scale() -> None:
     grads = dict(zip(names, torch.autograd.grad(fro, [sp[n] for n in names], allow_unused=True), strict=True))
     for n in ("means", "quats", "sh0", "shN"):
         assert grads[n] is None or not grads[n].any(), n
-    assert grads["opacities"].abs().sum() > 0 and grads["scales"].abs().sum() > 0
+    # the opacity gradient is L_fro's closed form, d/dlogit [(1/|V|) sum_V rbar alpha^2 exp(-sbar/tau_s)] =
+    # (1/|V|) rbar exp(-sbar/tau_s) 2 alpha^2 (1 - alpha) on V and 0 elsewhere, with
+    # sbar = sqrt(tr(A diag(s)^2 A^T) / 2) (paper eqs. controller_scale, fro)
+    last = hook.last
+    vis, rbar, A = last["visible"], last["rbar"], last["A"]
+    alpha = torch.sigmoid(sp["opacities"].detach())
+    s2 = torch.exp(2 * sp["scales"].detach())
+    sbar = torch.sqrt(0.5 * torch.einsum("nij,nj,nij->n", A, s2, A))
+    tau = hook.opts.tau_s
+    expect = torch.where(vis, rbar * torch.exp(-sbar / tau) * 2 * alpha**2 * (1 - alpha), 0.0) / vis.sum()
+    assert int(vis.sum()) > 0 and bool((expect != 0).any())
+    torch.testing.assert_close(grads["opacities"], expect, rtol=1e-9, atol=1e-15)
+    assert not grads["scales"][~vis].any() and grads["scales"][vis].abs().sum() > 0
     # and inside a full step, both routes: the whole difference λ_fro·∇L_fro sits in opacity and scale,
     # equals that autograd gradient, and the densification signal (means2d) does not move
     base = train_step(new_hook(view, gc=False), view)
