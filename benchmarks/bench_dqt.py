@@ -32,14 +32,11 @@ from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))  # the test-file builders live with the tests
 
-from jsgstools.dqt import (  # noqa: E402
-    clear_caches,
-    exif_app1,
-    insert_after_soi,
-    read_header,
-    read_header_from,
-)
+from jpeg_builders import exif_app1, insert_after_soi  # noqa: E402
+
+from jsgstools.dqt import clear_caches, read_header, read_header_from  # noqa: E402
 
 SHARED_SCENES = ROOT.parent / "shared" / "scenes"
 

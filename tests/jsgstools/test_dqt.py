@@ -15,6 +15,7 @@ import jsonschema
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from jpeg_builders import exif_app1, insert_after_soi
 from PIL import ExifTags, Image, JpegImagePlugin
 
 from jsgs.errors import JsgsError
@@ -24,8 +25,6 @@ from jsgstools.cli.inspect_dqt import inspect_dqt
 from jsgstools.dqt import (
     JpegHeader,
     clear_caches,
-    exif_app1,
-    insert_after_soi,
     parse_header,
     quality_of,
     read_header,
@@ -699,7 +698,7 @@ def test_cli_unexpected_exception_is_one_line(
     good_files: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Even a bug in the parser must not print a traceback or stop the other files."""
-    import jsgstools.dqt as dqt
+    import jsgstools.dqt.report as dqt  # inspect_files reads each file through this name
 
     a, b = good_files
     real = dqt.read_header

@@ -22,12 +22,13 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
+from jpeg_builders import exif_app1, insert_after_soi
 from PIL import Image
 
 from jsgs.errors import JsgsError
 from jsgs.jpeg.tables import ZIGZAG, ijg_tables
 from jsgs.schemas import load_schema
-from jsgstools.dqt import SAMPLING_NAMES, JpegHeader, exif_app1, insert_after_soi, parse_header
+from jsgstools.dqt import SAMPLING_NAMES, JpegHeader, parse_header
 
 EXAMPLES = int(os.environ.get("JSGS_FUZZ_EXAMPLES", "300"))
 NAME = "fuzz.jpg"
