@@ -1,19 +1,7 @@
-"""``RESULTS/report.md`` from the rows of ``results.csv`` (statistics: :mod:`jsgs.bench.stats`; plots:
-:mod:`jsgs.bench.plots`).
-
-Numbers at the bench's **final evaluation step** (runs that stopped earlier are listed apart, and the
-main tables are repeated at the last step every run reached); per scene x schedule x method the mean over
-seeds (and its spread: max - min over seeds, "sd" the sample standard deviation); tables over scenes are
-means of the per-scene means, over the scenes where every method of the table has a result (their count is
-shown).
-
-"Damage recovered", per scene x schedule, on seed means:
-``R_LPIPS = (baseline - JSGS) / (baseline - clean)``, ``R_PSNR = (JSGS - baseline) / (clean - baseline)``,
-where baseline = gsplat on the schedule and clean = gsplat on the uncompressed training views. The noise
-rule: when ``|baseline - clean|`` is not larger than the seed spread (the larger of the baseline's and the
-clean run's max - min over seeds), R is not computed and the table says "within noise"; with a single seed
-there is no spread, R is computed and marked "1 seed".
-"""
+"""``RESULTS/report.md`` from the rows of ``results.csv``: the paper's Tables 1-4 layout, the damage recovered,
+per-scene tables and the loss terms, at the bench's final evaluation step (and again at the last step every
+run reached, when some stopped early). The numbers and their rules (seed means, spread, "within noise") are
+:mod:`jsgs.bench.stats`'s; the figures are :mod:`jsgs.bench.plots`'s."""
 
 from __future__ import annotations
 
