@@ -1,7 +1,7 @@
 """``RESULTS/report.md`` from the rows of ``results.csv``: the paper's Tables 1-4 layout, the damage
-recovered, per-scene tables and the loss terms, at the bench's final evaluation step (and again at the last step every
-run reached, when some stopped early). The numbers and their rules (seed means, spread, "within noise") are
-:mod:`jsgs.bench.stats`'s; the figures are :mod:`jsgs.bench.plots`'s."""
+recovered, per-scene tables and the loss terms, at the bench's final evaluation step (and again at the last
+step every run reached, when some stopped early). The numbers and their rules (seed means, spread, "within
+noise") are :mod:`jsgs.bench.stats`'s; the figures are :mod:`jsgs.bench.plots`'s."""
 
 from __future__ import annotations
 
