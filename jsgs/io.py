@@ -71,6 +71,10 @@ class OutputLock:
         from jsgs.errors import JsgsError
 
         self.path = Path(folder) / LOCK_NAME
+        if self.path.parent.exists() and not self.path.parent.is_dir():
+            raise JsgsError(f"{self.path.parent}: exists and is not a folder")
+        # a folder made only to hold the lock goes again with it when the writer wrote nothing
+        self.created = not self.path.parent.exists()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         record = json.dumps({"pid": os.getpid(), "what": what}) + "\n"
         for _ in range(2):
@@ -94,6 +98,11 @@ class OutputLock:
         holder = _lock_holder(self.path)
         if holder is not None and holder[0] == os.getpid():
             self.path.unlink(missing_ok=True)
+            if self.created:
+                try:
+                    self.path.parent.rmdir()  # only when empty: the writer failed before writing anything
+                except OSError:
+                    pass
 
     def __enter__(self) -> OutputLock:
         return self
@@ -118,3 +127,21 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def die_with_parent() -> None:
+    """In a child process (``preexec_fn``, a pool's ``initializer``): ask Linux to send it SIGTERM when its
+    parent dies, however the parent died (SIGKILL included), so no worker outlives the command that started
+    it. A no-op where ``prctl`` is not available."""
+    import ctypes
+    import signal
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    except OSError:
+        return
+    pr_set_pdeathsig = 1
+    libc.prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)

@@ -255,7 +255,11 @@ def _run_all(tasks: list[Task], jobs: int, progress: bool) -> list[dict[str, Any
 
         # spawn: workers start clean (no inherited OpenCV thread pools or pycolmap state from the parent).
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=min(jobs, len(tasks)), mp_context=ctx) as pool:
+        from jsgs.io import die_with_parent
+
+        with ProcessPoolExecutor(
+            max_workers=min(jobs, len(tasks)), mp_context=ctx, initializer=die_with_parent
+        ) as pool:
             futures: list[Future[dict[str, Any]]] = [pool.submit(run_task, t) for t in tasks]
             pending = set(futures)
             try:

@@ -507,6 +507,8 @@ def prepare_output_dir(out: Path, force: bool, owned: tuple[str, ...], protect: 
     nothing else is touched. ``protect`` (the input scene) must neither contain ``out`` nor lie inside it."""
     import shutil
 
+    from jsgs.io import LOCK_NAME
+
     if out.exists() and not out.is_dir():
         raise JsgsError(f"{out}: exists and is not a folder")
     if protect is not None:
@@ -515,7 +517,7 @@ def prepare_output_dir(out: Path, force: bool, owned: tuple[str, ...], protect: 
             raise JsgsError(f"{out}: is inside the input scene {protect}; the tools never write into a scene")
         if a in b.parents:
             raise JsgsError(f"{out}: contains the input scene {protect}; choose another output folder")
-    if out.is_dir() and any(out.iterdir()):
+    if out.is_dir() and any(p.name != LOCK_NAME for p in out.iterdir()):
         if not force:
             raise JsgsError(f"{out}: folder is not empty (use --force to replace its contents)")
         for name in owned:

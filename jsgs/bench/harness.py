@@ -5,6 +5,7 @@ worker pool (``jsgs train`` subprocesses) -> ``results.csv`` -> ``report.md`` + 
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import json
 import os
 import platform
@@ -153,7 +154,7 @@ def write_bench_json(doc: dict[str, Any], path: Path) -> None:
     write_json_atomic(path, doc)
 
 
-def bench(
+def _bench(
     scenes: list[str | Path],
     out: str | Path,
     schedules: list[str],
@@ -345,3 +346,13 @@ def bench(
     doc["summary"] = {**counts, "runs": len(plan.runs), "rows": len(rows), "csv_header": header}
     write_bench_json(doc, bench_json)
     return doc
+
+
+@functools.wraps(_bench)
+def bench(scenes: list[str | Path], out: str | Path, *args: Any, **kwargs: Any) -> dict[str, Any]:
+    """:func:`_bench` holding the results folder's output lock (one bench per folder; a second is refused
+    naming the first's PID)."""
+    from jsgs.io import OutputLock
+
+    with OutputLock(Path(out), f"jsgs bench (into {out})"):
+        return _bench(scenes, out, *args, **kwargs)

@@ -18,6 +18,7 @@ from typing import Any
 
 from jsgs.bench import plan as plan_mod
 from jsgs.bench.plan import Run
+from jsgs.io import die_with_parent
 
 TAIL_CHARS = 4000
 
@@ -115,7 +116,10 @@ def run_one(
         f.flush()
         timed_out = False
         try:
-            proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, env=env)
+            # a training dies with the bench (SIGTERM: it stops after its step with a checkpoint)
+            proc = subprocess.Popen(
+                argv, stdout=f, stderr=subprocess.STDOUT, env=env, preexec_fn=die_with_parent
+            )
             try:
                 rc = proc.wait(timeout=None if deadline is None else max(1.0, deadline - time.time()))
             except subprocess.TimeoutExpired:  # --time-limit: stop it; it resumes from its last checkpoint

@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 
 from jsgs.cli._common import CONTEXT, invocation, user_errors
+from jsgs.io import OutputLock
 
 SCHEDULE_HELP = (
     "uniform: the nine qualities 10..90 equally; gaussian: weights exp(-x^2/2) at x = -2..2 (q=10..90); "
@@ -54,17 +55,18 @@ def synth_cmd(
     points3D sampled on the surfaces with their colours). Deterministic given the options."""
     from jsgstools.synth import parse_size, synth
 
-    res = synth(
-        out,
-        views=views,
-        size=parse_size(size),
-        seed=seed,
-        supersample=supersample,
-        force=force,
-        progress=sys.stderr.isatty(),
-        point_density=point_density,
-        texture_scale=texture_scale,
-    )
+    with OutputLock(out, f"jsgstools synth (into {out})"):
+        res = synth(
+            out,
+            views=views,
+            size=parse_size(size),
+            seed=seed,
+            supersample=supersample,
+            force=force,
+            progress=sys.stderr.isatty(),
+            point_density=point_density,
+            texture_scale=texture_scale,
+        )
     c = res.camera
     click.echo(
         f"synth: {res.views} views of {res.width}x{res.height} (PINHOLE fx={c.fx:g} cx={c.cx:g} "
@@ -121,19 +123,20 @@ def compress_cmd(
     from jsgstools.compress import QUALITIES, compress
     from jsgstools.scene import fmt_factor
 
-    res = compress(
-        scene,
-        out,
-        schedule,
-        quality=quality,
-        seed=seed,
-        test_every=test_every,
-        subsampling=subsampling,
-        force=force,
-        jobs=jobs,
-        progress=sys.stderr.isatty(),
-        command=invocation(click.get_current_context(), "jsgstools"),
-    )
+    with OutputLock(out, f"jsgstools compress (into {out})"):
+        res = compress(
+            scene,
+            out,
+            schedule,
+            quality=quality,
+            seed=seed,
+            test_every=test_every,
+            subsampling=subsampling,
+            force=force,
+            jobs=jobs,
+            progress=sys.stderr.isatty(),
+            command=invocation(click.get_current_context(), "jsgstools"),
+        )
     rec = res.record
     st = rec["settings"]
     views = rec["views"]
@@ -222,7 +225,8 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, force: bool) ->
     from jsgstools.manifest_writer import manifest
 
     command = invocation(click.get_current_context(), "jsgstools")
-    doc = manifest(scene, out, test_every=test_every, force=force, command=command)
+    with OutputLock(out.parent, f"jsgstools manifest (into {out})"):
+        doc = manifest(scene, out, test_every=test_every, force=force, command=command)
     views = doc["views"]
     n_jpeg = sum(v["jpeg"] is not None for v in views)
     n_train = sum(v["split"] == "train" for v in views)

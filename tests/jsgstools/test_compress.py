@@ -568,3 +568,20 @@ def test_a_split_with_no_training_view_is_refused() -> None:
     with pytest.raises(JsgsError, match="--test-every 1: every one of the 3 views would be a test view"):
         split_names(["a.png", "b.png", "c.png"], 1)
     assert split_names(["a.png", "b.png", "c.png"], 2) == {"a.png": "test", "b.png": "train", "c.png": "test"}
+
+
+def test_a_second_writer_is_refused(synth_scene: Path, tmp_path: Path) -> None:
+    """compress holds its output folder's lock: while another live process holds it, the command refuses
+    in one line naming that process, and writes nothing."""
+    import json
+    import os
+
+    from jsgs.io import LOCK_NAME
+
+    out = tmp_path / "data"
+    out.mkdir()
+    (out / LOCK_NAME).write_text(json.dumps({"pid": os.getppid(), "what": "jsgstools compress (into data)"}))
+    r = CliRunner().invoke(main, ["compress", str(synth_scene), "--out", str(out), "--schedule", "gaussian"])
+    assert r.exit_code == 1
+    assert f"in use by jsgstools compress (into data) (PID {os.getppid()})" in r.output
+    assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]

@@ -683,3 +683,34 @@ def test_a_write_that_fails_names_the_file_asked_for(tmp_path: Path, monkeypatch
     assert "\n" not in str(e.value) and ".part" not in str(e.value)
     monkeypatch.setattr(os, "replace", real_replace)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_children_die_with_their_parent(tmp_path: Path) -> None:
+    """die_with_parent (the bench's trainings, compress's workers): when the parent is killed (SIGKILL, no
+    cleanup of its own), the child gets SIGTERM from the kernel and ends."""
+    import subprocess
+    import sys
+    import time
+
+    pid_file = tmp_path / "child.pid"
+    parent = "\n".join(
+        [
+            "import os, signal, subprocess, sys",
+            "from jsgs.io import die_with_parent",
+            "argv = [sys.executable, '-c', 'import time; time.sleep(60)']",
+            "c = subprocess.Popen(argv, preexec_fn=die_with_parent)",
+            f"open({str(pid_file)!r}, 'w').write(str(c.pid))",
+            "os.kill(os.getpid(), signal.SIGKILL)",
+        ]
+    )
+    subprocess.run([sys.executable, "-c", parent], check=False)
+    child = int(pid_file.read_text())
+    for _ in range(100):  # the kernel signals at once; give the child up to 10 s to be reaped by init
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(child, 9)
+        pytest.fail("the child outlived its killed parent")
