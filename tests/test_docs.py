@@ -11,7 +11,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
-# words that narrate the project's own history ("session", "issue" or "call" and a number); CHANGELOG.md is exempt
+# words that narrate the project's history ("session", "issue" or "call" and a number); CHANGELOG.md is exempt
 HISTORY = re.compile(r"\b(session|issue|issues|call)s? ?\d", re.IGNORECASE)
 
 
