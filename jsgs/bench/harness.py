@@ -17,7 +17,7 @@ from typing import Any
 from jsgs.bench import markdown as report_mod
 from jsgs.bench import results as results_mod
 from jsgs.bench import workers as pool_mod
-from jsgs.bench.plan import BenchPlan, Dataset, build_plan, train_argv
+from jsgs.bench.plan import BenchPlan, Budget, Dataset, Run, build_plan, resolve_caps, train_argv
 from jsgs.errors import JsgsError
 from jsgs.io import write_json_atomic
 
@@ -147,6 +147,56 @@ def _default_lpips_weights() -> str | None:
     return str(p) if p.is_file() else None
 
 
+def _read_config(path: str | Path | None) -> Any:
+    if path is None:
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise JsgsError(f"{path}: cannot read the config: {e}") from None
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``over`` merged into ``base`` section by section (a nested dict merges; anything else replaces)."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _run_record(r: Run, device: str, config: str | None) -> dict[str, Any]:
+    """A run's bench.json entry before it runs (no command while its budget is unresolved)."""
+    unresolved = r.strategy == "mcmc" and r.cap is None
+    return {
+        **r.to_json(),
+        "command": None if unresolved else " ".join(train_argv(r, device, config, False)),
+        "status": "pending",
+    }
+
+
+def reference_counts(refs: list[Run]) -> dict[str, float | None]:
+    """scene -> the mean final #Gaussians of its complete clean DefaultStrategy runs (None: none complete)."""
+    counts: dict[str, list[int]] = {r.scene: [] for r in refs}
+    for r in refs:
+        state, m = pool_mod.run_state(r)
+        if state == "complete" and m is not None:
+            counts[r.scene].append(int(m["evals"][-1]["num_gaussians"]))
+    return {sc: (sum(v) / len(v) if v else None) for sc, v in counts.items()}
+
+
+def _resolve(
+    plan: BenchPlan, out: Path, refs: list[Run], records: dict[str, dict[str, Any]]
+) -> dict[str, dict[str, Any]]:
+    """Resolve the budgets given as multiples; returns failure records for the runs that cannot be."""
+    failed = {}
+    for r in resolve_caps(plan, out, reference_counts(refs)):
+        why = [x.get("error") for x in records.values() if x.get("status") == "failed"]
+        failed[r.id] = {"id": r.id, "status": "failed", "stderr_tail": "",
+                        "error": f"not run: no complete clean DefaultStrategy run of {r.scene} to take "
+                        f"{r.budget} of" + (f" ({why[0]})" if why else "")}  # fmt: skip
+    return failed
+
+
 def write_bench_json(doc: dict[str, Any], path: Path) -> None:
     from jsgs.schemas import validate
 
@@ -174,12 +224,17 @@ def _bench(
     prepare_only: bool = False,
     compile_backend: str = "off",
     report_only: bool = False,
+    strategy: str = "default",
+    budgets: list[Budget] | None = None,
+    jsgs_config: str | Path | None = None,
 ) -> dict[str, Any]:
     """Run the whole bench into ``out``; returns the final bench.json document. ``time_limit`` (seconds
     from the call): no run starts after it (nor one that runs like it took longer than what is left) and runs
     still going are stopped (they resume on a rerun). ``compile_backend``: ``--compile`` of the JSGS runs.
     ``report_only``: train nothing, only collect the runs already in ``out`` (copied back from GPU machines,
-    say) into results.csv and report.md; runs without results are listed as not run."""
+    say) into results.csv and report.md; runs without results are listed as not run. ``strategy`` mcmc:
+    every run once per budget of ``budgets`` (budgets given as multiples are resolved from the clean
+    DefaultStrategy runs, trained first). ``jsgs_config``: settings over ``config`` for the JSGS runs only."""
     import time
 
     deadline = None if time_limit is None else time.time() + time_limit
@@ -209,18 +264,23 @@ def _bench(
             raise JsgsError("--device cuda: no CUDA device is available")
     eval_at = eval_at or default_eval_at(iterations)
     config_path = str(Path(config).resolve()) if config is not None else None
-    config_doc = None
-    if config_path is not None:
-        try:
-            config_doc = json.loads(Path(config_path).read_text())
-        except (OSError, ValueError) as e:
-            raise JsgsError(f"{config}: cannot read the config: {e}") from None
-    plan = build_plan(scenes, out, schedules, fixed, methods, ablation, seeds, iterations, eval_at)
+    config_doc = _read_config(config)
+    jsgs_doc = _read_config(jsgs_config)
+    plan = build_plan(
+        scenes, out, schedules, fixed, methods, ablation, seeds, iterations, eval_at, strategy, budgets
+    )
     if compile_backend != "off":
         for r in plan.runs:
             if r.train_method == "jsgs":
                 r.flags = [*r.flags, "--compile", compile_backend]
     out.mkdir(parents=True, exist_ok=True)
+    if jsgs_doc is not None:
+        merged = out / "configs" / "jsgs.json"
+        merged.parent.mkdir(exist_ok=True)
+        write_json_atomic(merged, _merge(config_doc or {}, jsgs_doc))
+        for r in plan.runs:
+            if r.train_method == "jsgs":
+                r.config = str(merged.resolve())
     lpips_weights = lpips_weights or _default_lpips_weights()
     env_extra = {"JSGS_LPIPS_WEIGHTS": str(Path(lpips_weights).resolve())} if lpips_weights else {}
     slots = [None] if report_only else pool_mod.detect_slots(device, jobs_per_gpu)
@@ -249,6 +309,10 @@ def _bench(
             "report_only": report_only,
             "config": config_path,
             "config_content": config_doc,
+            "jsgs_config": None if jsgs_config is None else str(Path(jsgs_config).resolve()),
+            "jsgs_config_content": jsgs_doc,
+            "strategy": strategy,
+            "budgets": [b.label for b in budgets or []],
             "lpips_weights": lpips_weights,
         },  # fmt: skip
         "environment": environment(device),
@@ -266,14 +330,7 @@ def _bench(
             }
             for d in plan.datasets
         ],  # fmt: skip
-        "runs": [
-            {
-                **r.to_json(),
-                "command": " ".join(train_argv(r, device, config_path, False)),
-                "status": "pending",
-            }
-            for r in plan.runs
-        ],
+        "runs": [_run_record(r, device, config_path) for r in plan.runs],
         "summary": None,
     }
     bench_json = out / "bench.json"
@@ -294,6 +351,8 @@ def _bench(
     bad = {k for k, v in ds_status.items() if v["status"] == "failed"}
     runnable = [r for r in plan.runs if r.data not in bad]
     if report_only:
+        _resolve(plan, out, plan.references(), {})
+        doc["runs"] = [_run_record(r, device, config_path) for r in plan.runs]
         records = {
             r.id: pool_mod.skipped_record(r)
             or {"id": r.id, "status": "failed", "stderr_tail": "",
@@ -301,14 +360,29 @@ def _bench(
             for r in runnable
         }  # fmt: skip
     else:
-        records = pool_mod.run_pool(
-            runnable, slots, device, config_path, env_extra, progress=progress, deadline=deadline
+        records = {}
+        refs = [r for r in plan.references() if r in runnable]
+        if refs:  # budgets given as multiples of these runs' counts: train them first
+            records = pool_mod.run_pool(
+                refs, slots, device, config_path, env_extra, progress=progress, deadline=deadline
+            )
+        left = _resolve(plan, out, refs, records)
+        records.update(left)
+        rest = [r for r in runnable if r.id not in records]
+        records.update(
+            pool_mod.run_pool(
+                rest, slots, device, config_path, env_extra, progress=progress, deadline=deadline
+            )
         )
+        doc["runs"] = [_run_record(r, device, config_path) for r in plan.runs]
     for r in plan.runs:
         if r.data in bad:
             records[r.id] = {"id": r.id, "status": "failed", "error": f"dataset {r.data} could not be built: "
                              f"{ds_status[r.data].get('error')}", "stderr_tail": ""}  # fmt: skip
     for rj in doc["runs"]:
+        if rj["id"] not in records:  # a budget without its reference count
+            records[rj["id"]] = {"id": rj["id"], "status": "failed", "stderr_tail": "",
+                                 "error": "not run: its budget's reference count is missing"}  # fmt: skip
         rec = dict(records[rj["id"]])
         rec.pop("id", None)
         rj.update(rec)

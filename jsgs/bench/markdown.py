@@ -9,6 +9,7 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+from jsgs.bench.budget import BudgetReport, write_budget_plots
 from jsgs.bench.plan import ABLATION_ALIAS, ABLATION_PARTS, ABLATION_SCHEDULE, MIXED_SCHEDULES
 from jsgs.bench.plots import write_plots
 from jsgs.bench.stats import (
@@ -301,11 +302,29 @@ def write_report(
     failures: list[dict[str, Any]],
     plots: bool = True,
 ) -> Path:
-    """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path."""
+    """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path. The runs of
+    ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`); the DefaultStrategy runs
+    the paper's tables."""
     results_dir = Path(results_dir)
+    md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
+    brep = BudgetReport(rows)
+    if brep.rows:
+        bpngs = write_budget_plots(brep, results_dir / "plots") if plots else []
+        md += brep.markdown(bpngs)
+        late_b = sorted(
+            (k, st) for k, c in brep.curves.items() if (st := c[-1][0]) < brep.step
+        )
+        if late_b:
+            md += [f"Budget runs that stopped before step {brep.step} (not in the tables above):", ""]
+            md += [f"- `{sc}/{sch}/{m}/mcmc-{b}/s{seed}`: last evaluation at step {st}"
+                   for (sc, sch, m, b, seed), st in late_b] + [""]  # fmt: skip
+    rows = [r for r in rows if r.get("strategy") in (None, "default")]
+    if brep.rows and rows:
+        md += ["## DefaultStrategy runs", "",
+               "The runs without a Gaussian cap (the paper's protocol; under --strategy mcmc, the clean "
+               "references that budgets given as multiples are taken from).", ""]  # fmt: skip
     rep = Report(rows)
     pngs = write_plots(rep, results_dir / "plots") if plots and rows else []
-    md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
     md += ["## Table 1: mixed-quality schedules (means over scenes, last step)", "", *rep.table1(), ""]
     md += ["## Damage recovered and relative LPIPS reduction", "",
            "R_LPIPS = (gsplat − JSGS) / (gsplat − clean), R_PSNR = (JSGS − gsplat) / (clean − gsplat), on "

@@ -5,14 +5,20 @@ Layout under RESULTS::
 
     data/<scene>/<schedule>_s<seed>/            compress output (images/, reference/, sparse/, manifest.json)
     runs/<scene>/<schedule>/<method>/s<seed>/   jsgs train output (metrics.json, config.json, ...)
-    logs/<scene>/<schedule>/<method>/s<seed>.log   the run's stdout + stderr
+    runs/<scene>/<schedule>/<method>/mcmc-<cap>/s<seed>/   the same under gsplat's MCMCStrategy, cap <cap>
+    logs/<scene>/<schedule>/<method>/[mcmc-<cap>/]s<seed>.log   the run's stdout + stderr
 
 ``schedule`` is uniform / gaussian / descending / clean / fixed<Q>; ``method`` is gsplat / jsgs or an
 ablation name (jo, jo_ds, jo_gc). Both methods of one scene x schedule x seed train on the same files.
+
+With ``--strategy mcmc`` every method and the clean ceiling train once per budget (a Gaussian count, or a
+multiple of the scene's clean DefaultStrategy run's final count: those reference runs train first).
 """
 
 from __future__ import annotations
 
+import math
+import re
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -23,6 +29,7 @@ from jsgs.errors import JsgsError
 MIXED_SCHEDULES = ("uniform", "gaussian", "descending")
 SCHEDULES = (*MIXED_SCHEDULES, "clean")
 METHODS = ("gsplat", "jsgs")
+STRATEGIES = ("default", "mcmc")
 #: Table 2 of the paper: variant -> (method, flags). ``baseline`` and ``full`` are the gsplat and jsgs runs
 #: of the same scene (gaussian schedule, seed 0) and are not trained twice.
 ABLATIONS: dict[str, tuple[str, list[str]]] = {
@@ -78,11 +85,23 @@ class Run:
     log: str
     iterations: int
     eval_at: list[int]
+    strategy: str = "default"  # default / mcmc
+    budget: str | None = None  # mcmc: the budget as given (300000, 0.5x)
+    cap: int | None = None  # mcmc: strategy.cap_max (None until a multiple is resolved)
+    config: str | None = None  # its own --config (the bench's --config with --jsgs-config over it)
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
+    def folder(self) -> str:
+        """``<scene>/<schedule>/<method>[/mcmc-<cap>]``: where its seeds live under runs/ and logs/."""
+        base = f"{self.scene}/{self.schedule}/{self.method}"
+        if self.strategy == "default":
+            return base
+        return f"{base}/mcmc-{self.cap if self.cap is not None else self.budget}"
+
+    @property
     def id(self) -> str:
-        return f"{self.scene}/{self.schedule}/{self.method}/s{self.seed}"
+        return f"{self.folder}/s{self.seed}"
 
     def to_json(self) -> dict[str, Any]:
         d = asdict(self)
@@ -95,6 +114,57 @@ class Run:
 class BenchPlan:
     datasets: list[Dataset]
     runs: list[Run]
+
+    def references(self) -> list[Run]:
+        """The clean DefaultStrategy runs that budgets given as multiples are resolved from."""
+        if not any(r.cap is None and r.strategy == "mcmc" for r in self.runs):
+            return []
+        return [r for r in self.runs if r.strategy == "default" and r.schedule == "clean"]
+
+
+@dataclass(frozen=True)
+class Budget:
+    """A Gaussian budget: a count (``300k`` -> 300000) or a multiple of the scene's clean DefaultStrategy
+    run's final count (``0.5x``)."""
+
+    label: str
+    count: int | None = None
+    multiple: float | None = None
+
+    def cap(self, reference_count: float | None) -> int:
+        """The cap for a scene whose clean DefaultStrategy run ended with ``reference_count`` Gaussians."""
+        if self.count is not None:
+            return self.count
+        assert self.multiple is not None and reference_count is not None
+        return max(1, round(self.multiple * reference_count))
+
+
+_SUFFIX = {"": 1, "k": 1_000, "m": 1_000_000}
+
+
+def parse_budgets(text: str | None) -> list[Budget]:
+    """``"300k,0.5x,1x,250000"`` -> budgets (JsgsError, one line, on anything else)."""
+    out: list[Budget] = []
+    for part in parse_list(text, "--budgets"):
+        p = part.lower()
+        m = re.fullmatch(r"(\d+(?:\.\d+)?)([km]?)", p)
+        x = re.fullmatch(r"(\d+(?:\.\d+)?)x", p)
+        if m:
+            n = float(m.group(1)) * _SUFFIX[m.group(2)]
+            if n < 1 or n != math.floor(n):
+                raise JsgsError(f"--budgets: {part!r} is not a whole number of Gaussians (at least 1)")
+            b = Budget(part, count=int(n))
+        elif x and float(x.group(1)) > 0:
+            b = Budget(part, multiple=float(x.group(1)))
+        else:
+            raise JsgsError(
+                f"--budgets: {part!r} is neither a count (300000, 300k, 1.5m) nor a positive multiple of the "
+                "clean DefaultStrategy count (0.5x)"
+            )
+        if b in out:
+            raise JsgsError(f"--budgets: {part!r} is given twice")
+        out.append(b)
+    return out
 
 
 def parse_list(text: str | None, what: str, kind: type = str) -> list[Any]:
@@ -128,10 +198,23 @@ def build_plan(
     seeds: list[int],
     iterations: int,
     eval_at: list[int],
+    strategy: str = "default",
+    budgets: list[Budget] | None = None,
 ) -> BenchPlan:
     """Every dataset and run of the bench, in the order they are queued (longest-lived first is not
-    attempted: runs of one scene and schedule stay together so partial results are usable early)."""
+    attempted: runs of one scene and schedule stay together so partial results are usable early). Under
+    ``strategy`` mcmc, one run per budget; a budget given as a multiple leaves its runs' ``cap`` None (see
+    :func:`resolve_caps`) and adds the clean DefaultStrategy gsplat run of each scene and seed."""
     out = Path(out)
+    budgets = list(budgets or [])
+    if strategy not in STRATEGIES:
+        raise JsgsError(f"--strategy: unknown strategy {strategy!r} (choose from {', '.join(STRATEGIES)})")
+    if strategy == "mcmc" and not budgets:
+        raise JsgsError("--strategy mcmc needs --budgets (counts such as 300k, or multiples such as 0.5x)")
+    if strategy == "default" and budgets:
+        raise JsgsError("--budgets needs --strategy mcmc (DefaultStrategy has no Gaussian cap)")
+    if strategy == "mcmc" and (fixed or ablation is not None):
+        raise JsgsError("--fixed and --ablation are paper-protocol tables: they run with --strategy default")
     for s in schedules:
         if s not in SCHEDULES:
             raise JsgsError(f"--schedules: unknown schedule {s!r} (choose from {', '.join(SCHEDULES)})")
@@ -179,26 +262,34 @@ def build_plan(
         )
         return datasets.setdefault(d.key, d)
 
-    def add(scene: str, label: str, method: str, seed: int) -> None:
+    def add(scene: str, label: str, method: str, seed: int, budget: Budget | None = None) -> None:
         d = dataset(scene, label, seed)
         if method in ABLATIONS:
             train_method, flags = ABLATIONS[method]
         else:
             train_method, flags = method, []
-        rel = Path(scene) / label / method / f"s{seed}"
         r = Run(
-            scene, label, method, seed, train_method, list(flags), d.key, d.manifest,
-            str(out / "runs" / rel), str(out / "logs" / rel.parent / f"s{seed}.log"), iterations,
-            list(eval_at),
+            scene, label, method, seed, train_method, list(flags), d.key, d.manifest, "", "", iterations,
+            list(eval_at), strategy="default" if budget is None else "mcmc",
+            budget=None if budget is None else budget.label, cap=None if budget is None else budget.count,
         )  # fmt: skip
+        if r.cap is not None or r.strategy == "default":
+            set_paths(r, out)
         if r.id not in {x.id for x in runs}:
             runs.append(r)
 
+    multiples = any(b.count is None for b in budgets)
     for scene in names:
+        if multiples:  # the reference counts come first
+            for seed in seeds:
+                add(scene, "clean", "gsplat", seed)
         for label in schedules:
             for seed in seeds:
                 for m in methods if label != "clean" else ["gsplat"]:
-                    add(scene, label, m, seed)
+                    if strategy == "default":
+                        add(scene, label, m, seed)
+                    for b in budgets:
+                        add(scene, label, m, seed, b)
         for q in fixed:
             for m in methods:
                 add(scene, f"fixed{q}", m, seeds[0])
@@ -206,6 +297,31 @@ def build_plan(
             for variant in ABLATIONS:
                 add(scene, ABLATION_SCHEDULE, ABLATION_ALIAS.get(variant, variant), seeds[0])
     return BenchPlan(list(datasets.values()), runs)
+
+
+def set_paths(run: Run, out: str | Path) -> None:
+    """The run's output folder and log under the results folder ``out`` (its cap must be known)."""
+    run.out = str(Path(out) / "runs" / run.folder / f"s{run.seed}")
+    run.log = str(Path(out) / "logs" / run.folder / f"s{run.seed}.log")
+
+
+def resolve_caps(plan: BenchPlan, out: str | Path, counts: dict[str, float | None]) -> list[Run]:
+    """Give the runs of budgets given as multiples their cap from ``counts`` (scene -> mean final
+    #Gaussians of its clean DefaultStrategy runs; None where they failed) and their folders; returns the
+    runs left without a cap (their scene has no count)."""
+    budgets: dict[str, Budget] = {}
+    missing = []
+    for r in plan.runs:
+        if r.strategy != "mcmc" or r.cap is not None or r.budget is None:
+            continue
+        b = budgets.setdefault(r.budget, parse_budgets(r.budget)[0])
+        count = counts.get(r.scene)
+        if count is None:
+            missing.append(r)
+            continue
+        r.cap = b.cap(count)
+        set_paths(r, out)
+    return missing
 
 
 def train_argv(run: Run, device: str, config: str | None, resume: bool) -> list[str]:
@@ -218,6 +334,9 @@ def train_argv(run: Run, device: str, config: str | None, resume: bool) -> list[
         "--iterations", str(run.iterations), "--eval-at", ",".join(map(str, run.eval_at)),
         "--seed", str(run.seed), "--device", device, "--quiet",
     ]  # fmt: skip
+    if run.strategy == "mcmc":
+        argv += ["--preset", "mcmc", "--cap-max", str(run.cap)]
+    config = run.config if run.config is not None else config
     if config is not None:
         argv += ["--config", config]
     return argv + run.flags + ["--force"]

@@ -1,4 +1,5 @@
-"""``RESULTS/results.csv``: one row per run and evaluation step, from each run's ``metrics.json``."""
+"""``RESULTS/results.csv``: one row per run and evaluation step, from each run's ``metrics.json``.
+``strategy`` is default or mcmc; ``budget`` the cap (``strategy.cap_max``) of an mcmc run, empty otherwise."""
 
 from __future__ import annotations
 
@@ -11,17 +12,19 @@ from typing import Any
 from jsgs.bench.plan import Run
 
 COLUMNS = [
-    "scene", "schedule", "method", "seed", "step", "psnr", "ssim", "lpips", "train_seconds", "fps",
-    "num_gaussians", "peak_memory_mb",
+    "scene", "schedule", "method", "seed", "strategy", "budget", "step", "psnr", "ssim", "lpips",
+    "train_seconds", "fps", "num_gaussians", "peak_memory_mb",
 ]  # fmt: skip
 #: fixed extra columns right after the leading ones; then loss_<term> and stat_<name> in sorted order
 EXTRA = ["time_per_iteration_s", "loss", "peak_memory_kind", "backend", "device_name"]
-TEXT = {"scene", "schedule", "method", "peak_memory_kind", "backend", "device_name"}
+TEXT = {"scene", "schedule", "method", "strategy", "peak_memory_kind", "backend", "device_name"}
 MB = 2**20
 
 
 def rows_for_run(run: Run) -> list[dict[str, Any]]:
-    """The run's rows (none when it has no metrics.json)."""
+    """The run's rows (none when it has no metrics.json, or no folder yet: a budget never resolved)."""
+    if not run.out:
+        return []
     try:
         doc = json.loads((Path(run.out) / "metrics.json").read_text())
     except (OSError, ValueError):
@@ -30,7 +33,8 @@ def rows_for_run(run: Run) -> list[dict[str, Any]]:
     for e in doc.get("evals", []):
         row: dict[str, Any] = {
             "scene": run.scene, "schedule": run.schedule, "method": run.method, "seed": run.seed,
-            "step": e["step"], "psnr": e["psnr"], "ssim": e["ssim"], "lpips": e["lpips"],
+            "strategy": run.strategy, "budget": run.cap, "step": e["step"], "psnr": e["psnr"],
+            "ssim": e["ssim"], "lpips": e["lpips"],
             "train_seconds": e["train_time_s"], "fps": e["fps"], "num_gaussians": e["num_gaussians"],
             "peak_memory_mb": e["peak_memory_bytes"] / MB,
             "time_per_iteration_s": e["time_per_iteration_s"], "loss": e["train"]["loss"],
@@ -86,7 +90,7 @@ def read_csv(path: str | Path) -> list[dict[str, Any]]:
                     row[k] = None
                 elif k in TEXT:
                     row[k] = v
-                elif k in ("seed", "step", "num_gaussians"):
+                elif k in ("seed", "budget", "step", "num_gaussians"):
                     row[k] = int(v)
                 else:
                     row[k] = float(v)

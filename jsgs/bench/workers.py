@@ -26,7 +26,9 @@ TAIL_CHARS = 4000
 def run_state(run: Run) -> tuple[str, dict[str, Any] | None]:
     """``("complete", metrics)`` when RUN/metrics.json says complete at the requested final step with an
     evaluation there; ``("resumable", metrics)`` when it stopped or was interrupted with a checkpoint;
-    else ``("todo", metrics or None)``."""
+    else ``("todo", metrics or None)`` (also for a run without a folder yet: a budget not resolved)."""
+    if not run.out:
+        return "todo", None
     path = Path(run.out) / "metrics.json"
     try:
         doc = json.loads(path.read_text())

@@ -25,11 +25,35 @@ from jsgs.cli._common import CONTEXT, invocation, user_errors
     help="Mixed-quality schedules (and clean: gsplat on the uncompressed views); '' for none.",
 )
 @click.option(
-    "--fixed", default="30,50", show_default=True, help="Fixed JPEG qualities (seed 0 only); '' none."
+    "--fixed",
+    default=None,
+    help="Fixed JPEG qualities (seed 0 only); '' none [default: 30,50 with --strategy default, none with "
+    "mcmc].",
 )
 @click.option("--methods", default="gsplat,jsgs", show_default=True, help="gsplat and/or jsgs.")
 @click.option(
     "--ablation", default=None, help="Scene (name or path) for Table 2's ablation (gaussian, seed 0)."
+)
+@click.option(
+    "--strategy",
+    type=click.Choice(["default", "mcmc"]),
+    default="default",
+    show_default=True,
+    help="Densification of every run: gsplat's DefaultStrategy (the paper's protocol) or MCMCStrategy at "
+    "each of --budgets (jsgs train --preset mcmc --cap-max N).",
+)
+@click.option(
+    "--budgets",
+    default=None,
+    help="--strategy mcmc: Gaussian budgets, counts (300k, 1.5m, 250000) or multiples of each scene's clean "
+    "DefaultStrategy run's final count (0.5x, 1x; those runs train first).",
+)
+@click.option(
+    "--jsgs-config",
+    "jsgs_config",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="JSON settings over --config for the JSGS runs only (a recipe: method_options, loss weights).",
 )
 @click.option("--iterations", type=int, default=10_000, show_default=True, help="Training steps per run.")
 @click.option(
@@ -98,17 +122,23 @@ from jsgs.cli._common import CONTEXT, invocation, user_errors
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @user_errors
 def bench_command(
-    scenes: tuple[Path, ...], out: Path, schedules: str, fixed: str, methods: str, ablation: str | None,
-    iterations: int, eval_at: str | None, seeds: str, jobs_per_gpu: int, device: str, config: Path | None,
+    scenes: tuple[Path, ...], out: Path, schedules: str, fixed: str | None, methods: str,
+    ablation: str | None, strategy: str, budgets: str | None, jsgs_config: Path | None, iterations: int,
+    eval_at: str | None, seeds: str, jobs_per_gpu: int, device: str, config: Path | None,
     lpips_weights: str | None, time_limit: float | None, prepare_only: bool, compile_backend: str,
     report_only: bool, quiet: bool,
 ) -> None:  # fmt: skip
     """Reproduce the paper's tables: compress every scene per schedule and seed, train gsplat and JSGS on the
-    same files (a pool of `jsgs train` subprocesses), then write results.csv, report.md and plots."""
+    same files (a pool of `jsgs train` subprocesses), then write results.csv, report.md and plots. With
+    --strategy mcmc --budgets, every method and the clean ceiling train at each Gaussian budget and the report
+    compares them at equal size."""
     import sys
 
     from jsgs.bench import bench
-    from jsgs.bench.plan import parse_list
+    from jsgs.bench.plan import parse_budgets, parse_list
+
+    if fixed is None:
+        fixed = "30,50" if strategy == "default" else ""
 
     doc = bench(
         list(scenes), out,
@@ -118,6 +148,7 @@ def bench_command(
         jobs_per_gpu=jobs_per_gpu, device=device, config=config, lpips_weights=lpips_weights,
         progress=not quiet, time_limit=time_limit, command=invocation(click.get_current_context(), "jsgs"),
         prepare_only=prepare_only, compile_backend=compile_backend, report_only=report_only,
+        strategy=strategy, budgets=parse_budgets(budgets), jsgs_config=jsgs_config,
     )  # fmt: skip
     if prepare_only:
         n = len(doc["datasets"])

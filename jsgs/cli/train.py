@@ -59,6 +59,14 @@ def _parse_steps(text: str) -> list[int]:
     "0.01, loss.scale_reg 0.01; the budget is strategy.cap_max) [default: default].",
 )
 @click.option(
+    "--cap-max",
+    "cap_max",
+    type=int,
+    default=None,
+    help="The Gaussian budget of strategy.type mcmc (strategy.cap_max; with --preset mcmc) [default: "
+    "1000000].",
+)
+@click.option(
     "--device",
     type=click.Choice(["auto", "cuda", "cpu"]),
     default=None,
@@ -109,6 +117,7 @@ def train_command(
     eval_at: str | None,
     config_file: Path | None,
     preset: str | None,
+    cap_max: int | None,
     device: str | None,
     jpeg_mode: str | None,
     compile_backend: str | None,
@@ -135,6 +144,8 @@ def train_command(
     }
     if eval_at is not None:
         overrides["eval_at"] = _parse_steps(eval_at)
+    if cap_max is not None:
+        overrides["strategy"] = {"cap_max": cap_max}
     method_flags: dict[str, Any] = {}
     if jpeg_mode is not None:
         method_flags["jpeg_mode"] = jpeg_mode
@@ -149,6 +160,9 @@ def train_command(
         method_flags=method_flags,
         eval_at_given=eval_at is not None,
     )
+    if cap_max is not None and cfg.strategy.type != "mcmc":
+        kind = cfg.strategy.type
+        raise JsgsError(f"--cap-max applies to strategy.type mcmc (--preset mcmc); it is {kind!r}")
     ctx = click.get_current_context()
     doc = train(
         manifest, out, cfg, resume=resume, force=force, stop_at=stop_at, progress=not quiet, profile=profile,

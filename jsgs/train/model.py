@@ -59,10 +59,12 @@ def init_splats(
     cfg: TrainConfig,
     scene_scale: float,
     device: torch.device,
+    max_points: int | None = None,
 ) -> torch.nn.ParameterDict:
     """Initial Gaussians (gsplat ``create_splats_with_optimizers``).
 
-    points: P x 3 float (normalised world) and rgb: P x 3 in [0, 1] (sfm); ignored for ``init.type=random``.
+    points: P x 3 float (normalised world) and rgb: P x 3 in [0, 1] (sfm); ignored for ``init.type=random``,
+    which draws ``init.num_points`` points (at most ``max_points``: the strategy's budget).
     Draws the quaternions (and random points) from torch's global generator, which the caller seeds.
     """
     ic = cfg.init
@@ -74,8 +76,9 @@ def init_splats(
                 "the manifest has no points: SfM initialisation is impossible (use init.type=random)"
             )
     else:
-        pts = ic.extent * scene_scale * (torch.rand((ic.num_points, 3)) * 2 - 1)
-        rgbs = torch.rand((ic.num_points, 3))
+        n = ic.num_points if max_points is None else min(ic.num_points, max_points)
+        pts = ic.extent * scene_scale * (torch.rand((n, 3)) * 2 - 1)
+        rgbs = torch.rand((n, 3))
     # Mean of the squared distances to the k nearest neighbours, then sqrt: gsplat's
     # dist2_avg = (knn(points, 4)[:, 1:] ** 2).mean(-1); dist_avg = sqrt(dist2_avg)
     dist2 = knn_sq_dists(pts.to(device), ic.knn_neighbors).mean(dim=-1)

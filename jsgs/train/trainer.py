@@ -464,14 +464,24 @@ class Trainer:
         if start_ckpt is None:
             points = torch.from_numpy(scene.points)
             colors = torch.from_numpy(scene.points_rgb).float() / 255.0
-            keep = initial_subset(len(points), self.strategy.cap_max, cfg.seed)
+            keep = None
+            if cfg.init.type == "sfm":
+                keep = initial_subset(len(points), self.strategy.cap_max, cfg.seed)
             if keep is not None:
                 self.say(
                     f"note: {len(points)} initial points exceed strategy.cap_max = {self.strategy.cap_max}; "
                     f"starting from a random {len(keep)} of them (seed {cfg.seed})"
                 )
                 points, colors = points[keep], colors[keep]
-            self.splats = init_splats(points, colors, cfg, scene.scene_scale, device)
+            if cfg.init.type == "random" and self.strategy.cap_max is not None:
+                if cfg.init.num_points > self.strategy.cap_max:
+                    self.say(
+                        f"note: init.num_points = {cfg.init.num_points} exceeds strategy.cap_max = "
+                        f"{self.strategy.cap_max}; starting from {self.strategy.cap_max} random points"
+                    )
+            self.splats = init_splats(
+                points, colors, cfg, scene.scene_scale, device, max_points=self.strategy.cap_max
+            )
         else:
             self.splats = splats_from_state(start_ckpt["splats"], device)
         self.optimizers = make_optimizers(self.splats, cfg, scene.scene_scale)

@@ -19,7 +19,8 @@ TINY = {
     "eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False},
 }
 LEADING = (
-    "scene,schedule,method,seed,step,psnr,ssim,lpips,train_seconds,fps,num_gaussians,peak_memory_mb".split(
+    "scene,schedule,method,seed,strategy,budget,step,psnr,ssim,lpips,train_seconds,fps,num_gaussians,"
+    "peak_memory_mb".split(
         ","
     )
 )

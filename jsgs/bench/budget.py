@@ -1,0 +1,280 @@
+"""The equal-budget part of a bench report: the runs of ``jsgs bench --strategy mcmc --budgets ...``, where
+gsplat, JSGS and the clean ceiling train with the same Gaussian cap (``budget`` in results.csv).
+
+Everything is compared at the bench's final evaluation step, per scene × schedule × budget:
+
+- the metrics of each method (mean ± sd over seeds), its final #Gaussians and training time;
+- the damage recovered against the clean run *at the same budget* (:func:`jsgs.bench.stats.damage_recovered`);
+- paired differences JSGS − gsplat over seeds (the same dataset and seed): mean and 95 % t-interval;
+- wins: the scene × schedule × seed pairs where JSGS's LPIPS (PSNR) is better;
+- time to quality: the first evaluation step at which JSGS reaches gsplat's final LPIPS of the same seed.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from jsgs.bench.stats import HIGHER_BETTER, agg, damage_recovered, mean_of, worse_beyond_spread
+
+#: two-sided 95 % quantiles of Student's t with 1..30 degrees of freedom (beyond: the normal's 1.960)
+T975 = (
+    12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131,
+    2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042,
+)  # fmt: skip
+
+Key = tuple[str, str, int]  # scene, schedule, budget
+
+
+def t975(df: int) -> float:
+    """The 97.5 % quantile of Student's t with ``df`` ≥ 1 degrees of freedom."""
+    return T975[df - 1] if df <= len(T975) else 1.960
+
+
+def mean_ci(values: list[float]) -> tuple[float | None, float | None]:
+    """(mean, half-width of its 95 % t-interval); the half-width is None with fewer than two values."""
+    if not values:
+        return None, None
+    m = statistics.fmean(values)
+    if len(values) < 2:
+        return m, None
+    return m, t975(len(values) - 1) * statistics.stdev(values) / math.sqrt(len(values))
+
+
+def budget_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows of mcmc runs (results.csv's ``strategy`` mcmc, with a budget)."""
+    return [r for r in rows if r.get("strategy") == "mcmc" and r.get("budget") is not None]
+
+
+def _fmt(v: float | None, digits: int, signed: bool = False) -> str:
+    if v is None:
+        return "n/a"
+    return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
+
+
+def _ci(m: float | None, h: float | None, digits: int) -> str:
+    if m is None:
+        return "n/a"
+    return _fmt(m, digits, True) + (f" ± {h:.{digits}f}" if h is not None else " (1 seed)")
+
+
+def _table(header: list[str], body: list[list[str]]) -> list[str]:
+    return [
+        "| " + " | ".join(header) + " |",
+        "|" + "|".join("---" if i < 3 else "---:" for i in range(len(header))) + "|",
+        *("| " + " | ".join(r) + " |" for r in body),
+    ]
+
+
+class BudgetReport:
+    """The equal-budget tables of one bench's mcmc rows (see the module docstring)."""
+
+    def __init__(self, rows: list[dict[str, Any]]):
+        self.rows = budget_rows(rows)
+        self.step = max((int(r["step"]) for r in self.rows), default=0)
+        # (scene, schedule, method, budget) -> {seed: final row}
+        self.final: dict[tuple[str, str, str, int], dict[int, dict[str, Any]]] = defaultdict(dict)
+        # (scene, schedule, method, budget, seed) -> [(step, row)]
+        self.curves: dict[tuple[str, str, str, int, int], list[tuple[int, dict[str, Any]]]]
+        self.curves = defaultdict(list)
+        for r in self.rows:
+            k = (r["scene"], r["schedule"], r["method"], int(r["budget"]))
+            self.curves[(*k, int(r["seed"]))].append((int(r["step"]), r))
+            if int(r["step"]) == self.step:
+                self.final[k][int(r["seed"])] = r
+        for c in self.curves.values():
+            c.sort(key=lambda x: x[0])
+        self.keys: list[Key] = sorted(
+            {(sc, sch, b) for (sc, sch, m, b) in self.final if sch != "clean" and m == "gsplat"}
+        )
+
+    def values(self, scene: str, schedule: str, method: str, budget: int, metric: str) -> dict[int, float]:
+        """seed -> the metric at the final step."""
+        rows = self.final.get((scene, schedule, method, budget), {})
+        return {s: float(r[metric]) for s, r in rows.items() if r.get(metric) is not None}
+
+    def paired(self, key: Key, metric: str, relative: bool = False) -> list[float]:
+        """JSGS − gsplat per common seed (``relative``: 100 (JSGS / gsplat − 1), in %)."""
+        sc, sch, b = key
+        g, j = self.values(sc, sch, "gsplat", b, metric), self.values(sc, sch, "jsgs", b, metric)
+        seeds = sorted(set(g) & set(j))
+        if relative:
+            return [100.0 * (j[s] / g[s] - 1.0) for s in seeds if g[s]]
+        return [j[s] - g[s] for s in seeds]
+
+    def time_to_quality(self, key: Key) -> list[int | None]:
+        """Per seed with both runs: the first evaluation step at which JSGS's LPIPS is at most gsplat's final
+        LPIPS of the same seed (None: not reached)."""
+        sc, sch, b = key
+        g = self.values(sc, sch, "gsplat", b, "lpips")
+        out: list[int | None] = []
+        for seed in sorted(g):
+            curve = self.curves.get((sc, sch, "jsgs", b, seed))
+            if not curve or curve[-1][0] != self.step:
+                continue
+            reached = (st for st, r in curve if r.get("lpips") is not None and r["lpips"] <= g[seed])
+            out.append(next(reached, None))
+        return out
+
+    # -------------------------------------------------------------------------------------------------
+    def comparison(self) -> list[str]:
+        header = [
+            "Scene", "Schedule", "Budget", "seeds", "LPIPS gsplat", "LPIPS JSGS", "LPIPS clean",
+            "ΔLPIPS % (95 % CI)", "R_LPIPS", "PSNR gsplat", "PSNR JSGS", "PSNR clean", "ΔPSNR dB (95 % CI)",
+            "R_PSNR", "wins LPIPS / PSNR", "JSGS worse beyond spread?",
+        ]  # fmt: skip
+        body = []
+        for key in self.keys:
+            sc, sch, b = key
+            cells = [sc, sch, f"{b:,}", str(len(self.paired(key, "lpips")))]
+            worse = []
+            for metric, digits in (("lpips", 4), ("psnr", 2)):
+                g = agg(list(self.values(sc, sch, "gsplat", b, metric).values()))
+                j = agg(list(self.values(sc, sch, "jsgs", b, metric).values()))
+                c = agg(list(self.values(sc, "clean", "gsplat", b, metric).values()))
+                d = self.paired(key, metric, relative=metric == "lpips")
+                rec = damage_recovered(g, j, c, HIGHER_BETTER[metric])
+                r_txt = _fmt(rec.value, 2) + (f" ({rec.note})" if rec.note else "")
+                if rec.value is None:
+                    r_txt = rec.note
+                cells += [_fmt(g.mean, digits), _fmt(j.mean, digits), _fmt(c.mean, digits),
+                          _ci(*mean_ci(d), 1 if metric == "lpips" else 2), r_txt]  # fmt: skip
+                w = worse_beyond_spread(g, j, HIGHER_BETTER[metric])
+                verdict = "unknown (1 seed)" if w is None else ("**yes**" if w else "no")
+                worse.append(f"{metric}: {verdict}")
+            lw = sum(1 for x in self.paired(key, "lpips") if x < 0)
+            pw = sum(1 for x in self.paired(key, "psnr") if x > 0)
+            n = len(self.paired(key, "lpips"))
+            cells += [f"{lw}/{n} / {pw}/{len(self.paired(key, 'psnr'))}", "; ".join(worse)]
+            body.append(cells)
+        return _table(header, body) if body else ["No budget has both gsplat and JSGS runs."]
+
+    def targets(self) -> list[str]:
+        """Per budget: the issue's targets over every scene × schedule × seed pair, met or not."""
+        budgets = sorted({b for _, _, b in self.keys})
+        header = [
+            "Budget", "pairs", "LPIPS lower (target ≥ 90 %)", "mean ΔLPIPS % (target ≤ −25 %)",
+            "worse beyond spread (target: none)", "mean ΔPSNR dB (target ≥ 0)", "all met",
+        ]  # fmt: skip
+        body = []
+        for b in budgets:
+            keys = [k for k in self.keys if k[2] == b]
+            lp = [x for k in keys for x in self.paired(k, "lpips", relative=True)]
+            ps = [x for k in keys for x in self.paired(k, "psnr")]
+            worse = []
+            for sc, sch, _ in keys:
+                for metric in ("lpips", "psnr"):
+                    g = agg(list(self.values(sc, sch, "gsplat", b, metric).values()))
+                    j = agg(list(self.values(sc, sch, "jsgs", b, metric).values()))
+                    if worse_beyond_spread(g, j, HIGHER_BETTER[metric]):
+                        worse.append(f"{sc}/{sch} {metric}")
+            won = 100.0 * sum(1 for x in lp if x < 0) / len(lp) if lp else None
+            mlp, mps = mean_of(lp), mean_of(ps)
+            ok = [won is not None and won >= 90, mlp is not None and mlp <= -25, not worse,
+                  mps is not None and mps >= 0]  # fmt: skip
+            body.append([
+                f"{b:,}", str(len(lp)), _fmt(won, 0) + " %", _fmt(mlp, 1, True), ", ".join(worse) or "none",
+                _fmt(mps, 3, True), "met" if all(ok) else "**not met**",
+            ])  # fmt: skip
+        return _table(header, body) if body else ["No pairs."]
+
+    def quality_time(self) -> list[str]:
+        header = ["Scene", "Schedule", "Budget", "JSGS step reaching gsplat's final LPIPS, per seed",
+                  "fraction of the steps (median)", "target ≤ 0.70"]  # fmt: skip
+        body = []
+        for key in self.keys:
+            steps = self.time_to_quality(key)
+            if not steps:
+                continue
+            fr = sorted((s / self.step) if s is not None else math.inf for s in steps)
+            med = fr[len(fr) // 2]
+            per_seed = ", ".join("not reached" if s is None else str(s) for s in steps)
+            body.append([
+                key[0], key[1], f"{key[2]:,}", per_seed,
+                "not reached" if math.isinf(med) else f"{med:.2f}", "met" if med <= 0.70 else "**not met**",
+            ])  # fmt: skip
+        return _table(header, body) if body else ["No JSGS run with gsplat at the same budget."]
+
+    def size_time(self) -> list[str]:
+        header = ["Scene", "Schedule", "Budget", "Method", "seeds", "#Gaussians", "train s", "time / it ms",
+                  "render FPS"]  # fmt: skip
+        body = []
+        for (sc, sch, m, b), seeds in sorted(self.final.items()):
+            rs = list(seeds.values())
+
+            def mean(k: str, rs: list[dict[str, Any]] = rs) -> float | None:
+                return agg([r.get(k) for r in rs]).mean
+
+            tpi = mean("time_per_iteration_s")
+            body.append([sc, sch, f"{b:,}", m, str(len(rs)), _fmt(mean("num_gaussians"), 0),
+                         _fmt(mean("train_seconds"), 1), _fmt(tpi * 1000 if tpi else None, 2),
+                         _fmt(mean("fps"), 0)])  # fmt: skip
+        return _table(header, body) if body else ["No runs."]
+
+    def markdown(self, plots: list[Path]) -> list[str]:
+        if not self.rows:
+            return []
+        intro = (
+            "Every method and the clean ceiling (gsplat on the lossless views) trained with the same cap; "
+            "budget = strategy.cap_max. ΔLPIPS % = 100 (JSGS / gsplat − 1) per seed, ΔPSNR = JSGS − gsplat "
+            "per seed: paired over seeds (same dataset), mean ± half-width of the 95 % t-interval. R against "
+            'the clean run at the same budget, on seed means ("within noise" where the damage is not larger '
+            "than the seed spread)."
+        )
+        md = [f"## Equal Gaussian budget (gsplat's MCMCStrategy), step {self.step}", "", intro, ""]
+        md += [*self.comparison(), ""]
+        md += ["### Targets at each budget (every scene × schedule × seed pair)", "", *self.targets(), ""]
+        md += ["### Time to quality", "", *self.quality_time(), ""]
+        md += ["### Model size and time", "", "Concurrent runs share a GPU, which inflates every time alike."]
+        md += ["", *self.size_time(), ""]
+        if plots:
+            md += [f"![{p.stem}](plots/{p.name})" for p in plots] + [""]
+        return md
+
+
+def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
+    """Per scene: LPIPS and PSNR at the final step against #Gaussians and against training time, one line per
+    method and schedule through its budgets (means over seeds); returns the files written."""
+    if not rep.rows:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    outdir.mkdir(parents=True, exist_ok=True)
+    colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
+    styles = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
+    written = []
+    for sc in sorted({k[0] for k in rep.final}):
+        fig, axes = plt.subplots(2, 2, figsize=(11, 8))
+        series = sorted({(sch, m) for (s, sch, m, _) in rep.final if s == sc})
+        for sch, m in series:
+            pts = []
+            for b in sorted({k[3] for k in rep.final if k[:3] == (sc, sch, m)}):
+                rs = list(rep.final[(sc, sch, m, b)].values())
+                pts.append(tuple(agg([r.get(k) for r in rs]).mean
+                                 for k in ("num_gaussians", "train_seconds", "lpips", "psnr")))  # fmt: skip
+            color = "gray" if sch == "clean" else colors.get(m, "black")
+            for ax, (xi, yi) in zip(axes.flat, [(0, 2), (0, 3), (1, 2), (1, 3)], strict=True):
+                xy = [(p[xi], p[yi]) for p in pts if p[xi] is not None and p[yi] is not None]
+                if xy:
+                    ax.plot(*zip(*xy, strict=True), styles.get(sch, "-"), marker="o", ms=4, color=color,
+                            label=f"{m} {sch}")  # fmt: skip
+        labels = [("#Gaussians", "LPIPS"), ("#Gaussians", "PSNR (dB)"), ("training time (s)", "LPIPS"),
+                  ("training time (s)", "PSNR (dB)")]  # fmt: skip
+        for ax, (xl, yl) in zip(axes.flat, labels, strict=True):
+            ax.set_xlabel(xl)
+            ax.set_ylabel(yl)
+            ax.grid(alpha=0.3)
+        axes[0, 0].legend(fontsize=7)
+        fig.suptitle(f"{sc}: step {rep.step} at each Gaussian budget (means over seeds)")
+        fig.tight_layout()
+        path = outdir / f"{sc}_budgets.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written

@@ -1,0 +1,194 @@
+"""``jsgs bench --strategy mcmc --budgets``: budget parsing, the plan (reference runs for multiples, folders
+per cap), cap resolution, the equal-budget statistics on hand-made numbers, and the whole bench on a tiny
+synthetic scene on the CPU."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from jsgs.bench import plan as plan_mod
+from jsgs.bench.budget import BudgetReport, mean_ci, t975
+from jsgs.errors import JsgsError
+
+
+def test_parse_budgets() -> None:
+    bs = plan_mod.parse_budgets("300k, 0.5x,1.5m,250000,1X")
+    assert [(b.label, b.count, b.multiple) for b in bs] == [
+        ("300k", 300_000, None), ("0.5x", None, 0.5), ("1.5m", 1_500_000, None), ("250000", 250_000, None),
+        ("1X", None, 1.0),
+    ]  # fmt: skip
+    assert bs[1].cap(123_457.0) == 61_728 and bs[0].cap(None) == 300_000
+    for bad, why in (("abc", "neither a count"), ("0x", "neither a count"), ("0.3", "whole number"),
+                     ("0", "whole number"), ("2k,2k", "given twice"), ("-5", "neither")):  # fmt: skip
+        with pytest.raises(JsgsError, match=why):
+            plan_mod.parse_budgets(bad)
+
+
+def test_plan_under_budgets(synth_scene: Path, tmp_path: Path) -> None:
+    name = synth_scene.name
+    budgets = plan_mod.parse_budgets("2k,0.5x")
+    p = plan_mod.build_plan(
+        [synth_scene], tmp_path, ["gaussian", "clean"], [], ["gsplat", "jsgs"], None, [0, 1], 10, [10],
+        "mcmc", budgets,
+    )  # fmt: skip
+    refs = p.references()
+    assert [r.id for r in refs] == [f"{name}/clean/gsplat/s0", f"{name}/clean/gsplat/s1"]
+    assert all(r.strategy == "default" and r.cap is None for r in refs)
+    mc = [r for r in p.runs if r.strategy == "mcmc"]
+    assert len(mc) == 2 * 3 * 2  # budgets x (gaussian gsplat, gaussian jsgs, clean gsplat) x seeds
+    fixed_cap = [r for r in mc if r.budget == "2k"]
+    assert {r.cap for r in fixed_cap} == {2000}
+    assert f"{name}/gaussian/jsgs/mcmc-2000/s1" in {r.id for r in fixed_cap}
+    assert fixed_cap[0].out.endswith(f"runs/{name}/gaussian/gsplat/mcmc-2000/s0")
+    argv = plan_mod.train_argv(fixed_cap[0], "cuda", None, resume=False)
+    assert argv[argv.index("--preset") + 1] == "mcmc" and argv[argv.index("--cap-max") + 1] == "2000"
+    assert "--preset" not in plan_mod.train_argv(refs[0], "cuda", None, resume=False)
+    # the multiples wait for the reference counts; a scene without one is returned unresolved
+    pending = [r for r in mc if r.cap is None]
+    assert len(pending) == 6 and all(r.out == "" for r in pending)
+    assert plan_mod.resolve_caps(p, tmp_path, {name: None}) == pending
+    assert plan_mod.resolve_caps(p, tmp_path, {name: 1001.0}) == []
+    assert {r.cap for r in pending} == {500}  # round(0.5 x 1001) (ties to even)
+    assert pending[0].out.endswith(f"/mcmc-500/s{pending[0].seed}")
+    # the paper-protocol tables and inconsistent choices are refused in one line
+    refused = (({"fixed": [30]}, "--fixed and --ablation"), ({"strategy": "default"}, "needs --strategy"),
+               ({"budgets": []}, "needs --budgets"), ({"strategy": "x"}, "unknown strategy"))  # fmt: skip
+    for kw, why in refused:
+        args = {"fixed": [], "strategy": "mcmc", "budgets": budgets} | kw
+        with pytest.raises(JsgsError, match=why):
+            plan_mod.build_plan(
+                [synth_scene], tmp_path, ["gaussian"], args["fixed"], ["gsplat"], None, [0], 10, [10],
+                args["strategy"], args["budgets"],
+            )  # fmt: skip
+
+
+def _t_cdf(x: float, df: int) -> float:
+    """Student's t CDF by Simpson integration of its density in float64 (a reference for the table)."""
+    c = math.exp(math.lgamma((df + 1) / 2) - math.lgamma(df / 2)) / math.sqrt(df * math.pi)
+    n = 20_000
+    h = x / n
+    f = [c * (1 + (i * h) ** 2 / df) ** (-(df + 1) / 2) for i in range(n + 1)]
+    return 0.5 + h / 3 * (f[0] + f[-1] + 4 * sum(f[1:-1:2]) + 2 * sum(f[2:-1:2]))
+
+
+def test_t_quantiles_match_the_distribution() -> None:
+    for df in (1, 2, 3, 5, 10, 30):
+        assert _t_cdf(t975(df), df) == pytest.approx(0.975, abs=2e-5), df
+    assert t975(200) == 1.960
+    m, h = mean_ci([1.0, 2.0, 3.0])
+    assert m == 2.0 and h == pytest.approx(4.303 * 1.0 / math.sqrt(3))
+    assert mean_ci([4.0]) == (4.0, None) and mean_ci([]) == (None, None)
+
+
+def _row(sc: str, sch: str, m: str, b: int, seed: int, step: int, lp: float, ps: float) -> dict[str, object]:
+    return {"scene": sc, "schedule": sch, "method": m, "seed": seed, "strategy": "mcmc", "budget": b,
+            "step": step, "psnr": ps, "ssim": 0.8, "lpips": lp, "train_seconds": step / 10, "fps": 100.0,
+            "num_gaussians": b, "peak_memory_mb": 1.0, "time_per_iteration_s": 0.01}  # fmt: skip
+
+
+def _hand_rows() -> list[dict[str, object]]:
+    rows = []
+    for seed, (g, j, c) in enumerate([(0.10, 0.06, 0.04), (0.12, 0.08, 0.05), (0.11, 0.066, 0.045)]):
+        for step, f in ((500, 1.6), (700, 1.2), (1000, 1.0)):
+            rows.append(_row("a", "gaussian", "gsplat", 300, seed, step, g * f, 25.0 + seed))
+            rows.append(_row("a", "gaussian", "jsgs", 300, seed, step, j * f, 25.5 + seed))
+            rows.append(_row("a", "clean", "gsplat", 300, seed, step, c * f, 27.0 + seed))
+    # a second budget where JSGS loses
+    for seed in range(3):
+        rows.append(_row("a", "gaussian", "gsplat", 100, seed, 1000, 0.2, 24.0))
+        rows.append(_row("a", "gaussian", "jsgs", 100, seed, 1000, 0.3 + 0.01 * seed, 23.0))
+        rows.append(_row("a", "clean", "gsplat", 100, seed, 1000, 0.1, 26.0))
+    # DefaultStrategy rows are not part of the budget tables
+    rows.append(_row("a", "gaussian", "jsgs", 300, 0, 1000, 0.001, 40.0) | {"strategy": "default"})
+    return rows
+
+
+def test_budget_statistics_on_hand_made_numbers() -> None:
+    rep = BudgetReport(_hand_rows())
+    assert rep.step == 1000 and rep.keys == [("a", "gaussian", 100), ("a", "gaussian", 300)]
+    key = ("a", "gaussian", 300)
+    d = rep.paired(key, "lpips", relative=True)
+    assert d == pytest.approx([-40.0, 100 * (0.08 / 0.12 - 1), -40.0])
+    assert rep.paired(key, "psnr") == pytest.approx([0.5, 0.5, 0.5])
+    # gsplat's final LPIPS per seed: 0.10, 0.12, 0.11; JSGS at step 500 (x 1.6): 0.096, 0.128, 0.1056, at
+    # step 700 (x 1.2): 0.072, 0.096, 0.0792
+    assert rep.time_to_quality(key) == [500, 700, 500]
+    assert rep.time_to_quality(("a", "gaussian", 100)) == [None, None, None]
+    targets = "\n".join(rep.targets())
+    lines = {ln.split("|")[1].strip(): ln for ln in targets.splitlines()[2:]}
+    assert "100 %" in lines["300"] and "| met |" in lines["300"]
+    assert "0 %" in lines["100"] and "**not met**" in lines["100"] and "a/gaussian lpips" in lines["100"]
+    table = "\n".join(rep.comparison())
+    # R_LPIPS on seed means: (0.11 - 0.0687) / (0.11 - 0.045)
+    r = (0.11 - (0.06 + 0.08 + 0.066) / 3) / (0.11 - 0.045)
+    assert f"{r:.2f}" in table and "3/3 / 3/3" in table and "0/3 / 0/3" in table
+
+
+def test_report_has_the_budget_section(tmp_path: Path) -> None:
+    from jsgs.bench.markdown import write_report
+
+    report = write_report(_hand_rows(), tmp_path, [], []).read_text()
+    assert "## Equal Gaussian budget" in report and "### Time to quality" in report
+    assert "## DefaultStrategy runs" in report
+    assert (tmp_path / "plots" / "a_budgets.png").stat().st_size > 1000
+
+
+def test_train_cap_max_needs_mcmc(tmp_path: Path, compressed_scene: Path) -> None:
+    from jsgs.cli import main
+
+    man = compressed_scene / "manifest.json"
+    r = CliRunner().invoke(main, ["train", str(man), "--out", str(tmp_path / "r"), "--cap-max", "50"])
+    assert r.exit_code != 0 and "--cap-max applies to strategy.type mcmc" in r.output
+    assert not (tmp_path / "r").exists()
+
+
+def test_bench_at_equal_budget_end_to_end(synth_scene: Path, tmp_path: Path) -> None:
+    """Reference run first, the 0.5x budget resolved from its count, every run under that cap."""
+    from jsgs.cli import main
+    from jsgs.schemas import validate
+
+    cfg = tmp_path / "tiny.json"
+    tiny = {"init": {"type": "random", "num_points": 200, "scale": 0.3},
+            "eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False}}  # fmt: skip
+    cfg.write_text(json.dumps(tiny))
+    jcfg = tmp_path / "recipe.json"
+    jcfg.write_text(json.dumps({"loss": {"base_weight": 0.5}, "method_options": {"base_by_view": True}}))
+    out = tmp_path / "results"
+    args = [
+        "bench", str(synth_scene), "--out", str(out), "--schedules", "gaussian,clean", "--methods",
+        "gsplat,jsgs", "--strategy", "mcmc", "--budgets", "0.5x", "--seeds", "0", "--iterations", "4",
+        "--eval-at", "2,4", "--jobs-per-gpu", "2", "--device", "cpu", "--config", str(cfg), "--jsgs-config",
+        str(jcfg), "--quiet",
+    ]  # fmt: skip
+    r = CliRunner().invoke(main, args, catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    doc = json.loads((out / "bench.json").read_text())
+    validate(doc, "bench", "bench.json")
+    name = synth_scene.name
+    ref = json.loads((out / "runs" / name / "clean" / "gsplat" / "s0" / "metrics.json").read_text())
+    cap = round(0.5 * ref["evals"][-1]["num_gaussians"])
+    ids = {x["id"]: x for x in doc["runs"]}
+    assert set(ids) == {f"{name}/clean/gsplat/s0"} | {
+        f"{name}/{s}/{m}/mcmc-{cap}/s0" for s, m in (("gaussian", "gsplat"), ("gaussian", "jsgs"),
+                                                     ("clean", "gsplat"))
+    }  # fmt: skip
+    assert all(x["status"] == "complete" for x in ids.values())
+    for s, m in (("gaussian", "gsplat"), ("gaussian", "jsgs"), ("clean", "gsplat")):
+        run = out / "runs" / name / s / m / f"mcmc-{cap}" / "s0"
+        settings = json.loads((run / "config.json").read_text())["settings"]
+        assert settings["strategy"]["type"] == "mcmc" and settings["strategy"]["cap_max"] == cap
+        assert settings["init"]["num_points"] == 200  # the bench's --config under every run
+        assert settings["loss"]["base_weight"] == (0.5 if m == "jsgs" else 1.0)  # the recipe: JSGS only
+        assert json.loads((run / "metrics.json").read_text())["num_gaussians"] <= cap
+    with open(out / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert {(x["strategy"], x["budget"]) for x in rows} == {("default", ""), ("mcmc", str(cap))}
+    assert list(rows[0])[3:6] == ["seed", "strategy", "budget"]
+    report = (out / "report.md").read_text()
+    assert "## Equal Gaussian budget" in report and f"| {cap:,} |" in report
