@@ -1,0 +1,19 @@
+# Equal-budget confirmation on LLFF flower and fern: gsplat vs JSGS (the base_by_view recipe) vs the clean
+# ceiling, gsplat's MCMCStrategy, three seeds, evaluations every 1,000 steps. Run on a lent 2-GPU machine as
+#   BUDGETS=300k SCHEDULES=uniform,gaussian,descending,clean TL=470 bash scripts/gpu_run.sh bash docs/results/budget/confirm.sh
+# repeated (the bench resumes its runs from their checkpoints) until every run is complete; metrics come back
+# in $OUT/confirm.tgz and `jsgs bench --report-only` rebuilds the report on the CPU.
+set -u
+B=.res/confirm
+mkdir -p $B/data
+for s in llff_flower llff_fern; do [ -d $B/data/$s ] || cp -r .gpu/bench/data/$s $B/data/; done
+echo '{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise_ref": 4.0}}' > .res/recipe.json
+python3 -c "from gsplat.cuda._backend import _C; print('gsplat ready', flush=True)" 2>&1 | tail -1
+python3 -c "from jsgs.cuda_ext import extension; extension(); print('jsgs kernels ready')" 2>&1 | tail -1
+python3 -m jsgs.cli bench llff_flower llff_fern --out $B --strategy mcmc --budgets "${BUDGETS:-300k}" \
+    --schedules "${SCHEDULES:-uniform,gaussian,descending,clean}" --methods gsplat,jsgs --seeds 0,1,2 \
+    --eval-at 1000,2000,3000,4000,5000,6000,7000,8000,9000,10000 --jobs-per-gpu "${JOBS:-11}" \
+    --jsgs-config .res/recipe.json --time-limit "${TL:-540}" --quiet 2>&1 | tail -25
+cd $B && tar czf $OUT/confirm.tgz results.csv report.md bench.json \
+    $(ls runs/*/*/*/*/*/metrics.json runs/*/*/*/*/*/config.json 2>/dev/null) 2>/dev/null
+ls -la $OUT
