@@ -295,34 +295,10 @@ class Report:
         return _table(["Scene", "Schedule", "Method", *keys], body, "lll" + "r" * len(keys))
 
 
-def write_report(
-    rows: list[dict[str, Any]],
-    results_dir: str | Path,
-    header_lines: list[str],
-    failures: list[dict[str, Any]],
-    plots: bool = True,
-) -> Path:
-    """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path. The runs of
-    ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`); the DefaultStrategy runs
-    the paper's tables."""
-    results_dir = Path(results_dir)
-    md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
-    brep = BudgetReport(rows)
-    if brep.rows:
-        bpngs = write_budget_plots(brep, results_dir / "plots") if plots else []
-        md += brep.markdown(bpngs)
-        late_b = sorted(
-            (k, st) for k, c in brep.curves.items() if (st := c[-1][0]) < brep.step
-        )
-        if late_b:
-            md += [f"Budget runs that stopped before step {brep.step} (not in the tables above):", ""]
-            md += [f"- `{sc}/{sch}/{m}/mcmc-{b}/s{seed}`: last evaluation at step {st}"
-                   for (sc, sch, m, b, seed), st in late_b] + [""]  # fmt: skip
-    rows = [r for r in rows if r.get("strategy") in (None, "default")]
-    if brep.rows and rows:
-        md += ["## DefaultStrategy runs", "",
-               "The runs without a Gaussian cap (the paper's protocol; under --strategy mcmc, the clean "
-               "references that budgets given as multiples are taken from).", ""]  # fmt: skip
+def _paper_sections(rows: list[dict[str, Any]], results_dir: Path, plots: bool) -> list[str]:
+    """The paper-protocol part of the report (DefaultStrategy runs): Tables 1-4, damage recovered, per-scene
+    results, loss terms, runs that stopped early, plots."""
+    md: list[str] = []
     rep = Report(rows)
     pngs = write_plots(rep, results_dir / "plots") if plots and rows else []
     md += ["## Table 1: mixed-quality schedules (means over scenes, last step)", "", *rep.table1(), ""]
@@ -351,6 +327,39 @@ def write_report(
                    *early.table1(), "", *early.damage(), ""]  # fmt: skip
     md += ["## Plots", ""]
     md += [f"![{p.stem}](plots/{p.name})" for p in pngs] or ["No plots (no results)."]
+    return md
+
+
+def write_report(
+    rows: list[dict[str, Any]],
+    results_dir: str | Path,
+    header_lines: list[str],
+    failures: list[dict[str, Any]],
+    plots: bool = True,
+) -> Path:
+    """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path. The runs of
+    ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`); the DefaultStrategy runs
+    the paper's tables."""
+    results_dir = Path(results_dir)
+    md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
+    brep = BudgetReport(rows)
+    if brep.rows:
+        bpngs = write_budget_plots(brep, results_dir / "plots") if plots else []
+        md += brep.markdown(bpngs)
+        late_b = sorted(
+            (k, st) for k, c in brep.curves.items() if (st := c[-1][0]) < brep.step
+        )
+        if late_b:
+            md += [f"Budget runs that stopped before step {brep.step} (not in the tables above):", ""]
+            md += [f"- `{sc}/{sch}/{m}/mcmc-{b}/s{seed}`: last evaluation at step {st}"
+                   for (sc, sch, m, b, seed), st in late_b] + [""]  # fmt: skip
+    rows = [r for r in rows if r.get("strategy") in (None, "default")]
+    if brep.rows and rows:
+        md += ["## DefaultStrategy runs", "",
+               "The runs without a Gaussian cap (the paper's protocol; under --strategy mcmc, the clean "
+               "references that budgets given as multiples are taken from).", ""]  # fmt: skip
+    if rows or not brep.rows:
+        md += _paper_sections(rows, results_dir, plots)
     md += ["", "## Failed runs", ""]
     # runs that never started (collected with --report-only, or stopped by --time-limit before they began)
     # are listed in one line each, without the empty log excerpt of a real failure
