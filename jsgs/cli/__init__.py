@@ -15,10 +15,11 @@ def main() -> None:
 
 
 def _register() -> None:
-    from jsgs.cli import bench, train
+    from jsgs.cli import bench, train, view
 
     train.register(main)
     bench.register(main)
+    view.register(main)
 
 
 _register()

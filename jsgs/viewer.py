@@ -1,0 +1,236 @@
+"""``jsgs view RUN``: a browser viewer of a trained run (viser), rendered on the server with the run's own
+rasterizer (gsplat on CUDA, the torch reference on the CPU at a reduced size), the training cameras drawn as
+frustums, and a button that saves the current camera to ``RUN/viewer_cameras.json``.
+
+Camera conventions: viser reports each browser camera as ``position`` and ``wxyz`` with
+``P_world = R p_camera + position`` in OpenCV axes (+Z forward, +Y down), ``fov`` the vertical field of view
+in radians and ``aspect`` = width / height; the trainer's views use the same axes (normalised training
+world).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from jsgs.errors import JsgsError
+from jsgs.train.config import TrainConfig
+from jsgs.train.data import Scene
+
+CAMERAS_FORMAT = "jsgs-viewer-cameras"
+CAMERAS_VERSION = 1
+
+
+@dataclass
+class RunModel:
+    """A trained run ready to render: its Gaussians (``splats``, training world), settings and cameras."""
+
+    run: Path
+    splats: torch.nn.ParameterDict
+    cfg: TrainConfig
+    scene: Scene
+    device: torch.device
+    backend: str
+
+
+def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
+    """Read ``RUN/config.json`` and ``RUN/point_cloud.ply`` and the run's manifest (its cameras).
+
+    JsgsError (one line) when RUN is not a finished run or its manifest has moved."""
+    from jsgs.ply import load_ply
+    from jsgs.train.data import load_scene
+    from jsgs.train.model import splats_from_state
+    from jsgs.train.render_view import resolve_backend, resolve_device
+    from jsgs.train.trainer import load_run_settings
+
+    run = Path(run)
+    if not run.is_dir():
+        raise JsgsError(f"{run}: no such run folder")
+    cfg = load_run_settings(run)
+    ply = run / "point_cloud.ply"
+    if not ply.is_file():
+        raise JsgsError(
+            f"{run}: no point_cloud.ply (the run is not finished: jsgs train --resume continues it)"
+        )
+    doc = json.loads((run / "config.json").read_text())
+    manifest = Path(str(doc.get("manifest", {}).get("path", "")))
+    if not manifest.is_file():
+        raise JsgsError(f"{run}: its manifest {manifest} is not there any more (the cameras come from it)")
+    scene = load_scene(manifest, cfg)
+    dev = resolve_device(device)
+    a = load_ply(ply)
+    state = {
+        "means": a["means"], "scales": a["scales_log"], "quats": a["quats"],
+        "opacities": a["opacities_logit"], "sh0": a["sh0"], "shN": a["shN"],
+    }  # fmt: skip
+    splats = splats_from_state({k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in state.items()}, dev)
+    return RunModel(run, splats, cfg, scene, dev, resolve_backend(cfg, dev))
+
+
+def quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) -> 3x3 rotation matrix (float64)."""
+    w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix -> unit quaternion (w, x, y, z) with w ≥ 0 (Shepperd's method, float64)."""
+    R = np.asarray(R, np.float64)
+    t = np.trace(R)
+    if t > 0:
+        s = 2.0 * math.sqrt(1.0 + t)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * math.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = [0.0] * 4
+        q[0] = (R[k, j] - R[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + k] = (R[k, i] + R[i, k]) / s
+    out = np.array(q)
+    return out if out[0] >= 0 else -out
+
+
+def image_size(aspect: float, max_size: int) -> tuple[int, int]:
+    """(width, height) with the longer side ``max_size`` pixels and width / height ≈ ``aspect``."""
+    if aspect >= 1:
+        return max_size, max(1, round(max_size / aspect))
+    return max(1, round(max_size * aspect)), max_size
+
+
+def camera_matrices(
+    position: np.ndarray, wxyz: np.ndarray, fov: float, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A viewer camera -> (viewmat 4x4 world-to-camera, K 3x3 in pixels), float64. ``fov``: vertical, radians;
+    the principal point at the image centre (pixel centres at integer + 0.5, as in the trainer)."""
+    c2w = np.eye(4)
+    c2w[:3, :3] = quat_to_matrix(wxyz)
+    c2w[:3, 3] = position
+    f = 0.5 * height / math.tan(0.5 * fov)
+    K = np.array([[f, 0.0, 0.5 * width], [0.0, f, 0.5 * height], [0.0, 0.0, 1.0]])
+    return np.linalg.inv(c2w), K
+
+
+@torch.no_grad()
+def render_rgb(model: RunModel, viewmat: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The run's Gaussians seen by one camera: uint8 [height, width, 3]."""
+    from jsgs.train.render_view import render_view
+
+    vm: Tensor = torch.as_tensor(viewmat, dtype=torch.float32, device=model.device)[None]
+    k: Tensor = torch.as_tensor(K, dtype=torch.float32, device=model.device)[None]
+    sh = model.cfg.render.sh_degree
+    out = render_view(model.splats, vm, k, width, height, sh, model.cfg, model.backend)
+    rgb = out.rgb[0].clamp(0.0, 1.0).mul(255.0).round().to(torch.uint8)
+    return rgb.cpu().numpy()
+
+
+def save_camera(model: RunModel, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float) -> Path:
+    """Append a camera to ``RUN/viewer_cameras.json`` (``jsgs/schemas/viewer_cameras.schema.json``, written
+    atomically); returns the path."""
+    import jsgs
+    from jsgs.io import write_json_atomic
+    from jsgs.schemas import validate
+
+    path = model.run / "viewer_cameras.json"
+    doc: dict[str, Any]
+    if path.is_file():
+        doc = json.loads(path.read_text())
+        validate(doc, "viewer_cameras", str(path))
+    else:
+        doc = {"format": CAMERAS_FORMAT, "format_version": CAMERAS_VERSION, "jsgs_version": jsgs.__version__,
+               "frame": "training", "cameras": []}  # fmt: skip
+    c2w = np.eye(4)
+    c2w[:3, :3] = quat_to_matrix(wxyz)
+    c2w[:3, 3] = position
+    doc["cameras"].append({
+        "camtoworld": c2w.tolist(), "fov_y_deg": math.degrees(fov), "aspect": float(aspect),
+        "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    })  # fmt: skip
+    validate(doc, "viewer_cameras", str(path))
+    write_json_atomic(path, doc)
+    return path
+
+
+class Viewer:
+    """A viser server showing ``model``: each connected browser gets renders of its camera (latest camera
+    wins; one render thread per browser), the training cameras as frustums, and a save-camera button."""
+
+    def __init__(self, model: RunModel, host: str = "127.0.0.1", port: int = 8080, max_size: int = 512):
+        import viser
+
+        self.model = model
+        self.max_size = max_size
+        self.lock = threading.Lock()  # one render at a time on the device
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.port = self.server.get_port()
+        self._stop = threading.Event()
+        self._add_frustums()
+        self.server.on_client_connect(self._on_connect)
+
+    def _add_frustums(self) -> None:
+        scale = 0.05 * float(self.model.scene.camera_extent or 1.0)
+        for v in self.model.scene.train_views:
+            fov = 2.0 * math.atan(0.5 * v.height / float(v.K[1, 1]))
+            self.server.scene.add_camera_frustum(
+                f"/cameras/{v.index:04d}", fov=fov, aspect=v.width / v.height, scale=scale,
+                wxyz=matrix_to_quat(v.camtoworld[:3, :3]), position=v.camtoworld[:3, 3],
+            )  # fmt: skip
+
+    def _on_connect(self, client: Any) -> None:
+        views = self.model.scene.train_views
+        if views:
+            v = views[0]
+            up = -v.camtoworld[:3, 1]  # OpenCV: +Y is down
+            client.camera.up_direction = tuple(up)
+            client.camera.wxyz = tuple(matrix_to_quat(v.camtoworld[:3, :3]))
+            client.camera.position = tuple(v.camtoworld[:3, 3])
+            client.camera.fov = 2.0 * math.atan(0.5 * v.height / float(v.K[1, 1]))
+        button = client.gui.add_button("Save camera")
+        changed = threading.Event()
+        changed.set()
+
+        @button.on_click
+        def _(_: Any) -> None:
+            c = client.camera
+            path = save_camera(self.model, np.array(c.position), np.array(c.wxyz), c.fov, c.aspect)
+            client.add_notification("Camera saved", f"{path}", auto_close_seconds=3.0)
+
+        @client.camera.on_update
+        def _(_: Any) -> None:
+            changed.set()
+
+        def loop() -> None:
+            while not self._stop.is_set():
+                if not changed.wait(timeout=0.2):
+                    continue
+                changed.clear()
+                c = client.camera
+                w, h = image_size(float(c.aspect), self.max_size)
+                viewmat, K = camera_matrices(np.array(c.position), np.array(c.wxyz), float(c.fov), w, h)
+                with self.lock:
+                    img = render_rgb(self.model, viewmat, K, w, h)
+                try:
+                    client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
+                except Exception:  # the browser went away
+                    return
+
+        threading.Thread(target=loop, daemon=True, name=f"jsgs-view-{client.client_id}").start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.server.stop()

@@ -1,0 +1,119 @@
+"""``jsgs view`` (jsgs.viewer): the camera conversions against OpenCV and the trainer's own cameras, a
+finished CPU run rendered by the viewer equal to the trainer's saved evaluation render, the server answering
+HTTP on a free port, saved cameras (schema), and one-line errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import socket
+import urllib.request
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from _train_scene import make_scene
+from click.testing import CliRunner
+from PIL import Image
+
+from jsgs.viewer import (
+    camera_matrices,
+    image_size,
+    load_run_model,
+    matrix_to_quat,
+    quat_to_matrix,
+    render_rgb,
+    save_camera,
+)
+
+
+def test_quaternions_against_opencv_rodrigues() -> None:
+    rng = np.random.default_rng(0)
+    vecs = [rng.normal(size=3) * s for s in (0.1, 1.0, 3.0)] + [np.array([math.pi, 0, 0]), np.zeros(3)]
+    vecs += [np.array([0.0, math.pi - 1e-9, 0.0]), np.array([0.0, 0.0, -3.1])]
+    for rv in vecs:
+        R, _ = cv2.Rodrigues(rv)
+        q = matrix_to_quat(R)
+        assert q[0] >= 0 and np.linalg.norm(q) == pytest.approx(1.0)
+        np.testing.assert_allclose(quat_to_matrix(q), R, atol=1e-12)
+        # the rotation angle of q is the length of OpenCV's rotation vector (modulo the sign of q)
+        angle = 2 * math.atan2(np.linalg.norm(q[1:]), q[0])
+        assert angle == pytest.approx(np.linalg.norm(rv) % (2 * math.pi), abs=1e-9) or angle == pytest.approx(
+            2 * math.pi - np.linalg.norm(rv), abs=1e-9
+        )
+
+
+def test_image_size() -> None:
+    assert image_size(4 / 3, 320) == (320, 240) and image_size(0.75, 320) == (240, 320)
+    assert image_size(1.0, 17) == (17, 17) and image_size(1000.0, 16) == (16, 1)
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from jsgs.cli import main
+
+    root = tmp_path_factory.mktemp("viewer")
+    manifest = make_scene(root / "scene", width=32, height=24)
+    run = root / "run"
+    args = ["train", str(manifest), "--out", str(run), "--iterations", "20", "--eval-at", "20",
+            "--device", "cpu", "--quiet"]  # fmt: skip
+    r = CliRunner().invoke(main, args, catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    return run
+
+
+def test_viewer_renders_what_the_trainer_rendered(finished_run: Path) -> None:
+    model = load_run_model(finished_run, "cpu")
+    v = model.scene.test_views[0]
+    # the viewer's camera from a pose and a vertical field of view is the trainer's camera (centred K)
+    fov = 2 * math.atan(0.5 * v.height / v.K[1, 1])
+    pose = (v.camtoworld[:3, 3], matrix_to_quat(v.camtoworld[:3, :3]))
+    viewmat, K = camera_matrices(*pose, fov, v.width, v.height)
+    np.testing.assert_allclose(viewmat, v.viewmat, atol=1e-9)
+    np.testing.assert_allclose(K, v.K, rtol=1e-9)
+    img = render_rgb(model, viewmat, K, v.width, v.height)
+    saved = sorted(finished_run.glob(f"renders/**/{v.index:04d}_*.png"))
+    assert saved, "the trainer saved no evaluation render"
+    ref = np.asarray(Image.open(saved[-1]).convert("RGB"))
+    assert img.shape == ref.shape and img.dtype == np.uint8
+    assert np.abs(img.astype(int) - ref.astype(int)).max() <= 1  # same model, rasterizer and camera
+    assert img.std() > 5  # something is drawn, not a flat background
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_server_answers_and_cameras_are_saved(finished_run: Path) -> None:
+    from jsgs.schemas import validate
+    from jsgs.viewer import Viewer
+
+    model = load_run_model(finished_run, "cpu")
+    viewer = Viewer(model, port=_free_port(), max_size=64)
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{viewer.port}/", timeout=20) as resp:
+            assert resp.status == 200 and b"<html" in resp.read(4096).lower()
+    finally:
+        viewer.stop()
+    v = model.scene.train_views[0]
+    for _ in range(2):
+        path = save_camera(model, v.camtoworld[:3, 3], matrix_to_quat(v.camtoworld[:3, :3]), 0.8, 4 / 3)
+    doc = json.loads(path.read_text())
+    validate(doc, "viewer_cameras", str(path))
+    assert len(doc["cameras"]) == 2 and doc["frame"] == "training"
+    np.testing.assert_allclose(np.array(doc["cameras"][0]["camtoworld"]), v.camtoworld, atol=1e-12)
+
+
+def test_view_errors_are_one_line(tmp_path: Path, finished_run: Path) -> None:
+    from jsgs.cli import main
+
+    r = CliRunner().invoke(main, ["view", str(tmp_path / "nope")])
+    assert r.exit_code == 1 and r.output.count("\n") == 1 and "no such run folder" in r.output
+    half = tmp_path / "half"
+    half.mkdir()
+    (half / "config.json").write_text((finished_run / "config.json").read_text())
+    r = CliRunner().invoke(main, ["view", str(half)])
+    assert r.exit_code == 1 and "no point_cloud.ply" in r.output and r.output.count("\n") == 1
