@@ -12,19 +12,25 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from jsgs.errors import JsgsError
+from jsgs.train.callbacks import Callback
 from jsgs.train.config import TrainConfig
 from jsgs.train.data import Scene
+
+if TYPE_CHECKING:
+    from jsgs.train.trainer import StepResult, Trainer
 
 CAMERAS_FORMAT = "jsgs-viewer-cameras"
 CAMERAS_VERSION = 1
@@ -234,3 +240,38 @@ class Viewer:
     def stop(self) -> None:
         self._stop.set()
         self.server.stop()
+
+
+class LiveViewer(Callback):
+    """``jsgs train --viewer``: the same viewer on the model being trained. Renders happen between training
+    steps (the step holds the viewer's lock), so a browser sees each state whole; the server stops with the
+    run (``jsgs view RUN`` shows the finished model)."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, max_size: int | None = None,
+                 announce: Callable[[str], None] | None = None) -> None:  # fmt: skip
+        self.host, self.port, self.max_size = host, port, max_size
+        self.announce = announce or (lambda s: print(s, file=sys.stderr, flush=True))
+        self.viewer: Viewer | None = None
+
+    def on_setup(self, trainer: Trainer) -> None:
+        model = RunModel(trainer.paths.root, trainer.splats, trainer.cfg, trainer.scene, trainer.device,
+                         trainer.backend)  # fmt: skip
+        size = self.max_size or (1024 if trainer.device.type == "cuda" else 320)
+        self.viewer = Viewer(model, host=self.host, port=self.port, max_size=size)
+        self.announce(f"viewer: http://localhost:{self.viewer.port} (the model as it trains)")
+
+    def on_step_begin(self, trainer: Trainer, step: int) -> None:
+        if self.viewer is not None:
+            self.viewer.lock.acquire()
+
+    def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
+        if self.viewer is not None:
+            self.viewer.model.splats = trainer.splats  # densification replaces the tensors
+            self.viewer.lock.release()
+
+    def on_end(self, trainer: Trainer, doc: dict[str, Any] | None) -> None:
+        if self.viewer is not None:
+            if self.viewer.lock.locked():  # a step that raised
+                self.viewer.lock.release()
+            self.viewer.stop()
+            self.viewer = None

@@ -101,6 +101,15 @@ def _parse_steps(text: str) -> list[int]:
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @click.option("--profile", is_flag=True, help="Record per-phase times (synchronises the device; slower).")
 @click.option(
+    "--viewer",
+    "viewer_port",
+    type=int,
+    default=None,
+    is_flag=False,
+    flag_value=8080,
+    help="Serve the browser viewer (jsgs view) on the model as it trains, on this port [flag alone: 8080].",
+)
+@click.option(
     "--stop-at",
     "stop_at",
     type=int,
@@ -129,6 +138,7 @@ def train_command(
     seed: int | None,
     quiet: bool,
     profile: bool,
+    viewer_port: int | None,
     stop_at: int | None,
 ) -> None:
     """Train Gaussians on the views of MANIFEST (a jsgs manifest; see `jsgstools manifest`)."""
@@ -164,9 +174,14 @@ def train_command(
         kind = cfg.strategy.type
         raise JsgsError(f"--cap-max applies to strategy.type mcmc (--preset mcmc); it is {kind!r}")
     ctx = click.get_current_context()
+    callbacks = []
+    if viewer_port is not None:
+        from jsgs.viewer import LiveViewer
+
+        callbacks.append(LiveViewer(port=viewer_port))
     doc = train(
         manifest, out, cfg, resume=resume, force=force, stop_at=stop_at, progress=not quiet, profile=profile,
-        command=invocation(ctx, "jsgs"),
+        command=invocation(ctx, "jsgs"), callbacks=callbacks,
     )  # fmt: skip
     last = doc["evals"][-1] if doc["evals"] else None
     summary = f"{doc['status']}: {doc['step']}/{doc['iterations']} steps, {doc['num_gaussians']} Gaussians"

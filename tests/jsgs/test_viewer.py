@@ -117,3 +117,30 @@ def test_view_errors_are_one_line(tmp_path: Path, finished_run: Path) -> None:
     (half / "config.json").write_text((finished_run / "config.json").read_text())
     r = CliRunner().invoke(main, ["view", str(half)])
     assert r.exit_code == 1 and "no point_cloud.ply" in r.output and r.output.count("\n") == 1
+
+
+def test_live_viewer_serves_the_model_while_it_trains(tmp_path: Path) -> None:
+    from jsgs.train.callbacks import Callback
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.trainer import train
+    from jsgs.viewer import LiveViewer
+
+    manifest = make_scene(tmp_path / "scene", width=32, height=24)
+    live = LiveViewer(port=_free_port(), max_size=32, announce=lambda s: None)
+    seen: list[tuple[int, int, float]] = []
+
+    class Probe(Callback):
+        def on_step_end(self, trainer, result) -> None:  # noqa: ANN001
+            if result.step in (0, 9):
+                assert live.viewer is not None and live.viewer.model.splats is trainer.splats
+                with urllib.request.urlopen(f"http://127.0.0.1:{live.viewer.port}/", timeout=20) as resp:
+                    status = resp.status
+                v = trainer.scene.train_views[0]
+                img = render_rgb(live.viewer.model, v.viewmat, v.K, v.width, v.height)
+                seen.append((result.step, status, float(img.std())))
+
+    cfg = TrainConfig()
+    cfg.iterations, cfg.eval_at, cfg.device = 10, [], "cpu"
+    train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[live, Probe()])
+    assert [(s, st) for s, st, _ in seen] == [(0, 200), (9, 200)] and all(sd > 1 for *_, sd in seen)
+    assert live.viewer is None  # stopped with the run
