@@ -336,6 +336,8 @@ def train_argv(run: Run, device: str, config: str | None, resume: bool) -> list[
     ]  # fmt: skip
     if run.strategy == "mcmc":
         argv += ["--preset", "mcmc", "--cap-max", str(run.cap)]
+    else:
+        argv += ["--preset", "paper"]
     config = run.config if run.config is not None else config
     if config is not None:
         argv += ["--config", config]

@@ -52,19 +52,19 @@ def _parse_steps(text: str) -> list[int]:
 )
 @click.option(
     "--preset",
-    type=click.Choice(["default", "mcmc"]),
+    type=click.Choice(["mcmc", "paper"]),
     default=None,
-    help="Starting settings under --config and the options: mcmc is gsplat simple_trainer's mcmc recipe "
-    "(strategy.type mcmc with refine_stop_iter 25000, init.opacity 0.5, init.scale 0.1, loss.opacity_reg "
-    "0.01, loss.scale_reg 0.01; the budget is strategy.cap_max) [default: default].",
+    help="Starting settings under --config and the options. mcmc: gsplat simple_trainer's mcmc recipe "
+    "(MCMCStrategy with a budget of strategy.cap_max = 300000 Gaussians, init.opacity 0.5, init.scale 0.1, "
+    "loss.opacity_reg 0.01, loss.scale_reg 0.01); paper: the paper's protocol (gsplat's DefaultStrategy and "
+    "default recipe) [default: mcmc].",
 )
 @click.option(
     "--cap-max",
     "cap_max",
     type=int,
     default=None,
-    help="The Gaussian budget of strategy.type mcmc (strategy.cap_max; with --preset mcmc) [default: "
-    "1000000].",
+    help="The Gaussian budget of strategy.type mcmc (strategy.cap_max) [default: 300000].",
 )
 @click.option(
     "--device",
@@ -172,7 +172,7 @@ def train_command(
     )
     if cap_max is not None and cfg.strategy.type != "mcmc":
         kind = cfg.strategy.type
-        raise JsgsError(f"--cap-max applies to strategy.type mcmc (--preset mcmc); it is {kind!r}")
+        raise JsgsError(f"--cap-max applies to strategy.type mcmc (not --preset paper); it is {kind!r}")
     ctx = click.get_current_context()
     callbacks = []
     if viewer_port is not None:

@@ -48,7 +48,8 @@ def test_plan_under_budgets(synth_scene: Path, tmp_path: Path) -> None:
     assert fixed_cap[0].out.endswith(f"runs/{name}/gaussian/gsplat/mcmc-2000/s0")
     argv = plan_mod.train_argv(fixed_cap[0], "cuda", None, resume=False)
     assert argv[argv.index("--preset") + 1] == "mcmc" and argv[argv.index("--cap-max") + 1] == "2000"
-    assert "--preset" not in plan_mod.train_argv(refs[0], "cuda", None, resume=False)
+    ref_argv = plan_mod.train_argv(refs[0], "cuda", None, resume=False)
+    assert ref_argv[ref_argv.index("--preset") + 1] == "paper" and "--cap-max" not in ref_argv
     # the multiples wait for the reference counts; a scene without one is returned unresolved
     pending = [r for r in mc if r.cap is None]
     assert len(pending) == 6 and all(r.out == "" for r in pending)
@@ -143,7 +144,8 @@ def test_train_cap_max_needs_mcmc(tmp_path: Path, compressed_scene: Path) -> Non
     from jsgs.cli import main
 
     man = compressed_scene / "manifest.json"
-    r = CliRunner().invoke(main, ["train", str(man), "--out", str(tmp_path / "r"), "--cap-max", "50"])
+    args = ["train", str(man), "--out", str(tmp_path / "r"), "--cap-max", "50", "--preset", "paper"]
+    r = CliRunner().invoke(main, args)
     assert r.exit_code != 0 and "--cap-max applies to strategy.type mcmc" in r.output
     assert not (tmp_path / "r").exists()
 

@@ -572,6 +572,7 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
     args = [
         "train", str(manifest), "--out", str(run), "--method", "jsgs", "--iterations", "24",
         "--eval-at", "12,24", "--device", "cpu", "--config", str(cfg_path), "--quiet", "--jpeg-mode", "float",
+        "--preset", "paper",
     ]  # fmt: skip
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
