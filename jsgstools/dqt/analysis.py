@@ -58,6 +58,8 @@ DELTA = 0.4
 GAMMA = 0.1
 #: Least expected count in the unreachable bins for a coefficient to count at a candidate step.
 MIN_EXPECTED = 4.0
+#: Ridge penalty on the shape parameters of the smooth model (counts).
+RIDGE = 1.0
 #: Evidence above which a file is called double-compressed.
 THRESHOLD = 6.0
 #: Width of the logistic that turns evidence into confidence, evidence units.
@@ -94,10 +96,11 @@ def block_dct(plane: np.ndarray) -> np.ndarray:
 def histograms(coef: np.ndarray, steps: np.ndarray) -> np.ndarray:
     """(N, 64) DCT coefficients, (64,) header steps -> (64, NB + 1) float64 counts of ``|rint(coef / step)|``
     = 0..NB (AC coefficients are symmetric about 0, so the two signs are pooled; larger values are dropped)."""
-    b = np.abs(np.rint(coef / steps.reshape(1, 64).astype(np.float32)).astype(np.int64))
-    keep = b <= NB
-    idx = (b + np.arange(64) * (NB + 1))[keep]
-    return np.bincount(idx, minlength=64 * (NB + 1)).reshape(64, NB + 1).astype(np.float64)
+    b = np.abs(np.rint(coef * (1.0 / steps.reshape(1, 64).astype(np.float32))))
+    np.minimum(b, NB + 1, out=b)  # bin NB + 1 collects the values out of range, dropped below
+    idx = b.astype(np.int32) + np.arange(0, 64 * (NB + 2), NB + 2, dtype=np.int32)
+    counts = np.bincount(idx.ravel(), minlength=64 * (NB + 2)).reshape(64, NB + 2)
+    return counts[:, : NB + 1].astype(np.float64)
 
 
 @lru_cache(maxsize=256)
@@ -111,12 +114,20 @@ def _masks(q2: int) -> np.ndarray:
     return (dist > q2 / 2 + DELTA).astype(np.float64)
 
 
+@lru_cache(maxsize=16)
+def _table_masks(steps: bytes) -> np.ndarray:
+    """(K, NB, S_MAX) float32: ``_masks`` of each header step of a table given as int64 bytes."""
+    return np.stack([_masks(int(q)) for q in np.frombuffer(steps, dtype=np.int64)]).astype(np.float32)
+
+
 _M = np.arange(1, NB + 1, dtype=np.float64)
 #: Design of the smooth single-compression model: log E[count of bin m] = a + b m + c log m.
-_DESIGN = np.stack([np.ones(NB), _M / NB, np.log(_M)], axis=1)
+_DESIGN = np.stack([np.ones(NB), _M / NB, np.log(_M), np.log(_M) ** 2 / 4], axis=1)
+_P = _DESIGN.shape[1]
+_DESIGN_OUTER = np.einsum("mi,mj->mij", _DESIGN, _DESIGN).reshape(NB, _P * _P)
 
 
-def smooth_model(hist: np.ndarray, iterations: int = 12) -> np.ndarray:
+def smooth_model(hist: np.ndarray, iterations: int = 10) -> np.ndarray:
     """(K, NB + 1) folded histograms -> (K, NB) expected counts of bins 1..NB under the smooth model
     ``exp(a + b m / NB + c log m)`` (a gamma-like density), fitted by Poisson maximum likelihood (Newton).
 
@@ -124,14 +135,17 @@ def smooth_model(hist: np.ndarray, iterations: int = 12) -> np.ndarray:
     the comb's empty bins stand out against it."""
     h = hist[:, 1:]
     x = _DESIGN
-    beta = np.linalg.lstsq(x, np.log(h + 0.5).T, rcond=None)[0].T  # (K, 3) start
+    ridge = RIDGE * np.diag([0.0] + [1.0] * (_P - 1))  # keeps sparse histograms (a few bins) well posed
+    # Start: least squares on log counts weighted by the counts.
+    w = h + 0.5
+    a = (w @ _DESIGN_OUTER).reshape(-1, _P, _P) + ridge
+    beta = np.linalg.solve(a, ((w * np.log(w)) @ x)[:, :, None])[:, :, 0]
     for _ in range(iterations):
-        eta = np.clip(beta @ x.T, -50, 30)
-        mu = np.exp(eta)
-        grad = (h - mu) @ x
-        hess = np.einsum("km,mi,mj->kij", mu, x, x) + 1e-6 * np.eye(3)
+        mu = np.exp(np.clip(beta @ x.T, -50, 30))
+        grad = (h - mu) @ x - beta @ ridge
+        hess = (mu @ _DESIGN_OUTER).reshape(-1, _P, _P) + ridge
         step = np.linalg.solve(hess, grad[:, :, None])[:, :, 0]
-        beta = beta + np.clip(step, -5, 5)
+        beta = beta + np.clip(step, -2, 2)
     return np.exp(np.clip(beta @ x.T, -50, 30))
 
 
@@ -141,17 +155,13 @@ def step_scores(hist: np.ndarray, steps: np.ndarray) -> np.ndarray:
     h = hist[:, 1:]
     mu = smooth_model(hist)
     n = h.sum(axis=1, keepdims=True)
-    z = np.zeros((h.shape[0], S_MAX))
-    for q2 in np.unique(steps):
-        rows = np.flatnonzero(steps == q2)
-        mask = _masks(int(q2))
-        o_u = h[rows] @ mask
-        p = (mu[rows] @ mask) / np.maximum(mu[rows].sum(axis=1, keepdims=True), 1e-12)
-        expect = n[rows] * p
-        var = expect * (1 - p) + (GAMMA * expect) ** 2 + 1.0
-        zz = (expect - o_u) / np.sqrt(var)
-        zz[expect < MIN_EXPECTED] = 0.0
-        z[rows] = zz
+    masks = _table_masks(np.ascontiguousarray(steps, dtype=np.int64).tobytes())  # (K, NB, S_MAX)
+    o_u = np.matmul(h.astype(np.float32)[:, None, :], masks)[:, 0]
+    p = np.matmul(mu.astype(np.float32)[:, None, :], masks)[:, 0] / np.maximum(mu.sum(axis=1, keepdims=True), 1e-12)
+    expect = n * p
+    var = expect * (1 - p) + (GAMMA * expect) ** 2 + 1.0
+    z = (expect - o_u) / np.sqrt(var)
+    z[expect < MIN_EXPECTED] = 0.0
     return z
 
 
