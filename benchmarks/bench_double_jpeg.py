@@ -169,8 +169,9 @@ def main() -> None:
         for it in items:
             name = it.name.replace("/", "_") + ("" if it.name.lower().endswith(".jpg") else ".jpg")
             (args.write / name).write_bytes(it.data)
-            labels.append({"file": name, "scene": it.scene, "subsampling": it.subsampling, "q1": it.q1,
-                           "q2": it.q2})
+            labels.append(
+                {"file": name, "scene": it.scene, "subsampling": it.subsampling, "q1": it.q1, "q2": it.q2}
+            )
         (args.write / "labels.json").write_text(json.dumps(labels, indent=1) + "\n")
     print(f"corpus: {len(items)} files in {time.perf_counter() - t0:.1f} s", flush=True)
 
@@ -190,11 +191,19 @@ def main() -> None:
     rows = [
         ("positives, q2 >= q1 + 15: detected", pct(det15, len(pos15)), ">= 95 %", det15 >= 0.95 * len(pos15)),
         ("positives, q2 = q1 + 10: detected", pct(det10, len(pos10)), "(no target)", None),
-        ("negatives (single, q 10..95 + camera): false alarms", pct(fa, len(neg) + len(cam)), "<= 5 %",
-         fa <= 0.05 * (len(neg) + len(cam))),
+        (
+            "negatives (single, q 10..95 + camera): false alarms",
+            pct(fa, len(neg) + len(cam)),
+            "<= 5 %",
+            fa <= 0.05 * (len(neg) + len(cam)),
+        ),
         ("  of them camera originals", pct(sum(a.double_compressed for _, a in cam), len(cam)), "", None),
-        ("detected positives: primary quality within +-5 of q1", pct(close, len(detected)), ">= 90 %",
-         close >= 0.9 * len(detected)),
+        (
+            "detected positives: primary quality within +-5 of q1",
+            pct(close, len(detected)),
+            ">= 90 %",
+            close >= 0.9 * len(detected),
+        ),
         ("  exactly q1", pct(exact, len(detected)), "", None),
         ("speed, 504x378, one core (files/s)", f"{rate:.0f}", ">= 200", rate >= 200),
     ]
@@ -225,13 +234,30 @@ def main() -> None:
         f"Python {platform.python_version()}, numpy {np.__version__}, Pillow {Image.__version__}, "
         f"{platform.machine()}, one thread"
     )
-    out = [*md, "", env, "", "Detection rate (%) by q1 (rows) and q2 (columns), both subsamplings:", "", *grid, "",
-           "| subsampling | detected (q2 >= q1 + 15) | false alarms |", "|---|---|---|", *by_ss, "",
-           f"False alarms by quality: {dict(sorted(fa_by_q.items())) or 'none'}; primary quality error "
-           f"(estimate - q1) on detected positives: {dict(sorted(errs.items()))}"]
+    out = [
+        *md,
+        "",
+        env,
+        "",
+        "Detection rate (%) by q1 (rows) and q2 (columns), both subsamplings:",
+        "",
+        *grid,
+        "",
+        "| subsampling | detected (q2 >= q1 + 15) | false alarms |",
+        "|---|---|---|",
+        *by_ss,
+        "",
+        f"False alarms by quality: {dict(sorted(fa_by_q.items())) or 'none'}; primary quality error "
+        f"(estimate - q1) on detected positives: {dict(sorted(errs.items()))}",
+    ]
     if args.real:
-        out += ["", "| scene | files | header quality | double | primary quality (files) | evidence min / median / max |",
-                "|---|---|---|---|---|---|", *real_scenes()]
+        out += [
+            "",
+            "| scene | files | header quality | double | primary quality (files) "
+            "| evidence min / median / max |",
+            "|---|---|---|---|---|---|",
+            *real_scenes(),
+        ]
     text = "\n".join(out)
     print(text)
     if args.md:

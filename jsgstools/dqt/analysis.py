@@ -11,8 +11,9 @@ Method (all numpy, vectorised; see docs/double_compression.md):
 
 1. Decode the pixels with Pillow straight to YCbCr (no colour conversion) and take the orthonormal 8x8
    block DCT on the file's own grid (blocks from the top-left corner; partial edge blocks are dropped).
-   Chroma is read on its own grid: directly for 4:4:4, and for 4:2:0 from a second decode at half scale,
-   where libjpeg-turbo fills the chroma planes by its IDCT without upsampling. Other samplings: luma only.
+   Chroma (Cb and Cr pooled) is read for 4:4:4 files only: with subsampled chroma the decode and
+   re-encode between the two compressions resample it (upsample, then average), which scales each
+   coefficient's comb by the filter's gain, so the comb no longer tells the first step.
 2. Per coefficient, the histogram of ``b = rint(dct / Q2)`` over ``-NB..NB`` (the zero bin is left out).
 3. For every candidate earlier step ``s`` in 1..255, the bins are split into *reachable* ones (the value
    ``b * Q2`` lies within ``Q2 / 2 + DELTA`` of a multiple of ``s``) and *unreachable* ones. The expected
@@ -24,9 +25,10 @@ Method (all numpy, vectorised; see docs/double_compression.md):
 4. The primary IJG quality is the ``q`` whose luma table maximises the mean of ``z`` over the AC
    coefficients it makes informative, scaled by the square root of their number (``evidence``); the file
    is called double-compressed when the best evidence exceeds ``THRESHOLD``.
-5. The primary table takes, per coefficient, the step of the best IJG table, except where that
-   coefficient's own best step scores clearly higher (non-IJG first encoders, e.g. cameras); the effective
-   table is per coefficient the coarser of the primary and the header step.
+5. The primary tables take, per coefficient, the steps of the best IJG quality, except where that
+   coefficient's own best step shows a clear comb and scores clearly higher (non-IJG first encoders, e.g.
+   cameras; chroma only for 4:4:4); the effective tables are per coefficient the coarser of the primary
+   and the header step.
 
 Limits: only aligned recompression is seen (a crop by a non-multiple of 8 or a resize moves the grid and
 erases the trace, and then nothing is detected); a first compression finer than the second (q1 >= q2) leaves
@@ -66,6 +68,8 @@ THRESHOLD = 6.0
 SOFTNESS = 1.5
 #: A coefficient's own best step replaces the IJG fit's when it scores this much higher (z units).
 OWN_STEP_MARGIN = 3.0
+#: ... and only where its own best step scores at least this (half the largest possible score).
+OWN_STEP_MIN = 0.5 / GAMMA
 
 _QUALITIES = np.arange(1, 101)
 _IJG_LUMA = np.stack([ijg_table(BASE_LUMA, int(q)) for q in _QUALITIES]).reshape(100, 64)
@@ -94,8 +98,9 @@ def block_dct(plane: np.ndarray) -> np.ndarray:
 
 
 def histograms(coef: np.ndarray, steps: np.ndarray) -> np.ndarray:
-    """(N, 64) DCT coefficients, (64,) header steps -> (64, NB + 1) float64 counts of ``|rint(coef / step)|``
-    = 0..NB (AC coefficients are symmetric about 0, so the two signs are pooled; larger values are dropped)."""
+    """(N, 64) DCT coefficients, (64,) header steps -> (64, NB + 1) float64 counts of
+    ``|rint(coef / step)|`` = 0..NB (AC coefficients are symmetric about 0, so the two signs are pooled;
+    larger values are dropped)."""
     b = np.abs(np.rint(coef * (1.0 / steps.reshape(1, 64).astype(np.float32))))
     np.minimum(b, NB + 1, out=b)  # bin NB + 1 collects the values out of range, dropped below
     idx = b.astype(np.int32) + np.arange(0, 64 * (NB + 2), NB + 2, dtype=np.int32)
@@ -157,7 +162,9 @@ def step_scores(hist: np.ndarray, steps: np.ndarray) -> np.ndarray:
     n = h.sum(axis=1, keepdims=True)
     masks = _table_masks(np.ascontiguousarray(steps, dtype=np.int64).tobytes())  # (K, NB, S_MAX)
     o_u = np.matmul(h.astype(np.float32)[:, None, :], masks)[:, 0]
-    p = np.matmul(mu.astype(np.float32)[:, None, :], masks)[:, 0] / np.maximum(mu.sum(axis=1, keepdims=True), 1e-12)
+    p = np.matmul(mu.astype(np.float32)[:, None, :], masks)[:, 0] / np.maximum(
+        mu.sum(axis=1, keepdims=True), 1e-12
+    )
     expect = n * p
     var = expect * (1 - p) + (GAMMA * expect) ** 2 + 1.0
     z = (expect - o_u) / np.sqrt(var)
@@ -213,11 +220,11 @@ def _ac_informative(z: np.ndarray, header: np.ndarray, ijg: np.ndarray) -> tuple
 
 def _primary_table(z: np.ndarray, fit: np.ndarray) -> np.ndarray:
     """(64, S_MAX) scores and (64,) fitted IJG steps -> (64,) primary steps: the fit, or a coefficient's own
-    best step where that scores OWN_STEP_MARGIN higher."""
+    best step where that shows a clear comb (score >= OWN_STEP_MIN) scoring OWN_STEP_MARGIN higher."""
     best = z.argmax(axis=1)
     best_z = z[np.arange(64), best]
     fit_z = z[np.arange(64), np.clip(fit, 1, S_MAX) - 1]
-    own = best_z > fit_z + OWN_STEP_MARGIN
+    own = (best_z >= OWN_STEP_MIN) & (best_z > fit_z + OWN_STEP_MARGIN)
     return np.where(own, best + 1, fit).astype(np.int64)
 
 
@@ -270,15 +277,15 @@ def analyze_planes(
     )
 
 
-def _decode(data: bytes, name: str, scale: int) -> np.ndarray:
+def _decode(data: bytes, name: str) -> np.ndarray:
     """Decode JPEG bytes to an (H, W, C) uint8 array in the file's own colour space (YCbCr or gray, no
-    conversion), at 1/scale of its size through libjpeg's DCT scaling."""
+    colour conversion; subsampled chroma comes upsampled)."""
     from PIL import Image
 
     try:
         with Image.open(io.BytesIO(data)) as im:
             want = "L" if im.mode == "L" else "YCbCr"
-            im.draft(want, (-(-im.size[0] // scale), -(-im.size[1] // scale)))
+            im.draft(want, im.size)
             if im.mode != want:
                 raise JsgsError(f"{name}: cannot analyse a {im.mode} JPEG (only YCbCr and gray)")
             arr = np.asarray(im)
@@ -299,7 +306,7 @@ def analyze_bytes(data: bytes, header: JpegHeader) -> Analysis:
             f"{name}: --analyze supports 8-bit YCbCr and gray JPEGs (this one is "
             f"{header.sample_precision}-bit {header.color_space})"
         )
-    full = _decode(data, name, 1)
+    full = _decode(data, name)
     luma = full[:, :, 0]
     chroma_table = None if header.chroma_table is None else header.chroma_table.values
     chroma: list[np.ndarray] = []
@@ -307,10 +314,6 @@ def analyze_bytes(data: bytes, header: JpegHeader) -> Analysis:
         same = header.components[1].table == header.components[2].table
         if same and header.sampling == "4:4:4":
             chroma = [full[:, :, 1], full[:, :, 2]]
-        elif same and header.sampling == "4:2:0" and header.components[0].h == 2:
-            half = _decode(data, name, 2)
-            if half.shape[:2] == (-(-header.height // 2), -(-header.width // 2)):
-                chroma = [half[:, :, 1], half[:, :, 2]]
     return analyze_planes(luma, header.luma_table.values, chroma, chroma_table)
 
 
