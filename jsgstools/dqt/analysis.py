@@ -40,7 +40,6 @@ from __future__ import annotations
 import io
 import os
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -108,7 +107,6 @@ def histograms(coef: np.ndarray, steps: np.ndarray) -> np.ndarray:
     return counts[:, : NB + 1].astype(np.float64)
 
 
-@lru_cache(maxsize=256)
 def _masks(q2: int) -> np.ndarray:
     """(NB, S_MAX) float64 for header step ``q2``: 1 where histogram bin m = 1..NB is unreachable from a
     first quantization with step s = 1..S_MAX (its value ``m * q2`` lies farther than ``q2 / 2 + DELTA``
@@ -119,10 +117,19 @@ def _masks(q2: int) -> np.ndarray:
     return (dist > q2 / 2 + DELTA).astype(np.float64)
 
 
-@lru_cache(maxsize=16)
-def _table_masks(steps: bytes) -> np.ndarray:
-    """(K, NB, S_MAX) float32: ``_masks`` of each header step of a table given as int64 bytes."""
-    return np.stack([_masks(int(q)) for q in np.frombuffer(steps, dtype=np.int64)]).astype(np.float32)
+#: ``_masks`` of every header step 1..255 as float32 (filled on first use), so that a table's masks are one
+#: gather: (256, NB, S_MAX), 16.7 MB.
+_ALL_MASKS = np.zeros((256, NB, S_MAX), dtype=np.float32)
+_FILLED = np.zeros(256, dtype=bool)
+
+
+def _table_masks(steps: np.ndarray) -> np.ndarray:
+    """(K,) header steps 1..255 -> (K, NB, S_MAX) float32 masks."""
+    steps = np.clip(steps, 1, 255)
+    for q in np.unique(steps[~_FILLED[steps]]):
+        _ALL_MASKS[q] = _masks(int(q))
+        _FILLED[q] = True
+    return _ALL_MASKS[steps]
 
 
 _M = np.arange(1, NB + 1, dtype=np.float64)
@@ -132,7 +139,7 @@ _P = _DESIGN.shape[1]
 _DESIGN_OUTER = np.einsum("mi,mj->mij", _DESIGN, _DESIGN).reshape(NB, _P * _P)
 
 
-def smooth_model(hist: np.ndarray, iterations: int = 10) -> np.ndarray:
+def smooth_model(hist: np.ndarray, iterations: int = 6) -> np.ndarray:
     """(K, NB + 1) folded histograms -> (K, NB) expected counts of bins 1..NB under the smooth model
     ``exp(a + b m / NB + c log m)`` (a gamma-like density), fitted by Poisson maximum likelihood (Newton).
 
@@ -160,7 +167,7 @@ def step_scores(hist: np.ndarray, steps: np.ndarray) -> np.ndarray:
     h = hist[:, 1:]
     mu = smooth_model(hist)
     n = h.sum(axis=1, keepdims=True)
-    masks = _table_masks(np.ascontiguousarray(steps, dtype=np.int64).tobytes())  # (K, NB, S_MAX)
+    masks = _table_masks(np.asarray(steps, dtype=np.int64))  # (K, NB, S_MAX)
     o_u = np.matmul(h.astype(np.float32)[:, None, :], masks)[:, 0]
     p = np.matmul(mu.astype(np.float32)[:, None, :], masks)[:, 0] / np.maximum(
         mu.sum(axis=1, keepdims=True), 1e-12
@@ -261,8 +268,8 @@ def analyze_planes(
             cheader = eff_chroma.reshape(64)
             fit = _IJG_CHROMA[qi]
             if chroma:
-                hist = sum(histograms(block_dct(c), cheader) for c in chroma)
-                primary_chroma = _primary_table(step_scores(np.asarray(hist), cheader), fit)
+                coef = np.concatenate([block_dct(c) for c in chroma])
+                primary_chroma = _primary_table(step_scores(histograms(coef, cheader), cheader), fit)
             else:
                 primary_chroma = fit
             eff_chroma = np.maximum(primary_chroma.reshape(8, 8), eff_chroma)
