@@ -32,8 +32,15 @@ def _emit(text: str, err: bool = False) -> None:
     "row-major order.",
 )
 @click.option("--tables", "show_tables", is_flag=True, help="Also print every 8x8 table below the summary.")
+@click.option(
+    "--analyze",
+    is_flag=True,
+    help="Also decode each image and look for an earlier, coarser quantization on its 8x8 grid (double "
+    "compression): a DOUBLE column in the table, an `analysis` object per file in --json "
+    "(docs/double_compression.md).",
+)
 @user_errors
-def inspect_dqt(images: tuple[Path, ...], as_json: bool, show_tables: bool) -> None:
+def inspect_dqt(images: tuple[Path, ...], as_json: bool, show_tables: bool, analyze: bool) -> None:
     """Report the JPEG header of each IMG without decoding it.
 
     Per file: every quantization table (DQT: id, 8- or 16-bit, 64 values), which component (Y, Cb, Cr,
@@ -49,14 +56,24 @@ def inspect_dqt(images: tuple[Path, ...], as_json: bool, show_tables: bool) -> N
     length, so an EXIF thumbnail's tables are never mistaken for the image's. Hierarchical (SOF5-7,
     SOF13-15) and JPEG-LS files are refused. A bad file gets "error: FILE: what" on stderr, the other
     files are still reported, and the exit code is 1.
+
+    With --analyze the pixels are decoded too: the histogram of each DCT coefficient on the file's own grid
+    shows whether the image went through a coarser quantization before the one in its header (a photo
+    saved, then saved again at a higher quality). The DOUBLE column reads "no", or "yes qNN" with the
+    closest IJG quality of the earlier tables, and the confidence in that verdict; --json adds the earlier
+    and the effective tables (per coefficient the coarser of the two steps).
+
+    \b
+    Example:
+      jsgstools inspect-dqt --analyze scene/images/*.jpg
     """
     from jsgstools.dqt import dumps_json, format_table, inspect_files
 
-    result = inspect_files(images)
+    result = inspect_files(images, analyze=analyze)
     if as_json:
         _emit(dumps_json(result.to_json()))
     else:
-        _emit(format_table(result, show_tables=show_tables))
+        _emit(format_table(result, show_tables=show_tables, analyze=analyze))
     for err in result.errors:  # after the report, so they are the last lines a terminal shows
         _emit(f"error: {err}", err=True)
     if result.errors:

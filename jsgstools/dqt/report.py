@@ -11,6 +11,7 @@ from typing import Any
 
 from jsgs import __version__
 from jsgs.errors import JsgsError
+from jsgstools.dqt.analysis import Analysis, analyze_bytes
 from jsgstools.dqt.header import JpegHeader
 from jsgstools.dqt.markers import TABLE_ORDER_NOTE
 from jsgstools.dqt.parser import read_header
@@ -25,6 +26,8 @@ class Inspection:
     in the order given."""
 
     results: list[tuple[str, JpegHeader | JsgsError]]
+    #: With --analyze: per good file's path, its Analysis, or the one-line reason it could not be analysed.
+    analyses: dict[str, Analysis | JsgsError] | None = None
 
     @property
     def headers(self) -> list[JpegHeader]:
@@ -38,6 +41,11 @@ class Inspection:
         """Counts of files and errors, the quality range, how many tables are exactly IJG, sampling kinds."""
         hs = self.headers
         qs = [h.quality for h in hs if h.quality is not None]
+        extra: dict[str, Any] = {}
+        if self.analyses is not None:
+            extra["double_compressed"] = sum(
+                isinstance(a, Analysis) and a.double_compressed for a in self.analyses.values()
+            )
         return {
             "files": len(self.results),
             "ok": len(hs),
@@ -47,6 +55,7 @@ class Inspection:
             "quality_exact": sum(q.exact for q in qs),
             "sampling": dict(sorted(Counter(h.sampling for h in hs).items())),
             "frames": dict(sorted(Counter(h.frame_name for h in hs).items())),
+            **extra,
         }
 
     def to_json(self) -> dict[str, Any]:
@@ -54,7 +63,13 @@ class Inspection:
         files: list[dict[str, Any]] = []
         for path, res in self.results:
             if isinstance(res, JpegHeader):
-                files.append({"ok": True, **res.to_json()})
+                entry = {"ok": True, **res.to_json()}
+                if self.analyses is not None:
+                    a = self.analyses[path]
+                    entry["analysis"] = a.to_json() if isinstance(a, Analysis) else None
+                    if isinstance(a, JsgsError):
+                        entry["warnings"] = [*entry["warnings"], f"analysis: {a}"]
+                files.append(entry)
             else:
                 files.append({"ok": False, "path": path, "error": str(res)})
         return {
@@ -81,8 +96,23 @@ def dumps_json(doc: Any, indent: int = 1, _level: int = 0) -> str:
     return json.dumps(doc)
 
 
-def inspect_files(paths: Iterable[str | os.PathLike[str]]) -> Inspection:
-    """Read every header; a bad file becomes its JsgsError in the results instead of stopping the run."""
+def _analyze(path: str, header: JpegHeader) -> Analysis | JsgsError:
+    """Decode and analyse one file whose header parsed (reads the whole file)."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+        return analyze_bytes(data, header)
+    except OSError as e:
+        return JsgsError(f"{path}: cannot read: {e.strerror or e}")
+    except JsgsError as e:
+        return e
+    except Exception as e:  # a bug: one line, other files go on
+        return JsgsError(f"{path}: internal error in --analyze ({type(e).__name__}: {e}); please report")
+
+
+def inspect_files(paths: Iterable[str | os.PathLike[str]], analyze: bool = False) -> Inspection:
+    """Read every header (and with ``analyze`` decode and analyse every good file); a bad file becomes its
+    JsgsError in the results instead of stopping the run."""
     results: list[tuple[str, JpegHeader | JsgsError]] = []
     for p in paths:
         name = str(p)
@@ -94,7 +124,10 @@ def inspect_files(paths: Iterable[str | os.PathLike[str]]) -> Inspection:
             results.append(
                 (name, JsgsError(f"{name}: internal error ({type(e).__name__}: {e}); please report"))
             )
-    return Inspection(results)
+    analyses = None
+    if analyze:
+        analyses = {name: _analyze(name, h) for name, h in results if isinstance(h, JpegHeader)}
+    return Inspection(results, analyses)
 
 
 def _quality_text(h: JpegHeader) -> str:
@@ -112,9 +145,29 @@ def _tables_text(h: JpegHeader) -> str:
     return " ".join(parts) or "-"
 
 
-def format_table(ins: Inspection, show_tables: bool = False) -> str:
-    """Human-readable report: one row per good file, then a summary line (and the 8x8 tables on request)."""
-    head = ("FILE", "SIZE", "FRAME", "COLOR", "SAMPLING", "QUALITY", "TABLES (id:components)", "DRI")
+def _double_text(a: Analysis | JsgsError) -> str:
+    if isinstance(a, JsgsError):
+        return "?"
+    verdict = f"yes q{a.primary_quality}" if a.double_compressed else "no"
+    return f"{verdict} ({a.confidence:.2f})"
+
+
+def format_table(ins: Inspection, show_tables: bool = False, analyze: bool = False) -> str:
+    """Human-readable report: one row per good file, then a summary line (and the 8x8 tables on request).
+    With ``analyze`` (and analyses present) a DOUBLE column: "no" or "yes qNN", and the confidence."""
+    head: tuple[str, ...] = (
+        "FILE",
+        "SIZE",
+        "FRAME",
+        "COLOR",
+        "SAMPLING",
+        "QUALITY",
+        "TABLES (id:components)",
+        "DRI",
+    )
+    with_double = analyze and ins.analyses is not None
+    if with_double:
+        head = (*head, "DOUBLE (confidence)")
     rows = [
         (
             h.path,
@@ -125,6 +178,7 @@ def format_table(ins: Inspection, show_tables: bool = False) -> str:
             _quality_text(h),
             _tables_text(h),
             str(h.restart_interval) if h.restart_interval else "-",
+            *((_double_text(ins.analyses[h.path]),) if with_double and ins.analyses is not None else ()),
         )
         for h in ins.headers
     ]
@@ -149,6 +203,14 @@ def format_table(ins: Inspection, show_tables: bool = False) -> str:
         lines.append("  sampling     " + ", ".join(f"{k} x{v}" for k, v in s["sampling"].items()))
     if s["frames"]:
         lines.append("  frames       " + ", ".join(f"{k} x{v}" for k, v in s["frames"].items()))
+    if with_double and ins.analyses is not None:
+        failed = [a for a in ins.analyses.values() if isinstance(a, JsgsError)]
+        note = f" ({len(failed)} not analysed, see warnings)" if failed else ""
+        lines.append(
+            f"  double       {s['double_compressed']} of {len(ins.analyses)} double-compressed{note}"
+        )
+        for a in failed:
+            lines.append(f"  warning: {a}")
     if show_tables:
         for h in ins.headers:
             for t in h.tables.values():
@@ -158,5 +220,3 @@ def format_table(ins: Inspection, show_tables: bool = False) -> str:
                 for row in t.values:
                     lines.append("  " + " ".join(str(int(x)).rjust(width) for x in row))
     return "\n".join(lines)
-
-
