@@ -228,9 +228,18 @@ def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | 
 def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
     """Read the model and probe every registered image's file (header only). Raises JsgsError only when
     the model cannot be found or read; every other defect is left for :mod:`jsgstools.validate`."""
+    from jsgstools.colmap_check import check_binary_model, check_camera, check_points_finite
+
     root = Path(root)
     model_dir, fmt = find_model_dir(root)
+    if fmt == "binary":  # read to their declared end before pycolmap sees them
+        check_binary_model(model_dir)
     rec = read_reconstruction(model_dir)
+    if fmt == "text":
+        for cid, c in rec.cameras.items():
+            params = tuple(float(v) for v in c.params)
+            size = (int(c.width), int(c.height))
+            check_camera(model_dir / "cameras.txt", int(cid), str(c.model_name), *size, params)
     cameras = {
         int(cid): ColmapCamera(
             int(cid), str(c.model_name), int(c.width), int(c.height), tuple(float(v) for v in c.params)
@@ -263,6 +272,8 @@ def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
         p = rec.points3D[pid]
         xyz[i] = p.xyz
         rgb[i] = p.color
+    if fmt == "text":
+        check_points_finite(model_dir / "points3D.txt", xyz)
     return ColmapScene(
         root=root,
         model_dir=model_dir,
