@@ -69,7 +69,9 @@ def _edit_camera(scene: Path, **params: float) -> None:
     [({"cx": -5.0}, "principal point"), ({"cy": 1e6}, "principal point"), ({"fx": 0.0}, "focal length"),
      ({"fy": float("nan")}, "not finite")],
 )  # fmt: skip
-def test_implausible_cameras(synth_scene: Path, tmp_path: Path, params: dict[str, float], message: str) -> None:
+def test_implausible_cameras(
+    synth_scene: Path, tmp_path: Path, params: dict[str, float], message: str
+) -> None:
     scene = _copy(synth_scene, tmp_path / "s")
     _edit_camera(scene, **params)
     r = CliRunner().invoke(main, ["validate", str(scene)])

@@ -69,7 +69,7 @@ def test_text_model_and_plain_sparse_folder(synth_scene: Path, tmp_path: Path) -
         (
             "corrupt model",
             lambda s: (s / "sparse" / "0" / "cameras.bin").write_bytes(b"\x01\x02garbage"),
-            "cannot read the COLMAP model",
+            "not a COLMAP cameras.bin",
         ),
         ("missing images folder", lambda s: shutil.rmtree(s / "images"), "images folder not found"),
         (
@@ -183,7 +183,7 @@ def test_camera_models(synth_scene: Path, tmp_path: Path) -> None:
     scene = _copy(synth_scene, tmp_path / "focal")
     _edit_model(scene, set_model("PINHOLE", [-5.0, 54.4, 32.0, 24.0]))
     code, out = _run(scene)
-    assert code == 1 and "focal length (-5.0, 54.4) is not positive" in out
+    assert code == 1 and "focal length [-5.0, 54.4] is not positive" in out
 
 
 def test_every_problem_is_listed(synth_scene: Path, tmp_path: Path) -> None:
