@@ -404,7 +404,7 @@ def compress(
             cams_in[v.camera_id] = cam
             cams_out[v.camera_id], zoom[v.camera_id] = undistorted_camera(cam)
 
-    prepare_output_dir(out, force, OWNED, protect=scene_dir)
+    prepare_output_dir(out, force, OWNED, protect=scene_dir, tool="compress")
     ss_name, ss_pil = SUBSAMPLING[subsampling]
     tasks = [
         Task(

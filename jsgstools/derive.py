@@ -119,7 +119,7 @@ def derive(
             raise JsgsError(f"{base_path}: view {v['name']!r} is {v['split']} in the base but "
                             f"{the_plan.split[src]} by the split rule (test every {test_every})")  # fmt: skip
 
-    prepare_output_dir(out, force, OWNED, protect=base_root)
+    prepare_output_dir(out, force, OWNED, protect=base_root, tool="derive")
     ss_name, ss_pil = SUBSAMPLING[subsampling]
 
     def encode(src: str) -> tuple[str, int]:

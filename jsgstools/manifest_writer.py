@@ -224,6 +224,17 @@ def write_manifest(doc: dict[str, Any], out: str | Path) -> None:
     write_bytes_atomic(out, dumps(doc).encode())
 
 
+def _is_manifest(path: Path) -> bool:
+    """Whether ``path`` holds a manifest this tool wrote (a JSON object with ``format`` jsgs-manifest)."""
+    try:
+        if path.stat().st_size > 512 * 2**20:
+            return False
+        doc = json.loads(path.read_bytes())
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == "jsgs-manifest"
+
+
 def manifest(
     scene_dir: str | Path,
     out: str | Path,
@@ -238,6 +249,8 @@ def manifest(
         raise JsgsError(f"{out}: is a folder; give the manifest's file name (e.g. {out / 'manifest.json'})")
     if out.exists() and not force:
         raise JsgsError(f"{out}: exists (use --force to replace it)")
+    if out.exists() and not _is_manifest(out):
+        raise JsgsError(f"{out}: is not a jsgs manifest; --force replaces only a manifest (choose another)")
     doc = build_manifest(scene_dir, out, test_every=test_every, command=command)
     write_manifest(doc, out)
     return doc

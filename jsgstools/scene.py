@@ -512,13 +512,34 @@ def fmt_factor(f: float | None) -> str:
 # Output folders
 
 
-def prepare_output_dir(out: Path, force: bool, owned: tuple[str, ...], protect: Path | None = None) -> None:
-    """Make ``out`` ready for a tool's output: refuse a non-empty folder unless ``force``; with ``force``
-    remove only the entries the tool itself writes (``owned``, relative names), so nothing stale survives and
-    nothing else is touched. ``protect`` (the input scene) must neither contain ``out`` nor lie inside it."""
+#: the file each writing tool leaves in its output folder; ``--force`` replaces only a folder holding its own
+MARKER = ".jsgstools.json"
+
+
+def read_marker(out: Path) -> str | None:
+    """The tool that made ``out`` (from its marker file), or None."""
+    import json
+
+    try:
+        doc = json.loads((out / MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    return doc.get("tool") if isinstance(doc, dict) and isinstance(doc.get("tool"), str) else None
+
+
+def prepare_output_dir(
+    out: Path, force: bool, owned: tuple[str, ...], protect: Path | None = None, tool: str = "compress"
+) -> None:
+    """Make ``out`` ready for ``jsgstools <tool>``'s output: refuse a non-empty folder unless ``force``; with
+    ``force`` only a folder the same tool made (its marker file :data:`MARKER`) is accepted, and only the
+    entries the tool writes (``owned``, relative names) are removed, so nothing stale survives and nothing
+    else is touched. ``protect`` (the input scene) must neither contain ``out`` nor lie inside it. Writes the
+    marker."""
+    import datetime
     import shutil
 
-    from jsgs.io import LOCK_NAME
+    import jsgs
+    from jsgs.io import LOCK_NAME, write_json_atomic
 
     if out.exists() and not out.is_dir():
         raise JsgsError(f"{out}: exists and is not a folder")
@@ -528,9 +549,16 @@ def prepare_output_dir(out: Path, force: bool, owned: tuple[str, ...], protect: 
             raise JsgsError(f"{out}: is inside the input scene {protect}; the tools never write into a scene")
         if a in b.parents:
             raise JsgsError(f"{out}: contains the input scene {protect}; choose another output folder")
-    if out.is_dir() and any(p.name != LOCK_NAME for p in out.iterdir()):
+    if out.is_dir() and any(p.name not in (LOCK_NAME, MARKER) for p in out.iterdir()):
         if not force:
             raise JsgsError(f"{out}: folder is not empty (use --force to replace its contents)")
+        maker = read_marker(out)
+        if maker != tool:
+            what = f"made by jsgstools {maker}" if maker else f"not made by jsgstools (no {MARKER})"
+            raise JsgsError(
+                f"{out}: {what}; --force replaces only a folder that jsgstools {tool} made (choose an empty "
+                "or new folder)"
+            )
         for name in owned:
             p = out / name
             if p.is_dir() and not p.is_symlink():
@@ -538,6 +566,8 @@ def prepare_output_dir(out: Path, force: bool, owned: tuple[str, ...], protect: 
             elif p.exists() or p.is_symlink():
                 p.unlink()
     out.mkdir(parents=True, exist_ok=True)
+    now = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    write_json_atomic(out / MARKER, {"tool": tool, "jsgstools_version": jsgs.__version__, "created": now})
 
 
 def write_model_atomic(rec: pycolmap.Reconstruction, dest: Path) -> None:

@@ -436,7 +436,7 @@ def synth(
     if not 1 <= supersample <= 8:
         raise JsgsError(f"supersample {supersample}: must be within 1..8")
     w, h = size
-    prepare_output_dir(out, force, OWNED)
+    prepare_output_dir(out, force, OWNED, tool="synth")
     rng = np.random.default_rng(seed)
     if not 0.1 <= texture_scale <= 100.0:
         raise JsgsError(f"--texture-scale {texture_scale}: must be within 0.1..100")

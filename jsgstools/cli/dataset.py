@@ -37,7 +37,9 @@ SCHEDULE_HELP = (
     show_default=True,
     help="Multiplier on every texture's period (0.1..100; 4 gives detail a few hundred Gaussians can learn).",
 )
-@click.option("--force", is_flag=True, help="Replace images/ and sparse/ of a non-empty OUT.")
+@click.option(
+    "--force", is_flag=True, help="Replace images/ and sparse/ of an earlier synth in OUT (.jsgstools.json)."
+)
 @user_errors
 def synth_cmd(
     out: Path,
@@ -99,7 +101,11 @@ def synth_cmd(
     show_default=True,
     help="JPEG chroma subsampling.",
 )
-@click.option("--force", is_flag=True, help="Replace the outputs in a non-empty DIR (other files are kept).")
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Replace the outputs of an earlier compress in DIR (its .jsgstools.json); other files are kept.",
+)
 @click.option("--jobs", type=int, default=None, help="Worker processes [default: all cores].")
 @user_errors
 def compress_cmd(
@@ -213,7 +219,7 @@ def validate_cmd(scene: Path, test_every: int) -> None:
     help="View i (sorted by image name) is a test view when i % N == 0 [default: 8, or the value a "
     "compressed scene was made with].",
 )
-@click.option("--force", is_flag=True, help="Replace an existing manifest file.")
+@click.option("--force", is_flag=True, help="Replace an existing manifest (never another file).")
 @user_errors
 def manifest_cmd(scene: Path, out: Path, test_every: int | None, force: bool) -> None:
     """Write the training manifest of SCENE (one made by compress, or your own JPEG/PNG collection with its

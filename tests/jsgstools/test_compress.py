@@ -233,10 +233,25 @@ def test_refuses_non_empty_out_unless_force(synth_scene: Path, tmp_path: Path) -
     (out / "notes.txt").write_text("mine")
     with pytest.raises(JsgsError, match="not empty.*--force"):
         compress(synth_scene, out, "uniform", jobs=1)
-    assert (out / "images" / "stale.jpg").exists()
-    compress(synth_scene, out, "uniform", jobs=1, force=True)
+    # --force replaces only a folder compress made: this one has no marker, so nothing is touched
+    with pytest.raises(JsgsError, match="not made by jsgstools"):
+        compress(synth_scene, out, "uniform", jobs=1, force=True)
+    assert (out / "images" / "stale.jpg").exists() and (out / "notes.txt").exists()
+    shutil.rmtree(out / "images")
+    (out / "notes.txt").unlink()
+    compress(synth_scene, out, "uniform", jobs=1)
+    (out / "images" / "stale.jpg").write_bytes(b"old")
+    (out / "notes.txt").write_text("mine")
+    compress(synth_scene, out, "gaussian", jobs=1, force=True)
     assert not (out / "images" / "stale.jpg").exists()  # what compress owns is replaced...
     assert (out / "notes.txt").read_text() == "mine"  # ...and nothing else is touched
+    # another tool's folder, a COLMAP scene (synth's) or a photo folder: refused in one line
+    with pytest.raises(JsgsError, match="made by jsgstools synth"):
+        from jsgstools.synth import synth
+
+        synth(tmp_path / "syn", views=2, size=(16, 12))
+        compress(synth_scene, tmp_path / "syn", "uniform", jobs=1, force=True)
+    assert len(list((tmp_path / "syn" / "images").iterdir())) == 2
     (tmp_path / "file").write_text("x")
     with pytest.raises(JsgsError, match="not a folder"):
         compress(synth_scene, tmp_path / "file", "uniform", jobs=1, force=True)

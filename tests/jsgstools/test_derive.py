@@ -62,7 +62,8 @@ def test_derive_matches_compress(
     assert st["base"] == str(clean_base / "manifest.json") and (st["schedule"], st["seed"]) == (schedule, 0)
     assert st["per_view_quality"] == ref["producer"]["settings"]["per_view_quality"]
     assert st["counts"] == ref["producer"]["settings"]["counts"]
-    assert sorted(p.name for p in (tmp_path / "derived").iterdir()) == ["images", "manifest.json"]
+    names = sorted(p.name for p in (tmp_path / "derived").iterdir())
+    assert names == [".jsgstools.json", "images", "manifest.json"]
 
 
 def test_derived_manifest_loads(clean_base: Path, tmp_path: Path) -> None:

@@ -146,6 +146,11 @@ def test_users_jpeg_collection_keeps_its_distortion(tmp_path: Path) -> None:
     assert r.exit_code == 0
     r = CliRunner().invoke(main, ["manifest", str(scene), "--out", str(scene)])
     assert r.exit_code == 1 and "is a folder" in r.output
+    # --force replaces a manifest, never a photo or any other file
+    photo = sorted((scene / "images").iterdir())[0]
+    before = photo.read_bytes()
+    r = CliRunner().invoke(main, ["manifest", str(scene), "--out", str(photo), "--force"])
+    assert r.exit_code == 1 and "is not a jsgs manifest" in r.output and photo.read_bytes() == before
 
 
 def test_relative_paths_resolve_against_the_manifest_folder(
