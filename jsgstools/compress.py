@@ -209,13 +209,11 @@ def jpeg_bytes(arr: np.ndarray, quality: int, subsampling: int) -> bytes:
 
 
 def load_rgb(path: str | Path) -> np.ndarray:
-    """(H, W, 3) uint8. Grey and palette images are expanded; alpha is dropped."""
-    from PIL import Image
+    """(H, W, 3) uint8 (:func:`jsgs.images.read_rgb8`: grey and palette expanded, 16-bit by value, alpha
+    dropped; a file that cannot be decoded is a one-line JsgsError)."""
+    from jsgs.images import read_rgb8
 
-    with Image.open(path) as im:
-        if im.mode == "I;16" or im.mode.startswith("I;16"):
-            raise JsgsError(f"{path}: 16-bit images are not supported (convert to 8-bit first)")
-        return np.asarray(im.convert("RGB"))
+    return read_rgb8(path)
 
 
 def run_task(task: Task) -> dict[str, Any]:

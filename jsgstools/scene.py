@@ -218,9 +218,14 @@ def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | 
     """(size, format, error) from the file header; Pillow opens lazily, so no pixels are decoded."""
     from PIL import Image, UnidentifiedImageError
 
+    from jsgs.images import ENV_MAX_PIXELS, apply_pixel_limit
+
+    apply_pixel_limit()
     try:
         with Image.open(path) as im:
             return (int(im.width), int(im.height)), str(im.format), None
+    except Image.DecompressionBombError as e:
+        return None, None, f"exceeds the pixel limit ({e}); raise it with ${ENV_MAX_PIXELS}"
     except (UnidentifiedImageError, OSError, ValueError) as e:
         return None, None, f"cannot read image: {e}"
 

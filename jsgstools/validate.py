@@ -9,11 +9,13 @@ Problems (each one line, naming the file; any problem means exit code 1):
   (see :func:`jsgstools.scene.detect_downscale`); a camera shared by images of different sizes;
 - a camera model other than the pinhole ones (SIMPLE_PINHOLE, PINHOLE) and the distorted ones ``compress`` can
   undistort (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV); non-finite or non-positive intrinsics;
-- a non-finite pose; an image name used twice; no registered image; no points3D, or non-finite points.
+- a non-finite pose; an image name used twice; no registered image; no points3D, or non-finite points;
+- with ``decode`` (the ``validate`` command), an image that cannot be decoded (truncated, over the pixel limit:
+  :mod:`jsgs.images`), as compress and the trainer would find it; an unreadable ``compress.json``.
 
 Warnings (reported, exit code still 0): distorted cameras — they need undistortion, which ``compress`` does
 before encoding (``manifest`` records the distortion as is, and the trainer refuses distorted views);
-images in the model without a pose (ignored by every tool).
+images in the model without a pose (ignored by every tool); a camera that sees none of the points3D.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from .scene import (
 
 #: Problem kinds. ``manifest`` accepts scenes whose only problems are of kind ``camera_model`` (it records any
 #: model with its parameters); ``compress`` accepts none.
-KINDS = ("model", "images", "image", "size", "camera", "camera_model", "pose", "names", "points")
+KINDS = ("model", "images", "image", "size", "camera", "camera_model", "pose", "names", "points", "record")
 
 
 @dataclass(frozen=True)
@@ -118,7 +120,7 @@ class ValidationReport:
                     f"{st['seed']}",
                 )
             except (OSError, ValueError, KeyError, TypeError):
-                rows.append(("compress.json", "unreadable (manifest will report why)"))
+                rows.append(("compress.json", "unreadable (listed as a problem)"))
         return rows
 
     def format_summary(self, test_every: int = 8) -> str:
@@ -127,8 +129,45 @@ class ValidationReport:
         return "\n".join(f"{k.ljust(width)}  {v}" for k, v in rows)
 
 
-def validate_scene(root: str | Path) -> ValidationReport:
-    """Load ``root`` and check everything listed in the module docstring. Never raises for a bad scene."""
+def _points_seen(scene: ColmapScene) -> list[tuple[object, int]]:
+    """(view, number of points3D in front of its camera and inside its image), pinhole projection with the
+    model's intrinsics (distortion ignored: a count, not a measurement)."""
+    xyz = scene.points_xyz
+    out: list[tuple[object, int]] = []
+    if len(xyz) == 0:
+        return out
+    ok = np.isfinite(xyz).all(axis=1)
+    xyz = xyz[ok]
+    for v in scene.views:
+        cam = scene.cameras.get(v.camera_id)
+        if cam is None or not (finite(v.R) and finite(v.t)):
+            continue
+        pc = xyz @ v.R.T + v.t
+        z = pc[:, 2]
+        front = z > 1e-9
+        K = cam.K
+        u = K[0, 0] * pc[front, 0] / z[front] + K[0, 2]
+        w = K[1, 1] * pc[front, 1] / z[front] + K[1, 2]
+        inside = (u >= 0) & (u <= cam.width) & (w >= 0) & (w <= cam.height)
+        out.append((v, int(inside.sum())))
+    return out
+
+
+def _decode_error(path: Path) -> str | None:
+    """The one-line message of an image that cannot be decoded, else None."""
+    from jsgs.images import read_rgb8
+
+    try:
+        read_rgb8(path)
+    except JsgsError as e:
+        return str(e)
+    return None
+
+
+def validate_scene(root: str | Path, decode: bool = False) -> ValidationReport:
+    """Load ``root`` and check everything listed in the module docstring. Never raises for a bad scene.
+    ``decode``: also decode every registered image (:func:`jsgs.images.read_rgb8`, what ``compress`` and
+    the trainer do), so a truncated file or one over the pixel limit is reported here first."""
     root = Path(root)
     report = ValidationReport(root=root, scene=None)
     try:
@@ -213,6 +252,8 @@ def validate_scene(root: str | Path) -> ValidationReport:
             )
         elif v.read_error is not None:
             P.append(Problem("image", f"{scene.rel(v.path)}: {v.read_error}"))
+        elif decode and (err := _decode_error(v.path)) is not None:
+            P.append(Problem("image", err))
         elif v.format not in JPEG_FORMATS + LOSSLESS_FORMATS:
             P.append(
                 Problem(
@@ -244,7 +285,27 @@ def validate_scene(root: str | Path) -> ValidationReport:
                 )
             )
 
+    # The record of a dataset made by compress.
+    record = scene.root / "compress.json"
+    if record.is_file():
+        import json
+
+        try:
+            rec = json.loads(record.read_text())
+            if not isinstance(rec["settings"]["test_every"], int) or any(
+                v["split"] not in ("train", "test") for v in rec["views"]
+            ):
+                raise ValueError("settings.test_every or a view's split is not what compress writes")
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            P.append(Problem("record", f"{scene.rel(record)}: unreadable ({type(e).__name__}: {e})"))
+
     # Points.
+    for v, n in _points_seen(scene):
+        if n == 0:
+            report.warnings.append(
+                f"{scene.rel(v.path) if v.path else v.name}: its camera sees none of the "
+                f"{len(scene.points_xyz)} points3D (a pose or a camera that does not belong to this model?)"
+            )
     if len(scene.points_xyz) == 0:
         P.append(
             Problem(

@@ -201,25 +201,16 @@ def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
 
 
 def load_image(path: Path, width: int, height: int, what: str) -> Tensor:
-    """Decode an image with Pillow to [H, W, 3] uint8 (RGB; greyscale is replicated, alpha dropped).
-    Raises JsgsError if it is missing, unreadable or not ``width`` x ``height``."""
-    from PIL import Image, UnidentifiedImageError
+    """Decode an image to [H, W, 3] uint8 (:func:`jsgs.images.read_rgb8`: RGB, greyscale replicated, 16-bit
+    by value, alpha dropped). Raises JsgsError if it is missing, unreadable or not ``width`` x ``height``."""
+    from jsgs.images import read_rgb8
 
-    try:
-        with Image.open(path) as im:
-            im.load()
-            size = im.size
-            if size != (width, height):
-                raise JsgsError(
-                    f"{path}: {what} is {size[0]}x{size[1]} but its camera is {width}x{height} "
-                    "(the trainer never resamples images)"
-                )
-            rgb = im.convert("RGB")
-            arr = np.asarray(rgb, dtype=np.uint8).copy()
-    except FileNotFoundError:
-        raise JsgsError(f"{path}: {what} not found") from None
-    except (UnidentifiedImageError, OSError) as e:
-        raise JsgsError(f"{path}: cannot read {what} ({e})") from None
+    arr = read_rgb8(path, what)
+    if (arr.shape[1], arr.shape[0]) != (width, height):
+        raise JsgsError(
+            f"{path}: {what} is {arr.shape[1]}x{arr.shape[0]} but its camera is {width}x{height} "
+            "(the trainer never resamples images)"
+        )
     return torch.from_numpy(arr)
 
 

@@ -191,7 +191,7 @@ def validate_cmd(scene: Path, test_every: int) -> None:
     problem, one line each, and exits 1."""
     from jsgstools.validate import validate_scene
 
-    report = validate_scene(scene)
+    report = validate_scene(scene, decode=True)
     for w in report.warnings:
         click.echo(f"warning: {w}")
     if report.problems:
