@@ -37,6 +37,7 @@ class JpegState:
     quality_exact: bool  # tables are exactly IJG's at ``quality``
     precision: int  # 8 or 16 (bits per table entry)
     frame: str | None  # "baseline", "progressive", ...
+    color_space: str | None = None  # "YCbCr", "RGB", "CMYK", "YCCK", "gray" (None: not recorded)
 
 
 @dataclass(frozen=True)
@@ -205,6 +206,7 @@ def _jpeg(d: dict[str, Any] | None) -> JpegState | None:
         quality_exact=bool(d["quality_exact"]),
         precision=int(d["precision"]),
         frame=d.get("frame"),
+        color_space=d.get("color_space"),
     )
 
 

@@ -10,8 +10,8 @@ Problems (each one line, naming the file; any problem means exit code 1):
 - a camera model other than the pinhole ones (SIMPLE_PINHOLE, PINHOLE) and the distorted ones ``compress`` can
   undistort (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV); non-finite or non-positive intrinsics;
 - a non-finite pose; an image name used twice; no registered image; no points3D, or non-finite points;
-- with ``decode`` (the ``validate`` command), an image that cannot be decoded (truncated, over the pixel limit:
-  :mod:`jsgs.images`), as compress and the trainer would find it; an unreadable ``compress.json``.
+- with ``decode`` (the ``validate`` command), an image that cannot be decoded (truncated, over the pixel
+  limit: :mod:`jsgs.images`), as compress and the trainer would find it; an unreadable ``compress.json``.
 
 Warnings (reported, exit code still 0): distorted cameras — they need undistortion, which ``compress`` does
 before encoding (``manifest`` records the distortion as is, and the trainer refuses distorted views);

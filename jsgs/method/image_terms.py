@@ -160,6 +160,11 @@ def view_tables(views: list[View], device: torch.device, where: str) -> dict[int
         j = v.jpeg
         if j is None:
             continue
+        if j.color_space not in (None, "YCbCr", "gray"):
+            raise JsgsError(
+                f"{where}: view {v.name!r} is a {j.color_space} JPEG; the JPEG observation operator models "
+                "YCbCr JPEGs only (train it with --method gsplat, or re-encode it as a YCbCr JPEG)"
+            )
         if j.chroma_table is None or j.sampling == "gray":
             raise JsgsError(
                 f"{where}: view {v.name!r} is a greyscale JPEG; the JPEG observation operator handles colour "

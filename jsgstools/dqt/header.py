@@ -164,6 +164,7 @@ class JpegHeader:
             "quality_exact": self.quality.exact,
             "precision": precision,
             "frame": self.frame_name,
+            "color_space": self.color_space,
         }
 
 

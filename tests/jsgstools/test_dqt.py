@@ -471,7 +471,9 @@ def test_manifest_state(mode: str) -> None:
         "quality_exact",
         "precision",
         "frame",
+        "color_space",
     }
+    assert state["color_space"] == ("gray" if mode == "L" else "YCbCr")
     assert state["luma_table"] == ijg_tables(33)[0].tolist() and state["quality"] == 33
     assert state["quality_exact"] is True and state["precision"] == 8 and state["frame"] == "baseline"
     if mode == "L":

@@ -1,0 +1,45 @@
+"""The manifest records each JPEG's colour transform, and JSGS refuses the states its observation operator
+cannot represent (CMYK, YCCK, RGB-coded), naming the view."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from jsgs.errors import JsgsError
+from jsgs.manifest import JpegState
+from jsgs.method.image_terms import view_tables
+from jsgstools.dqt import parse_header
+
+
+def _jpeg(mode: str) -> bytes:
+    rng = np.random.default_rng(0)
+    im = Image.fromarray(rng.integers(0, 255, (16, 16, 3), dtype=np.uint8)).convert(mode)
+    buf = io.BytesIO()
+    im.save(buf, format="JPEG", quality=60)
+    return buf.getvalue()
+
+
+def test_colour_transform_is_recorded() -> None:
+    assert parse_header(_jpeg("RGB"), "a.jpg").manifest_state()["color_space"] == "YCbCr"
+    assert parse_header(_jpeg("CMYK"), "c.jpg").manifest_state()["color_space"] in ("CMYK", "YCCK")
+
+
+class _View:
+    def __init__(self, name: str, jpeg: JpegState) -> None:
+        self.index, self.name, self.jpeg = 0, name, jpeg
+
+
+@pytest.mark.parametrize("space", ["CMYK", "YCCK", "RGB"])
+def test_jsgs_refuses_what_jo_cannot_represent(space: str, tmp_path: Path) -> None:
+    t = np.full((8, 8), 4, dtype=np.int32)
+    state = JpegState(t, t, "4:2:0", 90, False, 8, "baseline", color_space=space)
+    with pytest.raises(JsgsError, match=f"view 'v.jpg' is a {space} JPEG"):
+        view_tables([_View("v.jpg", state)], torch.device("cpu"), "m.json")  # type: ignore[list-item]
+    ok = JpegState(t, t, "4:2:0", 90, False, 8, "baseline", color_space="YCbCr")
+    assert 0 in view_tables([_View("v.jpg", ok)], torch.device("cpu"), "m.json")  # type: ignore[list-item]
