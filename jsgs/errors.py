@@ -11,3 +11,7 @@ def one_line(err: BaseException) -> str:
 class JsgsError(Exception):
     """Bad input or a refused operation. ``str(err)`` is the whole user-facing message: it names the file
     and what is wrong."""
+
+
+class Terminated(Exception):  # noqa: N818 - named for the signal, like KeyboardInterrupt
+    """SIGTERM reached a command that installed :func:`jsgs.cli._common.terminate_on_sigterm` (exit 143)."""

@@ -9,7 +9,7 @@ from typing import Any, TypeVar
 
 import click
 
-from jsgs.errors import JsgsError
+from jsgs.errors import JsgsError, Terminated
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -35,6 +35,8 @@ def user_errors(func: F) -> F:
             fail(f"{e.filename}: {e.strerror}" if e.filename else f"{e.strerror or e}")
         except KeyboardInterrupt:
             fail("interrupted", 130)
+        except Terminated:
+            fail("terminated (SIGTERM)", 143)
 
     return wrapper  # type: ignore[return-value]
 
@@ -57,3 +59,19 @@ def invocation(ctx: click.Context, program: str) -> str:
         flag = max(param.opts, key=len)
         opts += [flag] if value is True else [flag, str(value)]
     return shlex.join(args + opts)
+
+
+def terminate_on_sigterm() -> None:
+    """SIGTERM raises :class:`~jsgs.errors.Terminated` in the main thread (one line, exit 143, the usual
+    cleanup of atomic writes and locks) instead of a native handler's stack dump: pycolmap installs glog's
+    failure handler, which prints one on SIGTERM, when it is imported, so call this after importing it."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def _raise(signum: int, frame: object) -> None:
+        raise Terminated()
+
+    signal.signal(signal.SIGTERM, _raise)
