@@ -37,7 +37,7 @@ import io
 import os
 import shlex
 from collections.abc import Sequence
-from concurrent.futures import FIRST_EXCEPTION, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -262,7 +262,8 @@ def _run_all(tasks: list[Task], jobs: int, progress: bool) -> list[dict[str, Any
             pending = set(futures)
             try:
                 while pending:
-                    done, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                    # one view at a time: the bar advances per finished view; an error stops the rest
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for f in done:
                         results.append(f.result())  # re-raises a worker's error
                         bar.update()

@@ -55,3 +55,17 @@ def test_cli_reference_is_current() -> None:
     assert set(on_disk) == set(pages), "run scripts/cli_reference.py"
     for name, text in pages.items():
         assert on_disk[name] == text, f"docs/cli/{name} is stale: run scripts/cli_reference.py"
+
+
+def test_every_command_help_ends_with_an_example() -> None:
+    from click.testing import CliRunner
+
+    from jsgs.cli import main as jsgs_main
+    from jsgstools.cli import main as tools_main
+
+    for group, prog in ((jsgs_main, "jsgs"), (tools_main, "jsgstools")):
+        for name in group.commands:
+            out = CliRunner().invoke(group, [name, "--help"]).output
+            tail = out.rstrip().splitlines()[-2:]
+            assert tail[0].strip() == "Example:", (name, tail)
+            assert tail[1].strip().startswith(f"{prog} {name}"), (name, tail)

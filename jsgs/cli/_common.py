@@ -15,6 +15,8 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 #: every group and command answers -h as well as --help, also when a command is invoked on its own
 CONTEXT: dict[str, Any] = {"help_option_names": ["-h", "--help"]}
+#: the end of every command's --help (``epilog=EXAMPLE.format(command line)``; \b: click keeps the lines)
+EXAMPLE = "\b\nExample:\n  {}"
 
 
 def fail(message: str, code: int = 1) -> None:

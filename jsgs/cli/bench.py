@@ -6,10 +6,16 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, invocation, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
 
 
-@click.command("bench", context_settings=CONTEXT)
+@click.command(
+    "bench",
+    context_settings=CONTEXT,
+    epilog=EXAMPLE.format(
+        "jsgs bench ../shared/scenes/llff_fern --out results --strategy mcmc --budgets 300k --seeds 0,1,2"
+    ),
+)
 @click.argument("scenes", nargs=-1, required=True, type=click.Path(path_type=Path, file_okay=False))
 @click.option(
     "--out",

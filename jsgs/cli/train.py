@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from jsgs.cli._common import CONTEXT, invocation, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
 from jsgs.errors import JsgsError
 
 
@@ -23,7 +23,11 @@ def _parse_steps(text: str) -> list[int]:
         ) from None
 
 
-@click.command("train", context_settings=CONTEXT)
+@click.command(
+    "train",
+    context_settings=CONTEXT,
+    epilog=EXAMPLE.format("jsgs train flower_gaussian/manifest.json --out runs/jsgs --method jsgs"),
+)
 @click.argument("manifest", type=click.Path(path_type=Path, dir_okay=False))
 @click.option(
     "--out",

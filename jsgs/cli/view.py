@@ -7,13 +7,13 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, user_errors
 
 
 @click.command(
     "view",
     context_settings=CONTEXT,
-    epilog="Example: jsgs view runs/flower --port 8080   (then open http://localhost:8080)",
+    epilog=EXAMPLE.format("jsgs view runs/flower --port 8080 (then open http://localhost:8080)"),
 )
 @click.argument("run", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--host", default="127.0.0.1", show_default=True, help="Address to serve on (0.0.0.0: all).")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, invocation, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
 from jsgs.io import OutputLock
 
 SCHEDULE_HELP = (
@@ -19,7 +19,11 @@ SCHEDULE_HELP = (
 )
 
 
-@click.command("synth", context_settings=CONTEXT)
+@click.command(
+    "synth",
+    context_settings=CONTEXT,
+    epilog=EXAMPLE.format("jsgstools synth demo_scene --views 24 --size 96x72"),
+)
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option("--views", default=32, show_default=True, help="Number of cameras on the ring (2..1000).")
 @click.option("--size", default="160x120", show_default=True, help="Image size WIDTHxHEIGHT in pixels.")
@@ -77,7 +81,13 @@ def synth_cmd(
     click.echo(f"wrote {out}/images/ ({res.views} PNG) and {out}/sparse/0/")
 
 
-@click.command("compress", context_settings=CONTEXT)
+@click.command(
+    "compress",
+    context_settings=CONTEXT,
+    epilog=EXAMPLE.format(
+        "jsgstools compress ../shared/scenes/llff_flower --out flower_gaussian --schedule gaussian"
+    ),
+)
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder DIR.")
 @click.option(
@@ -177,7 +187,11 @@ def compress_cmd(
     )
 
 
-@click.command("validate", context_settings=CONTEXT)
+@click.command(
+    "validate",
+    context_settings=CONTEXT,
+    epilog=EXAMPLE.format("jsgstools validate flower_gaussian"),
+)
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option("--test-every", default=8, show_default=True, help="Only for the split line of the summary.")
 @user_errors
@@ -203,7 +217,11 @@ def validate_cmd(scene: Path, test_every: int) -> None:
     click.echo("ok")
 
 
-@click.command("manifest", context_settings=CONTEXT)
+@click.command(
+    "manifest",
+    context_settings=CONTEXT,
+    epilog=EXAMPLE.format("jsgstools manifest my_scene --out my_scene/manifest.json"),
+)
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option(
     "--out",

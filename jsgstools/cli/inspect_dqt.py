@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, user_errors
 
 
 def _emit(text: str, err: bool = False) -> None:
@@ -21,7 +21,11 @@ def _emit(text: str, err: bool = False) -> None:
         sys.exit(1)
 
 
-@click.command("inspect-dqt", context_settings=CONTEXT)
+@click.command(
+    "inspect-dqt",
+    context_settings=CONTEXT,
+    epilog=EXAMPLE.format("jsgstools inspect-dqt --analyze scene/images/*.jpg"),
+)
 @click.argument("images", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option(
     "--json",
@@ -62,10 +66,6 @@ def inspect_dqt(images: tuple[Path, ...], as_json: bool, show_tables: bool, anal
     saved, then saved again at a higher quality). The DOUBLE column reads "no", or "yes qNN" with the
     closest IJG quality of the earlier tables, and the confidence in that verdict; --json adds the earlier
     and the effective tables (per coefficient the coarser of the two steps).
-
-    \b
-    Example:
-      jsgstools inspect-dqt --analyze scene/images/*.jpg
     """
     from jsgstools.dqt import dumps_json, format_table, inspect_files
 
