@@ -15,11 +15,12 @@ def main() -> None:
 
 
 def _register() -> None:
-    from jsgs.cli import bench, train, view
+    from jsgs.cli import bench, export, train, view
 
     train.register(main)
     bench.register(main)
     view.register(main)
+    export.register(main)
 
 
 _register()

@@ -63,7 +63,12 @@ if TYPE_CHECKING:
 METRICS_FORMAT = "jsgs-metrics"
 METRICS_VERSION = 1
 # What a run writes into RUN/ (--force removes exactly these, nothing else).
-RUN_ENTRIES = ("config.json", "metrics.json", "point_cloud.ply", "renders", "checkpoints")
+#: the same Gaussians in the scene's COLMAP frame (``jsgs export``'s default), written beside point_cloud.ply
+COLMAP_PLY = "point_cloud_colmap.ply"
+RUN_ENTRIES = (
+    "config.json", "metrics.json", "point_cloud.ply", COLMAP_PLY, f"{COLMAP_PLY}.json", "renders",
+    "checkpoints",
+)  # fmt: skip
 
 
 class TrainingDiverged(JsgsError):
@@ -779,11 +784,15 @@ class Trainer:
         }
 
     def export_ply(self) -> None:
-        """Write ``point_cloud.ply`` (3DGS layout, normalised training world)."""
+        """Write ``point_cloud.ply`` (3DGS layout, normalised training world: what resume, the viewer and the
+        tests read) and ``point_cloud_colmap.ply`` (the same in the scene's COLMAP frame, for other tools;
+        :func:`jsgs.export.export_run`)."""
+        from jsgs.export import export_run
         from jsgs.ply import save_ply
 
         s = self.splats
         save_ply(self.paths.ply, s["means"], s["scales"], s["quats"], s["opacities"], s["sh0"], s["shN"])
+        export_run(self.paths.root, self.paths.root / COLMAP_PLY, "ply", "colmap", force=True)
 
     def train(self) -> dict[str, Any]:
         """Set up, run the steps up to ``stop_at`` (or the end) with evaluations and checkpoints, write the
