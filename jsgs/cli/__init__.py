@@ -15,12 +15,13 @@ def main() -> None:
 
 
 def _register() -> None:
-    from jsgs.cli import bench, export, train, view
+    from jsgs.cli import bench, export, render, train, view
 
     train.register(main)
     bench.register(main)
     view.register(main)
     export.register(main)
+    render.register(main)
 
 
 _register()

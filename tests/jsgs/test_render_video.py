@@ -1,0 +1,134 @@
+"""``jsgs render``: camera paths (interpolation through the key cameras, orbits looking at the focus point),
+a video readable by imageio with the requested frames, PNG frames, the path JSON rendered again to the same
+frames, the test views beside their references, saved viewer cameras as key frames, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _train_scene import make_scene
+from click.testing import CliRunner
+from PIL import Image
+
+from jsgs.camera_path import focus_point, interpolate, look_at, orbit, scaled_K
+
+
+def _ring(n: int) -> np.ndarray:
+    c2w = []
+    for k in range(n):
+        a = 0.3 * k
+        pos = np.array([4 * math.cos(a), 0.5, 4 * math.sin(a)])
+        c2w.append(look_at(pos, np.zeros(3), np.array([0.0, 1.0, 0.0])))
+    return np.stack(c2w)
+
+
+def test_interpolation_passes_through_the_key_cameras() -> None:
+    keys = _ring(4)
+    path = interpolate(keys, 7)  # 3 segments, 2 frames each: keys at frames 0, 2, 4, 6
+    for i, k in zip((0, 2, 4, 6), keys, strict=True):
+        assert np.allclose(path[i], k, atol=1e-9)
+    for c in path:  # proper rotations
+        assert np.allclose(c[:3, :3] @ c[:3, :3].T, np.eye(3), atol=1e-9) and np.linalg.det(c[:3, :3]) > 0
+
+
+def test_orbits_look_at_the_focus_point() -> None:
+    keys = _ring(6)
+    f = focus_point(keys)
+    assert np.allclose(f, 0.0, atol=1e-6)  # every camera looks at the origin
+    for kind in ("spiral", "ellipse"):
+        path = orbit(keys, 10, kind)
+        for c in path:
+            d = f - c[:3, 3]
+            assert np.allclose(c[:3, 2], d / np.linalg.norm(d), atol=1e-9)
+        assert len({tuple(np.round(c[:3, 3], 6)) for c in path}) == 10  # it moves
+
+
+def test_scaled_intrinsics_keep_the_field_of_view() -> None:
+    K = np.array([[30.0, 0, 16.0], [0, 30.0, 12.0], [0, 0, 1]])
+    K2 = scaled_K(K, 32, 24, 64, 48)
+    assert np.allclose(K2, [[60, 0, 32], [0, 60, 24], [0, 0, 1]])
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from jsgs.cli import main
+
+    root = tmp_path_factory.mktemp("render")
+    manifest = make_scene(root / "scene", width=32, height=24)
+    out = root / "run"
+    args = ["train", str(manifest), "--out", str(out), "--iterations", "20", "--eval-at", "20", "--device",
+            "cpu", "--quiet"]  # fmt: skip
+    r = CliRunner().invoke(main, args, catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_video_frames_and_path_round_trip(run: Path, tmp_path: Path) -> None:
+    import imageio.v2 as iio
+
+    from jsgs.cli import main
+    from jsgs.schemas import validate
+
+    video = tmp_path / "spiral.mp4"
+    args = ["render", str(run), "--out", str(video), "--path", "spiral", "--frames", "6", "--fps", "12",
+            "--size", "33x25", "--device", "cpu"]  # fmt: skip
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    reader = iio.get_reader(video)
+    assert reader.count_frames() == 6 and reader.get_meta_data()["fps"] == 12
+    assert reader.get_data(0).shape == (26, 34, 3)  # padded to even sizes for H.264
+    cams = json.loads((tmp_path / "spiral.mp4.cameras.json").read_text())
+    validate(cams, "camera_path", "cameras")
+    assert cams["kind"] == "spiral" and len(cams["camtoworld"]) == 6
+    assert (cams["width"], cams["height"]) == (33, 25)
+    # the same path as PNG frames, twice: from the generator and from its JSON
+    a, b = tmp_path / "a", tmp_path / "b"
+    r = CliRunner().invoke(main, ["render", str(run), "--out", str(a), "--path", "spiral", "--frames", "6",
+                                  "--size", "33x25", "--device", "cpu"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["render", str(run), "--out", str(b), "--path", str(a / "cameras.json"),
+                                  "--device", "cpu"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    fa, fb = sorted(a.glob("frame_*.png")), sorted(b.glob("frame_*.png"))
+    assert len(fa) == len(fb) == 6
+    for x, y in zip(fa, fb, strict=True):
+        assert (np.asarray(Image.open(x)) == np.asarray(Image.open(y))).all()
+    assert np.asarray(Image.open(fa[0])).std() > 1  # something drawn
+
+
+def test_test_views_beside_references_and_viewer_cameras(run: Path, tmp_path: Path) -> None:
+    from jsgs.cli import main
+    from jsgs.rotations import matrix_to_quat
+    from jsgs.viewer import load_run_model, save_camera
+
+    r = CliRunner().invoke(main, ["render", str(run), "--out", str(tmp_path / "t"), "--path", "test",
+                                  "--device", "cpu"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    frames = sorted((tmp_path / "t").glob("frame_*.png"))
+    model = load_run_model(run, "cpu")
+    assert len(frames) == len(model.scene.test_views)
+    assert Image.open(frames[0]).size == (64, 24)  # render | reference
+    for v in model.scene.train_views[:2]:
+        save_camera(model, v.camtoworld[:3, 3], matrix_to_quat(v.camtoworld[:3, :3]), 0.9, 4 / 3)
+    args = ["render", str(run), "--out", str(tmp_path / "v"), "--path", str(run / "viewer_cameras.json"),
+            "--frames", "3", "--device", "cpu"]  # fmt: skip
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert len(list((tmp_path / "v").glob("frame_*.png"))) == 3
+
+
+def test_render_errors_are_one_line(run: Path, tmp_path: Path) -> None:
+    from jsgs.cli import main
+
+    for args, needle in (
+        (["--out", str(tmp_path / "x.mp4"), "--size", "big"], "--size 'big'"),
+        (["--out", str(tmp_path / "x.txt")], "give a video"),
+        (["--out", str(tmp_path / "x.mp4"), "--path", str(tmp_path / "none.json")], "no such file"),
+        (["--out", str(tmp_path / "x.mp4"), "--fps", "0"], "--fps 0"),
+    ):
+        r = CliRunner().invoke(main, ["render", str(run), *args, "--device", "cpu"])
+        assert r.exit_code == 1 and needle in r.output and r.output.count("\n") == 1, r.output
