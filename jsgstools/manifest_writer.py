@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 import shlex
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -100,13 +101,14 @@ def build_manifest(
     test_every: int | None = None,
     producer: dict[str, Any] | None = None,
     command: str | None = None,
+    say: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """The manifest document for ``scene_dir``, with paths relative to ``out``'s folder (nothing is written).
 
     ``test_every``: None = the compress record's value, or 8 for a scene without one; a value that contradicts
     the record is an error (the split of a compressed scene is fixed: its test views were not compressed).
     ``producer``: given by ``compress``; otherwise this tool's own."""
-    from .validate import require_valid
+    from .validate import orientation_warning, require_valid
 
     scene_dir, out = Path(scene_dir), Path(out)
     record = read_record(scene_dir)
@@ -114,6 +116,8 @@ def build_manifest(
     report = require_valid(scene_dir, allow=("camera_model",))
     scene = report.scene
     assert scene is not None
+    if say is not None and (w := orientation_warning(scene)) is not None:
+        say(w)
     base = out.parent
 
     if record is not None:
@@ -130,9 +134,12 @@ def build_manifest(
             raise JsgsError(f"{scene_dir / RECORD}: image {missing[0]!r} of the model is not in the record")
     else:
         test_every = 8 if test_every is None else test_every
-        if test_every < 1:
-            raise JsgsError(f"--test-every {test_every}: must be at least 1")
-        split = {v.name: ("test" if i % test_every == 0 else "train") for i, v in enumerate(scene.views)}
+        if test_every < 0:
+            raise JsgsError(f"--test-every {test_every}: must be 0 (no test views) or at least 1")
+        split = {
+            v.name: ("test" if test_every and i % test_every == 0 else "train")
+            for i, v in enumerate(scene.views)
+        }
 
     views = []
     for v in scene.views:
@@ -241,6 +248,7 @@ def manifest(
     test_every: int | None = None,
     force: bool = False,
     command: str | None = None,
+    say: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Build and write the manifest of ``scene_dir`` to ``out``; refuses to replace a file unless
     ``force``."""
@@ -251,6 +259,6 @@ def manifest(
         raise JsgsError(f"{out}: exists (use --force to replace it)")
     if out.exists() and not _is_manifest(out):
         raise JsgsError(f"{out}: is not a jsgs manifest; --force replaces only a manifest (choose another)")
-    doc = build_manifest(scene_dir, out, test_every=test_every, command=command)
+    doc = build_manifest(scene_dir, out, test_every=test_every, command=command, say=say)
     write_manifest(doc, out)
     return doc

@@ -129,6 +129,7 @@ class SceneView:
     size: tuple[int, int] | None  # (width, height) of the file in pixels; None when missing or unreadable
     format: str | None  # Pillow's format name ("PNG", "JPEG", ...)
     read_error: str | None = None  # why the file could not be opened
+    orientation: int = 1  # EXIF Orientation tag (1: as stored; every tool uses the stored pixels, as COLMAP)
 
 
 @dataclass
@@ -147,6 +148,10 @@ class ColmapScene:
     points_rgb: np.ndarray  # (N, 3) uint8
     duplicate_names: dict[str, list[int]] = field(default_factory=dict)  # name -> image ids, when repeated
     reconstruction: Any = None  # the pycolmap.Reconstruction it was read from
+    #: image files under images/ that no registered view of the model uses (photos SfM could not register)
+    unused_files: list[str] = field(default_factory=list)
+    #: other model folders under sparse/ (pycolmap writes one per disconnected reconstruction)
+    other_models: list[str] = field(default_factory=list)
 
     @property
     def name(self) -> str:
@@ -214,8 +219,9 @@ def image_stem(name: str) -> str:
     return (rel.parent / rel.stem).as_posix() if rel.suffix else rel.as_posix()
 
 
-def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | None]:
-    """(size, format, error) from the file header; Pillow opens lazily, so no pixels are decoded."""
+def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | None, int]:
+    """(size, format, error, EXIF orientation) from the file header; Pillow opens lazily, so no pixels are
+    decoded."""
     from PIL import Image, UnidentifiedImageError
 
     from jsgs.images import ENV_MAX_PIXELS, apply_pixel_limit
@@ -223,11 +229,15 @@ def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | 
     apply_pixel_limit()
     try:
         with Image.open(path) as im:
-            return (int(im.width), int(im.height)), str(im.format), None
+            try:
+                orientation = int(im.getexif().get(0x0112, 1) or 1)
+            except Exception:  # noqa: BLE001 - a broken EXIF block is not the image's problem here
+                orientation = 1
+            return (int(im.width), int(im.height)), str(im.format), None, orientation
     except Image.DecompressionBombError as e:
-        return None, None, f"exceeds the pixel limit ({e}); raise it with ${ENV_MAX_PIXELS}"
+        return None, None, f"exceeds the pixel limit ({e}); raise it with ${ENV_MAX_PIXELS}", 1
     except (UnidentifiedImageError, OSError, ValueError) as e:
-        return None, None, f"cannot read image: {e}"
+        return None, None, f"cannot read image: {e}", 1
 
 
 def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
@@ -266,9 +276,12 @@ def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
         t = np.asarray(pose.translation, dtype=np.float64).reshape(3)
         path = resolve_image(images_dir, str(im.name)) if have_dir else None
         size = fmt_name = err = None
+        orientation = 1
         if path is not None:
-            size, fmt_name, err = _probe_image(path)
-        views.append(SceneView(int(iid), str(im.name), int(im.camera_id), R, t, path, size, fmt_name, err))
+            size, fmt_name, err, orientation = _probe_image(path)
+        views.append(
+            SceneView(int(iid), str(im.name), int(im.camera_id), R, t, path, size, fmt_name, err, orientation)
+        )
     views.sort(key=lambda v: (v.name, v.image_id))
     n = len(rec.points3D)
     xyz = np.zeros((n, 3), dtype=np.float64)
@@ -279,7 +292,26 @@ def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
         rgb[i] = p.color
     if fmt == "text":
         check_points_finite(model_dir / "points3D.txt", xyz)
+    used = {v.path.resolve() for v in views if v.path is not None}
+    unused = (
+        sorted(
+            p.relative_to(images_dir).as_posix()
+            for p in images_dir.rglob("*")
+            if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and p.resolve() not in used
+        )
+        if have_dir
+        else []
+    )
+    others = []
+    if (root / "sparse").is_dir():
+        for d in sorted((root / "sparse").iterdir()):
+            if not d.is_dir() or d.resolve() == model_dir.resolve():
+                continue
+            if any((d / f"cameras{ext}").is_file() for ext in (".bin", ".txt")):
+                others.append(d.relative_to(root).as_posix())
     return ColmapScene(
+        unused_files=unused,
+        other_models=others,
         root=root,
         model_dir=model_dir,
         model_format=fmt,
@@ -329,12 +361,19 @@ def detect_downscale(scene: ColmapScene) -> Downscale:
         w, h = v.size
         fw = cam.width / w
         if abs(cam.height / fw - h) > 1.0:
+            turned = abs(cam.height / (cam.width / h) - w) <= 1.0
+            hint = (
+                f"; rotated by 90° it would match (EXIF Orientation {v.orientation}: the tools use the "
+                "stored pixels, as COLMAP does; store the photo upright, or give COLMAP the stored one)"
+                if turned
+                else ""
+            )
             problems.append(
                 (
                     v.name,
                     f"size {w}x{h} does not match its camera {v.camera_id} "
                     f"({cam.width}x{cam.height}) at any one factor (width ratio {cam.width / w:.4g}, "
-                    f"height ratio {cam.height / h:.4g})",
+                    f"height ratio {cam.height / h:.4g}){hint}",
                 )
             )
             continue

@@ -15,7 +15,8 @@ Problems (each one line, naming the file; any problem means exit code 1):
 
 Warnings (reported, exit code still 0): distorted cameras — they need undistortion, which ``compress`` does
 before encoding (``manifest`` records the distortion as is, and the trainer refuses distorted views);
-images in the model without a pose (ignored by every tool); a camera that sees none of the points3D.
+images in the model without a pose (ignored by every tool); a camera that sees none of the points3D; image
+files the model does not use (photos SfM could not register); other models under ``sparse/``.
 """
 
 from __future__ import annotations
@@ -76,7 +77,9 @@ class ValidationReport:
         formats = Counter(v.format for v in s.views if v.format is not None)
         cam_sizes = Counter((c.width, c.height) for c in s.cameras.values())
         n = len(s.views)
-        n_test = len(range(0, n, test_every))
+        n_test = len(range(0, n, test_every)) if test_every > 0 else 0
+        tests = [v for i, v in enumerate(s.views) if test_every > 0 and i % test_every == 0]
+        jpeg_tests = sum(1 for v in tests if v.format in JPEG_FORMATS)
         rows = [
             ("scene", str(self.root)),
             ("model", f"{s.rel(s.model_dir)}/ ({s.model_format})"),
@@ -102,9 +105,17 @@ class ValidationReport:
             (
                 "split",
                 f"every {test_every}th view by sorted name is test (index % {test_every} == 0): "
-                f"{n - n_test} train / {n_test} test",
+                f"{n - n_test} train / {n_test} test"
+                if test_every > 0
+                else f"--test-every 0: all {n} views train, no test views (no evaluation)",
             ),
         ]
+        if jpeg_tests and not (s.root / "compress.json").is_file():
+            rows.append((
+                "reference",
+                f"{jpeg_tests} of {n_test} test views are JPEGs with no lossless copy: the trainer evaluates "
+                "them against their JPEG (metrics.json reference jpeg)",
+            ))  # fmt: skip
         record = s.root / "compress.json"
         if record.is_file():
             try:
@@ -127,6 +138,18 @@ class ValidationReport:
         rows = self.summary_rows(test_every)
         width = max(len(k) for k, _ in rows)
         return "\n".join(f"{k.ljust(width)}  {v}" for k, v in rows)
+
+
+def orientation_warning(scene: ColmapScene) -> str | None:
+    """One line about the photos whose EXIF Orientation is not 1 (None when there are none)."""
+    turned = [v for v in scene.views if v.orientation != 1]
+    if not turned:
+        return None
+    eg = ", ".join(f"{v.name} ({v.orientation})" for v in turned[:5]) + (" ..." if len(turned) > 5 else "")
+    return (
+        f"{len(turned)} photo(s) with an EXIF Orientation other than 1: {eg}; every tool uses the stored "
+        "pixels as COLMAP does (the tag is ignored), so the model must have been made from them as stored"
+    )
 
 
 def _points_seen(scene: ColmapScene) -> list[tuple[object, int]]:
@@ -298,6 +321,22 @@ def validate_scene(root: str | Path, decode: bool = False) -> ValidationReport:
                 raise ValueError("settings.test_every or a view's split is not what compress writes")
         except (OSError, ValueError, KeyError, TypeError) as e:
             P.append(Problem("record", f"{scene.rel(record)}: unreadable ({type(e).__name__}: {e})"))
+
+    if (w := orientation_warning(scene)) is not None:
+        report.warnings.append(w)
+
+    # What the model leaves out.
+    if scene.unused_files:
+        names = ", ".join(scene.unused_files[:8]) + (" ..." if len(scene.unused_files) > 8 else "")
+        report.warnings.append(
+            f"{scene.rel(scene.images_dir)}: {len(scene.unused_files)} image file(s) not in the model (not "
+            f"registered; no tool uses them): {names}"
+        )
+    for other in scene.other_models:
+        report.warnings.append(
+            f"{scene.rel(scene.root / other)}: another COLMAP model (every tool reads "
+            f"{scene.rel(scene.model_dir)} only)"
+        )
 
     # Points.
     for v, n in _points_seen(scene):

@@ -196,6 +196,8 @@ def train_command(
             f"LPIPS {last['lpips']:.4f}" if last["lpips"] is not None else "LPIPS n/a",
         ]
         summary += f"; at step {last['step']}: " + ", ".join(parts)
+        if doc.get("reference") in ("jpeg", "mixed"):
+            summary += " (test views against their JPEGs: no lossless copy)"
     click.echo(summary)
     click.echo(f"outputs in {out}/ (metrics.json, config.json, point_cloud.ply, renders/, checkpoints/)")
 

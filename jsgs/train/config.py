@@ -186,8 +186,9 @@ class SceneConfig:
         1.1, "Scene scale = this x largest camera distance from the cameras' mean.", gt=0.0
     )
     require_lossless_reference: bool = _f(
-        True,
-        "Refuse test views whose only image is a JPEG (metrics are against uncompressed references).",
+        False,
+        "Refuse test views whose only image is a JPEG (else they are evaluated against their JPEG, stated as "
+        "reference jpeg in metrics.json).",
     )
 
 

@@ -100,6 +100,16 @@ class Scene:
     def test_views(self) -> list[View]:
         return [v for v in self.views if v.split == "test"]
 
+    @property
+    def reference_kind(self) -> str:
+        """What the test views are evaluated against: ``lossless`` (every one has a lossless image), ``jpeg``
+        (none has: their own JPEGs), ``mixed``, or ``none`` (no test views)."""
+        tests = self.test_views
+        lossy = sum(1 for v in tests if v.reference is None and v.jpeg is not None)
+        if not tests:
+            return "none"
+        return "lossless" if lossy == 0 else ("jpeg" if lossy == len(tests) else "mixed")
+
 
 def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
     """Read and check the manifest, normalise the world (gsplat's Parser), and compute the scene scale.
@@ -151,15 +161,13 @@ def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
     test = [m for m in metas if m["split"] == "test"]
     if not train:
         raise JsgsError(f"{where}: no training views (every view has split 'test')")
-    if cfg.eval_at and not test:
-        raise JsgsError(f"{where}: no test views to evaluate at steps {cfg.eval_at} (pass --eval-at '')")
     if cfg.scene.require_lossless_reference:
         for m in test:
             if m["reference"] is None and m["jpeg"] is not None:
                 raise JsgsError(
                     f"{where}: test view {m['name']!r} has only a JPEG image and no lossless reference; "
-                    "metrics are against uncompressed references (set scene.require_lossless_reference "
-                    "to false to evaluate against the JPEG)"
+                    "scene.require_lossless_reference is set (without it the view is evaluated against "
+                    "its JPEG)"
                 )
     if cfg.init.type == "sfm" and len(xyz) <= cfg.init.knn_neighbors:
         raise JsgsError(

@@ -457,7 +457,16 @@ class Trainer:
             torch.backends.cudnn.allow_tf32 = False
         self.train_views = scene.train_views
         self.train_images = load_train_images(scene, device)
-        self.eval_images = load_eval_images(scene, device) if cfg.eval_at else {}
+        # a manifest without test views (jsgstools manifest --test-every 0) trains without evaluations
+        self.eval_steps = list(cfg.eval_at) if scene.test_views else []
+        if cfg.eval_at and not scene.test_views:
+            self.say(f"note: the manifest has no test views; no evaluation at steps {cfg.eval_at}")
+        elif scene.reference_kind in ("jpeg", "mixed"):
+            self.say(
+                f"note: {scene.reference_kind} references: test views without a lossless image are evaluated "
+                "against their JPEG (metrics.json reference)"
+            )
+        self.eval_images = load_eval_images(scene, device) if self.eval_steps else {}
         if self.hook is None:
             # the method's own random draws (if any) must not shift the initialisation: every method starts
             # from the same Gaussians as the baseline for a given seed
@@ -745,7 +754,7 @@ class Trainer:
         cfg = self.cfg
         assert cfg is not None
         return (
-            step_done in cfg.eval_at
+            step_done in self.eval_steps
             or step_done == cfg.iterations
             or step_done == self.end_step
             or (cfg.checkpoint_every > 0 and step_done % cfg.checkpoint_every == 0)
@@ -770,6 +779,7 @@ class Trainer:
             "method": cfg.method,
             "scene": self.scene.name,
             "manifest": str(self.scene.manifest_path),
+            "reference": self.scene.reference_kind,
             "device": str(device),
             "device_name": _device_name(device),
             "backend": self.backend,
@@ -817,7 +827,7 @@ class Trainer:
                 if self.checkpoint_due(done) or self.interrupted is not None:
                     synchronize(self.device)
                     self.train_time += time.perf_counter() - self._clock
-                    if done in cfg.eval_at:
+                    if done in self.eval_steps:
                         self.evaluate(done)
                     self.fire("on_checkpoint", done)
                     self._clock = time.perf_counter()

@@ -27,10 +27,11 @@ def main(ctx: click.Context) -> None:
 
 def _register() -> None:
     # Each module adds its commands to ``main``; kept apart so each command's wrapper stays small.
-    from jsgstools.cli import dataset, inspect_dqt
+    from jsgstools.cli import dataset, inspect_dqt, sfm
 
     inspect_dqt.register(main)
     dataset.register(main)
+    sfm.register(main)
 
 
 _register()

@@ -193,7 +193,12 @@ def compress_cmd(
     epilog=EXAMPLE.format("jsgstools validate flower_gaussian"),
 )
 @click.argument("scene", type=click.Path(path_type=Path))
-@click.option("--test-every", default=8, show_default=True, help="Only for the split line of the summary.")
+@click.option(
+    "--test-every",
+    default=8,
+    show_default=True,
+    help="The split the summary describes (as manifest --test-every; 0: no test views).",
+)
 @user_errors
 def validate_cmd(scene: Path, test_every: int) -> None:
     """Check the COLMAP scene SCENE (model in sparse/0/ or sparse/, binary or text; images in images/).
@@ -234,8 +239,8 @@ def validate_cmd(scene: Path, test_every: int) -> None:
     "--test-every",
     type=int,
     default=None,
-    help="View i (sorted by image name) is a test view when i % N == 0 [default: 8, or the value a "
-    "compressed scene was made with].",
+    help="View i (sorted by image name) is a test view when i % N == 0; 0: every view trains, no test "
+    "views [default: 8, or the value a compressed scene was made with].",
 )
 @click.option("--force", is_flag=True, help="Replace an existing manifest (never another file).")
 @user_errors
@@ -250,7 +255,10 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, force: bool) ->
 
     command = invocation(click.get_current_context(), "jsgstools")
     with OutputLock(out.parent, f"jsgstools manifest (into {out})"):
-        doc = manifest(scene, out, test_every=test_every, force=force, command=command)
+        doc = manifest(
+            scene, out, test_every=test_every, force=force, command=command,
+            say=lambda s: click.echo(f"warning: {s}"),
+        )  # fmt: skip
     views = doc["views"]
     n_jpeg = sum(v["jpeg"] is not None for v in views)
     n_train = sum(v["split"] == "train" for v in views)

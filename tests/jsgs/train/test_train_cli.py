@@ -133,10 +133,34 @@ BAD: list[tuple[str, Callable[[dict[str, Any]], None] | None, str]] = [
     ("not a rotation", _set_view(1, "R", [[1, 0, 0], [0, 1, 0], [0, 0, 2]]), "not a rotation matrix"),
     ("schema", _set_view(1, "split", "val"), r"not a valid manifest file: at views/1/split"),
     ("no train", _all_split("test"), "no training views"),
-    ("no test", _all_split("train"), r"no test views to evaluate at steps \[2\]"),
     ("no points", _no_points, "0 points: SfM initialisation needs more than 3"),
-    ("jpeg test view", _jpeg_test_view, "test view 'view_000.png' has only a JPEG image and no lossless"),
 ]  # fmt: skip
+
+
+def test_jpeg_test_views_and_no_test_views_train(scene: Path, tmp_path: Path) -> None:
+    """A test view with no lossless copy is evaluated against its JPEG and says so; a manifest without test
+    views trains without evaluations; scene.require_lossless_reference refuses the first in one line."""
+    import json
+
+    manifest = _copy(scene, tmp_path / "a")
+    edit_manifest(manifest, _jpeg_test_view)
+    r = run(str(manifest), "--out", str(tmp_path / "ra"), "--device", "cpu", "--iterations", "2", "--eval-at",
+            "2", "--quiet")  # fmt: skip
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "ra" / "metrics.json").read_text())
+    assert doc["reference"] == "mixed" and len(doc["evals"]) == 1 and "against their JPEGs" in r.output
+    strict = tmp_path / "strict.json"
+    strict.write_text(json.dumps({"scene": {"require_lossless_reference": True}}))
+    r = run(str(manifest), "--out", str(tmp_path / "rs"), "--device", "cpu", "--iterations", "2", "--config",
+            str(strict), "--quiet")  # fmt: skip
+    one_line_error(r, "test view 'view_000.png' has only a JPEG image and no lossless")
+    manifest = _copy(scene, tmp_path / "b")
+    edit_manifest(manifest, _all_split("train"))
+    r = run(str(manifest), "--out", str(tmp_path / "rb"), "--device", "cpu", "--iterations", "2", "--eval-at",
+            "2", "--quiet")  # fmt: skip
+    assert r.exit_code == 0 and "no test views" in r.output, r.output
+    doc = json.loads((tmp_path / "rb" / "metrics.json").read_text())
+    assert doc["reference"] == "none" and doc["evals"] == [] and doc["status"] == "complete"
 
 
 @pytest.mark.parametrize("edit,pattern", [b[1:] for b in BAD], ids=[b[0] for b in BAD])
