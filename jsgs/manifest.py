@@ -38,6 +38,11 @@ class JpegState:
     precision: int  # 8 or 16 (bits per table entry)
     frame: str | None  # "baseline", "progressive", ...
     color_space: str | None = None  # "YCbCr", "RGB", "CMYK", "YCCK", "gray" (None: not recorded)
+    #: ``jsgstools manifest --analyze``: effective_luma_table / effective_chroma_table (8, 8) int32 and the
+    #: verdict, or None when the manifest was written without it
+    effective_luma_table: np.ndarray | None = None
+    effective_chroma_table: np.ndarray | None = None
+    double_compressed: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -207,7 +212,19 @@ def _jpeg(d: dict[str, Any] | None) -> JpegState | None:
         precision=int(d["precision"]),
         frame=d.get("frame"),
         color_space=d.get("color_space"),
+        **_analysis(d.get("analysis")),
     )
+
+
+def _analysis(a: dict[str, Any] | None) -> dict[str, Any]:
+    if not a:
+        return {}
+    ec = a.get("effective_chroma_table")
+    return {
+        "effective_luma_table": np.asarray(a["effective_luma_table"], dtype=np.int32),
+        "effective_chroma_table": None if ec is None else np.asarray(ec, dtype=np.int32),
+        "double_compressed": bool(a["double_compressed"]),
+    }
 
 
 def _camera(d: dict[str, Any]) -> ManifestCamera:

@@ -187,6 +187,7 @@ class Task:
     image: str  # output observed image (.jpg, or .png when quality is None)
     quality: int | None
     subsampling: int  # Pillow's value
+    recompress: int | None = None  # save the JPEG once more at this quality (decoded first)
 
 
 def _png_bytes(arr: np.ndarray) -> bytes:
@@ -234,6 +235,11 @@ def run_task(task: Task) -> dict[str, Any]:
     ref = _png_bytes(arr)
     write_bytes_atomic(task.reference, ref)
     data = ref if task.quality is None else jpeg_bytes(arr, task.quality, task.subsampling)
+    if task.quality is not None and task.recompress is not None:  # what an app does to a photo
+        from PIL import Image
+
+        again = np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+        data = jpeg_bytes(again, task.recompress, task.subsampling)
     write_bytes_atomic(task.image, data)
     return {"name": task.name, "bytes": len(data), "reference_bytes": len(ref)}
 
@@ -354,8 +360,13 @@ def compress(
     jobs: int | None = None,
     progress: bool = False,
     command: str | None = None,
+    recompress: int | None = None,
 ) -> CompressResult:
-    """Build the dataset described in the module docstring from ``scene_dir`` into ``out``."""
+    """Build the dataset described in the module docstring from ``scene_dir`` into ``out``. ``recompress``:
+    every JPEG training view is decoded and saved once more at that quality (its header then says
+    ``recompress`` while its pixels went through both: a photo saved twice)."""
+    if recompress is not None and not 1 <= recompress <= 100:
+        raise JsgsError(f"--recompress {recompress}: must be an IJG quality in 1..100")
     from . import manifest_writer as manifest_mod
     from .scene import write_model_atomic
     from .validate import require_valid
@@ -415,6 +426,7 @@ def compress(
             image=str(out / "images" / out_names[v.name]),
             quality=the_plan.quality[v.name],
             subsampling=ss_pil,
+            recompress=recompress,
         )
         for v in scene.views
     ]
@@ -429,6 +441,7 @@ def compress(
         f"--schedule {schedule}"
         + (f" --quality {quality}" if quality is not None else "")
         + f" --seed {seed} --test-every {test_every} --subsampling {subsampling}"
+        + (f" --recompress {recompress}" if recompress is not None else "")
     )
     settings = {
         "schedule": schedule,
@@ -442,6 +455,7 @@ def compress(
         "assignment_rule": ASSIGN_RULE,
         "downscale": downscale,
         "undistorted": undistorted,
+        "recompress": recompress,
     }
     record: dict[str, Any] = {
         "format": "jsgs-compress-record",

@@ -84,14 +84,20 @@ def camera_doc(scene: ColmapScene, view: SceneView) -> dict[str, Any]:
     }
 
 
-def jpeg_state(view: SceneView) -> dict[str, Any] | None:
-    """The manifest's ``jpeg`` object from the file header, or None for a lossless file."""
+def jpeg_state(view: SceneView, analyze: bool = False) -> dict[str, Any] | None:
+    """The manifest's ``jpeg`` object from the file header, or None for a lossless file; with ``analyze``,
+    also what the pixels say about its compression history (``analysis``: :mod:`jsgstools.dqt.analysis`)."""
     if view.format not in JPEG_FORMATS:
         return None
     from jsgstools.dqt import read_header
 
     assert view.path is not None
-    return read_header(view.path).manifest_state()
+    state = read_header(view.path).manifest_state()
+    if analyze:
+        from jsgstools.dqt.analysis import analyze_file
+
+        state["analysis"] = analyze_file(view.path).to_json()
+    return state
 
 
 def build_manifest(
@@ -102,6 +108,7 @@ def build_manifest(
     producer: dict[str, Any] | None = None,
     command: str | None = None,
     say: Callable[[str], None] | None = None,
+    analyze: bool = False,
 ) -> dict[str, Any]:
     """The manifest document for ``scene_dir``, with paths relative to ``out``'s folder (nothing is written).
 
@@ -153,7 +160,7 @@ def build_manifest(
                 "camera": camera_doc(scene, v),
                 "R": v.R.tolist(),
                 "t": v.t.tolist(),
-                "jpeg": jpeg_state(v),
+                "jpeg": jpeg_state(v, analyze),
                 "reference": _rel(ref, base) if ref.is_file() else None,
             }
         )
@@ -249,6 +256,7 @@ def manifest(
     force: bool = False,
     command: str | None = None,
     say: Callable[[str], None] | None = None,
+    analyze: bool = False,
 ) -> dict[str, Any]:
     """Build and write the manifest of ``scene_dir`` to ``out``; refuses to replace a file unless
     ``force``."""
@@ -259,6 +267,6 @@ def manifest(
         raise JsgsError(f"{out}: exists (use --force to replace it)")
     if out.exists() and not _is_manifest(out):
         raise JsgsError(f"{out}: is not a jsgs manifest; --force replaces only a manifest (choose another)")
-    doc = build_manifest(scene_dir, out, test_every=test_every, command=command, say=say)
+    doc = build_manifest(scene_dir, out, test_every=test_every, command=command, say=say, analyze=analyze)
     write_manifest(doc, out)
     return doc

@@ -140,6 +140,26 @@ class ValidationReport:
         return "\n".join(f"{k.ljust(width)}  {v}" for k, v in rows)
 
 
+def _double_compression_warnings(scene: ColmapScene) -> list[str]:
+    from jsgstools.dqt.analysis import analyze_file
+
+    out = []
+    for v in scene.views:
+        if v.path is None or v.format not in JPEG_FORMATS or v.read_error is not None:
+            continue
+        try:
+            a = analyze_file(v.path)
+        except JsgsError:
+            continue  # a JPEG the analysis cannot read (CMYK, 12-bit): reported by the other checks
+        if a.double_compressed:
+            out.append(
+                f"{scene.rel(v.path)}: compressed twice (an earlier quality of about {a.primary_quality}; "
+                f"confidence {a.confidence:.2f}): its header understates the damage (method_options.tables "
+                "effective uses the earlier tables)"
+            )
+    return out
+
+
 def orientation_warning(scene: ColmapScene) -> str | None:
     """One line about the photos whose EXIF Orientation is not 1 (None when there are none)."""
     turned = [v for v in scene.views if v.orientation != 1]
@@ -187,10 +207,11 @@ def _decode_error(path: Path) -> str | None:
     return None
 
 
-def validate_scene(root: str | Path, decode: bool = False) -> ValidationReport:
+def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False) -> ValidationReport:
     """Load ``root`` and check everything listed in the module docstring. Never raises for a bad scene.
     ``decode``: also decode every registered image (:func:`jsgs.images.read_rgb8`, what ``compress`` and
-    the trainer do), so a truncated file or one over the pixel limit is reported here first."""
+    the trainer do), so a truncated file or one over the pixel limit is reported here first. ``analyze``:
+    warn about JPEG views compressed twice (:mod:`jsgstools.dqt.analysis`)."""
     root = Path(root)
     report = ValidationReport(root=root, scene=None)
     try:
@@ -324,6 +345,8 @@ def validate_scene(root: str | Path, decode: bool = False) -> ValidationReport:
 
     if (w := orientation_warning(scene)) is not None:
         report.warnings.append(w)
+    if analyze:
+        report.warnings += _double_compression_warnings(scene)
 
     # What the model leaves out.
     if scene.unused_files:

@@ -210,7 +210,7 @@ class JsgsHook(LossHook):
         graphed = None
         folded: frozenset[str] = frozenset()
         folded_loss = None
-        if self._graphed is not None:
+        if self._graphed is not None and tab.first is None:  # the graph holds one quantization
             try:
                 with self.profiler.phase("jo"):  # JO, L_obs and DS: one graph replay ("ds" is in it)
                     graphed = self._graphed(x, y, tab.tables, tab.sampling)
@@ -231,7 +231,7 @@ class JsgsHook(LossHook):
                 r_map = r_map.clone()
         else:
             obs, terms["obs"], sup = jpeg_terms(
-                x, y, tab.luma, tab.chroma, sampling=tab.sampling, phase=self.profiler.phase,
+                x, y, tab.luma, tab.chroma, sampling=tab.sampling, phase=self.profiler.phase, first=tab.first,
                 **self._jpeg_settings, **self._jpeg_functions,
             )  # fmt: skip
             if self.keep_last:
@@ -360,7 +360,7 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
             "render.packed false (or train with --no-gc)"
         )
     use_cuda_graph(opts, device)  # its error before the tables are built
-    tables = view_tables(scene.train_views, device, str(scene.manifest_path))
+    tables = view_tables(scene.train_views, device, str(scene.manifest_path), opts.tables)
     return JsgsHook(
         opts,
         tables,

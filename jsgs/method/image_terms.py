@@ -50,6 +50,7 @@ def jpeg_terms(
     photometric: Callable[..., Tensor] = photometric_loss,
     supervise: Callable[..., DctSupervision] = dct_supervision,
     phase: Callable[[str], AbstractContextManager[Any]] = lambda name: nullcontext(),
+    first: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, DctSupervision | None]:
     """JO, L_obs and DS for one view: the one home of that chain, for the eager hook and for the graph.
 
@@ -58,18 +59,23 @@ def jpeg_terms(
         luma, chroma: ``(8, 8)`` the view's tables. The settings: as
             :class:`jsgs.method.options.JsgsOptions`.
         observe, photometric, supervise: the three functions (the hook passes torch.compile'd ones);
-        phase: a profiler's ``phase(name)`` context ("jo" around JO and L_obs, "ds" around DS).
+        phase: a profiler's ``phase(name)`` context ("jo" around JO and L_obs, "ds" around DS);
+        first: ``(2, 8, 8)`` effective tables of a view compressed twice: JO quantizes with them first, then
+            with ``luma``/``chroma`` (the file's history), and DS weights by their luma.
     Returns:
         The observation ``(1, 3, H, W)``, L_obs (0-dim) and the DS terms (None without DS and GC; with GC
         alone they are computed on the detached observation, so no graph runs through DS).
     """
     with phase("jo"):
+        if first is not None:
+            x = observe(x, first[0], first[1], sampling, mode)
         obs = observe(x, luma, chroma, sampling, mode)
         l_obs = photometric(obs, y, ssim_lambda, padding=ssim_padding, ssim_kernel=ssim_kernel)
     if not (ds or gc):
         return obs, l_obs, None
     with phase("ds"):
-        sup = supervise(obs if ds else obs.detach(), y, luma, eps_sm, eps_loss, eps_block)
+        ds_table = first[0] if first is not None else luma
+        sup = supervise(obs if ds else obs.detach(), y, ds_table, eps_sm, eps_loss, eps_block)
     return obs, l_obs, sup
 
 
@@ -131,6 +137,10 @@ class ViewJpeg:
     sampling: str
     #: σ² of the quantisation noise the tables imply (8-bit units²; :func:`quantization_noise_variance`)
     noise_variance: float = 0.0
+    #: ``method_options.tables: effective`` on a view compressed twice: [2, 8, 8] the effective tables (the
+    #: coarser of the earlier and the header's step per coefficient), quantized with before ``tables``; DS
+    #: weights by their luma. None: one quantization with ``tables``.
+    first: Tensor | None = None
 
     @property
     def luma(self) -> Tensor:
@@ -152,9 +162,13 @@ def quantization_noise_variance(luma: np.ndarray, chroma: np.ndarray) -> float:
     return float((np.mean(qy**2) + 2.0 * np.mean(qc**2)) / 36.0)
 
 
-def view_tables(views: list[View], device: torch.device, where: str) -> dict[int, ViewJpeg]:
+def view_tables(
+    views: list[View], device: torch.device, where: str, tables: str = "header"
+) -> dict[int, ViewJpeg]:
     """view index -> its tables and sampling for every JPEG training view. JsgsError naming the view when
-    JO cannot represent its JPEG state (greyscale, or a chroma sampling other than 4:4:4 / 4:2:2 / 4:2:0)."""
+    JO cannot represent its JPEG state (greyscale, or a chroma sampling other than 4:4:4 / 4:2:2 / 4:2:0).
+    ``tables`` effective: views the manifest's analysis finds compressed twice also get ``first`` (their
+    effective tables); a JPEG view without an analysis is a JsgsError."""
     out: dict[int, ViewJpeg] = {}
     for v in views:
         j = v.jpeg
@@ -175,11 +189,24 @@ def view_tables(views: list[View], device: torch.device, where: str) -> dict[int
                 f"{where}: view {v.name!r} has chroma sampling {j.sampling}; the JPEG observation operator "
                 f"supports {', '.join(SUPPORTED_SAMPLING)} (re-encode it, or train with --method gsplat)"
             )
-        tables = torch.as_tensor(np.stack([np.asarray(j.luma_table), np.asarray(j.chroma_table)]))
+        header = torch.as_tensor(np.stack([np.asarray(j.luma_table), np.asarray(j.chroma_table)]))
+        first = None
+        if tables == "effective":
+            if j.effective_luma_table is None:
+                raise JsgsError(
+                    f"{where}: view {v.name!r} has no compression analysis; method_options.tables effective "
+                    "needs a manifest written with jsgstools manifest --analyze"
+                )
+            if j.double_compressed:
+                ec = j.effective_chroma_table if j.effective_chroma_table is not None else j.chroma_table
+                eff = np.stack([np.asarray(j.effective_luma_table), np.asarray(ec)])
+                first = torch.as_tensor(eff).to(device, torch.float32).reshape(2, 8, 8)
+        noise = (first.cpu().numpy() if first is not None else header.numpy()).astype(np.float64)
         out[v.index] = ViewJpeg(
-            tables.to(device, torch.float32).reshape(2, 8, 8),
+            header.to(device, torch.float32).reshape(2, 8, 8),
             j.sampling,
-            quantization_noise_variance(np.asarray(j.luma_table), np.asarray(j.chroma_table)),
+            quantization_noise_variance(noise[0], noise[1]),
+            first,
         )
     return out
 

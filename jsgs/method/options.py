@@ -74,6 +74,12 @@ class JsgsOptions:
     jpeg_mode: Literal["paper", "float", "exact"] = setting(
         "paper", "Forward of the JPEG observation operator's rounding (jsgs.jpeg.observe)."
     )
+    tables: Literal["header", "effective"] = setting(
+        "header",
+        "Which quantization a view went through: header (its file's tables) or effective (jsgstools "
+        "manifest --analyze: JO quantizes with the earlier, coarser tables first, then the header's, and DS "
+        "weights by the effective luma table; for photos saved twice).",
+    )
     jo: bool = setting(True, "JPEG observation (L_obs); DS and GC need it.")
     ds: bool = setting(True, "DCT supervision (L_low, L_mid).")
     gc: bool = setting(True, "Gaussian Controller (L_fro).")

@@ -117,6 +117,13 @@ def synth_cmd(
     help="Replace the outputs of an earlier compress in DIR (its .jsgstools.json); other files are kept.",
 )
 @click.option("--jobs", type=int, default=None, help="Worker processes [default: all cores].")
+@click.option(
+    "--recompress",
+    type=int,
+    default=None,
+    help="Save each JPEG training view once more at this quality, as an app re-saving a photo does (a "
+    "double-compressed dataset: its headers say this quality).",
+)
 @user_errors
 def compress_cmd(
     scene: Path,
@@ -128,6 +135,7 @@ def compress_cmd(
     subsampling: str,
     force: bool,
     jobs: int | None,
+    recompress: int | None,
 ) -> None:
     """Build a mixed-quality JPEG dataset in DIR from the clean scene SCENE (COLMAP model + lossless images).
 
@@ -152,6 +160,7 @@ def compress_cmd(
             jobs=jobs,
             progress=sys.stderr.isatty(),
             command=invocation(click.get_current_context(), "jsgstools"),
+            recompress=recompress,
         )
     rec = res.record
     st = rec["settings"]
@@ -199,8 +208,9 @@ def compress_cmd(
     show_default=True,
     help="The split the summary describes (as manifest --test-every; 0: no test views).",
 )
+@click.option("--analyze", is_flag=True, help="Also warn about JPEG views compressed twice (decodes them).")
 @user_errors
-def validate_cmd(scene: Path, test_every: int) -> None:
+def validate_cmd(scene: Path, test_every: int, analyze: bool) -> None:
     """Check the COLMAP scene SCENE (model in sparse/0/ or sparse/, binary or text; images in images/).
 
     Checks: every registered image exists (exact name, or the only file with the same stem), its size matches
@@ -210,7 +220,7 @@ def validate_cmd(scene: Path, test_every: int) -> None:
     problem, one line each, and exits 1."""
     from jsgstools.validate import validate_scene
 
-    report = validate_scene(scene, decode=True)
+    report = validate_scene(scene, decode=True, analyze=analyze)
     for w in report.warnings:
         click.echo(f"warning: {w}")
     if report.problems:
@@ -242,9 +252,15 @@ def validate_cmd(scene: Path, test_every: int) -> None:
     help="View i (sorted by image name) is a test view when i % N == 0; 0: every view trains, no test "
     "views [default: 8, or the value a compressed scene was made with].",
 )
+@click.option(
+    "--analyze",
+    is_flag=True,
+    help="Also record what each JPEG's pixels say about its compression history (double compression: "
+    "inspect-dqt --analyze), for method_options.tables effective.",
+)
 @click.option("--force", is_flag=True, help="Replace an existing manifest (never another file).")
 @user_errors
-def manifest_cmd(scene: Path, out: Path, test_every: int | None, force: bool) -> None:
+def manifest_cmd(scene: Path, out: Path, test_every: int | None, analyze: bool, force: bool) -> None:
     """Write the training manifest of SCENE (one made by compress, or your own JPEG/PNG collection with its
     COLMAP cameras) to OUT, validated against jsgs/schemas/manifest.schema.json.
 
@@ -257,7 +273,7 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, force: bool) ->
     with OutputLock(out.parent, f"jsgstools manifest (into {out})"):
         doc = manifest(
             scene, out, test_every=test_every, force=force, command=command,
-            say=lambda s: click.echo(f"warning: {s}"),
+            say=lambda s: click.echo(f"warning: {s}"), analyze=analyze,
         )  # fmt: skip
     views = doc["views"]
     n_jpeg = sum(v["jpeg"] is not None for v in views)
@@ -276,6 +292,13 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, force: bool) ->
         )
     refs = sum(v["reference"] is not None for v in views)
     click.echo(f"  {refs} view(s) have a lossless reference")
+    double = [v for v in views if v["jpeg"] and (v["jpeg"].get("analysis") or {}).get("double_compressed")]
+    if analyze:
+        click.echo(f"  {len(double)} JPEG view(s) compressed twice (the earlier, coarser tables recorded)")
+        for v in double[:10]:
+            q = v["jpeg"]["analysis"]["primary_quality"]
+            hq = v["jpeg"]["quality"]
+            click.echo(f"warning: {v['name']}: compressed twice (earlier quality about {q}, header {hq})")
     click.echo(f"wrote {out}")
 
 
