@@ -98,6 +98,7 @@ def rasterize(
     absgrad: bool = False,
     render_mode: RenderMode = "RGB",
     extra: Tensor | None = None,
+    distortion: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """Rasterise N 3D Gaussians into C pinhole cameras (gsplat 1.5.3 ``rasterization`` semantics).
 
@@ -120,6 +121,9 @@ def rasterize(
             background and returned as ``info["extra"]`` [C, H, W, E] (not in render_colors); the features
             themselves are ``info["extra_features"]``. Needs a colour render_mode. Rendered colours are
             unchanged by it; zero-valued features leave every other gradient unchanged too.
+        distortion: [C, 4] lens distortion (k1, k2, p1, p2: COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV) of each
+            camera; the image is rendered on the distorted pixel grid (reference backend only:
+            :func:`jsgs.render.reference.projection.distort`).
 
     Returns:
         render_colors [C, H, W, D(+1 with depth)], render_alphas [C, H, W, 1], info: gsplat's meta keys
@@ -138,6 +142,11 @@ def rasterize(
             raise ValueError(f"extra must be [N, E] or [C, N, E] with N={N}, C={C}; got {tuple(extra.shape)}")
         feats = extra if extra.dim() == 3 else extra[None].expand(C, -1, -1)
 
+    if distortion is not None:
+        if which != "torch":
+            raise ValueError("lens distortion renders with the reference backend only (backend='torch')")
+        if distortion.shape != (C, 4):
+            raise ValueError(f"distortion must be [C, 4] with C={C}; got {tuple(distortion.shape)}")
     if which == "torch":
         if packed:
             raise ValueError("the reference rasterizer implements the non-packed layout only (packed=False)")
@@ -145,7 +154,7 @@ def rasterize(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, backgrounds=backgrounds,
             eps2d=eps2d, radius_clip=radius_clip, absgrad=absgrad, render_mode=render_mode,
-            extra_channels=feats,
+            extra_channels=feats, distortion=distortion,
         )  # fmt: skip
     else:
         img, alpha, info = _rasterize_gsplat(

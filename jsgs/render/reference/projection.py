@@ -88,6 +88,32 @@ def covariance_3d(quats: Tensor, scales: Tensor) -> Tensor:
     return m @ m.transpose(-1, -2)
 
 
+def distort(u: Tensor, v: Tensor, dist: Tensor) -> tuple[Tensor, Tensor]:
+    """OpenCV's radial-tangential model on normalised image coordinates.
+
+    u, v: [C, N] ``x/z``, ``y/z``; dist: [C, 4] (k1, k2, p1, p2) — COLMAP's SIMPLE_RADIAL is (k, 0, 0, 0),
+    RADIAL (k1, k2, 0, 0), OPENCV (k1, k2, p1, p2). Returns the distorted (u_d, v_d) [C, N]."""
+    k1, k2, p1, p2 = (dist[:, i, None] for i in range(4))
+    r2 = u * u + v * v
+    radial = 1.0 + k1 * r2 + k2 * r2 * r2
+    ud = u * radial + 2.0 * p1 * u * v + p2 * (r2 + 2.0 * u * u)
+    vd = v * radial + p1 * (r2 + 2.0 * v * v) + 2.0 * p2 * u * v
+    return ud, vd
+
+
+def distortion_jacobian(u: Tensor, v: Tensor, dist: Tensor) -> Tensor:
+    """d(u_d, v_d) / d(u, v) of :func:`distort`: [C, N, 2, 2] (rows: u_d, v_d; columns: u, v)."""
+    k1, k2, p1, p2 = (dist[:, i, None] for i in range(4))
+    r2 = u * u + v * v
+    radial = 1.0 + k1 * r2 + k2 * r2 * r2
+    g = 2.0 * (k1 + 2.0 * k2 * r2)  # d radial / d(r²) x 2
+    du_du = radial + u * u * g + 2.0 * p1 * v + 6.0 * p2 * u
+    du_dv = u * v * g + 2.0 * p1 * u + 2.0 * p2 * v
+    dv_du = u * v * g + 2.0 * p1 * u + 2.0 * p2 * v
+    dv_dv = radial + v * v * g + 6.0 * p1 * v + 2.0 * p2 * u
+    return torch.stack([du_du, du_dv, dv_du, dv_dv], dim=-1).reshape(*u.shape, 2, 2)
+
+
 def project_gaussians(
     means: Tensor,
     quats: Tensor,
@@ -102,12 +128,16 @@ def project_gaussians(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     radius_clip: float = 0.0,
+    distortion: Tensor | None = None,
 ) -> Projected:
     """Project N Gaussians into C pinhole cameras exactly as gsplat's fused EWA projection.
 
     Args: means [N, 3] world; quats [N, 4] wxyz (any norm); scales [N, 3] activated, world units;
     opacities [N] in [0, 1] (only used for culling and the box extent, as gsplat does); viewmats [C, 4, 4]
-    world-to-camera (OpenCV axes); Ks [C, 3, 3]; width/height in pixels.
+    world-to-camera (OpenCV axes); Ks [C, 3, 3]; width/height in pixels. ``distortion`` [C, 4] (k1, k2,
+    p1, p2; :func:`distort`): the means are distorted and the 2D covariance is carried through the
+    distortion's Jacobian at the mean (a local linearisation, as EWA linearises the perspective), so the
+    image is rendered on the photo's own distorted pixel grid, never resampled.
     """
     C = viewmats.shape[0]
     Rw = viewmats[:, :3, :3]
@@ -134,8 +164,18 @@ def project_gaussians(
     J = torch.stack([fx / z, zero, -fx * tx / (z * z), zero, fy / z, -fy * ty / (z * z)], dim=-1).reshape(
         C, -1, 2, 3
     )
+    if distortion is not None:
+        # J = diag(fx, fy) · D(u, v) · P, P the perspective Jacobian of (x/z, y/z); D at the clamped point
+        P = torch.stack([1.0 / z, zero, -tx / (z * z), zero, 1.0 / z, -ty / (z * z)], dim=-1)
+        P = P.reshape(C, -1, 2, 3)
+        D = distortion_jacobian(tx / z, ty / z, distortion)
+        F = torch.stack([fx.expand_as(z), fy.expand_as(z)], dim=-1)[..., :, None]
+        J = F * (D @ P)
+        ud, vd = distort(x / z, y / z, distortion)
+        means2d = torch.stack([fx * ud + cx, fy * vd + cy], dim=-1)
+    else:
+        means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], dim=-1)
     cov2d = J @ cov_c @ J.transpose(-1, -2)
-    means2d = torch.stack([fx * x / z + cx, fy * y / z + cy], dim=-1)
 
     a = cov2d[..., 0, 0] + eps2d
     b = 0.5 * (cov2d[..., 0, 1] + cov2d[..., 1, 0])

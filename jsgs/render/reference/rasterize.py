@@ -33,6 +33,7 @@ def rasterize_torch(
     extra_channels: Tensor | None = None,
     chunk_pairs: int = CHUNK_PAIRS,
     save_pairs: int = SAVE_PAIRS,
+    distortion: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """The reference rasterizer; see ``jsgs.render.rasterize`` for the arguments and outputs.
 
@@ -43,6 +44,7 @@ def rasterize_torch(
     proj = project_gaussians(
         means, quats, scales, opacities, viewmats, Ks, width, height,
         eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+        distortion=distortion,
     )  # fmt: skip
     feats = [] if render_mode in ("D", "ED") else [prepare_colors(means, colors, viewmats, sh_degree)]
     bgs = []
