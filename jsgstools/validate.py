@@ -227,8 +227,8 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
         where = f"{scene.rel(scene.model_dir)}: camera {cid}"
         if cam.model in UNDISTORTABLE_MODELS:
             report.warnings.append(
-                f"{where}: {cam.model} with distortion {list(cam.distortion)} needs "
-                "undistortion (compress undistorts it to PINHOLE before encoding)"
+                f"{where}: {cam.model} with distortion {list(cam.distortion)}: compress undistorts it to "
+                "PINHOLE before encoding; a JPEG-only scene trains as it is with render.backend torch"
             )
         elif cam.model not in PINHOLE_MODELS:
             P.append(

@@ -21,6 +21,9 @@ from jsgs.manifest import JpegState
 from jsgs.train.config import TrainConfig
 from jsgs.train.normalize import camera_extent, normalize_world
 
+#: the distorted COLMAP camera models the trainer renders (reference rasterizer: OpenCV's radial-tangential)
+DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
 
 @dataclass
 class View:
@@ -44,6 +47,8 @@ class View:
     K: np.ndarray
     camtoworld: np.ndarray
     viewmat: np.ndarray
+    #: (k1, k2, p1, p2) of a distorted camera (COLMAP SIMPLE_RADIAL, RADIAL, OPENCV), None for a pinhole one
+    distortion: np.ndarray | None = None
     # per (name, device, dtype): a host-to-device copy from pageable memory synchronises with the GPU, once
     # per call; made once, the training step has two fewer syncs (both methods), and none inside a backward
     _tensors: dict[tuple[str, torch.device, torch.dtype], Tensor] = field(
@@ -66,6 +71,12 @@ class View:
         """[1, 4, 4] world-to-camera (made once per device and dtype and shared: do not modify it in
         place)."""
         return self._on("viewmat", device, dtype)
+
+    def distortion_tensor(
+        self, device: torch.device | str, dtype: torch.dtype = torch.float32
+    ) -> Tensor | None:
+        """[1, 4] (k1, k2, p1, p2) for the rasterizer, or None for a pinhole camera."""
+        return None if self.distortion is None else self._on("distortion", device, dtype)
 
     def eval_image_path(self) -> Path:
         """The uncompressed image to evaluate against: the reference, else the image itself (lossless)."""
@@ -134,12 +145,17 @@ def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
     for i, v in enumerate(manifest.views):
         cam = v.camera
         dist = cam.distortion
+        coeffs = None
         if dist is not None and any(p != 0.0 for p in dist.params):
-            raise JsgsError(
-                f"{where}: view {v.name!r}: camera has lens distortion ({dist.model}); the trainer never "
-                "resamples images: undistort the clean images before compressing them and write a PINHOLE "
-                "manifest"
-            )
+            if dist.model not in DISTORTION_MODELS:
+                raise JsgsError(
+                    f"{where}: view {v.name!r}: camera has lens distortion ({dist.model}); the trainer "
+                    "renders "
+                    f"{', '.join(DISTORTION_MODELS)} on the photo's own grid and never resamples images: "
+                    "undistort the clean images before compressing them, or model the camera as one of those"
+                )
+            coeffs = np.zeros(4)
+            coeffs[: len(dist.params)] = dist.params  # (k1[, k2[, p1, p2]]) -> (k1, k2, p1, p2)
         c2ws.append(np.linalg.inv(v.world_to_camera))
         metas.append(
             dict(
@@ -152,6 +168,7 @@ def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
                 width=cam.width,
                 height=cam.height,
                 K=cam.K,
+                distortion=coeffs,
             )
         )
     xyz = np.asarray(manifest.points_xyz, dtype=np.float64).reshape(-1, 3)

@@ -72,6 +72,7 @@ def render_test_views(
             cfg.render.sh_degree,
             cfg,
             backend,
+            distortion=v.distortion_tensor(device),
         )
         out.append(r.rgb[0].clamp(0.0, 1.0))
     return out
@@ -82,16 +83,19 @@ def measure_fps(
     splats: torch.nn.ParameterDict, views: list[View], cfg: TrainConfig, backend: str, device: torch.device
 ) -> dict[str, Any]:
     """Median render speed over the test views (see the module docstring)."""
-    args = [(v.viewmat_tensor(device), v.K_tensor(device), v.width, v.height) for v in views]
+    args = [
+        (v.viewmat_tensor(device), v.K_tensor(device), v.width, v.height, v.distortion_tensor(device))
+        for v in views
+    ]
     for _ in range(cfg.eval.fps_warmup):
-        for vm, K, w, h in args:
-            render_view(splats, vm, K, w, h, cfg.render.sh_degree, cfg, backend)
+        for vm, K, w, h, dist in args:
+            render_view(splats, vm, K, w, h, cfg.render.sh_degree, cfg, backend, distortion=dist)
     times = []
     for _ in range(cfg.eval.fps_passes):
         synchronize(device)
         t0 = time.perf_counter()
-        for vm, K, w, h in args:
-            render_view(splats, vm, K, w, h, cfg.render.sh_degree, cfg, backend)
+        for vm, K, w, h, dist in args:
+            render_view(splats, vm, K, w, h, cfg.render.sh_degree, cfg, backend, distortion=dist)
         synchronize(device)
         times.append(time.perf_counter() - t0)
     med = statistics.median(times)

@@ -57,12 +57,13 @@ def render_view(
     backend: str,
     extra_features: Tensor | None = None,
     extra_kwargs: dict[str, Any] | None = None,
+    distortion: Tensor | None = None,
 ) -> RenderOut:
     """Rasterise one camera. viewmat [1, 4, 4] world-to-camera, K [1, 3, 3] pixels.
 
     ``extra_features`` ([N, E] per-Gaussian features, optional) are the rasterizer's extra channels,
     composited in the same pass as RGB (``rasterize(..., extra=...)``). ``extra_kwargs`` go to ``rasterize``
-    as they are."""
+    as they are. ``distortion`` [1, 4]: the camera's lens distortion (reference backend only)."""
     from jsgs.render import rasterize
 
     p = activated(splats)
@@ -75,6 +76,8 @@ def render_view(
     )
     if extra_kwargs:
         kwargs.update(extra_kwargs)
+    if distortion is not None:
+        kwargs["distortion"] = distortion
     renders, alphas, info = rasterize(
         p["means"],
         p["quats"],

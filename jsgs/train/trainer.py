@@ -457,6 +457,13 @@ class Trainer:
             torch.backends.cudnn.allow_tf32 = False
         self.train_views = scene.train_views
         self.train_images = load_train_images(scene, device)
+        distorted = [v.name for v in scene.views if v.distortion is not None]
+        if distorted and self.backend != "torch":
+            raise JsgsError(
+                f"{scene.manifest_path}: view {distorted[0]!r} has lens distortion, which the torch "
+                f"reference rasterizer renders and the {self.backend} backend does not yet: set "
+                "render.backend torch"
+            )
         # a manifest without test views (jsgstools manifest --test-every 0) trains without evaluations
         self.eval_steps = list(cfg.eval_at) if scene.test_views else []
         if cfg.eval_at and not scene.test_views:
@@ -616,6 +623,7 @@ class Trainer:
                 self.backend,
                 extra_feats,
                 extra_kw,
+                view.distortion_tensor(device),
             )
             rgb = r.rgb
             if cfg.render.random_background:

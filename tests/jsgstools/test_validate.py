@@ -168,7 +168,7 @@ def test_camera_models(synth_scene: Path, tmp_path: Path) -> None:
     _edit_model(scene, set_model("SIMPLE_RADIAL", [54.4, 32.0, 24.0, 0.01]))
     code, out = _run(scene)
     assert code == 0, out
-    assert "warning:" in out and "SIMPLE_RADIAL with distortion [0.01] needs undistortion" in out
+    assert "warning:" in out and "SIMPLE_RADIAL with distortion [0.01]: compress undistorts it" in out
     # a fisheye model: not supported
     scene = _copy(synth_scene, tmp_path / "fisheye")
     _edit_model(scene, set_model("OPENCV_FISHEYE", [54.4, 54.4, 32.0, 24.0, 0.01, 0, 0, 0]))
@@ -259,4 +259,4 @@ def test_real_scenes(name: str, factor: str, sizes: str) -> None:
     assert f"downscale    {factor} " in out
     assert f"image size   {sizes}" in out
     if name == "llff_fern":
-        assert "SIMPLE_RADIAL" in out and "needs undistortion" in out
+        assert "SIMPLE_RADIAL" in out and "compress undistorts it" in out
