@@ -9,6 +9,15 @@ PY=${PYTHON:-python3}
 VENV=.venv
 STAMP=$VENV/.jsgs-installed
 
+# The viewer's browser test screenshots the page with Debian's chromium (headless); installed where apt-get can
+# (as root), else that one test skips with its reason.
+if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
+    echo "setup: installing chromium (the viewer's browser test)"
+    { apt-get install -y -q --no-install-recommends chromium >/dev/null 2>&1 \
+        || { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q --no-install-recommends chromium >/dev/null 2>&1; }; } \
+        || echo "setup: chromium could not be installed; the viewer's browser test will skip"
+fi
+
 if [ -f "$STAMP" ] && [ "$STAMP" -nt pyproject.toml ]; then
     exit 0
 fi

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import socket
+import subprocess
 import urllib.request
 from pathlib import Path
 
@@ -144,3 +146,30 @@ def test_live_viewer_serves_the_model_while_it_trains(tmp_path: Path) -> None:
     train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[live, Probe()])
     assert [(s, st) for s, st, _ in seen] == [(0, 200), (9, 200)] and all(sd > 1 for *_, sd in seen)
     assert live.viewer is None  # stopped with the run
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="needs Debian's chromium (setup_env.sh)")
+def test_the_browser_shows_the_splat(finished_run: Path, tmp_path: Path) -> None:
+    """Headless Chromium opens the viewer; the screenshot shows the model, not a blank canvas."""
+    from jsgs.viewer import Viewer
+
+    model = load_run_model(finished_run, "cpu")
+    viewer = Viewer(model, port=_free_port(), max_size=96)
+    shot = tmp_path / "shot.png"
+    try:
+        for _ in range(2):  # a slow machine may need a second look
+            subprocess.run(
+                ["chromium", "--headless=new", "--no-sandbox", "--disable-gpu", "--use-gl=swiftshader",
+                 "--enable-unsafe-swiftshader", "--window-size=640,480", "--virtual-time-budget=15000",
+                 f"--screenshot={shot}", f"http://127.0.0.1:{viewer.port}/"],
+                capture_output=True, timeout=120, check=False,
+            )  # fmt: skip
+            if shot.is_file():
+                img = np.asarray(Image.open(shot).convert("L"), dtype=np.float64)
+                centre = img[180:440, 80:560]  # below the panels, inside the canvas
+                if centre.std() > 8.0:
+                    break
+    finally:
+        viewer.stop()
+    assert shot.is_file(), "chromium wrote no screenshot"
+    assert centre.std() > 8.0, f"a blank canvas (std {centre.std():.1f})"
