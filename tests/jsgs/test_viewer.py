@@ -150,26 +150,37 @@ def test_live_viewer_serves_the_model_while_it_trains(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(shutil.which("chromium") is None, reason="needs Debian's chromium (setup_env.sh)")
 def test_the_browser_shows_the_splat(finished_run: Path, tmp_path: Path) -> None:
-    """Headless Chromium opens the viewer; the screenshot shows the model, not a blank canvas."""
+    """Headless Chromium opens the viewer; the screenshot shows the model, and the same page of a model with
+    zero opacity is a blank canvas (so the check can fail)."""
+    import torch
+
     from jsgs.viewer import Viewer
 
     model = load_run_model(finished_run, "cpu")
-    viewer = Viewer(model, port=_free_port(), max_size=96)
-    shot = tmp_path / "shot.png"
-    try:
-        for _ in range(2):  # a slow machine may need a second look
-            subprocess.run(
-                ["chromium", "--headless=new", "--no-sandbox", "--disable-gpu", "--use-gl=swiftshader",
-                 "--enable-unsafe-swiftshader", "--window-size=640,480", "--virtual-time-budget=15000",
-                 f"--screenshot={shot}", f"http://127.0.0.1:{viewer.port}/"],
-                capture_output=True, timeout=120, check=False,
-            )  # fmt: skip
-            if shot.is_file():
+
+    def centre_std(name: str) -> float:
+        viewer = Viewer(model, port=_free_port(), max_size=96)
+        shot = tmp_path / name
+        std = 0.0
+        try:
+            for _ in range(2):  # a slow machine may need a second look
+                subprocess.run(
+                    ["chromium", "--headless=new", "--no-sandbox", "--disable-gpu", "--use-gl=swiftshader",
+                     "--enable-unsafe-swiftshader", "--window-size=640,480", "--virtual-time-budget=15000",
+                     f"--screenshot={shot}", f"http://127.0.0.1:{viewer.port}/"],
+                    capture_output=True, timeout=120, check=False,
+                )  # fmt: skip
+                assert shot.is_file(), "chromium wrote no screenshot"
                 img = np.asarray(Image.open(shot).convert("L"), dtype=np.float64)
-                centre = img[180:440, 80:560]  # below the panels, inside the canvas
-                if centre.std() > 8.0:
+                std = float(img[180:440, 80:560].std())  # below the panels, inside the canvas
+                if std > 8.0:
                     break
-    finally:
-        viewer.stop()
-    assert shot.is_file(), "chromium wrote no screenshot"
-    assert centre.std() > 8.0, f"a blank canvas (std {centre.std():.1f})"
+        finally:
+            viewer.stop()
+        return std
+
+    drawn = centre_std("model.png")
+    assert drawn > 8.0, f"a blank canvas (std {drawn:.1f})"
+    with torch.no_grad():
+        model.splats["opacities"].fill_(-30.0)
+    assert centre_std("blank.png") < 1.0
