@@ -158,10 +158,12 @@ def test_the_browser_shows_the_splat(finished_run: Path, tmp_path: Path) -> None
 
     model = load_run_model(finished_run, "cpu")
 
-    def centre_std(name: str) -> float:
+    def contrast(name: str) -> float:
+        """Peak-to-peak grey level at the centre of the canvas, left of the GUI panel (the tiny model is
+        drawn there; a blank canvas is flat)."""
         viewer = Viewer(model, port=_free_port(), max_size=96)
         shot = tmp_path / name
-        std = 0.0
+        value = 0.0
         try:
             for _ in range(2):  # a slow machine may need a second look
                 subprocess.run(
@@ -172,15 +174,16 @@ def test_the_browser_shows_the_splat(finished_run: Path, tmp_path: Path) -> None
                 )  # fmt: skip
                 assert shot.is_file(), "chromium wrote no screenshot"
                 img = np.asarray(Image.open(shot).convert("L"), dtype=np.float64)
-                std = float(img[180:440, 80:560].std())  # below the panels, inside the canvas
-                if std > 8.0:
+                crop = img[180:300, 200:300]
+                value = float(crop.max() - crop.min())
+                if value > 20.0:
                     break
         finally:
             viewer.stop()
-        return std
+        return value
 
-    drawn = centre_std("model.png")
-    assert drawn > 8.0, f"a blank canvas (std {drawn:.1f})"
+    drawn = contrast("model.png")
+    assert drawn > 20.0, f"a blank canvas (contrast {drawn:.0f})"
     with torch.no_grad():
         model.splats["opacities"].fill_(-30.0)
-    assert centre_std("blank.png") < 1.0
+    assert contrast("blank.png") < 10.0
