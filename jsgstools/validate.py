@@ -25,8 +25,6 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from jsgs.errors import JsgsError
 
 from .scene import (
@@ -179,8 +177,6 @@ def _points_seen(scene: ColmapScene) -> list[tuple[object, int]]:
     out: list[tuple[object, int]] = []
     if len(xyz) == 0:
         return out
-    ok = np.isfinite(xyz).all(axis=1)
-    xyz = xyz[ok]
     for v in scene.views:
         cam = scene.cameras.get(v.camera_id)
         if cam is None or not (finite(v.R) and finite(v.t)):
@@ -222,7 +218,8 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
     report.scene = scene
     P = report.problems
 
-    # Cameras.
+    # Cameras (size, finite positive focals, principal point and distortion are checked when the model is
+    # read: jsgstools.colmap_check; a model failing them is a "model" problem above).
     for cid, cam in sorted(scene.cameras.items()):
         where = f"{scene.rel(scene.model_dir)}: camera {cid}"
         if cam.model in UNDISTORTABLE_MODELS:
@@ -239,12 +236,6 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
                     f"{', '.join(UNDISTORTABLE_MODELS)})",
                 )
             )
-        if cam.width < 1 or cam.height < 1:
-            P.append(Problem("camera", f"{where}: size {cam.width}x{cam.height} is empty"))
-        if not finite(np.array(cam.params)):
-            P.append(Problem("camera", f"{where}: non-finite parameters {list(cam.params)}"))
-        elif cam.model in PINHOLE_MODELS + UNDISTORTABLE_MODELS and min(cam.focal) <= 0:
-            P.append(Problem("camera", f"{where}: focal length {cam.focal} is not positive"))
 
     # Names.
     for name, ids in sorted(scene.duplicate_names.items()):
@@ -374,12 +365,6 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
                 "points", f"{scene.rel(scene.model_dir)}: points3D is empty (the trainer initializes from it)"
             )
         )
-    else:
-        bad = int((~np.isfinite(scene.points_xyz).all(axis=1)).sum())
-        if bad:
-            P.append(
-                Problem("points", f"{scene.rel(scene.model_dir)}: {bad} points3D have non-finite coordinates")
-            )
     return report
 
 
