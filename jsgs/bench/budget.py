@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from jsgs.bench.stats import HIGHER_BETTER, agg, damage_recovered, mean_of, worse_beyond_spread
+from jsgs.bench.tables import md_table, number
 
 #: two-sided 95 % quantiles of Student's t with 1..30 degrees of freedom (beyond: the normal's 1.960)
 T975 = (
@@ -49,24 +50,15 @@ def budget_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [r for r in rows if r.get("strategy") == "mcmc" and r.get("budget") is not None]
 
 
-def _fmt(v: float | None, digits: int, signed: bool = False) -> str:
-    if v is None:
-        return "n/a"
-    return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
-
-
 def _ci(m: float | None, h: float | None, digits: int) -> str:
     if m is None:
         return "n/a"
-    return _fmt(m, digits, True) + (f" ± {h:.{digits}f}" if h is not None else " (1 seed)")
+    return number(m, digits, True) + (f" ± {h:.{digits}f}" if h is not None else " (1 seed)")
 
 
 def _table(header: list[str], body: list[list[str]]) -> list[str]:
-    return [
-        "| " + " | ".join(header) + " |",
-        "|" + "|".join("---" if i < 3 else "---:" for i in range(len(header))) + "|",
-        *("| " + " | ".join(r) + " |" for r in body),
-    ]
+    """Scene, schedule and budget (or method) on the left, numbers on the right."""
+    return md_table(header, body, "lll" + "r" * (len(header) - 3))
 
 
 class BudgetReport:
@@ -137,10 +129,10 @@ class BudgetReport:
                 c = agg(list(self.values(sc, "clean", "gsplat", b, metric).values()))
                 d = self.paired(key, metric, relative=metric == "lpips")
                 rec = damage_recovered(g, j, c, HIGHER_BETTER[metric])
-                r_txt = _fmt(rec.value, 2) + (f" ({rec.note})" if rec.note else "")
+                r_txt = number(rec.value, 2) + (f" ({rec.note})" if rec.note else "")
                 if rec.value is None:
                     r_txt = rec.note
-                cells += [_fmt(g.mean, digits), _fmt(j.mean, digits), _fmt(c.mean, digits),
+                cells += [number(g.mean, digits), number(j.mean, digits), number(c.mean, digits),
                           _ci(*mean_ci(d), 1 if metric == "lpips" else 2), r_txt]  # fmt: skip
                 w = worse_beyond_spread(g, j, HIGHER_BETTER[metric])
                 verdict = "unknown (1 seed)" if w is None else ("**yes**" if w else "no")
@@ -176,8 +168,8 @@ class BudgetReport:
             ok = [won is not None and won >= 90, mlp is not None and mlp <= -25, not worse,
                   mps is not None and mps >= 0]  # fmt: skip
             body.append([
-                f"{b:,}", str(len(lp)), _fmt(won, 0) + " %", _fmt(mlp, 1, True), ", ".join(worse) or "none",
-                _fmt(mps, 3, True), "met" if all(ok) else "**not met**",
+                f"{b:,}", str(len(lp)), number(won, 0) + " %", number(mlp, 1, True),
+                ", ".join(worse) or "none", number(mps, 3, True), "met" if all(ok) else "**not met**",
             ])  # fmt: skip
         return _table(header, body) if body else ["No pairs."]
 
@@ -209,9 +201,9 @@ class BudgetReport:
                 return agg([r.get(k) for r in rs]).mean
 
             tpi = mean("time_per_iteration_s")
-            body.append([sc, sch, f"{b:,}", m, str(len(rs)), _fmt(mean("num_gaussians"), 0),
-                         _fmt(mean("train_seconds"), 1), _fmt(tpi * 1000 if tpi else None, 2),
-                         _fmt(mean("fps"), 0)])  # fmt: skip
+            body.append([sc, sch, f"{b:,}", m, str(len(rs)), number(mean("num_gaussians"), 0),
+                         number(mean("train_seconds"), 1), number(tpi * 1000 if tpi else None, 2),
+                         number(mean("fps"), 0)])  # fmt: skip
         return _table(header, body) if body else ["No runs."]
 
     def markdown(self, plots: list[Path]) -> list[str]:

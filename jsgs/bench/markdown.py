@@ -28,12 +28,8 @@ from jsgs.bench.stats import (
     unfinished,
     worse_beyond_spread,
 )
-
-
-def _f(v: float | None, digits: int, signed: bool = False) -> str:
-    if v is None:
-        return "n/a"
-    return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
+from jsgs.bench.tables import md_table as _table
+from jsgs.bench.tables import number as _f
 
 
 def _ms(a: Agg, digits: int) -> str:
@@ -41,15 +37,6 @@ def _ms(a: Agg, digits: int) -> str:
     if a.mean is None:
         return "n/a"
     return _f(a.mean, digits) + (f" ± {a.sd:.{digits}f}" if a.sd is not None else "")
-
-
-def _table(header: list[str], rows: list[list[str]], align: str | None = None) -> list[str]:
-    align = align or "l" + "r" * (len(header) - 1)
-    sep = ["---:" if a == "r" else "---" for a in align]
-    return ["| " + " | ".join(header) + " |", "| " + " | ".join(sep) + " |"] + [
-        "| " + " | ".join(r) + " |" for r in rows
-    ]
-
 
 
 class Report:
