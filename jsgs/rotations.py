@@ -36,3 +36,11 @@ def matrix_to_quat(R: np.ndarray) -> np.ndarray:
         q[1 + k] = (R[k, i] + R[i, k]) / s
     out = np.array(q)
     return out if out[0] >= 0 else -out
+
+
+def pose_matrix(position: np.ndarray, wxyz: np.ndarray) -> np.ndarray:
+    """Camera-to-world 4x4 (float64) of a camera at ``position`` with orientation ``wxyz``."""
+    c2w = np.eye(4)
+    c2w[:3, :3] = quat_to_matrix(wxyz)
+    c2w[:3, 3] = position
+    return c2w

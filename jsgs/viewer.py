@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from jsgs.errors import JsgsError
-from jsgs.rotations import matrix_to_quat, quat_to_matrix
+from jsgs.rotations import matrix_to_quat, pose_matrix
 from jsgs.train.callbacks import Callback
 from jsgs.train.config import TrainConfig
 from jsgs.train.data import Scene
@@ -95,9 +95,7 @@ def camera_matrices(
 ) -> tuple[np.ndarray, np.ndarray]:
     """A viewer camera -> (viewmat 4x4 world-to-camera, K 3x3 in pixels), float64. ``fov``: vertical, radians;
     the principal point at the image centre (pixel centres at integer + 0.5, as in the trainer)."""
-    c2w = np.eye(4)
-    c2w[:3, :3] = quat_to_matrix(wxyz)
-    c2w[:3, 3] = position
+    c2w = pose_matrix(position, wxyz)
     f = 0.5 * height / math.tan(0.5 * fov)
     K = np.array([[f, 0.0, 0.5 * width], [0.0, f, 0.5 * height], [0.0, 0.0, 1.0]])
     return np.linalg.inv(c2w), K
@@ -131,9 +129,7 @@ def save_camera(model: RunModel, position: np.ndarray, wxyz: np.ndarray, fov: fl
     else:
         doc = {"format": CAMERAS_FORMAT, "format_version": CAMERAS_VERSION, "jsgs_version": jsgs.__version__,
                "frame": "training", "cameras": []}  # fmt: skip
-    c2w = np.eye(4)
-    c2w[:3, :3] = quat_to_matrix(wxyz)
-    c2w[:3, 3] = position
+    c2w = pose_matrix(position, wxyz)
     doc["cameras"].append({
         "camtoworld": c2w.tolist(), "fov_y_deg": math.degrees(fov), "aspect": float(aspect),
         "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),

@@ -189,8 +189,8 @@ def _resolve(
 ) -> dict[str, dict[str, Any]]:
     """Resolve the budgets given as multiples; returns failure records for the runs that cannot be."""
     failed = {}
+    why = [x.get("error") for x in records.values() if x.get("status") == "failed"]
     for r in resolve_caps(plan, out, reference_counts(refs)):
-        why = [x.get("error") for x in records.values() if x.get("status") == "failed"]
         failed[r.id] = {"id": r.id, "status": "failed", "stderr_tail": "",
                         "error": f"not run: no complete clean DefaultStrategy run of {r.scene} to take "
                         f"{r.budget} of" + (f" ({why[0]})" if why else "")}  # fmt: skip

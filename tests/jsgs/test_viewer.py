@@ -19,15 +19,8 @@ from _train_scene import make_scene
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.viewer import (
-    camera_matrices,
-    image_size,
-    load_run_model,
-    matrix_to_quat,
-    quat_to_matrix,
-    render_rgb,
-    save_camera,
-)
+from jsgs.rotations import matrix_to_quat, quat_to_matrix
+from jsgs.viewer import camera_matrices, image_size, load_run_model, render_rgb, save_camera
 
 
 def test_quaternions_against_opencv_rodrigues() -> None:
