@@ -209,6 +209,20 @@ def jpeg_bytes(arr: np.ndarray, quality: int, subsampling: int) -> bytes:
     return buf.getvalue()
 
 
+def observed_jpeg(arr: np.ndarray, quality: int, subsampling: int, recompress: int | None = None) -> bytes:
+    """The observed file of a view: :func:`jpeg_bytes` at ``quality``; with ``recompress``, that file decoded
+    and saved once more at IJG quality ``recompress`` (what an app does to a photo: the header then holds
+    only the second tables)."""
+    data = jpeg_bytes(arr, quality, subsampling)
+    if recompress is None:
+        return data
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as im:
+        again = np.asarray(im.convert("RGB"))
+    return jpeg_bytes(again, recompress, subsampling)
+
+
 def load_rgb(path: str | Path) -> np.ndarray:
     """(H, W, 3) uint8 (:func:`jsgs.images.read_rgb8`: grey and palette expanded, 16-bit by value, alpha
     dropped; a file that cannot be decoded is a one-line JsgsError)."""
@@ -234,12 +248,9 @@ def run_task(task: Task) -> dict[str, Any]:
         arr = undistort_image(arr, task.camera, task.pinhole)
     ref = _png_bytes(arr)
     write_bytes_atomic(task.reference, ref)
-    data = ref if task.quality is None else jpeg_bytes(arr, task.quality, task.subsampling)
-    if task.quality is not None and task.recompress is not None:  # what an app does to a photo
-        from PIL import Image
-
-        again = np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
-        data = jpeg_bytes(again, task.recompress, task.subsampling)
+    data = ref
+    if task.quality is not None:
+        data = observed_jpeg(arr, task.quality, task.subsampling, task.recompress)
     write_bytes_atomic(task.image, data)
     return {"name": task.name, "bytes": len(data), "reference_bytes": len(ref)}
 
@@ -361,10 +372,12 @@ def compress(
     progress: bool = False,
     command: str | None = None,
     recompress: int | None = None,
+    analyze: bool = False,
 ) -> CompressResult:
     """Build the dataset described in the module docstring from ``scene_dir`` into ``out``. ``recompress``:
     every JPEG training view is decoded and saved once more at that quality (its header then says
-    ``recompress`` while its pixels went through both: a photo saved twice)."""
+    ``recompress`` while its pixels went through both: a photo saved twice). ``analyze``: the manifest
+    records each JPEG view's compression analysis (``jsgstools manifest --analyze``)."""
     if recompress is not None and not 1 <= recompress <= 100:
         raise JsgsError(f"--recompress {recompress}: must be an IJG quality in 1..100")
     from . import manifest_writer as manifest_mod
@@ -505,7 +518,7 @@ def compress(
             "per_view_quality": {out_names[v.name]: the_plan.quality[v.name] for v in scene.views},
         },
     }
-    doc = manifest_mod.build_manifest(out, out / "manifest.json", producer=producer)
+    doc = manifest_mod.build_manifest(out, out / "manifest.json", producer=producer, analyze=analyze)
     manifest_mod.write_manifest(doc, out / "manifest.json")
     return CompressResult(out, record, doc)
 

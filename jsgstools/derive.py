@@ -5,7 +5,7 @@ A dataset made by ``jsgstools compress SCENE --out BASE --schedule clean`` holds
 poses and points3D that every other schedule of the same scene shares. :func:`derive` encodes the train views
 of another schedule from those references exactly as ``compress`` would (same split, same counts, same seeded
 assignment — :func:`jsgstools.compress.plan` — and the same encoder call,
-:func:`jsgstools.compress.jpeg_bytes`), so its JPEG files are byte-identical to ``compress``'s. Only
+:func:`jsgstools.compress.observed_jpeg`), so its JPEG files are byte-identical to ``compress``'s. Only
 ``OUT/images/<stem>.jpg`` and ``OUT/manifest.json`` are written: test views (and the train views under
 ``clean``) and every ``reference`` point at the base's reference PNGs by relative path, so one base per scene
 serves every schedule and seed.
@@ -27,7 +27,7 @@ from jsgs import __version__
 from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
 
-from .compress import SUBSAMPLING, jpeg_bytes, load_rgb, plan, schedule_settings
+from .compress import SUBSAMPLING, load_rgb, observed_jpeg, plan, schedule_settings
 from .scene import image_stem, prepare_output_dir
 
 #: What ``derive`` writes into OUT (and removes first with ``force``).
@@ -92,15 +92,21 @@ def derive(
     force: bool = False,
     jobs: int | None = None,
     command: str | None = None,
+    recompress: int | None = None,
+    analyze: bool = False,
 ) -> dict[str, Any]:
     """Write ``out/images/<stem>.jpg`` (train views) and ``out/manifest.json`` from the clean dataset whose
-    manifest is ``base_manifest``; returns the manifest document. See the module docstring."""
+    manifest is ``base_manifest``; returns the manifest document. See the module docstring. ``recompress``
+    and ``analyze`` as in :func:`jsgstools.compress.compress` (a photo saved twice; the manifest records
+    each JPEG view's compression analysis)."""
     from . import manifest_writer as manifest_mod
 
     if subsampling not in SUBSAMPLING:
         raise JsgsError(f"--subsampling {subsampling!r}: choose one of {', '.join(SUBSAMPLING)}")
     if jobs is not None and jobs < 1:
         raise JsgsError(f"--jobs {jobs}: must be at least 1")
+    if recompress is not None and not 1 <= recompress <= 100:
+        raise JsgsError(f"--recompress {recompress}: must be an IJG quality in 1..100")
     base_path = Path(base_manifest)
     if base_path.is_dir():
         base_path = base_path / "manifest.json"
@@ -132,7 +138,7 @@ def derive(
         if (arr.shape[1], arr.shape[0]) != (cam["width"], cam["height"]):
             size = f"{arr.shape[1]}x{arr.shape[0]}"
             raise JsgsError(f"{ref}: {size} is not its camera's {cam['width']}x{cam['height']}")
-        data = jpeg_bytes(arr, q, ss_pil)
+        data = observed_jpeg(arr, q, ss_pil, recompress)
         write_bytes_atomic(out / "images" / f"{image_stem(v['name'])}.jpg", data)
         return src, len(data)
 
@@ -154,6 +160,10 @@ def derive(
             name = f"{image_stem(v['name'])}.jpg"
             image = f"images/{name}"
             jpeg = read_header(out / image).manifest_state()
+            if analyze:
+                from jsgstools.dqt.analysis import analyze_file
+
+                jpeg["analysis"] = analyze_file(out / image).to_json()
         per_view_quality[name] = q
         mviews.append({"name": name, "image": image, "split": v["split"], "camera": v["camera"],
                        "R": v["R"], "t": v["t"], "jpeg": jpeg, "reference": ref_rel})  # fmt: skip
@@ -162,6 +172,8 @@ def derive(
         f"jsgstools.derive {shlex.quote(str(base_path))} --out {shlex.quote(str(out))} --schedule {schedule}"
         + (f" --quality {quality}" if quality is not None else "")
         + f" --seed {seed} --subsampling {subsampling}"
+        + (f" --recompress {recompress}" if recompress is not None else "")
+        + (" --analyze" if analyze else "")
     )
     settings = {
         "derive": True,
@@ -173,6 +185,7 @@ def derive(
         "seed": seed,
         "test_every": test_every,
         "subsampling": ss_name,
+        "recompress": recompress,
         **schedule_settings(the_plan, schedule, quality, ss_name),
         "source": "the base's lossless reference PNGs; compress's split, counts, assignment and encoding",
         "bytes": {f"{image_stem(by_source[s]['name'])}.jpg": n for s, n in sorted(sizes.items())},

@@ -82,29 +82,32 @@ class BudgetReport:
         self.keys: list[Key] = sorted(
             {(sc, sch, b) for (sc, sch, m, b) in self.final if sch != "clean" and m == "gsplat"}
         )
+        #: the JSGS methods compared with gsplat: jsgs first, then its variants (jsgs_eff, ...)
+        methods = {m for (_, _, m, _) in self.final if m != "gsplat"}
+        self.variants = sorted(methods, key=lambda m: (m != "jsgs", m))
 
     def values(self, scene: str, schedule: str, method: str, budget: int, metric: str) -> dict[int, float]:
         """seed -> the metric at the final step."""
         rows = self.final.get((scene, schedule, method, budget), {})
         return {s: float(r[metric]) for s, r in rows.items() if r.get(metric) is not None}
 
-    def paired(self, key: Key, metric: str, relative: bool = False) -> list[float]:
-        """JSGS − gsplat per common seed (``relative``: 100 (JSGS / gsplat − 1), in %)."""
+    def paired(self, key: Key, metric: str, relative: bool = False, method: str = "jsgs") -> list[float]:
+        """``method`` − gsplat per common seed (``relative``: 100 (method / gsplat − 1), in %)."""
         sc, sch, b = key
-        g, j = self.values(sc, sch, "gsplat", b, metric), self.values(sc, sch, "jsgs", b, metric)
+        g, j = self.values(sc, sch, "gsplat", b, metric), self.values(sc, sch, method, b, metric)
         seeds = sorted(set(g) & set(j))
         if relative:
             return [100.0 * (j[s] / g[s] - 1.0) for s in seeds if g[s]]
         return [j[s] - g[s] for s in seeds]
 
-    def time_to_quality(self, key: Key) -> list[int | None]:
-        """Per seed with both runs: the first evaluation step at which JSGS's LPIPS is at most gsplat's final
-        LPIPS of the same seed (None: not reached)."""
+    def time_to_quality(self, key: Key, method: str = "jsgs") -> list[int | None]:
+        """Per seed with both runs: the first evaluation step at which ``method``'s LPIPS is at most gsplat's
+        final LPIPS of the same seed (None: not reached)."""
         sc, sch, b = key
         g = self.values(sc, sch, "gsplat", b, "lpips")
         out: list[int | None] = []
         for seed in sorted(g):
-            curve = self.curves.get((sc, sch, "jsgs", b, seed))
+            curve = self.curves.get((sc, sch, method, b, seed))
             if not curve or curve[-1][0] != self.step:
                 continue
             reached = (st for st, r in curve if r.get("lpips") is not None and r["lpips"] <= g[seed])
@@ -114,20 +117,22 @@ class BudgetReport:
     # -------------------------------------------------------------------------------------------------
     def comparison(self) -> list[str]:
         header = [
-            "Scene", "Schedule", "Budget", "seeds", "LPIPS gsplat", "LPIPS JSGS", "LPIPS clean",
+            "Scene", "Schedule", "Budget", "JSGS", "seeds", "LPIPS gsplat", "LPIPS JSGS", "LPIPS clean",
             "ΔLPIPS % (95 % CI)", "R_LPIPS", "PSNR gsplat", "PSNR JSGS", "PSNR clean", "ΔPSNR dB (95 % CI)",
             "R_PSNR", "wins LPIPS / PSNR", "JSGS worse beyond spread?",
         ]  # fmt: skip
         body = []
-        for key in self.keys:
+        for key, v in ((k, v) for k in self.keys for v in self.variants):
             sc, sch, b = key
-            cells = [sc, sch, f"{b:,}", str(len(self.paired(key, "lpips")))]
+            if not self.paired(key, "lpips", method=v):
+                continue
+            cells = [sc, sch, f"{b:,}", v, str(len(self.paired(key, "lpips", method=v)))]
             worse = []
             for metric, digits in (("lpips", 4), ("psnr", 2)):
                 g = agg(list(self.values(sc, sch, "gsplat", b, metric).values()))
-                j = agg(list(self.values(sc, sch, "jsgs", b, metric).values()))
+                j = agg(list(self.values(sc, sch, v, b, metric).values()))
                 c = agg(list(self.values(sc, "clean", "gsplat", b, metric).values()))
-                d = self.paired(key, metric, relative=metric == "lpips")
+                d = self.paired(key, metric, relative=metric == "lpips", method=v)
                 rec = damage_recovered(g, j, c, HIGHER_BETTER[metric])
                 r_txt = number(rec.value, 2) + (f" ({rec.note})" if rec.note else "")
                 if rec.value is None:
@@ -137,12 +142,14 @@ class BudgetReport:
                 w = worse_beyond_spread(g, j, HIGHER_BETTER[metric])
                 verdict = "unknown (1 seed)" if w is None else ("**yes**" if w else "no")
                 worse.append(f"{metric}: {verdict}")
-            lw = sum(1 for x in self.paired(key, "lpips") if x < 0)
-            pw = sum(1 for x in self.paired(key, "psnr") if x > 0)
-            n = len(self.paired(key, "lpips"))
-            cells += [f"{lw}/{n} / {pw}/{len(self.paired(key, 'psnr'))}", "; ".join(worse)]
+            lw = sum(1 for x in self.paired(key, "lpips", method=v) if x < 0)
+            pw = sum(1 for x in self.paired(key, "psnr", method=v) if x > 0)
+            n = len(self.paired(key, "lpips", method=v))
+            cells += [f"{lw}/{n} / {pw}/{len(self.paired(key, 'psnr', method=v))}", "; ".join(worse)]
             body.append(cells)
-        return _table(header, body) if body else ["No budget has both gsplat and JSGS runs."]
+        return md_table(header, body, "llll" + "r" * (len(header) - 4)) if body else [
+            "No budget has both gsplat and JSGS runs."
+        ]
 
     def targets(self) -> list[str]:
         """Per budget: the issue's targets over every scene × schedule × seed pair, met or not."""
@@ -174,21 +181,23 @@ class BudgetReport:
         return _table(header, body) if body else ["No pairs."]
 
     def quality_time(self) -> list[str]:
-        header = ["Scene", "Schedule", "Budget", "JSGS step reaching gsplat's final LPIPS, per seed",
+        header = ["Scene", "Schedule", "Budget", "JSGS", "step reaching gsplat's final LPIPS, per seed",
                   "fraction of the steps (median)", "target ≤ 0.70"]  # fmt: skip
         body = []
-        for key in self.keys:
-            steps = self.time_to_quality(key)
+        for key, v in ((k, v) for k in self.keys for v in self.variants):
+            steps = self.time_to_quality(key, v)
             if not steps:
                 continue
             fr = sorted((s / self.step) if s is not None else math.inf for s in steps)
             med = fr[len(fr) // 2]
             per_seed = ", ".join("not reached" if s is None else str(s) for s in steps)
             body.append([
-                key[0], key[1], f"{key[2]:,}", per_seed,
+                key[0], key[1], f"{key[2]:,}", v, per_seed,
                 "not reached" if math.isinf(med) else f"{med:.2f}", "met" if med <= 0.70 else "**not met**",
             ])  # fmt: skip
-        return _table(header, body) if body else ["No JSGS run with gsplat at the same budget."]
+        return md_table(header, body, "llll" + "r" * (len(header) - 4)) if body else [
+            "No JSGS run with gsplat at the same budget."
+        ]
 
     def size_time(self) -> list[str]:
         header = ["Scene", "Schedule", "Budget", "Method", "seeds", "#Gaussians", "train s", "time / it ms",
@@ -218,7 +227,8 @@ class BudgetReport:
         )
         md = [f"## Equal Gaussian budget (gsplat's MCMCStrategy), step {self.step}", "", intro, ""]
         md += [*self.comparison(), ""]
-        md += ["### Targets at each budget (every scene × schedule × seed pair)", "", *self.targets(), ""]
+        md += ["### Targets at each budget (jsgs; every scene × schedule × seed pair)", ""]
+        md += [*self.targets(), ""]
         md += ["### Time to quality", "", *self.quality_time(), ""]
         md += ["### Model size and time", "", "Concurrent runs share a GPU, which inflates every time alike."]
         md += ["", *self.size_time(), ""]

@@ -81,13 +81,14 @@ def _dataset_ready(d: Dataset) -> bool:
             s = json.loads((Path(d.out) / "compress.json").read_text()).get("settings", {})
         else:
             s = json.loads((Path(d.out) / "manifest.json").read_text()).get("scene", {})
-    except (OSError, ValueError, AttributeError):
+        made = json.loads((Path(d.out) / "manifest.json").read_text())["producer"].get("settings", {})
+    except (OSError, ValueError, AttributeError, KeyError, TypeError):
         return False
     return (
-        (Path(d.out) / "manifest.json").is_file()
-        and s.get("schedule") == d.compress_schedule
+        s.get("schedule") == d.compress_schedule
         and s.get("seed") == d.seed
         and s.get("quality") == d.quality
+        and made.get("recompress") == d.recompress
     )
 
 
@@ -123,14 +124,16 @@ def prepare_datasets(plan: BenchPlan, progress: bool = True) -> dict[str, dict[s
 
                 if progress:
                     print(f"derive: {base.parent} -> {d.out} ({d.schedule}, seed {d.seed})", file=sys.stderr)
-                derive(base, d.out, d.compress_schedule, quality=d.quality, seed=d.seed, force=True)
+                derive(base, d.out, d.compress_schedule, quality=d.quality, seed=d.seed, force=True,
+                       recompress=d.recompress, analyze=d.recompress is not None)  # fmt: skip
             else:
                 # imported only when needed: a GPU machine (no pycolmap/OpenCV) runs on prepared datasets
                 from jsgstools.compress import compress
 
                 if progress:
                     print(f"compress: {d.source} -> {d.out} ({d.schedule}, seed {d.seed})", file=sys.stderr)
-                compress(d.source, d.out, d.compress_schedule, quality=d.quality, seed=d.seed, force=True)
+                compress(d.source, d.out, d.compress_schedule, quality=d.quality, seed=d.seed, force=True,
+                         recompress=d.recompress, analyze=d.recompress is not None)  # fmt: skip
             out[d.key] = {"status": "complete"}
         except Exception as e:  # noqa: BLE001 - reported per dataset; its runs fail, the others go on
             out[d.key] = {"status": "failed", "error": str(e)}

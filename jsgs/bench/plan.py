@@ -8,8 +8,11 @@ Layout under RESULTS::
     runs/<scene>/<schedule>/<method>/mcmc-<cap>/s<seed>/   the same under gsplat's MCMCStrategy, cap <cap>
     logs/<scene>/<schedule>/<method>/[mcmc-<cap>/]s<seed>.log   the run's stdout + stderr
 
-``schedule`` is uniform / gaussian / descending / clean / fixed<Q>; ``method`` is gsplat / jsgs or an
-ablation name (jo, jo_ds, jo_gc). Both methods of one scene x schedule x seed train on the same files.
+``schedule`` is uniform / gaussian / descending / clean / fixed<Q>, or a mixed schedule saved twice,
+``<schedule>+r<Q2>`` (every JPEG training view decoded and saved once more at quality Q2, as an app does; its
+manifest records the compression analysis); ``method`` is gsplat / jsgs, a JSGS variant (jsgs_eff: the
+effective tables of views compressed twice) or an ablation name (jo, jo_ds, jo_gc). Every method of one
+scene x schedule x seed trains on the same files.
 
 With ``--strategy mcmc`` every method and the clean ceiling train once per budget (a Gaussian count, or a
 multiple of the scene's clean DefaultStrategy run's final count: those reference runs train first).
@@ -28,7 +31,11 @@ from jsgs.errors import JsgsError
 
 MIXED_SCHEDULES = ("uniform", "gaussian", "descending")
 SCHEDULES = (*MIXED_SCHEDULES, "clean")
-METHODS = ("gsplat", "jsgs")
+METHODS = ("gsplat", "jsgs", "jsgs_eff")
+#: bench methods that are ``jsgs train --method jsgs`` with flags
+VARIANTS: dict[str, tuple[str, list[str]]] = {"jsgs_eff": ("jsgs", ["--tables", "effective"])}
+#: ``gaussian+r90``: a mixed schedule whose JPEG training views were saved once more at quality 90
+_TWICE = re.compile(r"(?P<schedule>" + "|".join(MIXED_SCHEDULES) + r")\+r(?P<q>\d+)")
 STRATEGIES = ("default", "mcmc")
 #: Table 2 of the paper: variant -> (method, flags). ``baseline`` and ``full`` are the gsplat and jsgs runs
 #: of the same scene (gaussian schedule, seed 0) and are not trained twice.
@@ -61,6 +68,7 @@ class Dataset:
     quality: int | None
     seed: int
     out: str  # RESULTS/data/<scene>/<schedule>_s<seed>
+    recompress: int | None = None  # <schedule>+r<Q2>: saved once more at Q2 (and analysed)
 
     @property
     def key(self) -> str:
@@ -216,8 +224,13 @@ def build_plan(
     if strategy == "mcmc" and (fixed or ablation is not None):
         raise JsgsError("--fixed and --ablation are paper-protocol tables: they run with --strategy default")
     for s in schedules:
-        if s not in SCHEDULES:
-            raise JsgsError(f"--schedules: unknown schedule {s!r} (choose from {', '.join(SCHEDULES)})")
+        if s not in SCHEDULES and not _TWICE.fullmatch(s):
+            raise JsgsError(
+                f"--schedules: unknown schedule {s!r} (choose from {', '.join(SCHEDULES)}, or a mixed one "
+                "saved twice such as gaussian+r90)"
+            )
+        if (m := _TWICE.fullmatch(s)) and not 1 <= int(m["q"]) <= 100:
+            raise JsgsError(f"--schedules: {s!r}: the second quality must be in 1..100")
     for m in methods:
         if m not in METHODS:
             raise JsgsError(f"--methods: unknown method {m!r} (choose from {', '.join(METHODS)})")
@@ -253,12 +266,16 @@ def build_plan(
     runs: list[Run] = []
 
     def dataset(scene: str, label: str, seed: int) -> Dataset:
+        again = None
         if label.startswith("fixed"):
             sched, q = "fixed", int(label[5:])
+        elif m := _TWICE.fullmatch(label):
+            sched, q, again = m["schedule"], None, int(m["q"])
         else:
             sched, q = label, None
         d = Dataset(
-            scene, str(names[scene]), label, sched, q, seed, str(out / "data" / scene / f"{label}_s{seed}")
+            scene, str(names[scene]), label, sched, q, seed, str(out / "data" / scene / f"{label}_s{seed}"),
+            recompress=again,
         )
         return datasets.setdefault(d.key, d)
 
@@ -266,6 +283,8 @@ def build_plan(
         d = dataset(scene, label, seed)
         if method in ABLATIONS:
             train_method, flags = ABLATIONS[method]
+        elif method in VARIANTS:
+            train_method, flags = VARIANTS[method]
         else:
             train_method, flags = method, []
         r = Run(

@@ -85,6 +85,14 @@ def _parse_steps(text: str) -> list[int]:
     "[default: paper].",
 )
 @click.option(
+    "--tables",
+    type=click.Choice(["header", "effective"]),
+    default=None,
+    help="--method jsgs: the quantization JO and DS use (method_options.tables): the files' header tables, "
+    "or the effective tables of views compressed twice (needs `jsgstools manifest --analyze`) "
+    "[default: header].",
+)
+@click.option(
     "--compile",
     "compile_backend",
     type=click.Choice(["off", "inductor", "aot_eager"]),
@@ -133,6 +141,7 @@ def train_command(
     cap_max: int | None,
     device: str | None,
     jpeg_mode: str | None,
+    tables: str | None,
     compile_backend: str | None,
     no_jo: bool,
     no_ds: bool,
@@ -163,6 +172,8 @@ def train_command(
     method_flags: dict[str, Any] = {}
     if jpeg_mode is not None:
         method_flags["jpeg_mode"] = jpeg_mode
+    if tables is not None:
+        method_flags["tables"] = tables
     if compile_backend is not None:
         method_flags["speed"] = {"compile": compile_backend}
     method_flags.update({k: False for k, off in (("jo", no_jo), ("ds", no_ds), ("gc", no_gc)) if off})

@@ -498,7 +498,7 @@ def command_settings(
     if method_flags:
         if cfg.method != "jsgs":
             raise JsgsError(
-                "--jpeg-mode, --compile, --no-jo, --no-ds and --no-gc apply to --method jsgs "
+                "--jpeg-mode, --tables, --compile, --no-jo, --no-ds and --no-gc apply to --method jsgs "
                 f"(method is {cfg.method!r})"
             )
         flags = dict(method_flags)

@@ -117,3 +117,29 @@ def test_bad_inputs(synth_scene: Path, clean_base: Path, compressed_scene: Path,
     (broken / "manifest.json").write_text("{")
     with pytest.raises(JsgsError, match="not a JSON file"):
         derive(broken, tmp_path / "b", "gaussian")
+
+
+def test_derive_recompress_matches_compress_and_records_the_analysis(
+    synth_scene: Path, clean_base: Path, tmp_path: Path
+) -> None:
+    """A schedule saved twice (``recompress``): the same bytes as ``compress --recompress``, and with
+    ``analyze`` each JPEG view's compression analysis in the manifest, as ``jsgstools manifest --analyze``
+    writes it."""
+    from jsgstools.compress import compress
+    from jsgstools.derive import derive
+
+    twice = {"quality": 30, "seed": 0, "recompress": 90, "analyze": True}
+    ref = compress(synth_scene, tmp_path / "c", "fixed", jobs=1, **twice)
+    doc = derive(clean_base, tmp_path / "d", "fixed", **twice)
+    assert doc["producer"]["settings"]["recompress"] == 90
+    assert ref.manifest["producer"]["settings"]["recompress"] == 90
+    jpegs = [(a, b) for a, b in zip(ref.manifest["views"], doc["views"], strict=True) if a["jpeg"]]
+    assert jpegs
+    for a, b in jpegs:
+        assert (tmp_path / "d" / b["image"]).read_bytes() == (tmp_path / "c" / a["image"]).read_bytes()
+        assert b["jpeg"] == a["jpeg"]
+        assert b["jpeg"]["analysis"]["double_compressed"] is True
+        assert b["jpeg"]["quality"] == 90
+        assert abs(b["jpeg"]["analysis"]["primary_quality"] - 30) <= 5
+    with pytest.raises(JsgsError, match="--recompress 0"):
+        derive(clean_base, tmp_path / "e", "fixed", quality=30, recompress=0)

@@ -69,6 +69,26 @@ def test_plan_under_budgets(synth_scene: Path, tmp_path: Path) -> None:
             )  # fmt: skip
 
 
+def test_plan_of_schedules_saved_twice(synth_scene: Path, tmp_path: Path) -> None:
+    """``gaussian+r90``: the gaussian schedule's JPEGs saved once more at 90 (its own datasets, analysed);
+    ``jsgs_eff``: JSGS with the effective tables, on the same files as gsplat and jsgs."""
+    name = synth_scene.name
+    p = plan_mod.build_plan(
+        [synth_scene], tmp_path, ["gaussian+r90", "gaussian"], [], ["gsplat", "jsgs", "jsgs_eff"], None, [0],
+        10, [10], "mcmc", plan_mod.parse_budgets("2k"),
+    )  # fmt: skip
+    d = {x.schedule: x for x in p.datasets}
+    assert (d["gaussian+r90"].compress_schedule, d["gaussian+r90"].recompress) == ("gaussian", 90)
+    assert d["gaussian"].recompress is None and d["gaussian+r90"].out.endswith(f"{name}/gaussian+r90_s0")
+    eff = next(r for r in p.runs if r.method == "jsgs_eff" and r.schedule == "gaussian+r90")
+    assert eff.data == next(r for r in p.runs if r.method == "gsplat" and r.schedule == "gaussian+r90").data
+    argv = plan_mod.train_argv(eff, "cuda", None, resume=False)
+    assert argv[argv.index("--method") + 1] == "jsgs" and argv[argv.index("--tables") + 1] == "effective"
+    for bad in ("clean+r90", "gaussian+r0", "gaussian+90"):
+        with pytest.raises(JsgsError, match="--schedules"):
+            plan_mod.build_plan([synth_scene], tmp_path, [bad], [], ["gsplat"], None, [0], 10, [10])
+
+
 def _t_cdf(x: float, df: int) -> float:
     """Student's t CDF by Simpson integration of its density in float64 (a reference for the table)."""
     c = math.exp(math.lgamma((df + 1) / 2) - math.lgamma(df / 2)) / math.sqrt(df * math.pi)
@@ -129,6 +149,16 @@ def test_budget_statistics_on_hand_made_numbers() -> None:
     # R_LPIPS on seed means: (0.11 - 0.0687) / (0.11 - 0.045)
     r = (0.11 - (0.06 + 0.08 + 0.066) / 3) / (0.11 - 0.045)
     assert f"{r:.2f}" in table and "3/3 / 3/3" in table and "0/3 / 0/3" in table
+    # a JSGS variant gets its own rows beside jsgs (the targets stay those of jsgs)
+    extra = [r | {"method": "jsgs_eff", "lpips": float(r["lpips"]) * 0.5} for r in _hand_rows()
+             if r["method"] == "jsgs" and r["strategy"] == "mcmc"]  # fmt: skip
+    rep2 = BudgetReport(_hand_rows() + extra)
+    assert rep2.variants == ["jsgs", "jsgs_eff"]
+    rows = [ln for ln in rep2.comparison()[2:] if "| 300 |" in ln]
+    assert [ln.split("|")[4].strip() for ln in rows] == ["jsgs", "jsgs_eff"]
+    half = [-70.0, 100 * (0.04 / 0.12 - 1), -70.0]
+    assert rep2.paired(key, "lpips", relative=True, method="jsgs_eff") == pytest.approx(half)
+    assert rep2.targets() == rep.targets()
 
 
 def test_report_has_the_budget_section(tmp_path: Path) -> None:
