@@ -13,8 +13,9 @@ Problems (each one line, naming the file; any problem means exit code 1):
 - with ``decode`` (the ``validate`` command), an image that cannot be decoded (truncated, over the pixel
   limit: :mod:`jsgs.images`), as compress and the trainer would find it; an unreadable ``compress.json``.
 
-Warnings (reported, exit code still 0): distorted cameras — they need undistortion, which ``compress`` does
-before encoding (``manifest`` records the distortion as is, and the trainer refuses distorted views);
+Warnings (reported, exit code still 0): distorted cameras — ``compress`` undistorts a clean scene before
+encoding, ``manifest`` records the distortion as is, and the trainer renders SIMPLE_RADIAL, RADIAL and OPENCV
+views on the photos' own grid;
 images in the model without a pose (ignored by every tool); a camera that sees none of the points3D; image
 files the model does not use (photos SfM could not register); other models under ``sparse/``.
 """
@@ -225,7 +226,7 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
         if cam.model in UNDISTORTABLE_MODELS:
             report.warnings.append(
                 f"{where}: {cam.model} with distortion {list(cam.distortion)}: compress undistorts it to "
-                "PINHOLE before encoding; a JPEG-only scene trains as it is with render.backend torch"
+                "PINHOLE before encoding; a JPEG-only scene trains as it is, on the photos' own grid"
             )
         elif cam.model not in PINHOLE_MODELS:
             P.append(

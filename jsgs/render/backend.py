@@ -122,8 +122,11 @@ def rasterize(
             themselves are ``info["extra_features"]``. Needs a colour render_mode. Rendered colours are
             unchanged by it; zero-valued features leave every other gradient unchanged too.
         distortion: [C, 4] lens distortion (k1, k2, p1, p2: COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV) of each
-            camera; the image is rendered on the distorted pixel grid (reference backend only:
-            :func:`jsgs.render.reference.projection.distort`).
+            camera; the image is rendered on the distorted pixel grid
+            (:func:`jsgs.render.reference.projection.distort`: means distorted, covariances carried through
+            the distortion's Jacobian). The gsplat backend projects with the reference's torch projection
+            (differentiable; gsplat's own ``with_ut`` projection is not) and composites with gsplat's tile
+            intersection and rasterisation kernels: the same image as the reference backend.
 
     Returns:
         render_colors [C, H, W, D(+1 with depth)], render_alphas [C, H, W, 1], info: gsplat's meta keys
@@ -143,10 +146,10 @@ def rasterize(
         feats = extra if extra.dim() == 3 else extra[None].expand(C, -1, -1)
 
     if distortion is not None:
-        if which != "torch":
-            raise ValueError("lens distortion renders with the reference backend only (backend='torch')")
         if distortion.shape != (C, 4):
             raise ValueError(f"distortion must be [C, 4] with C={C}; got {tuple(distortion.shape)}")
+        if packed:
+            raise ValueError("lens distortion renders in the non-packed layout only (packed=False)")
     if which == "torch":
         if packed:
             raise ValueError("the reference rasterizer implements the non-packed layout only (packed=False)")
@@ -155,6 +158,12 @@ def rasterize(
             sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, backgrounds=backgrounds,
             eps2d=eps2d, radius_clip=radius_clip, absgrad=absgrad, render_mode=render_mode,
             extra_channels=feats, distortion=distortion,
+        )  # fmt: skip
+    elif distortion is not None:
+        img, alpha, info = _rasterize_gsplat_distorted(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, distortion,
+            sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, backgrounds=backgrounds,
+            eps2d=eps2d, radius_clip=radius_clip, absgrad=absgrad, render_mode=render_mode, extra=feats,
         )  # fmt: skip
     else:
         img, alpha, info = _rasterize_gsplat(
@@ -232,4 +241,78 @@ def _rasterize_gsplat(
     parts = img.split([n_col, E, img.shape[-1] - n_col - E], dim=-1)
     info["extra"] = parts[1]
     img = parts[0] if parts[2].shape[-1] == 0 else torch.cat([parts[0], parts[2]], dim=-1)
+    return img, alpha, info
+
+
+def _rasterize_gsplat_distorted(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    distortion: Tensor,
+    *,
+    sh_degree: int | None,
+    near_plane: float,
+    far_plane: float,
+    backgrounds: Tensor | None,
+    eps2d: float,
+    radius_clip: float,
+    absgrad: bool,
+    render_mode: str,
+    extra: Tensor | None,
+) -> tuple[Tensor, Tensor, dict]:
+    """A distorted camera on CUDA: the reference's projection (torch, differentiable; [C, N] tensors, cheap
+    next to compositing) and colours, then gsplat's tile intersection and rasterisation kernels, laid out as
+    :func:`reference.rasterize_torch` lays out its channels (colours, extra, depth)."""
+    from gsplat.cuda._wrapper import isect_offset_encode, isect_tiles, rasterize_to_pixels
+
+    C, N = viewmats.shape[0], means.shape[0]
+    proj = reference.project_gaussians(
+        means, quats, scales, opacities, viewmats, Ks, width, height,
+        eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
+        distortion=distortion,
+    )  # fmt: skip
+    feats: list[Tensor] = []
+    bgs: list[Tensor] = []
+    if render_mode not in ("D", "ED"):
+        rgb = reference.prepare_colors(means, colors, viewmats, sh_degree)
+        feats.append(rgb.expand(C, N, -1))
+        bgs.append(backgrounds if backgrounds is not None else rgb.new_zeros(C, rgb.shape[-1]))
+    E = 0 if extra is None else extra.shape[-1]
+    if extra is not None:
+        feats.append(extra.to(proj.means2d.dtype))
+        bgs.append(proj.means2d.new_zeros(C, E))
+    if render_mode != "RGB":
+        feats.append(proj.depths[..., None])
+        bgs.append(proj.means2d.new_zeros(C, 1))
+    T = reference.TILE_SIZE
+    tw, th = (width + T - 1) // T, (height + T - 1) // T
+    tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(
+        proj.means2d, proj.radii, proj.depths, T, tw, th, packed=False, n_images=C
+    )
+    offsets = isect_offset_encode(isect_ids, C, tw, th).reshape(C, th, tw)
+    img, alpha = rasterize_to_pixels(
+        proj.means2d, proj.conics, torch.cat(feats, dim=-1).contiguous(),
+        opacities[None, :].expand(C, N).contiguous(), width, height, T, offsets, flatten_ids,
+        backgrounds=torch.cat(bgs, dim=-1), absgrad=absgrad,
+    )  # fmt: skip
+    info: dict = {
+        "batch_ids": None, "camera_ids": None, "gaussian_ids": None, "radii": proj.radii,
+        "means2d": proj.means2d, "depths": proj.depths, "conics": proj.conics,
+        "opacities": opacities[None, :].expand(C, N), "tile_width": tw, "tile_height": th,
+        "tiles_per_gauss": tiles_per_gauss, "isect_ids": isect_ids, "flatten_ids": flatten_ids,
+        "isect_offsets": offsets, "width": width, "height": height, "tile_size": T, "n_batches": 1,
+        "n_cameras": C,
+    }  # fmt: skip
+    if E:
+        n_col = img.shape[-1] - E - (0 if render_mode == "RGB" else 1)
+        info["extra"] = img[..., n_col : n_col + E]
+        img = torch.cat([img[..., :n_col], img[..., n_col + E :]], dim=-1)
+    if render_mode in ("ED", "RGB+ED"):
+        img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp(min=1e-10)], dim=-1)
     return img, alpha, info

@@ -457,13 +457,6 @@ class Trainer:
             torch.backends.cudnn.allow_tf32 = False
         self.train_views = scene.train_views
         self.train_images = load_train_images(scene, device)
-        distorted = [v.name for v in scene.views if v.distortion is not None]
-        if distorted and self.backend != "torch":
-            raise JsgsError(
-                f"{scene.manifest_path}: view {distorted[0]!r} has lens distortion, which the torch "
-                f"reference rasterizer renders and the {self.backend} backend does not yet: set "
-                "render.backend torch"
-            )
         # a manifest without test views (jsgstools manifest --test-every 0) trains without evaluations
         self.eval_steps = list(cfg.eval_at) if scene.test_views else []
         if cfg.eval_at and not scene.test_views:

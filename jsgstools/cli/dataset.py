@@ -288,7 +288,7 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, analyze: bool, 
     if n_dist:
         click.echo(
             f"  {n_dist} view(s) have distorted cameras (recorded; the trainer renders SIMPLE_RADIAL, RADIAL "
-            "and OPENCV on the photos' own grid with render.backend torch; compress undistorts clean scenes)"
+            "and OPENCV on the photos' own grid; compress undistorts clean scenes)"
         )
     refs = sum(v["reference"] is not None for v in views)
     click.echo(f"  {refs} view(s) have a lossless reference")
