@@ -327,6 +327,7 @@ def _bench(
                 "schedule": d.schedule,
                 "compress_schedule": d.compress_schedule,
                 "quality": d.quality,
+                "recompress": d.recompress,
                 "seed": d.seed,
                 "out": d.out,
                 "status": "pending",

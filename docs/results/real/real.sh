@@ -1,0 +1,26 @@
+# The two JPEG-only captures as a user gets them (the authors' files, their COLMAP models; manifests written by
+# `jsgstools manifest SCENE --out SCENE/manifest.json --analyze` into .gpu3/<scene>): gsplat and JSGS with
+# `jsgs train`'s defaults (the mcmc preset, 300,000 Gaussians), test views evaluated against their JPEGs.
+#   RUNS="jpeg_cup:gsplat:0 jpeg_cup:jsgs:1" bash scripts/gpu_run.sh bash docs/results/real/real.sh
+# Each entry is scene:method[+effective]:gpu; ITERS sets the steps (default 10000), TL the seconds a run may
+# take (default 500). Metrics, settings and the first test view's last render of every run come back in
+# $OUT/real.tgz.
+set -u
+R=.res/real
+pids=()
+for e in ${RUNS:-jpeg_cup:gsplat:0 jpeg_cup:jsgs:1}; do
+    IFS=: read -r scene method gpu <<<"$e"
+    extra=()
+    [ "${method#*+}" = effective ] && extra=(--tables effective)
+    m=${method%+*}
+    mkdir -p $R/$scene
+    CUDA_VISIBLE_DEVICES=$gpu timeout "${TL:-500}" python3 -m jsgs.cli train .gpu3/$scene/manifest.json --out $R/$scene/$method \
+        --method "$m" "${extra[@]}" --iterations "${ITERS:-10000}" --seed 0 --quiet --force \
+        >$R/$scene/$method.log 2>&1 &
+    pids+=($!)
+done
+for p in "${pids[@]}"; do wait "$p"; done
+tail -n 2 $R/*/*.log
+cd $R && tar czf $OUT/real.tgz */*.log */*/metrics.json */*/config.json \
+    $(for d in */*/; do s=$(ls -d "$d"renders/step_* 2>/dev/null | tail -1); [ -n "$s" ] && ls "$s"/* | head -1
+      done) 2>/dev/null
