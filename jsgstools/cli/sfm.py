@@ -22,7 +22,7 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
               help="exhaustive: every pair; sequential: neighbours by name (video).")  # fmt: skip
 @click.option("--camera-model", "camera_model", default="SIMPLE_PINHOLE", show_default=True,
               type=click.Choice(["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]),
-              help="COLMAP camera model (the trainer renders the pinhole ones).")  # fmt: skip
+              help="COLMAP camera model (the trainer renders each on the photos' own grid).")  # fmt: skip
 @click.option("--per-photo-camera", "per_photo", is_flag=True,
               help="One camera per photo [default: one shared camera for photos of one size].")  # fmt: skip
 @click.option("--max-image-size", "max_image_size", type=int, default=1600, show_default=True,
