@@ -28,7 +28,8 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
     "--schedules",
     default="uniform,gaussian,descending,clean",
     show_default=True,
-    help="Mixed-quality schedules (and clean: gsplat on the uncompressed views); '' for none.",
+    help="Mixed-quality schedules (and clean: gsplat on the uncompressed views; gaussian+r90: the gaussian "
+    "schedule's JPEGs saved once more at q = 90, analysed); '' for none.",
 )
 @click.option(
     "--fixed",
@@ -36,7 +37,10 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
     help="Fixed JPEG qualities (seed 0 only); '' none [default: 30,50 with --strategy default, none with "
     "mcmc].",
 )
-@click.option("--methods", default="gsplat,jsgs", show_default=True, help="gsplat and/or jsgs.")
+@click.option(
+    "--methods", default="gsplat,jsgs", show_default=True,
+    help="gsplat, jsgs, jsgs_eff (JSGS with --tables effective).",
+)  # fmt: skip
 @click.option(
     "--ablation", default=None, help="Scene (name or path) for Table 2's ablation (gaussian, seed 0)."
 )

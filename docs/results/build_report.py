@@ -1,0 +1,55 @@
+"""Rebuild an equal-budget results folder's ``report.md`` (and plots) from its ``results.csv`` with the
+bench's own report code, first adding the runs of bench folders brought back from GPU calls.
+
+    .venv/bin/python docs/results/build_report.py docs/results/budget/confirm .res/flower .res/b100
+    .venv/bin/python docs/results/build_report.py docs/results/double .res/double
+
+A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``confirm.sh`` or
+``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``); its runs
+replace the rows and settings of the same scene, schedule, method, budget and seed. The tables are computed at
+the last step (10,000); runs that stopped earlier are listed as such.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from jsgs.bench.markdown import write_report
+from jsgs.bench.results import read_csv, write_csv
+
+
+def key(r: dict) -> tuple:
+    return (r["scene"], r["schedule"], r["method"], str(r["budget"]), str(r["seed"]))
+
+
+def main(target: Path, folders: list[Path]) -> None:
+    csv = target / "results.csv"
+    rows = read_csv(csv) if csv.is_file() else []
+    cfg = target / "configs.json"
+    configs = json.loads(cfg.read_text()) if cfg.is_file() else {}
+    for f in folders:
+        new = [r for r in read_csv(f / "results.csv") if r["strategy"] == "mcmc"]
+        done = {key(r) for r in new}
+        rows = [r for r in rows if key(r) not in done] + new
+        for c in sorted(f.glob("runs/*/*/*/mcmc-*/s*/config.json")):
+            doc = json.loads(c.read_text())
+            run = str(c.parent.relative_to(f / "runs"))
+            configs[run] = {k: doc[k] for k in ("settings", "versions", "command")}
+    rows.sort(key=lambda r: (*key(r), int(r["step"])))
+    target.mkdir(parents=True, exist_ok=True)
+    write_csv(rows, csv)
+    cfg.write_text(json.dumps(dict(sorted(configs.items())), indent=1) + "\n")
+    header = [
+        f"Every equal-budget run of `{target.name}` (`jsgs bench --strategy mcmc`), gathered from the GPU "
+        "calls that ran them by `docs/results/build_report.py`; every run's settings and versions in "
+        "configs.json, every evaluation in results.csv."
+    ]
+    print(write_report(rows, target, header, []))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) < 2:
+        sys.exit("usage: build_report.py TARGET_FOLDER [BENCH_FOLDER ...]")
+    main(Path(sys.argv[1]), [Path(a) for a in sys.argv[2:]])
