@@ -277,19 +277,9 @@ def _rasterize_gsplat_distorted(
         eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
         distortion=distortion,
     )  # fmt: skip
-    feats: list[Tensor] = []
-    bgs: list[Tensor] = []
-    if render_mode not in ("D", "ED"):
-        rgb = reference.prepare_colors(means, colors, viewmats, sh_degree)
-        feats.append(rgb.expand(C, N, -1))
-        bgs.append(backgrounds if backgrounds is not None else rgb.new_zeros(C, rgb.shape[-1]))
-    E = 0 if extra is None else extra.shape[-1]
-    if extra is not None:
-        feats.append(extra.to(proj.means2d.dtype))
-        bgs.append(proj.means2d.new_zeros(C, E))
-    if render_mode != "RGB":
-        feats.append(proj.depths[..., None])
-        bgs.append(proj.means2d.new_zeros(C, 1))
+    feat, bg = reference.stack_features(
+        proj, means, colors, viewmats, sh_degree, backgrounds, extra, render_mode
+    )
     T = reference.TILE_SIZE
     tw, th = (width + T - 1) // T, (height + T - 1) // T
     tiles_per_gauss, isect_ids, flatten_ids = isect_tiles(
@@ -297,9 +287,8 @@ def _rasterize_gsplat_distorted(
     )
     offsets = isect_offset_encode(isect_ids, C, tw, th).reshape(C, th, tw)
     img, alpha = rasterize_to_pixels(
-        proj.means2d, proj.conics, torch.cat(feats, dim=-1).contiguous(),
-        opacities[None, :].expand(C, N).contiguous(), width, height, T, offsets, flatten_ids,
-        backgrounds=torch.cat(bgs, dim=-1), absgrad=absgrad,
+        proj.means2d, proj.conics, feat.contiguous(), opacities[None, :].expand(C, N).contiguous(), width,
+        height, T, offsets, flatten_ids, backgrounds=bg, absgrad=absgrad,
     )  # fmt: skip
     info: dict = {
         "batch_ids": None, "camera_ids": None, "gaussian_ids": None, "radii": proj.radii,
@@ -309,10 +298,7 @@ def _rasterize_gsplat_distorted(
         "isect_offsets": offsets, "width": width, "height": height, "tile_size": T, "n_batches": 1,
         "n_cameras": C,
     }  # fmt: skip
-    if E:
-        n_col = img.shape[-1] - E - (0 if render_mode == "RGB" else 1)
-        info["extra"] = img[..., n_col : n_col + E]
-        img = torch.cat([img[..., :n_col], img[..., n_col + E :]], dim=-1)
-    if render_mode in ("ED", "RGB+ED"):
-        img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp(min=1e-10)], dim=-1)
+    img, extra_img = reference.split_features(img, alpha, extra, render_mode)
+    if extra_img is not None:
+        info["extra"] = extra_img
     return img, alpha, info

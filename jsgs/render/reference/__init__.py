@@ -33,11 +33,13 @@ from .projection import (
     project_gaussians,
     quat_to_rotmat,
 )
-from .rasterize import rasterize_torch
+from .rasterize import rasterize_torch, split_features, stack_features
 from .sh import prepare_colors, sh_basis, sh_colors, spherical_harmonics
 from .tiles import TILE_SIZE, TileBins, bin_tiles
 
 __all__ = [
+    "split_features",
+    "stack_features",
     "ALPHA_MAX",
     "ALPHA_THRESHOLD",
     "CHUNK_PAIRS",

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from .composite import CHUNK_PAIRS, SAVE_PAIRS, composite
-from .projection import project_gaussians
+from .projection import Projected, project_gaussians
 from .sh import prepare_colors
 from .tiles import TILE_SIZE, bin_tiles
 
@@ -46,22 +46,9 @@ def rasterize_torch(
         eps2d=eps2d, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip,
         distortion=distortion,
     )  # fmt: skip
-    feats = [] if render_mode in ("D", "ED") else [prepare_colors(means, colors, viewmats, sh_degree)]
-    bgs = []
-    if feats:
-        D = feats[0].shape[-1]
-        bgs.append(backgrounds if backgrounds is not None else feats[0].new_zeros(C, D))
-    E = 0
-    if extra_channels is not None:
-        E = extra_channels.shape[-1]
-        feats.append(extra_channels.to(proj.means2d.dtype))
-        bgs.append(proj.means2d.new_zeros(C, E))
-    if render_mode != "RGB":
-        feats.append(proj.depths[..., None])
-        bgs.append(proj.means2d.new_zeros(C, 1))
-    feats = [f.expand(C, N, -1) for f in feats]
-    feat = feats[0] if len(feats) == 1 else torch.cat(feats, dim=-1)
-    bg = bgs[0] if len(bgs) == 1 else torch.cat(bgs, dim=-1)
+    feat, bg = stack_features(
+        proj, means, colors, viewmats, sh_degree, backgrounds, extra_channels, render_mode
+    )
 
     bins = bin_tiles(proj.means2d, proj.radii, proj.depths, width, height)
     sink = None
@@ -79,13 +66,7 @@ def rasterize_torch(
         chunk_pairs=chunk_pairs,
         save_pairs=save_pairs,
     )
-    extra = None
-    if E:
-        n_col = feat.shape[-1] - E - (0 if render_mode == "RGB" else 1)
-        extra = img[..., n_col : n_col + E]
-        img = torch.cat([img[..., :n_col], img[..., n_col + E :]], dim=-1)
-    if render_mode in ("ED", "RGB+ED"):
-        img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp(min=1e-10)], dim=-1)
+    img, extra = split_features(img, alpha, extra_channels, render_mode)
 
     means2d = proj.means2d
     if absgrad and means2d.requires_grad:
@@ -118,3 +99,50 @@ def rasterize_torch(
     if extra is not None:
         info["extra"] = extra
     return img, alpha, info
+
+
+def stack_features(
+    proj: Projected,
+    means: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    sh_degree: int | None,
+    backgrounds: Tensor | None,
+    extra: Tensor | None,
+    render_mode: str,
+) -> tuple[Tensor, Tensor]:
+    """The channels composited in one pass and their backgrounds: colours (unless ``render_mode`` is depth
+    only; background ``backgrounds`` or black), then ``extra`` [C, N, E] (zero background), then the camera
+    depth (modes with D / ED; zero background). Returns features [C, N, F] and backgrounds [C, F]."""
+    C, N = viewmats.shape[0], means.shape[0]
+    feats: list[Tensor] = []
+    bgs: list[Tensor] = []
+    if render_mode not in ("D", "ED"):
+        rgb = prepare_colors(means, colors, viewmats, sh_degree)
+        feats.append(rgb)
+        bgs.append(backgrounds if backgrounds is not None else rgb.new_zeros(C, rgb.shape[-1]))
+    if extra is not None:
+        feats.append(extra.to(proj.means2d.dtype))
+        bgs.append(proj.means2d.new_zeros(C, extra.shape[-1]))
+    if render_mode != "RGB":
+        feats.append(proj.depths[..., None])
+        bgs.append(proj.means2d.new_zeros(C, 1))
+    feats = [f.expand(C, N, -1) for f in feats]
+    feat = feats[0] if len(feats) == 1 else torch.cat(feats, dim=-1)
+    return feat, bgs[0] if len(bgs) == 1 else torch.cat(bgs, dim=-1)
+
+
+def split_features(
+    img: Tensor, alpha: Tensor, extra: Tensor | None, render_mode: str
+) -> tuple[Tensor, Tensor | None]:
+    """Undo :func:`stack_features` on a composited image [C, H, W, F]: the image without the extra channels
+    (expected depth divided by the alpha for ED modes) and the extra channels [C, H, W, E] (None without)."""
+    out = None
+    if extra is not None:
+        E = extra.shape[-1]
+        n_col = img.shape[-1] - E - (0 if render_mode == "RGB" else 1)
+        out = img[..., n_col : n_col + E]
+        img = torch.cat([img[..., :n_col], img[..., n_col + E :]], dim=-1)
+    if render_mode in ("ED", "RGB+ED"):
+        img = torch.cat([img[..., :-1], img[..., -1:] / alpha.clamp(min=1e-10)], dim=-1)
+    return img, out
