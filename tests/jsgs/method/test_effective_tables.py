@@ -88,11 +88,15 @@ def test_manifest_analyze_and_training_with_effective_tables(compressed_scene: P
     assert r.exit_code == 0, r.output
     settings = json.loads((tmp_path / "run" / "config.json").read_text())["settings"]
     assert settings["method_options"]["tables"] == "effective"
-    # the same without --analyze: refused in one line naming a view
+    # the same through `--tables effective` without --analyze: refused in one line naming a view
     plain = compressed_scene / "manifest.json"
+    args = args[:-3] + ["--tables", "effective", "--quiet"]
     args[1], args[3] = str(plain), str(tmp_path / "run2")
     r = CliRunner().invoke(jsgs_main, args)
     assert r.exit_code == 1 and "has no compression analysis" in r.output and r.output.count("\n") == 1
+    # and with gsplat, which has no tables, in one line too
+    r = CliRunner().invoke(jsgs_main, [*args[:3], str(tmp_path / "run3"), "--method", "gsplat", *args[6:]])
+    assert r.exit_code == 1 and "--tables" in r.output and r.output.count("\n") == 1, r.output
 
 
 def test_view_without_analysis_is_refused() -> None:
