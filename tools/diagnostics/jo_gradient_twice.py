@@ -33,7 +33,8 @@ def main() -> None:
     ap.add_argument("--mode", default="paper", choices=["paper", "float", "exact"])
     a = ap.parse_args()
     scene = load_manifest(a.manifest)
-    print("| view | header q | header alone | effective once | effective then header |\n|---|---:|---:|---:|---:|")
+    print("| view | header q | header alone | effective once | effective then header |")
+    print("|---|---:|---:|---:|---:|")
     ratios = []
     for v in scene.views:
         j = v.jpeg
