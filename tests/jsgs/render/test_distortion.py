@@ -1,6 +1,7 @@
 """Lens distortion in the reference rasterizer: the distorted projection of points against OpenCV's
 ``cv2.projectPoints`` (float64), its Jacobian against autograd, the rendered Gaussian's centre where OpenCV
-puts its mean, and no distortion equal to the pinhole path bit for bit."""
+puts its mean, no distortion equal to the pinhole path bit for bit, and the gsplat backend's distorted path
+(its CUDA kernels stood in for by the reference's) laying out its channels as the reference does."""
 
 from __future__ import annotations
 
@@ -83,3 +84,79 @@ def test_zero_distortion_is_the_pinhole_path() -> None:
     torch.testing.assert_close(a, b, atol=1e-12, rtol=0)
     with pytest.raises(ValueError, match=r"\[C, 4\]"):
         rasterize(*args, backend="torch", distortion=torch.zeros(2, 4, dtype=torch.float64))
+
+
+class _TorchGsplat:
+    """gsplat's three tile kernels with gsplat's signatures, done by the reference (CPU): stands in for the
+    CUDA library so that the distorted gsplat path's own code (projection, channel layout, meta) runs here."""
+
+    def __init__(self) -> None:
+        self.bins = None
+        self.depths = None
+
+    def isect_tiles(self, means2d, radii, depths, tile_size, tw, th, packed=False, n_images=None):
+        from jsgs.render.reference import bin_tiles
+
+        assert tile_size == 16 and not packed and n_images == means2d.shape[0]
+        self.bins = bin_tiles(means2d, radii, depths, tw * 16, th * 16)
+        self.depths = depths
+        return self.bins.tiles_per_gauss, self.bins.tile_ids, self.bins.flatten_ids
+
+    def isect_offset_encode(self, isect_ids, n_images, tw, th):
+        return self.bins.offsets
+
+    def rasterize_to_pixels(self, means2d, conics, colors, opacities, width, height, tile_size, offsets,
+                            flatten_ids, backgrounds=None, absgrad=False):  # fmt: skip
+        from types import SimpleNamespace
+
+        from jsgs.render.reference.composite import composite
+
+        proj = SimpleNamespace(means2d=means2d, conics=conics, depths=self.depths)
+        return composite(proj, self.bins, opacities[0], colors, backgrounds, width, height)
+
+
+@pytest.mark.parametrize("mode", ["RGB", "RGB+ED"])
+def test_distorted_gsplat_path_lays_out_channels_as_the_reference(mode: str, monkeypatch) -> None:
+    """The distorted camera's gsplat path, its three CUDA kernels replaced by the reference's tile binning and
+    compositing: the image, the extra channels and the gradients equal the reference backend's (the same
+    test with gsplat's kernels is tests/jsgs/render/test_render_gpu.py)."""
+    import gsplat.cuda._wrapper as wrapper
+
+    from jsgs.render.backend import _rasterize_gsplat_distorted
+
+    fake = _TorchGsplat()
+    for name in ("isect_tiles", "isect_offset_encode", "rasterize_to_pixels"):
+        monkeypatch.setattr(wrapper, name, getattr(fake, name))
+    rng = np.random.default_rng(3)
+    n, W, H = 60, 48, 32  # W, H multiples of the tile: the fake bins on the padded grid
+    f64 = torch.float64
+    base = dict(
+        means=torch.from_numpy(np.c_[rng.uniform(-1, 1, (n, 2)), rng.uniform(2, 4, n)]),
+        quats=torch.randn(n, 4, dtype=f64), scales=torch.full((n, 3), 0.08, dtype=f64),
+        opacities=torch.full((n,), 0.7, dtype=f64), colors=torch.rand(n, 3, dtype=f64),
+    )  # fmt: skip
+    vm = torch.eye(4, dtype=f64)[None]
+    K = torch.tensor([[[40.0, 0, 24], [0, 40.0, 16], [0, 0, 1]]], dtype=f64)
+    dist = torch.tensor([[-0.1, 0.02, 0.003, -0.002]], dtype=f64)
+    extra = torch.rand(1, n, 2, dtype=f64)
+    outs = {}
+    for which in ("torch", "glue"):
+        p = {k: v.clone().requires_grad_(True) for k, v in base.items()}
+        args = (p["means"], p["quats"], p["scales"], p["opacities"], p["colors"], vm, K, W, H)
+        if which == "torch":
+            kw = {"distortion": dist, "extra": extra, "render_mode": mode}
+            img, alpha, info = rasterize(*args, backend="torch", **kw)
+        else:
+            img, alpha, info = _rasterize_gsplat_distorted(
+                *args, dist, sh_degree=None, near_plane=0.01, far_plane=1e10, backgrounds=None, eps2d=0.3,
+                radius_clip=0.0, absgrad=False, render_mode=mode, extra=extra,
+            )  # fmt: skip
+        (img.sum() + 2 * info["extra"].sum() + alpha.sum()).backward()
+        outs[which] = (img.detach(), info["extra"].detach(), {k: v.grad for k, v in p.items()}, info)
+    (a, ea, ga, ia), (b, eb, gb, ib) = outs["torch"], outs["glue"]
+    assert a.shape == b.shape == (1, H, W, 3 if mode == "RGB" else 4) and eb.shape == (1, H, W, 2)
+    torch.testing.assert_close(b, a, atol=1e-10, rtol=0)
+    torch.testing.assert_close(eb, ea, atol=1e-10, rtol=0)
+    for k in ga:
+        torch.testing.assert_close(gb[k], ga[k], atol=1e-9, rtol=1e-7)
+    assert torch.equal(ib["radii"], ia["radii"]) and ib["n_cameras"] == 1
