@@ -209,6 +209,12 @@ def jpeg_bytes(arr: np.ndarray, quality: int, subsampling: int) -> bytes:
     return buf.getvalue()
 
 
+def check_recompress(recompress: int | None) -> None:
+    """``--recompress``: None or an IJG quality (JsgsError, one line, otherwise)."""
+    if recompress is not None and not 1 <= recompress <= 100:
+        raise JsgsError(f"--recompress {recompress}: must be an IJG quality in 1..100")
+
+
 def observed_jpeg(arr: np.ndarray, quality: int, subsampling: int, recompress: int | None = None) -> bytes:
     """The observed file of a view: :func:`jpeg_bytes` at ``quality``; with ``recompress``, that file decoded
     and saved once more at IJG quality ``recompress`` (what an app does to a photo: the header then holds
@@ -378,8 +384,7 @@ def compress(
     every JPEG training view is decoded and saved once more at that quality (its header then says
     ``recompress`` while its pixels went through both: a photo saved twice). ``analyze``: the manifest
     records each JPEG view's compression analysis (``jsgstools manifest --analyze``)."""
-    if recompress is not None and not 1 <= recompress <= 100:
-        raise JsgsError(f"--recompress {recompress}: must be an IJG quality in 1..100")
+    check_recompress(recompress)
     from . import manifest_writer as manifest_mod
     from .scene import write_model_atomic
     from .validate import require_valid

@@ -27,7 +27,7 @@ from jsgs import __version__
 from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
 
-from .compress import SUBSAMPLING, load_rgb, observed_jpeg, plan, schedule_settings
+from .compress import SUBSAMPLING, check_recompress, load_rgb, observed_jpeg, plan, schedule_settings
 from .scene import image_stem, prepare_output_dir
 
 #: What ``derive`` writes into OUT (and removes first with ``force``).
@@ -105,8 +105,7 @@ def derive(
         raise JsgsError(f"--subsampling {subsampling!r}: choose one of {', '.join(SUBSAMPLING)}")
     if jobs is not None and jobs < 1:
         raise JsgsError(f"--jobs {jobs}: must be at least 1")
-    if recompress is not None and not 1 <= recompress <= 100:
-        raise JsgsError(f"--recompress {recompress}: must be an IJG quality in 1..100")
+    check_recompress(recompress)
     base_path = Path(base_manifest)
     if base_path.is_dir():
         base_path = base_path / "manifest.json"
@@ -147,8 +146,6 @@ def derive(
     with ThreadPoolExecutor(max_workers=workers) as ex:  # Pillow releases the GIL while encoding
         sizes = dict(ex.map(encode, encoded))
 
-    from jsgstools.dqt import read_header
-
     mviews: list[dict[str, Any]] = []
     per_view_quality: dict[str, int | None] = {}
     for src, v in by_source.items():
@@ -159,11 +156,7 @@ def derive(
         else:
             name = f"{image_stem(v['name'])}.jpg"
             image = f"images/{name}"
-            jpeg = read_header(out / image).manifest_state()
-            if analyze:
-                from jsgstools.dqt.analysis import analyze_file
-
-                jpeg["analysis"] = analyze_file(out / image).to_json()
+            jpeg = manifest_mod.jpeg_file_state(out / image, analyze)
         per_view_quality[name] = q
         mviews.append({"name": name, "image": image, "split": v["split"], "camera": v["camera"],
                        "R": v["R"], "t": v["t"], "jpeg": jpeg, "reference": ref_rel})  # fmt: skip

@@ -89,14 +89,19 @@ def jpeg_state(view: SceneView, analyze: bool = False) -> dict[str, Any] | None:
     also what the pixels say about its compression history (``analysis``: :mod:`jsgstools.dqt.analysis`)."""
     if view.format not in JPEG_FORMATS:
         return None
+    assert view.path is not None
+    return jpeg_file_state(view.path, analyze)
+
+
+def jpeg_file_state(path: str | Path, analyze: bool = False) -> dict[str, Any]:
+    """The manifest's ``jpeg`` object of the JPEG file ``path`` (:func:`jpeg_state`)."""
     from jsgstools.dqt import read_header
 
-    assert view.path is not None
-    state = read_header(view.path).manifest_state()
+    state = read_header(path).manifest_state()
     if analyze:
         from jsgstools.dqt.analysis import analyze_file
 
-        state["analysis"] = analyze_file(view.path).to_json()
+        state["analysis"] = analyze_file(path).to_json()
     return state
 
 

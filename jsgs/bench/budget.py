@@ -56,9 +56,9 @@ def _ci(m: float | None, h: float | None, digits: int) -> str:
     return number(m, digits, True) + (f" ± {h:.{digits}f}" if h is not None else " (1 seed)")
 
 
-def _table(header: list[str], body: list[list[str]]) -> list[str]:
-    """Scene, schedule and budget (or method) on the left, numbers on the right."""
-    return md_table(header, body, "lll" + "r" * (len(header) - 3))
+def _table(header: list[str], body: list[list[str]], left: int = 3) -> list[str]:
+    """The first ``left`` columns (scene, schedule, budget, method...) on the left, numbers on the right."""
+    return md_table(header, body, "l" * left + "r" * (len(header) - left))
 
 
 class BudgetReport:
@@ -124,15 +124,16 @@ class BudgetReport:
         body = []
         for key, v in ((k, v) for k in self.keys for v in self.variants):
             sc, sch, b = key
-            if not self.paired(key, "lpips", method=v):
+            lp, ps = self.paired(key, "lpips", method=v), self.paired(key, "psnr", method=v)
+            if not lp:
                 continue
-            cells = [sc, sch, f"{b:,}", v, str(len(self.paired(key, "lpips", method=v)))]
+            cells = [sc, sch, f"{b:,}", v, str(len(lp))]
             worse = []
             for metric, digits in (("lpips", 4), ("psnr", 2)):
                 g = agg(list(self.values(sc, sch, "gsplat", b, metric).values()))
                 j = agg(list(self.values(sc, sch, v, b, metric).values()))
                 c = agg(list(self.values(sc, "clean", "gsplat", b, metric).values()))
-                d = self.paired(key, metric, relative=metric == "lpips", method=v)
+                d = self.paired(key, "lpips", relative=True, method=v) if metric == "lpips" else ps
                 rec = damage_recovered(g, j, c, HIGHER_BETTER[metric])
                 r_txt = number(rec.value, 2) + (f" ({rec.note})" if rec.note else "")
                 if rec.value is None:
@@ -142,14 +143,10 @@ class BudgetReport:
                 w = worse_beyond_spread(g, j, HIGHER_BETTER[metric])
                 verdict = "unknown (1 seed)" if w is None else ("**yes**" if w else "no")
                 worse.append(f"{metric}: {verdict}")
-            lw = sum(1 for x in self.paired(key, "lpips", method=v) if x < 0)
-            pw = sum(1 for x in self.paired(key, "psnr", method=v) if x > 0)
-            n = len(self.paired(key, "lpips", method=v))
-            cells += [f"{lw}/{n} / {pw}/{len(self.paired(key, 'psnr', method=v))}", "; ".join(worse)]
+            lw, pw = sum(1 for x in lp if x < 0), sum(1 for x in ps if x > 0)
+            cells += [f"{lw}/{len(lp)} / {pw}/{len(ps)}", "; ".join(worse)]
             body.append(cells)
-        return md_table(header, body, "llll" + "r" * (len(header) - 4)) if body else [
-            "No budget has both gsplat and JSGS runs."
-        ]
+        return _table(header, body, 4) if body else ["No budget has both gsplat and JSGS runs."]
 
     def targets(self) -> list[str]:
         """Per budget: the issue's targets over every scene × schedule × seed pair, met or not."""
@@ -195,9 +192,7 @@ class BudgetReport:
                 key[0], key[1], f"{key[2]:,}", v, per_seed,
                 "not reached" if math.isinf(med) else f"{med:.2f}", "met" if med <= 0.70 else "**not met**",
             ])  # fmt: skip
-        return md_table(header, body, "llll" + "r" * (len(header) - 4)) if body else [
-            "No JSGS run with gsplat at the same budget."
-        ]
+        return _table(header, body, 4) if body else ["No JSGS run with gsplat at the same budget."]
 
     def size_time(self) -> list[str]:
         header = ["Scene", "Schedule", "Budget", "Method", "seeds", "#Gaussians", "train s", "time / it ms",

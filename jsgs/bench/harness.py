@@ -77,11 +77,12 @@ def _dataset_ready(d: Dataset) -> bool:
     """The dataset's manifest exists and was made with ``d``'s settings (read from ``compress.json``, or from
     the manifest's ``scene`` for a dataset made by :func:`jsgstools.derive.derive`)."""
     try:
+        manifest = json.loads((Path(d.out) / "manifest.json").read_text())
         if (Path(d.out) / "compress.json").is_file():
             s = json.loads((Path(d.out) / "compress.json").read_text()).get("settings", {})
         else:
-            s = json.loads((Path(d.out) / "manifest.json").read_text()).get("scene", {})
-        made = json.loads((Path(d.out) / "manifest.json").read_text())["producer"].get("settings", {})
+            s = manifest.get("scene", {})
+        made = manifest["producer"].get("settings", {})
     except (OSError, ValueError, AttributeError, KeyError, TypeError):
         return False
     return (

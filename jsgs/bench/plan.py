@@ -224,12 +224,13 @@ def build_plan(
     if strategy == "mcmc" and (fixed or ablation is not None):
         raise JsgsError("--fixed and --ablation are paper-protocol tables: they run with --strategy default")
     for s in schedules:
-        if s not in SCHEDULES and not _TWICE.fullmatch(s):
+        twice = _TWICE.fullmatch(s)
+        if s not in SCHEDULES and not twice:
             raise JsgsError(
                 f"--schedules: unknown schedule {s!r} (choose from {', '.join(SCHEDULES)}, or a mixed one "
                 "saved twice such as gaussian+r90)"
             )
-        if (m := _TWICE.fullmatch(s)) and not 1 <= int(m["q"]) <= 100:
+        if twice and not 1 <= int(twice["q"]) <= 100:
             raise JsgsError(f"--schedules: {s!r}: the second quality must be in 1..100")
     for m in methods:
         if m not in METHODS:

@@ -38,8 +38,6 @@ from .sh import prepare_colors, sh_basis, sh_colors, spherical_harmonics
 from .tiles import TILE_SIZE, TileBins, bin_tiles
 
 __all__ = [
-    "split_features",
-    "stack_features",
     "ALPHA_MAX",
     "ALPHA_THRESHOLD",
     "CHUNK_PAIRS",
@@ -61,4 +59,6 @@ __all__ = [
     "sh_basis",
     "sh_colors",
     "spherical_harmonics",
+    "split_features",
+    "stack_features",
 ]
