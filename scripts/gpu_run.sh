@@ -19,4 +19,9 @@ export MAX_JOBS=${MAX_JOBS:-16} JSGS_LPIPS_DOWNLOAD=0
 if [ -z "${JSGS_LPIPS_WEIGHTS:-}" ] && [ -f "${GPU_DIR:-.gpu}/alexnet_features.pth" ]; then
     export JSGS_LPIPS_WEIGHTS=$PWD/${GPU_DIR:-.gpu}/alexnet_features.pth
 fi
+# Build (or load) gsplat's and jsgs's CUDA extensions once, under a lock, before the command: runs started side by
+# side on an empty build folder would each try to build them, and all but one fail.
+mkdir -p "$TORCH_EXTENSIONS_DIR"
+flock "$TORCH_EXTENSIONS_DIR/.build.lock" python3 -c \
+    "from gsplat.cuda._backend import _C; from jsgs.cuda_ext import extension; extension()" >/dev/null
 exec "$@"

@@ -3,11 +3,13 @@ bench's own report code, first adding the runs of bench folders brought back fro
 
     .venv/bin/python docs/results/build_report.py docs/results/budget/confirm .res/flower .res/b100
     .venv/bin/python docs/results/build_report.py docs/results/double .res/double
+    .venv/bin/python docs/results/build_report.py --step 7000 docs/results/budget/captures .res/captures
 
 A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``confirm.sh`` or
 ``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``); its runs
 replace the rows and settings of the same scene, schedule, method, budget and seed. The tables are computed at
-the last step (10,000); runs that stopped earlier are listed as such.
+the last step (10,000), or at ``--step N`` (for runs that all stopped earlier); runs that stopped before it are
+listed as such.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ def key(r: dict) -> tuple:
     return (r["scene"], r["schedule"], r["method"], str(r["budget"]), str(r["seed"]))
 
 
-def main(target: Path, folders: list[Path]) -> None:
+def main(target: Path, folders: list[Path], step: int | None = None) -> None:
     csv = target / "results.csv"
     rows = read_csv(csv) if csv.is_file() else []
     cfg = target / "configs.json"
@@ -46,10 +48,18 @@ def main(target: Path, folders: list[Path]) -> None:
         "calls that ran them by `docs/results/build_report.py`; every run's settings and versions in "
         "configs.json, every evaluation in results.csv."
     ]
-    print(write_report(rows, target, header, []))
+    if step is not None:
+        header.append(f"The tables compare step {step:,}, the last evaluation every run reached.")
+    print(write_report(rows, target, header, [], budget_step=step))
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 2:
-        sys.exit("usage: build_report.py TARGET_FOLDER [BENCH_FOLDER ...]")
-    main(Path(sys.argv[1]), [Path(a) for a in sys.argv[2:]])
+    args = sys.argv[1:]
+    at = None
+    if args[:1] == ["--step"]:
+        if len(args) < 2 or not args[1].isdigit():
+            sys.exit("build_report.py: --step needs a step number")
+        at, args = int(args[1]), args[2:]
+    if not args:
+        sys.exit("usage: build_report.py [--step N] TARGET_FOLDER [BENCH_FOLDER ...]")
+    main(Path(args[0]), [Path(a) for a in args[1:]], at)

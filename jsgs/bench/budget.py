@@ -64,9 +64,12 @@ def _table(header: list[str], body: list[list[str]], left: int = 3) -> list[str]
 class BudgetReport:
     """The equal-budget tables of one bench's mcmc rows (see the module docstring)."""
 
-    def __init__(self, rows: list[dict[str, Any]]):
-        self.rows = budget_rows(rows)
-        self.step = max((int(r["step"]) for r in self.rows), default=0)
+    def __init__(self, rows: list[dict[str, Any]], step: int | None = None):
+        """``step``: the evaluation step the tables compare (default: the last one); evaluations after it
+        are left out, so runs that all stopped early can be compared where every one of them got to."""
+        rows = budget_rows(rows)
+        self.step = max((int(r["step"]) for r in rows), default=0) if step is None else step
+        self.rows = [r for r in rows if int(r["step"]) <= self.step]
         # (scene, schedule, method, budget) -> {seed: final row}
         self.final: dict[tuple[str, str, str, int], dict[int, dict[str, Any]]] = defaultdict(dict)
         # (scene, schedule, method, budget, seed) -> [(step, row)]

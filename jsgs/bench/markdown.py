@@ -323,13 +323,14 @@ def write_report(
     header_lines: list[str],
     failures: list[dict[str, Any]],
     plots: bool = True,
+    budget_step: int | None = None,
 ) -> Path:
     """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path. The runs of
-    ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`); the DefaultStrategy runs
-    the paper's tables."""
+    ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`; at ``budget_step``, default
+    the last evaluation); the DefaultStrategy runs the paper's tables."""
     results_dir = Path(results_dir)
     md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
-    brep = BudgetReport(rows)
+    brep = BudgetReport(rows, budget_step)
     if brep.rows:
         bpngs = write_budget_plots(brep, results_dir / "plots") if plots else []
         md += brep.markdown(bpngs)

@@ -1,4 +1,4 @@
-# Equal-budget confirmation on LLFF flower and fern: gsplat vs JSGS (the base_by_view recipe) vs the clean
+# Equal-budget confirmation (default: LLFF flower and fern; SCENES names others with clean bases in $GPU_DIR): gsplat vs JSGS (the base_by_view recipe) vs the clean
 # ceiling, gsplat's MCMCStrategy, three seeds, evaluations every 1,000 steps. Run on a lent 2-GPU machine as
 #   BUDGETS=300k SCHEDULES=uniform,gaussian,descending,clean TL=470 bash scripts/gpu_run.sh bash docs/results/budget/confirm.sh
 # repeated (the bench resumes its runs from their checkpoints) until every run is complete; metrics come back
@@ -6,7 +6,7 @@
 set -u
 B=.res/confirm
 mkdir -p $B/data
-for s in llff_flower llff_fern; do [ -d $B/data/$s ] || cp -r .gpu/bench/data/$s $B/data/; done
+for s in ${SCENES:-llff_flower llff_fern}; do [ -d $B/data/$s ] || cp -r ${GPU_DIR:-.gpu}/bench/data/$s $B/data/; done
 echo '{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise_ref": 4.0}}' > .res/recipe.json
 python3 -c "from gsplat.cuda._backend import _C; print('gsplat ready', flush=True)" 2>&1 | tail -1
 python3 -c "from jsgs.cuda_ext import extension; extension(); print('jsgs kernels ready')" 2>&1 | tail -1

@@ -3,8 +3,9 @@
 # `jsgs train`'s defaults (the mcmc preset, 300,000 Gaussians), test views evaluated against their JPEGs.
 #   RUNS="jpeg_cup:gsplat:0 jpeg_cup:jsgs:1" bash scripts/gpu_run.sh bash docs/results/real/real.sh
 # Each entry is scene:method[+effective]:gpu; ITERS sets the steps (default 10000), TL the seconds a run may
-# take (default 500). Metrics, settings and the first test view's last render of every run come back in
-# $OUT/real.tgz.
+# take (default 500): `timeout` stops a run with SIGTERM, which `jsgs train` answers with a checkpoint, and the
+# same command on the still-warm machine resumes it. Metrics, settings and the first test view's last render of
+# every run come back in $OUT/real.tgz.
 set -u
 R=.res/real
 pids=()
@@ -14,9 +15,11 @@ for e in ${RUNS:-jpeg_cup:gsplat:0 jpeg_cup:jsgs:1}; do
     [ "${method#*+}" = effective ] && extra=(--tables effective)
     m=${method%+*}
     mkdir -p $R/$scene
+    again=--force
+    ls $R/$scene/$method/checkpoints/*.pt >/dev/null 2>&1 && again=--resume
     CUDA_VISIBLE_DEVICES=$gpu timeout "${TL:-500}" python3 -m jsgs.cli train .gpu3/$scene/manifest.json --out $R/$scene/$method \
-        --method "$m" "${extra[@]}" --iterations "${ITERS:-10000}" --seed 0 --quiet --force \
-        >$R/$scene/$method.log 2>&1 &
+        --method "$m" "${extra[@]}" --iterations "${ITERS:-10000}" --seed 0 --quiet $again \
+        >>$R/$scene/$method.log 2>&1 &
     pids+=($!)
 done
 for p in "${pids[@]}"; do wait "$p"; done
