@@ -230,10 +230,11 @@ def test_budget_report_at_an_earlier_step() -> None:
     # every run stopped early, one of them before the others: the tables compare the step all of them reached
     rows = [r for r in _hand_rows() if int(r["budget"]) == 300 and r["strategy"] == "mcmc"]
     rows = [r for r in rows if not (r["method"] == "gsplat" and r["seed"] == 0 and int(r["step"]) == 1000)]
-    assert BudgetReport(rows).values("a", "gaussian", "gsplat", 300, "lpips") == pytest.approx({1: 0.12, 2: 0.11})
+    key = ("a", "gaussian", 300)
+    assert BudgetReport(rows).values(*key[:2], "gsplat", 300, "lpips") == pytest.approx({1: 0.12, 2: 0.11})
     rep = BudgetReport(rows, step=700)
-    assert rep.step == 700 and rep.keys == [("a", "gaussian", 300)]
-    assert rep.values("a", "gaussian", "gsplat", 300, "lpips") == pytest.approx({0: 0.12, 1: 0.144, 2: 0.132})
+    assert rep.step == 700 and rep.keys == [key]
+    assert rep.values(*key[:2], "gsplat", 300, "lpips") == pytest.approx({0: 0.12, 1: 0.144, 2: 0.132})
     # JSGS at step 700 is 0.6x gsplat at step 700 on every seed; evaluations after step 700 are not used
-    assert rep.paired(("a", "gaussian", 300), "lpips", relative=True) == pytest.approx([-40.0, -100 / 3, -40.0])
-    assert rep.time_to_quality(("a", "gaussian", 300)) == [500, 500, 500]
+    assert rep.paired(key, "lpips", relative=True) == pytest.approx([-40.0, -100 / 3, -40.0])
+    assert rep.time_to_quality(key) == [500, 500, 500]
