@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -55,16 +56,15 @@ def to_rgb8(im: object, path: str | Path) -> np.ndarray:
     return np.asarray(im.convert("RGB"), dtype=np.uint8).copy()
 
 
-def read_rgb8(path: str | Path, what: str = "image") -> np.ndarray:
-    """Decode ``path`` to [H, W, 3] uint8. JsgsError (one line naming the file) when it is missing,
+def _decode(path: str | Path, what: str, read: Any) -> np.ndarray:
+    """``read(image)`` of the opened ``path``; JsgsError (one line naming the file) when it is missing,
     truncated, not an image, or over the pixel limit."""
     from PIL import Image, UnidentifiedImageError
 
     apply_pixel_limit()
     try:
         with Image.open(path) as im:
-            im.load()
-            return to_rgb8(im, path)
+            return read(im)
     except FileNotFoundError:
         raise JsgsError(f"{path}: {what} not found") from None
     except Image.DecompressionBombError as e:
@@ -73,3 +73,30 @@ def read_rgb8(path: str | Path, what: str = "image") -> np.ndarray:
         ) from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
         raise JsgsError(f"{path}: cannot decode {what} ({e})") from None
+
+
+def read_rgb8(path: str | Path, what: str = "image") -> np.ndarray:
+    """Decode ``path`` to [H, W, 3] uint8. JsgsError (one line naming the file) when it is missing,
+    truncated, not an image, or over the pixel limit."""
+
+    def read(im: Any) -> np.ndarray:
+        im.load()
+        return to_rgb8(im, path)
+
+    return _decode(path, what, read)
+
+
+def read_ycbcr8(path: str | Path, what: str = "image") -> np.ndarray:
+    """Decode the colour JPEG ``path`` to [H, W, 3] uint8 Y, Cb, Cr as its decoder produces them (no colour
+    conversion; subsampled chroma upsampled to full size). JsgsError (one line) as :func:`read_rgb8`, and when
+    the file is not a YCbCr JPEG."""
+
+    def read(im: Any) -> np.ndarray:
+        if im.format != "JPEG" or im.mode != "RGB":
+            raise JsgsError(f"{path}: {what} is not a YCbCr colour JPEG ({im.format} {im.mode})")
+        im.draft("YCbCr", im.size)
+        if im.mode != "YCbCr":
+            raise JsgsError(f"{path}: {what}: the decoder gives {im.mode}, not YCbCr")
+        return np.asarray(im, dtype=np.uint8).copy()
+
+    return _decode(path, what, read)

@@ -360,7 +360,8 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
             "render.packed false (or train with --no-gc)"
         )
     use_cuda_graph(opts, device)  # its error before the tables are built
-    tables = view_tables(scene.train_views, device, str(scene.manifest_path), opts.tables)
+    noise = opts.base_noise if opts.base_by_view else "tables"  # the estimate reads every view: only if used
+    tables = view_tables(scene.train_views, device, str(scene.manifest_path), opts.tables, noise)
     return JsgsHook(
         opts,
         tables,

@@ -135,7 +135,8 @@ class ViewJpeg:
 
     tables: Tensor
     sampling: str
-    #: σ² of the quantisation noise the tables imply (8-bit units²; :func:`quantization_noise_variance`)
+    #: σ² of the view's quantisation noise (8-bit units²): the tables' bound
+    #: (:func:`quantization_noise_variance`) or the estimate from the file (:func:`jsgs.jpeg.noise`)
     noise_variance: float = 0.0
     #: ``method_options.tables: effective`` on a view compressed twice: [2, 8, 8] the effective tables (the
     #: coarser of the earlier and the header's step per coefficient), quantized with before ``tables``; DS
@@ -163,12 +164,13 @@ def quantization_noise_variance(luma: np.ndarray, chroma: np.ndarray) -> float:
 
 
 def view_tables(
-    views: list[View], device: torch.device, where: str, tables: str = "header"
+    views: list[View], device: torch.device, where: str, tables: str = "header", noise: str = "tables"
 ) -> dict[int, ViewJpeg]:
     """view index -> its tables and sampling for every JPEG training view. JsgsError naming the view when
     JO cannot represent its JPEG state (greyscale, or a chroma sampling other than 4:4:4 / 4:2:2 / 4:2:0).
     ``tables`` effective: views the manifest's analysis finds compressed twice also get ``first`` (their
-    effective tables); a JPEG view without an analysis is a JsgsError."""
+    effective tables); a JPEG view without an analysis is a JsgsError. ``noise``: how ``noise_variance`` is
+    found, ``tables`` (the bound) or ``pixels`` (estimated from the decoded file, which is read again)."""
     out: dict[int, ViewJpeg] = {}
     for v in views:
         j = v.jpeg
@@ -201,13 +203,15 @@ def view_tables(
                 ec = j.effective_chroma_table if j.effective_chroma_table is not None else j.chroma_table
                 eff = np.stack([np.asarray(j.effective_luma_table), np.asarray(ec)])
                 first = torch.as_tensor(eff).to(device, torch.float32).reshape(2, 8, 8)
-        noise = (first.cpu().numpy() if first is not None else header.numpy()).astype(np.float64)
-        out[v.index] = ViewJpeg(
-            header.to(device, torch.float32).reshape(2, 8, 8),
-            j.sampling,
-            quantization_noise_variance(noise[0], noise[1]),
-            first,
-        )
+        q = (first.cpu().numpy() if first is not None else header.numpy()).astype(np.float64)
+        if noise == "pixels":
+            from jsgs.images import read_ycbcr8
+            from jsgs.jpeg.noise import jpeg_noise_variance
+
+            sigma2 = jpeg_noise_variance(read_ycbcr8(v.image, f"view {v.name!r}"), q[0], q[1], j.sampling)
+        else:
+            sigma2 = quantization_noise_variance(q[0], q[1])
+        out[v.index] = ViewJpeg(header.to(device, torch.float32).reshape(2, 8, 8), j.sampling, sigma2, first)
     return out
 
 

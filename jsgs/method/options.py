@@ -71,6 +71,12 @@ class JsgsOptions:
         "σ_ref of base_by_view, in 8-bit units: the noise level at which a view's ℓ_ph weight halves.",
         gt=0.0,
     )
+    base_noise: Literal["tables", "pixels"] = setting(
+        "tables",
+        "σ² of base_by_view: tables: the bound its tables imply (every coefficient loses Q²/12); pixels: "
+        "estimated from the file's own DCT coefficients (jsgs.jpeg.noise: a Laplacian per frequency fitted "
+        "to the quantised values), 20-200x smaller on real images and close to the error the file carries.",
+    )
     jpeg_mode: Literal["paper", "float", "exact"] = setting(
         "paper", "Forward of the JPEG observation operator's rounding (jsgs.jpeg.observe)."
     )

@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from jsgs.errors import JsgsError, one_line
+from jsgs.jpeg.noise import plane_dct as block_dct
 from jsgs.jpeg.tables import BASE_CHROMA, BASE_LUMA, ijg_table
 from jsgstools.dqt.header import JpegHeader
 from jsgstools.dqt.parser import read_header_from
@@ -73,27 +74,6 @@ OWN_STEP_MIN = 0.5 / GAMMA
 _QUALITIES = np.arange(1, 101)
 _IJG_LUMA = np.stack([ijg_table(BASE_LUMA, int(q)) for q in _QUALITIES]).reshape(100, 64)
 _IJG_CHROMA = np.stack([ijg_table(BASE_CHROMA, int(q)) for q in _QUALITIES]).reshape(100, 64)
-
-
-def _dct_basis() -> np.ndarray:
-    """(64, 64) float32: row ``v*8+u`` is the orthonormal 2-D DCT-II basis for frequency (v, u), applied
-    to a block flattened row-major."""
-    k = np.arange(8)[:, None]
-    x = np.arange(8)[None, :]
-    c = np.cos((2 * x + 1) * k * np.pi / 16) * np.sqrt(2 / 8)
-    c[0] /= np.sqrt(2)
-    return np.kron(c, c).astype(np.float32)
-
-
-_BASIS_T = np.ascontiguousarray(_dct_basis().T)
-
-
-def block_dct(plane: np.ndarray) -> np.ndarray:
-    """(H, W) samples 0..255 -> (N, 64) float32 DCT coefficients of the N whole 8x8 blocks, JPEG's level
-    shift (-128) applied, natural order ``v*8+u``; the same scale as JPEG's dequantized coefficients."""
-    h8, w8 = plane.shape[0] // 8 * 8, plane.shape[1] // 8 * 8
-    blocks = plane[:h8, :w8].reshape(h8 // 8, 8, w8 // 8, 8).swapaxes(1, 2).reshape(-1, 64)
-    return (blocks.astype(np.float32) - 128.0) @ _BASIS_T
 
 
 def histograms(coef: np.ndarray, steps: np.ndarray) -> np.ndarray:

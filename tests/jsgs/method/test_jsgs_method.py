@@ -840,11 +840,14 @@ def test_quantization_noise_variance_of_ijg_tables() -> None:
     assert 20 < values[1] < 26 and 500 < values[3] < 650  # q = 90, q = 50
 
 
-def test_base_by_view_scales_the_photometric_weight(tmp_path: Path) -> None:
+@pytest.mark.parametrize("base_noise", ["tables", "pixels"])
+def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: str) -> None:
     """With base_by_view, each JPEG view's step loss carries λ_base·σ_ref²/(σ_ref²+σ²)·ℓ_ph: recomputed
-    from the logged terms of every step."""
+    from the logged terms of every step; σ² the tables' bound or the estimate from the file."""
     from _train_scene import make_scene
 
+    from jsgs.images import read_ycbcr8
+    from jsgs.jpeg.noise import jpeg_noise_variance
     from jsgs.method.image_terms import quantization_noise_variance
     from jsgs.train.callbacks import Callback
     from jsgs.train.config import TrainConfig
@@ -852,13 +855,16 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path) -> None:
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
     doc = json.loads(manifest.read_text())
-    noise = {
-        v["name"]: quantization_noise_variance(
-            np.array(v["jpeg"]["luma_table"]), np.array(v["jpeg"]["chroma_table"])
-        )
-        for v in doc["views"]
-        if v.get("jpeg")
-    }
+    noise, bound = {}, {}
+    for v in doc["views"]:
+        if v.get("jpeg"):
+            qy, qc = np.array(v["jpeg"]["luma_table"]), np.array(v["jpeg"]["chroma_table"])
+            bound[v["name"]] = quantization_noise_variance(qy, qc)
+            dec = read_ycbcr8(manifest.parent / v["image"])
+            noise[v["name"]] = jpeg_noise_variance(dec, qy, qc, v["jpeg"]["sampling"])
+            assert 0.0 < noise[v["name"]] < bound[v["name"]]
+    if base_noise == "tables":
+        noise = bound
     seen: list[tuple[str, float, dict[str, float]]] = []
 
     class Spy(Callback):
@@ -866,7 +872,7 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path) -> None:
             seen.append((result.view, result.loss, dict(result.terms)))
 
     cfg = TrainConfig(iterations=4, eval_at=[], device="cpu", method="jsgs")
-    cfg.method_options = {"base_by_view": True, "base_noise_ref": 6.0, "gc": False}
+    cfg.method_options = {"base_by_view": True, "base_noise_ref": 6.0, "base_noise": base_noise, "gc": False}
     cfg.strategy.refine_start_iter = 10_000
     train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[Spy()])
     assert len(seen) == 4
