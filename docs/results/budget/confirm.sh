@@ -1,19 +1,24 @@
-# Equal-budget confirmation (default: LLFF flower and fern; SCENES names others with clean bases in $GPU_DIR): gsplat vs JSGS (the base_by_view recipe) vs the clean
-# ceiling, gsplat's MCMCStrategy, three seeds, evaluations every 1,000 steps. Run on a lent 2-GPU machine as
+# Equal-budget confirmation: gsplat vs JSGS (the base_by_view recipe) vs the clean ceiling, gsplat's
+# MCMCStrategy, three seeds, evaluations every 1,000 steps, on LLFF flower and fern (SCENES: others with clean
+# bases in $GPU_DIR/bench/data, made by scripts/gpu_prepare.sh). Run on a lent 2-GPU machine as
 #   BUDGETS=300k SCHEDULES=uniform,gaussian,descending,clean TL=470 bash scripts/gpu_run.sh bash docs/results/budget/confirm.sh
 # repeated (the bench resumes its runs from their checkpoints) until every run is complete; metrics come back
-# in $OUT/confirm.tgz and `jsgs bench --report-only` rebuilds the report on the CPU.
+# in $OUT/confirm.tgz and `jsgs bench --report-only` rebuilds the report on the CPU. RECIPE (JSON) replaces the
+# JSGS recipe and OUT_DIR the bench folder, e.g. the estimate-based weights of noise.md:
+#   RECIPE='{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise": "pixels",
+#     "base_noise_ref": 2.0}}' OUT_DIR=.res/pixels2 ... bash docs/results/budget/confirm.sh
 set -u
-B=.res/confirm
+B=${OUT_DIR:-.res/confirm}
 mkdir -p $B/data
 for s in ${SCENES:-llff_flower llff_fern}; do [ -d $B/data/$s ] || cp -r ${GPU_DIR:-.gpu}/bench/data/$s $B/data/; done
-echo '{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise_ref": 4.0}}' > .res/recipe.json
+RECIPE_DEFAULT='{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise_ref": 4.0}}'
+printf '%s\n' "${RECIPE:-$RECIPE_DEFAULT}" > $B/recipe.json
 python3 -c "from gsplat.cuda._backend import _C; print('gsplat ready', flush=True)" 2>&1 | tail -1
 python3 -c "from jsgs.cuda_ext import extension; extension(); print('jsgs kernels ready')" 2>&1 | tail -1
 python3 -m jsgs.cli bench ${SCENES:-llff_flower llff_fern} --out $B --strategy mcmc --budgets "${BUDGETS:-300k}" \
     --schedules "${SCHEDULES:-uniform,gaussian,descending,clean}" --methods "${METHODS:-gsplat,jsgs}" --seeds 0,1,2 \
     --eval-at 1000,2000,3000,4000,5000,6000,7000,8000,9000,10000 --jobs-per-gpu "${JOBS:-11}" \
-    --jsgs-config .res/recipe.json --time-limit "${TL:-540}" --quiet 2>&1 | tail -25
+    --jsgs-config $B/recipe.json --time-limit "${TL:-540}" --quiet 2>&1 | tail -25
 cd $B && tar czf $OUT/confirm.tgz results.csv report.md bench.json \
     $(ls runs/*/*/*/*/*/metrics.json runs/*/*/*/*/*/config.json 2>/dev/null) 2>/dev/null
 ls -la $OUT
