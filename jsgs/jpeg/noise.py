@@ -8,16 +8,16 @@ lossless references: ``tools/diagnostics/noise_estimate.py``).
 
 The estimate here models every AC frequency of a plane as a Laplacian, fitted by maximum likelihood to the
 quantised values the file holds (the decoded pixels' block DCT divided by the step and rounded), separately
-for flat blocks (every AC index 0) and the others, and takes the expected error of quantising that Laplacian
-with the file's step (reconstruction at the bin centres); the DC coefficient keeps the uniform Q²/12. Units:
-8-bit sample values squared, per pixel (the orthonormal DCT carries the mean over the 64 coefficients to the
-pixels).
+for groups of blocks of like activity (how many AC indices are non-zero), and takes the expected error of
+quantising that Laplacian with the file's step (reconstruction at the bin centres); the DC coefficient keeps
+the uniform Q²/12. Units: 8-bit sample values squared, per pixel (the orthonormal DCT carries the mean over
+the 64 coefficients to the pixels).
 
 Measured against lossless references (``tools/diagnostics/noise_estimate.py``, the shared scenes' gaussian
-schedule): estimate / truth 0.6–1.1 on flower, 1.0–1.5 on fern, 0.8–2.8 on the cup, 0.8–5.3 on the mouse;
-the bound's 2–840. Its blind spot: a frequency that is 0 in every block tells only that its values were
+schedule): estimate / truth 0.50–0.64 on flower, 0.69–0.93 on fern, 0.50–1.22 on the cup, 0.59–1.05 on the
+mouse; the bound's 2–840. Its blind spot: a frequency that is 0 in every block tells only that its values were
 below Q/2, and is counted as carrying no error, so detail erased everywhere (a fine texture under coarse
-steps) is missed: on images drawn from the model itself the estimate is 0.38–0.85 of the truth, and it need
+steps) is missed: on images drawn from the model itself the estimate is 0.38–0.77 of the truth, and it need
 not grow as the quality falls (coarser steps erase more frequencies).
 """
 
@@ -99,22 +99,27 @@ def laplacian_quantization_error(levels: np.ndarray, steps: np.ndarray) -> np.nd
     return laplace_error(laplace_scale(levels, steps), np.asarray(steps, dtype=np.float64).reshape(64))
 
 
+#: Blocks are grouped by how many of their AC coefficients are non-zero (0, 1, 2-3, 4-7, 8-15, 16+): each
+#: group gets its own Laplacians, since a frequency's spread differs between flat and busy blocks.
+ACTIVITY_EDGES = (1, 2, 4, 8, 16)
+
+
 def plane_noise_variance(plane: np.ndarray, steps: np.ndarray) -> float:
     """Estimated per-pixel quantisation-noise variance of one decoded plane (``(H, W)`` samples 0..255 on
     the plane's own 8x8 grid) quantised with ``steps`` (``(8, 8)`` natural order): the Laplacian model of
-    :func:`laplacian_quantization_error` for the AC frequencies, fitted to flat blocks (every AC index 0)
-    and the others apart, uniform Q²/12 for DC, averaged over the 64 frequencies, plus the decoder's
-    rounding to 8 bits (1/12)."""
+    :func:`laplacian_quantization_error` for the AC frequencies, fitted to each group of blocks of like
+    activity (ACTIVITY_EDGES) apart, uniform Q²/12 for DC, averaged over the 64 frequencies, plus the
+    decoder's rounding to 8 bits (1/12)."""
     q = np.asarray(steps, dtype=np.float64).reshape(64)
     coef = plane_dct(plane)
     if coef.shape[0] == 0:
         return float(np.mean(q**2) / 12.0) + ROUNDING
     levels = np.rint(coef / q)
-    flat = (levels[:, 1:] == 0).all(1)
+    group = np.searchsorted(ACTIVITY_EDGES, (levels[:, 1:] != 0).sum(1), side="right")
     var = np.zeros(64)
-    for group in (flat, ~flat):
-        if group.any():
-            var += group.sum() * laplacian_quantization_error(levels[group], q)
+    for g in np.unique(group):
+        member = group == g
+        var += member.sum() * laplacian_quantization_error(levels[member], q)
     var /= coef.shape[0]
     var[0] = q[0] ** 2 / 12.0
     return float(var.mean()) + ROUNDING
