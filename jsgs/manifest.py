@@ -43,6 +43,8 @@ class JpegState:
     effective_luma_table: np.ndarray | None = None
     effective_chroma_table: np.ndarray | None = None
     double_compressed: bool | None = None
+    #: the analysis's estimate of the view's quantisation-noise variance (8-bit units²), when recorded
+    noise_variance: float | None = None
 
 
 @dataclass(frozen=True)
@@ -224,6 +226,7 @@ def _analysis(a: dict[str, Any] | None) -> dict[str, Any]:
         "effective_luma_table": np.asarray(a["effective_luma_table"], dtype=np.int32),
         "effective_chroma_table": None if ec is None else np.asarray(ec, dtype=np.int32),
         "double_compressed": bool(a["double_compressed"]),
+        "noise_variance": None if a.get("noise_variance") is None else float(a["noise_variance"]),
     }
 
 

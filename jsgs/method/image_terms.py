@@ -170,7 +170,8 @@ def view_tables(
     JO cannot represent its JPEG state (greyscale, or a chroma sampling other than 4:4:4 / 4:2:2 / 4:2:0).
     ``tables`` effective: views the manifest's analysis finds compressed twice also get ``first`` (their
     effective tables); a JPEG view without an analysis is a JsgsError. ``noise``: how ``noise_variance`` is
-    found, ``tables`` (the bound) or ``pixels`` (estimated from the decoded file, which is read again)."""
+    found, ``tables`` (the bound) or ``pixels`` (the estimate ``manifest --analyze`` recorded, made with the
+    effective tables, else estimated here from the decoded file with the tables JO uses)."""
     out: dict[int, ViewJpeg] = {}
     for v in views:
         j = v.jpeg
@@ -204,7 +205,9 @@ def view_tables(
                 eff = np.stack([np.asarray(j.effective_luma_table), np.asarray(ec)])
                 first = torch.as_tensor(eff).to(device, torch.float32).reshape(2, 8, 8)
         q = (first.cpu().numpy() if first is not None else header.numpy()).astype(np.float64)
-        if noise == "pixels":
+        if noise == "pixels" and j.noise_variance is not None:
+            sigma2 = j.noise_variance  # manifest --analyze's estimate (with the effective tables)
+        elif noise == "pixels":
             from jsgs.images import read_ycbcr8
             from jsgs.jpeg.noise import jpeg_noise_variance
 

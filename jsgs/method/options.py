@@ -75,7 +75,8 @@ class JsgsOptions:
         "tables",
         "σ² of base_by_view: tables: the bound its tables imply (every coefficient loses Q²/12); pixels: "
         "estimated from the file's own DCT coefficients (jsgs.jpeg.noise: a Laplacian per frequency fitted "
-        "to the quantised values), 20-200x smaller on real images and close to the error the file carries.",
+        "to the quantised values), 20-200x smaller on real images and close to the error the file carries "
+        "(recorded by jsgstools manifest --analyze, else computed when training starts).",
     )
     jpeg_mode: Literal["paper", "float", "exact"] = setting(
         "paper", "Forward of the JPEG observation operator's rounding (jsgs.jpeg.observe)."

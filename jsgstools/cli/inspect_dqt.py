@@ -40,8 +40,8 @@ def _emit(text: str, err: bool = False) -> None:
     "--analyze",
     is_flag=True,
     help="Also decode each image and look for an earlier, coarser quantization on its 8x8 grid (double "
-    "compression): a DOUBLE column in the table, an `analysis` object per file in --json "
-    "(docs/double_compression.md).",
+    "compression), and estimate its quantisation noise: DOUBLE and EST. PSNR columns in the table, an "
+    "`analysis` object per file in --json (docs/double_compression.md).",
 )
 @user_errors
 def inspect_dqt(images: tuple[Path, ...], as_json: bool, show_tables: bool, analyze: bool) -> None:
@@ -65,7 +65,9 @@ def inspect_dqt(images: tuple[Path, ...], as_json: bool, show_tables: bool, anal
     shows whether the image went through a coarser quantization before the one in its header (a photo
     saved, then saved again at a higher quality). The DOUBLE column reads "no", or "yes qNN" with the
     closest IJG quality of the earlier tables, and the confidence in that verdict; --json adds the earlier
-    and the effective tables (per coefficient the coarser of the two steps).
+    and the effective tables (per coefficient the coarser of the two steps). EST. PSNR is how far the file
+    is from its uncompressed original through quantisation, estimated from its own DCT coefficients with
+    the effective tables (--json: noise_variance, in 8-bit units squared).
     """
     from jsgstools.dqt import dumps_json, format_table, inspect_files
 

@@ -39,12 +39,13 @@ from __future__ import annotations
 
 import io
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from jsgs.errors import JsgsError, one_line
+from jsgs.jpeg.noise import jpeg_noise_variance, plane_noise_variance
 from jsgs.jpeg.noise import plane_dct as block_dct
 from jsgs.jpeg.tables import BASE_CHROMA, BASE_LUMA, ijg_table
 from jsgstools.dqt.header import JpegHeader
@@ -176,6 +177,17 @@ class Analysis:
     primary_luma_table: np.ndarray | None
     effective_luma_table: np.ndarray
     effective_chroma_table: np.ndarray | None
+    #: estimated quantisation-noise variance of the decoded pixels against the uncompressed original, 8-bit
+    #: units², mean over the planes (jsgs.jpeg.noise, with the effective tables); None where not estimated
+    noise_variance: float | None = None
+
+    @property
+    def psnr_estimate(self) -> float | None:
+        """The PSNR (dB, 8-bit) the estimated noise implies: how far the file is from its uncompressed
+        original through quantisation alone."""
+        if self.noise_variance is None or self.noise_variance <= 0:
+            return None
+        return float(10.0 * np.log10(255.0**2 / self.noise_variance))
 
     def to_json(self) -> dict[str, Any]:
         """The ``analysis`` object of ``jsgs/schemas/dqt_report.schema.json``."""
@@ -191,6 +203,7 @@ class Analysis:
             "primary_luma_table": tab(self.primary_luma_table),
             "effective_luma_table": tab(self.effective_luma_table),
             "effective_chroma_table": tab(self.effective_chroma_table),
+            "noise_variance": None if self.noise_variance is None else round(self.noise_variance, 3),
         }
 
 
@@ -301,7 +314,18 @@ def analyze_bytes(data: bytes, header: JpegHeader) -> Analysis:
         same = header.components[1].table == header.components[2].table
         if same and header.sampling == "4:4:4":
             chroma = [full[:, :, 1], full[:, :, 2]]
-    return analyze_planes(luma, header.luma_table.values, chroma, chroma_table)
+    a = analyze_planes(luma, header.luma_table.values, chroma, chroma_table)
+    return replace(a, noise_variance=_noise(full, a, header.sampling))
+
+
+def _noise(full: np.ndarray, a: Analysis, sampling: str) -> float | None:
+    """The quantisation-noise estimate (jsgs.jpeg.noise) of decoded planes with the effective tables; None
+    for a chroma sampling the estimate does not handle."""
+    if full.shape[2] == 1:
+        return plane_noise_variance(full[:, :, 0], a.effective_luma_table)
+    if a.effective_chroma_table is None or sampling not in ("4:4:4", "4:2:2", "4:2:0"):
+        return None
+    return jpeg_noise_variance(full, a.effective_luma_table, a.effective_chroma_table, sampling)
 
 
 def analyze_file(path: str | os.PathLike[str]) -> Analysis:

@@ -152,9 +152,17 @@ def _double_text(a: Analysis | JsgsError) -> str:
     return f"{verdict} ({a.confidence:.2f})"
 
 
+def _psnr_text(a: Analysis | JsgsError) -> str:
+    if isinstance(a, JsgsError):
+        return "?"
+    p = a.psnr_estimate
+    return "-" if p is None else f"{p:.1f} dB"
+
+
 def format_table(ins: Inspection, show_tables: bool = False, analyze: bool = False) -> str:
     """Human-readable report: one row per good file, then a summary line (and the 8x8 tables on request).
-    With ``analyze`` (and analyses present) a DOUBLE column: "no" or "yes qNN", and the confidence."""
+    With ``analyze`` (and analyses present) a DOUBLE column: "no" or "yes qNN", and the confidence; and EST.
+    PSNR: the PSNR against the uncompressed original that the estimated quantisation noise implies."""
     head: tuple[str, ...] = (
         "FILE",
         "SIZE",
@@ -167,7 +175,7 @@ def format_table(ins: Inspection, show_tables: bool = False, analyze: bool = Fal
     )
     with_double = analyze and ins.analyses is not None
     if with_double:
-        head = (*head, "DOUBLE (confidence)")
+        head = (*head, "DOUBLE (confidence)", "EST. PSNR")
     rows = [
         (
             h.path,
@@ -178,7 +186,11 @@ def format_table(ins: Inspection, show_tables: bool = False, analyze: bool = Fal
             _quality_text(h),
             _tables_text(h),
             str(h.restart_interval) if h.restart_interval else "-",
-            *((_double_text(ins.analyses[h.path]),) if with_double and ins.analyses is not None else ()),
+            *(
+                (_double_text(ins.analyses[h.path]), _psnr_text(ins.analyses[h.path]))
+                if with_double and ins.analyses is not None
+                else ()
+            ),
         )
         for h in ins.headers
     ]

@@ -31,6 +31,7 @@ KEYS = {
     "primary_luma_table",
     "effective_luma_table",
     "effective_chroma_table",
+    "noise_variance",
 }
 
 
@@ -153,15 +154,27 @@ def test_cli_json_analysis_validates(files: tuple[Path, Path]) -> None:
     assert double["double_compressed"] is True and abs(double["primary_quality"] - 50) <= 3
     assert np.array(double["effective_luma_table"]).shape == (8, 8)
     assert doc["summary"]["double_compressed"] == 1
+    # the noise estimate follows what the file went through (with the effective tables): saved at 50 then
+    # 90 carries more damage than saved once at 80, close to the true error against the original
+    for f, a in zip(files, (single, double), strict=True):
+        with Image.open(f) as im:
+            im.draft("YCbCr", im.size)
+            dec = np.asarray(im, dtype=np.float64)
+        truth = float(((dec - np.asarray(photo(7).convert("YCbCr"), dtype=np.float64)) ** 2).mean())
+        assert 0.4 * truth < a["noise_variance"] < 1.5 * truth, (f.name, a["noise_variance"], truth)
+    assert double["noise_variance"] > single["noise_variance"]
 
 
 def test_cli_table_column(files: tuple[Path, Path]) -> None:
     code, out, _ = run(["--analyze", *map(str, files)])
     assert code == 0
     lines = out.splitlines()
-    assert lines[0].split()[-2:] == ["DOUBLE", "(confidence)"]
-    assert lines[1].split()[-2] == "no" and lines[2].split()[-3] == "yes"
-    assert abs(int(lines[2].split()[-2].removeprefix("q")) - 50) <= 3
+    assert lines[0].split()[-4:] == ["DOUBLE", "(confidence)", "EST.", "PSNR"]
+    single, double = lines[1].split(), lines[2].split()
+    assert single[-4] == "no" and double[-5] == "yes"
+    assert abs(int(double[-4].removeprefix("q")) - 50) <= 3
+    # the estimated PSNR: the file saved at 50 then 90 is further from the original than the one saved at 80
+    assert single[-1] == double[-1] == "dB" and 25 < float(double[-2]) < float(single[-2]) < 50
     assert "double       1 of 2 double-compressed" in out
 
 

@@ -881,3 +881,33 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: 
         assert 0.0 < w < 1.0
         expect = w * terms["photometric"] + 0.2 * terms["obs"] + 0.02 * terms["low"] + 0.03 * terms["mid"]
         assert loss == pytest.approx(expect, rel=1e-6)
+
+
+def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
+    """A manifest written with --analyze records each view's noise estimate: base_noise pixels uses it (no
+    second decode); without it the view's file is estimated, and tables keep the bound."""
+    from _train_scene import make_scene
+
+    from jsgs.method.image_terms import quantization_noise_variance, view_tables
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.data import load_scene
+
+    manifest = make_scene(tmp_path / "scene", jpeg_train=True)
+    doc = json.loads(manifest.read_text())
+    jpeg_views = [v for v in doc["views"] if v.get("jpeg")]
+    first = jpeg_views[0]
+    j = first["jpeg"]
+    j["analysis"] = {"double_compressed": False, "confidence": 0.9, "evidence": 1.0, "primary_quality": None,
+                     "primary_luma_table": None, "effective_luma_table": j["luma_table"],
+                     "effective_chroma_table": j["chroma_table"], "noise_variance": 7.5}  # fmt: skip
+    manifest.write_text(json.dumps(doc))
+    views = load_scene(manifest, TrainConfig(device="cpu")).train_views
+    cpu = torch.device("cpu")
+    px = view_tables(views, cpu, "m", noise="pixels")
+    tb = view_tables(views, cpu, "m", noise="tables")
+    by_name = {v.name: v.index for v in views}
+    assert px[by_name[first["name"]]].noise_variance == 7.5
+    other = by_name[jpeg_views[1]["name"]]
+    bound = quantization_noise_variance(np.array(jpeg_views[1]["jpeg"]["luma_table"]),
+                                        np.array(jpeg_views[1]["jpeg"]["chroma_table"]))  # fmt: skip
+    assert 0 < px[other].noise_variance < bound == tb[other].noise_variance
