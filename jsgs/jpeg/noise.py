@@ -27,6 +27,8 @@ from functools import cache
 
 import numpy as np
 
+from jsgs.jpeg.tables import SAMPLING_FACTORS
+
 #: Plane noise variances are averaged over Y, Cb and Cr (as the table bound is).
 PLANES = 3
 #: The decoder rounds its output to 8 bits: uniform noise of one level, variance 1/12 per sample.
@@ -55,10 +57,10 @@ def laplace_error(b: np.ndarray, steps: np.ndarray) -> np.ndarray:
     """Expected squared error of quantising a Laplacian of scale ``b`` with ``steps`` (reconstruction at
     the bin centres): ``P(0) E[c² | |c| < Q/2] + P(≠0) E[(c − kQ)² | bin k ≠ 0]``; 0 where b = 0."""
     b = np.asarray(b, dtype=np.float64)
-    q = np.asarray(steps, dtype=np.float64)
-    out = np.zeros(np.broadcast(b, q).shape)
-    live = np.broadcast_to(b > 0, out.shape)
-    b, q = np.broadcast_to(b, out.shape)[live], np.broadcast_to(q, out.shape)[live]
+    q = np.broadcast_to(np.asarray(steps, dtype=np.float64), b.shape)
+    out = np.zeros(b.shape)
+    live = b > 0
+    b, q = b[live], q[live]
     a = q / 2.0
     e = np.exp(-a / b)  # P(|c| >= Q/2)
     p0 = 1.0 - e
@@ -130,7 +132,7 @@ def jpeg_noise_variance(ycbcr: np.ndarray, luma: np.ndarray, chroma: np.ndarray,
     JPEG: ``ycbcr`` ``(H, W, 3)`` as the decoder gives it without colour conversion (chroma upsampled to full
     size), the file's tables (or the effective ones of a file saved twice) and its chroma sampling
     (``4:4:4``, ``4:2:2``, ``4:2:0``; chroma is averaged back to its own grid first)."""
-    fy, fx = {"4:4:4": (1, 1), "4:2:2": (1, 2), "4:2:0": (2, 2)}[sampling]
+    fx, fy = SAMPLING_FACTORS[sampling]
     total = plane_noise_variance(ycbcr[..., 0], luma)
     for ch in (1, 2):
         p = ycbcr[..., ch].astype(np.float32)

@@ -59,13 +59,12 @@ from .color import rgb_to_ycbcr, rgb_to_ycbcr_libjpeg, ycbcr_to_rgb, ycbcr_to_rg
 from .dct import block_dct, block_idct, blockify, fdct_islow, idct_islow, range_limit, unblockify
 from .rounding import quantize_libjpeg, round_soft_grad, round_ste, soft_round
 from .sampling import downsample, downsample_libjpeg, pad_replicate, upsample, upsample_libjpeg
+from .tables import SAMPLING_FACTORS
 
 Mode = Literal["paper", "float", "exact"]
 Sampling = Literal["4:4:4", "4:2:2", "4:2:0"]
 
 MODES: tuple[str, ...] = ("paper", "float", "exact")
-#: sampling string -> (h, v): luma-to-chroma ratio horizontally and vertically.
-SAMPLING_FACTORS: dict[str, tuple[int, int]] = {"4:4:4": (1, 1), "4:2:2": (2, 1), "4:2:0": (2, 2)}
 
 
 def _ceil_div(a: int, b: int) -> int:

@@ -10,6 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: chroma sampling name -> (h, v): luma-to-chroma ratio horizontally and vertically (the subsamplings the
+#: observation operator and the noise estimate handle).
+SAMPLING_FACTORS: dict[str, tuple[int, int]] = {"4:4:4": (1, 1), "4:2:2": (2, 1), "4:2:0": (2, 2)}
+
 # ITU-T T.81 Annex K, tables K.1 (luminance) and K.2 (chrominance), natural order.
 BASE_LUMA = np.array(
     [

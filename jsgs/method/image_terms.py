@@ -22,12 +22,13 @@ from jsgs.errors import JsgsError, one_line
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import DctSupervision, dct_supervision
+from jsgs.jpeg.tables import SAMPLING_FACTORS
 
 if TYPE_CHECKING:
     from jsgs.method.options import JsgsOptions
     from jsgs.train.data import View
 
-SUPPORTED_SAMPLING = ("4:4:4", "4:2:2", "4:2:0")
+SUPPORTED_SAMPLING = tuple(SAMPLING_FACTORS)
 
 
 def jpeg_terms(

@@ -47,7 +47,7 @@ import numpy as np
 from jsgs.errors import JsgsError, one_line
 from jsgs.jpeg.noise import jpeg_noise_variance, plane_noise_variance
 from jsgs.jpeg.noise import plane_dct as block_dct
-from jsgs.jpeg.tables import BASE_CHROMA, BASE_LUMA, ijg_table
+from jsgs.jpeg.tables import BASE_CHROMA, BASE_LUMA, SAMPLING_FACTORS, ijg_table
 from jsgstools.dqt.header import JpegHeader
 from jsgstools.dqt.parser import read_header_from
 
@@ -323,7 +323,7 @@ def _noise(full: np.ndarray, a: Analysis, sampling: str) -> float | None:
     for a chroma sampling the estimate does not handle."""
     if full.shape[2] == 1:
         return plane_noise_variance(full[:, :, 0], a.effective_luma_table)
-    if a.effective_chroma_table is None or sampling not in ("4:4:4", "4:2:2", "4:2:0"):
+    if a.effective_chroma_table is None or sampling not in SAMPLING_FACTORS:
         return None
     return jpeg_noise_variance(full, a.effective_luma_table, a.effective_chroma_table, sampling)
 

@@ -1,7 +1,7 @@
 """How much quantisation noise the JPEG training views carry: the tables' bound (every coefficient loses
 Q²/12; what ``method_options.base_noise: tables`` uses), the estimate from each file's own coefficients
 (``jsgs.jpeg.noise``; ``base_noise: pixels``) and the truth (the mean squared difference between the decoded
-Y, Cb, Cr and the lossless reference's, JFIF conversion), in 8-bit units².
+Y, Cb, Cr and the lossless reference's, libjpeg's JFIF conversion), in 8-bit units².
 
     .venv/bin/python tools/diagnostics/noise_estimate.py DATA/flower_gaussian/manifest.json [MANIFEST ...]
 
@@ -15,21 +15,19 @@ import argparse
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from jsgs.images import read_rgb8, read_ycbcr8
+from jsgs.jpeg.color import rgb_to_ycbcr
 from jsgs.jpeg.noise import jpeg_noise_variance
 from jsgs.manifest import load_manifest
 from jsgs.method.image_terms import quantization_noise_variance
 
 
 def ycbcr_of(rgb: np.ndarray) -> np.ndarray:
-    """[H, W, 3] RGB -> float64 Y, Cb, Cr (JFIF, as JPEG encoders convert)."""
-    r, g, b = (rgb[..., i].astype(np.float64) for i in range(3))
-    return np.stack([
-        0.299 * r + 0.587 * g + 0.114 * b,
-        128 - 0.168736 * r - 0.331264 * g + 0.5 * b,
-        128 + 0.5 * r - 0.418688 * g - 0.081312 * b,
-    ], -1)  # fmt: skip
+    """[H, W, 3] RGB -> float64 [H, W, 3] Y, Cb, Cr (JFIF, as libjpeg converts: jsgs.jpeg.color)."""
+    t = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).double()
+    return rgb_to_ycbcr(t).permute(1, 2, 0).numpy()
 
 
 def rows_of(manifest: Path) -> list[tuple[str, int | None, float, float, float]]:

@@ -13,8 +13,6 @@ mkdir -p $B/data
 for s in ${SCENES:-llff_flower llff_fern}; do [ -d $B/data/$s ] || cp -r ${GPU_DIR:-.gpu}/bench/data/$s $B/data/; done
 RECIPE_DEFAULT='{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise_ref": 4.0}}'
 printf '%s\n' "${RECIPE:-$RECIPE_DEFAULT}" > $B/recipe.json
-python3 -c "from gsplat.cuda._backend import _C; print('gsplat ready', flush=True)" 2>&1 | tail -1
-python3 -c "from jsgs.cuda_ext import extension; extension(); print('jsgs kernels ready')" 2>&1 | tail -1
 python3 -m jsgs.cli bench ${SCENES:-llff_flower llff_fern} --out $B --strategy mcmc --budgets "${BUDGETS:-300k}" \
     --schedules "${SCHEDULES:-uniform,gaussian,descending,clean}" --methods "${METHODS:-gsplat,jsgs}" --seeds 0,1,2 \
     --eval-at 1000,2000,3000,4000,5000,6000,7000,8000,9000,10000 --jobs-per-gpu "${JOBS:-11}" \

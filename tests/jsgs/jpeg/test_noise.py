@@ -9,21 +9,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from conftest import SHARED
 from PIL import Image
 
 from jsgs.images import read_ycbcr8
+from jsgs.jpeg.color import rgb_to_ycbcr
+from jsgs.jpeg.dct import dct_matrix
 from jsgs.jpeg.noise import jpeg_noise_variance, laplacian_quantization_error, plane_dct
 from jsgs.method.image_terms import quantization_noise_variance
 
 
 def _ycbcr(rgb: np.ndarray) -> np.ndarray:
-    r, g, b = (rgb[..., i].astype(np.float64) for i in range(3))
-    return np.stack([
-        0.299 * r + 0.587 * g + 0.114 * b,
-        128 - 0.168736 * r - 0.331264 * g + 0.5 * b,
-        128 + 0.5 * r - 0.418688 * g - 0.081312 * b,
-    ], -1)  # fmt: skip
+    """[H, W, 3] RGB -> float64 Y, Cb, Cr as libjpeg converts (jsgs.jpeg.color)."""
+    return rgb_to_ycbcr(torch.from_numpy(rgb).permute(2, 0, 1).double()).permute(1, 2, 0).numpy()
 
 
 @pytest.mark.parametrize("ratio", [0.05, 0.3, 1.0, 4.0])
@@ -71,8 +70,8 @@ def _laplacian_image(h: int = 240, w: int = 320) -> np.ndarray:
     r = np.hypot(*np.divmod(np.arange(64), 8))
     scale = 30.0 / (1.0 + r) ** 1.5
     nb = (h // 8) * (w // 8)
-    basis = np.kron(*[np.cos((2 * np.arange(8)[None, :] + 1) * np.arange(8)[:, None] * np.pi / 16)
-                      * np.where(np.arange(8)[:, None] == 0, np.sqrt(1 / 8), 0.5)] * 2)  # fmt: skip
+    d = dct_matrix(torch.float64).numpy()
+    basis = np.kron(d, d)  # row v*8+u: that frequency's 8x8 basis image, flattened
     planes = []
     for _ in range(3):
         c = rng.laplace(0.0, scale, size=(nb, 64))
