@@ -458,6 +458,15 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 #: the preset of a new ``jsgs train`` run given none
 DEFAULT_PRESET = "mcmc"
+#: The method options a preset gives a method, under the config file's and the command line's. ``mcmc`` gives
+#: JSGS the recipe measured at equal budget (docs/results/budget/pixels): λ_obs = 1 and λ_base per JPEG view,
+#: w = σ_ref² / (σ_ref² + σ²) with σ² estimated from the file's coefficients and σ_ref = 2. ``paper`` gives
+#: none: the paper's weights (the options' own defaults).
+PRESET_METHOD_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
+    "mcmc": {
+        "jsgs": {"lambda_obs": 1.0, "base_by_view": True, "base_noise": "pixels", "base_noise_ref": 2.0},
+    },
+}
 
 
 def preset(name: str) -> TrainConfig:
@@ -478,10 +487,12 @@ def command_settings(
 ) -> TrainConfig:
     """The settings of a ``jsgs train`` invocation, in layers: the defaults, the preset (a new run:
     :data:`DEFAULT_PRESET` unless ``preset_name``), the config file (or, when resuming, the run's own
-    settings), the command line's ``overrides`` (dotted-free top-level keys),
-    then ``method_flags`` merged over ``method_options`` (the JSGS switches; ``speed`` merged one level
-    deeper). With ``iterations`` overridden and no ``eval_at`` given, the evaluation steps are cut at the new
-    length, which is always evaluated. JsgsError (one line) on conflicting choices."""
+    settings), the command line's ``overrides`` (dotted-free top-level keys), then the preset's
+    :data:`PRESET_METHOD_OPTIONS` for the method so chosen under ``method_options`` (not with an earlier
+    run's config.json, whose settings are complete), then ``method_flags`` merged over ``method_options``
+    (the JSGS switches; ``speed`` merged one level deeper). With ``iterations`` overridden and no ``eval_at``
+    given, the evaluation steps are cut at the new length, which is always evaluated. JsgsError (one line) on
+    conflicting choices."""
     overrides = dict(overrides or {})
     if resume_settings is not None and preset_name is not None:
         raise JsgsError("--preset applies to a new run; --resume takes the run's own settings")
@@ -495,6 +506,9 @@ def command_settings(
     else:
         base = start
     cfg = from_dict(overrides, "command line", base=base)
+    recipe = PRESET_METHOD_OPTIONS.get(preset_name or "", {}).get(cfg.method)
+    if recipe and not (config_file is not None and is_run_config(config_file)):
+        cfg.method_options = {**recipe, **cfg.method_options}
     if method_flags:
         if cfg.method != "jsgs":
             raise JsgsError(
@@ -509,6 +523,16 @@ def command_settings(
     if "iterations" in overrides and not eval_at_given and any(s > cfg.iterations for s in cfg.eval_at):
         cfg.eval_at = [s for s in cfg.eval_at if s < cfg.iterations] + [cfg.iterations]
     return cfg
+
+
+def is_run_config(path: str | Path) -> bool:
+    """Whether ``--config FILE`` is an earlier run's ``RUN/config.json`` (complete settings, taken whole)
+    rather than partial settings; False for a file :func:`load_config_file` would refuse."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return isinstance(doc, dict) and "format" in doc
 
 
 def load_config_file(path: str | Path, base: TrainConfig | None = None) -> TrainConfig:

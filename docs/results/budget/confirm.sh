@@ -1,22 +1,23 @@
-# Equal-budget confirmation: gsplat vs JSGS (the base_by_view recipe) vs the clean ceiling, gsplat's
-# MCMCStrategy, three seeds, evaluations every 1,000 steps, on LLFF flower and fern (SCENES: others with clean
-# bases in $GPU_DIR/bench/data, made by scripts/gpu_prepare.sh). Run on a lent 2-GPU machine as
+# Equal-budget confirmation: gsplat vs JSGS vs the clean ceiling, gsplat's MCMCStrategy, three seeds,
+# evaluations every 1,000 steps, on LLFF flower and fern (SCENES: others with clean bases in
+# $GPU_DIR/bench/data, made by scripts/gpu_prepare.sh). Run on a lent 2-GPU machine as
 #   BUDGETS=300k SCHEDULES=uniform,gaussian,descending,clean TL=470 bash scripts/gpu_run.sh bash docs/results/budget/confirm.sh
 # repeated (the bench resumes its runs from their checkpoints) until every run is complete; metrics come back
-# in $OUT/confirm.tgz and `jsgs bench --report-only` rebuilds the report on the CPU. RECIPE (JSON) replaces the
-# JSGS recipe and OUT_DIR the bench folder, e.g. the estimate-based weights of noise.md:
-#   RECIPE='{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise": "pixels",
-#     "base_noise_ref": 2.0}}' OUT_DIR=.res/pixels2 ... bash docs/results/budget/confirm.sh
+# in $OUT/confirm.tgz and docs/results/build_report.py gathers them on the CPU. JSGS trains with the mcmc
+# preset's recipe (jsgs.train.config.PRESET_METHOD_OPTIONS); RECIPE (JSON) goes over it and OUT_DIR names the
+# bench folder. confirm/ was made with the tables' noise bound at σ_ref = 4:
+#   RECIPE='{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise": "tables",
+#     "base_noise_ref": 4.0}}' OUT_DIR=.res/tables4 ... bash docs/results/budget/confirm.sh
 set -u
 B=${OUT_DIR:-.res/confirm}
 mkdir -p $B/data
 for s in ${SCENES:-llff_flower llff_fern}; do [ -d $B/data/$s ] || cp -r ${GPU_DIR:-.gpu}/bench/data/$s $B/data/; done
-RECIPE_DEFAULT='{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise_ref": 4.0}}'
-printf '%s\n' "${RECIPE:-$RECIPE_DEFAULT}" > $B/recipe.json
+J=""
+if [ -n "${RECIPE:-}" ]; then printf '%s\n' "$RECIPE" > $B/recipe.json; J="--jsgs-config $B/recipe.json"; fi
 python3 -m jsgs.cli bench ${SCENES:-llff_flower llff_fern} --out $B --strategy mcmc --budgets "${BUDGETS:-300k}" \
     --schedules "${SCHEDULES:-uniform,gaussian,descending,clean}" --methods "${METHODS:-gsplat,jsgs}" --seeds 0,1,2 \
     --eval-at 1000,2000,3000,4000,5000,6000,7000,8000,9000,10000 --jobs-per-gpu "${JOBS:-11}" \
-    --jsgs-config $B/recipe.json --time-limit "${TL:-540}" --quiet 2>&1 | tail -25
+    $J --time-limit "${TL:-540}" --quiet 2>&1 | tail -25
 cd $B && tar czf $OUT/confirm.tgz results.csv report.md bench.json \
     $(ls runs/*/*/*/*/*/metrics.json runs/*/*/*/*/*/config.json 2>/dev/null) 2>/dev/null
 ls -la $OUT

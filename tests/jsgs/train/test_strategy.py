@@ -169,6 +169,33 @@ def test_a_new_run_starts_from_the_mcmc_preset(tmp_path: Path) -> None:
     assert resumed.strategy.type == "default"  # a resumed run keeps its own settings
 
 
+def test_the_mcmc_preset_gives_jsgs_its_recipe_under_the_users_options(tmp_path: Path) -> None:
+    from jsgs.method.options import parse_options
+    from jsgs.train.config import PRESET_METHOD_OPTIONS, command_settings
+
+    recipe = PRESET_METHOD_OPTIONS["mcmc"]["jsgs"]
+    assert command_settings(overrides={"method": "jsgs"}).method_options == recipe
+    opts = parse_options(recipe)
+    assert (opts.lambda_obs, opts.base_by_view, opts.base_noise) == (1.0, True, "pixels")
+    assert opts.base_noise_ref == 2.0
+    # gsplat takes no options; the paper preset keeps the paper's weights (the options' own defaults)
+    assert command_settings(overrides={"method": "gsplat"}).method_options == {}
+    assert command_settings(overrides={"method": "jsgs"}, preset_name="paper").method_options == {}
+    # the config file and the switches apply over the recipe
+    part = tmp_path / "part.json"
+    part.write_text('{"method": "jsgs", "method_options": {"base_noise_ref": 4.0}}')
+    cfg = command_settings(config_file=part, method_flags={"ds": False})
+    assert cfg.method_options == {**recipe, "base_noise_ref": 4.0, "ds": False}
+    # an earlier run's config.json is complete: nothing is added to it, and a resumed run keeps its own
+    run_cfg = tmp_path / "config.json"
+    run_cfg.write_text(json.dumps({"format": "x", "settings": {"method": "jsgs"}}))
+    from jsgs.train.config import is_run_config
+
+    assert is_run_config(run_cfg) and not is_run_config(part)
+    resumed = command_settings(resume_settings=TrainConfig(method="jsgs"))
+    assert resumed.method_options == {}
+
+
 @pytest.mark.parametrize(
     ("settings", "message"),
     [
