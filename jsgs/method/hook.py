@@ -42,6 +42,7 @@ loss).
 
 from __future__ import annotations
 
+import time
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -96,9 +97,14 @@ class JsgsHook(LossHook):
         ssim_kernel: str = "auto",
         near_plane: float = 0.01,
         device: torch.device | None = None,
+        view_names: dict[int, str] | None = None,
+        setup_notes: list[str] | None = None,
     ) -> None:
         self.opts = options
         self.tables = tables
+        # view index -> name, for the per-view weights in describe() (default: the index)
+        self.view_names = view_names or {}
+        self._setup_notes = list(setup_notes or [])
         self.near_plane = near_plane
         self.device = device or torch.device("cpu")
         # the trainer's own Profiler; its totals are this hook's ``timings`` (JO, DS, GC phases)
@@ -139,13 +145,34 @@ class JsgsHook(LossHook):
                 self._gc_graphed = GraphedController(**self._gc_settings)
 
     def describe(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "cuda_graph": self.cuda_graph,
             "cuda_graph_gc": self._gc_graphed is not None,
             "gc_kernel": "cuda" if self._gc_fused else "torch",
             "gc_route": self.gc_route,
             "jpeg_mode": self.opts.jpeg_mode,
         }
+        if self.opts.base_by_view:
+            out["base_by_view"] = {
+                self.view_names.get(i, str(i)): {
+                    "noise_variance": round(tab.noise_variance, 6), "weight": round(self.base_scale(tab), 6)
+                }
+                for i, tab in sorted(self.tables.items())
+            }  # fmt: skip
+        return out
+
+    def notes(self) -> list[str]:
+        """With ``base_by_view``: the spread of the JPEG views' ℓ_ph weights (and how σ² was found)."""
+        notes = list(self._setup_notes)
+        if self.opts.base_by_view and self.tables:
+            w = sorted(self.base_scale(t) for t in self.tables.values())
+            o = self.opts
+            notes.append(
+                f"base_by_view: the {len(w)} JPEG training views keep {w[0]:.2f}–{w[-1]:.2f} of ℓ_ph (median "
+                f"{w[len(w) // 2]:.2f}; σ² from the {'files' if o.base_noise == 'pixels' else 'tables'}, "
+                f"σ_ref = {o.base_noise_ref:g})"
+            )
+        return notes
 
     # ------------------------------------------------------------------------------------------------
     @property
@@ -361,7 +388,15 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
         )
     use_cuda_graph(opts, device)  # its error before the tables are built
     noise = opts.base_noise if opts.base_by_view else "tables"  # the estimate reads every view: only if used
+    t0 = time.perf_counter()
     tables = view_tables(scene.train_views, device, str(scene.manifest_path), opts.tables, noise)
+    setup_notes = []
+    read = sum(1 for v in scene.train_views if v.jpeg is not None and v.jpeg.noise_variance is None)
+    if noise == "pixels" and read:
+        setup_notes.append(
+            f"base_noise pixels: estimated the noise of {read} JPEG view(s) from their files in "
+            f"{time.perf_counter() - t0:.1f} s (jsgstools manifest --analyze records it in the manifest)"
+        )
     return JsgsHook(
         opts,
         tables,
@@ -370,4 +405,6 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
         ssim_kernel=cfg.speed.ssim_kernel,
         near_plane=cfg.render.near_plane,
         device=device,
+        view_names={v.index: v.name for v in scene.train_views},
+        setup_notes=setup_notes,
     )

@@ -138,6 +138,11 @@ class LossHook:
         """What the method resolved from its options for this run (config.json ``derived.method``)."""
         return {}
 
+    def notes(self) -> list[str]:
+        """One-line notes for the user when training starts (printed as ``note: ...``; config.json
+        ``derived.notes``)."""
+        return []
+
     def state_dict(self) -> dict[str, Any]:
         return {}
 

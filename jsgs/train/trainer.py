@@ -472,6 +472,9 @@ class Trainer:
             # from the same Gaussians as the baseline for a given seed
             with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
                 self.hook = make_hook(cfg, scene, device)
+        hook_notes = self.hook.notes() if self.hook is not None else []
+        for note in hook_notes:
+            self.say(f"note: {note}")
         self.strategy = Densifier(cfg.strategy)
         self.sampler = ViewSampler(len(self.train_views), cfg.seed)
 
@@ -516,7 +519,7 @@ class Trainer:
             "initial_gaussians": int(self.splats["means"].shape[0])
             if start_ckpt is None
             else int(json_load(paths.config)["derived"]["initial_gaussians"]),
-            "notes": scene.notes,
+            "notes": [*scene.notes, *hook_notes],
             "ssim_kernel": "cuda"
             if use_kernels(cfg.speed.ssim_kernel, device, "speed.ssim_kernel")
             else "torch",

@@ -874,13 +874,26 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: 
     cfg = TrainConfig(iterations=4, eval_at=[], device="cpu", method="jsgs")
     cfg.method_options = {"base_by_view": True, "base_noise_ref": 6.0, "base_noise": base_noise, "gc": False}
     cfg.strategy.refine_start_iter = 10_000
-    train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[Spy()])
+    said: list[str] = []
+    train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[Spy()], log=said.append)
     assert len(seen) == 4
     for view, loss, terms in seen:
         w = 36.0 / (36.0 + noise[view])
         assert 0.0 < w < 1.0
         expect = w * terms["photometric"] + 0.2 * terms["obs"] + 0.02 * terms["low"] + 0.03 * terms["mid"]
         assert loss == pytest.approx(expect, rel=1e-6)
+    # config.json records every JPEG view's σ² and weight; the start says how they spread
+    derived = json.loads((tmp_path / "run" / "config.json").read_text())["derived"]
+    by_view = derived["method"]["base_by_view"]
+    assert set(by_view) == set(noise)
+    for name, rec in by_view.items():
+        assert rec["noise_variance"] == pytest.approx(noise[name], abs=1e-5)
+        assert rec["weight"] == pytest.approx(36.0 / (36.0 + noise[name]), abs=1e-5)
+    w = sorted(r["weight"] for r in by_view.values())
+    note = [n for n in said if "base_by_view:" in n]
+    assert len(note) == 1 and f"keep {w[0]:.2f}–{w[-1]:.2f} of ℓ_ph" in note[0]
+    assert any("base_by_view:" in n for n in derived["notes"])
+    assert any("estimated the noise" in n for n in said) == (base_noise == "pixels")
 
 
 def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
