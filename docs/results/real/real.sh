@@ -1,6 +1,7 @@
 # The two JPEG-only captures as a user gets them (the authors' files, their COLMAP models; manifests written by
 # `jsgstools manifest SCENE --out SCENE/manifest.json --analyze` into .gpu3/<scene>): gsplat and JSGS with
-# `jsgs train`'s defaults (the mcmc preset, 300,000 Gaussians), test views evaluated against their JPEGs.
+# the mcmc preset (300,000 Gaussians), test views evaluated against their JPEGs. JSGS trains at the paper's
+# weights (PAPER.json below, over the preset's JSGS recipe; PAPER=0: the recipe, `jsgs train`'s default).
 #   RUNS="jpeg_cup:gsplat:0 jpeg_cup:jsgs:1" bash scripts/gpu_run.sh bash docs/results/real/real.sh
 # Each entry is scene:method[+effective]:gpu; ITERS sets the steps (default 10000), TL the seconds a run may
 # take (default 500): `timeout` stops a run with SIGTERM, which `jsgs train` answers with a checkpoint, and the
@@ -14,6 +15,10 @@ for e in ${RUNS:-jpeg_cup:gsplat:0 jpeg_cup:jsgs:1}; do
     extra=()
     [ "${method#*+}" = effective ] && extra=(--tables effective)
     m=${method%+*}
+    if [ "$m" = jsgs ] && [ "${PAPER:-1}" = 1 ]; then
+        mkdir -p $R && echo '{"method_options": {"lambda_obs": 0.2, "base_by_view": false}}' > $R/PAPER.json
+        extra+=(--config $R/PAPER.json)
+    fi
     mkdir -p $R/$scene
     again=--force
     ls $R/$scene/$method/checkpoints/*.pt >/dev/null 2>&1 && again=--resume
