@@ -15,13 +15,13 @@ for e in ${RUNS:-jpeg_cup:gsplat:0 jpeg_cup:jsgs:1}; do
     extra=()
     [ "${method#*+}" = effective ] && extra=(--tables effective)
     m=${method%+*}
-    if [ "$m" = jsgs ] && [ "${PAPER:-1}" = 1 ]; then
-        mkdir -p $R && echo '{"method_options": {"lambda_obs": 0.2, "base_by_view": false}}' > $R/PAPER.json
-        extra+=(--config $R/PAPER.json)
-    fi
     mkdir -p $R/$scene
     again=--force
     ls $R/$scene/$method/checkpoints/*.pt >/dev/null 2>&1 && again=--resume
+    if [ "$m" = jsgs ] && [ "${PAPER:-1}" = 1 ] && [ $again = --force ]; then  # a resumed run keeps its own
+        echo '{"method_options": {"lambda_obs": 0.2, "base_by_view": false}}' > $R/PAPER.json
+        extra+=(--config $R/PAPER.json)
+    fi
     CUDA_VISIBLE_DEVICES=$gpu timeout "${TL:-500}" python3 -m jsgs.cli train .gpu3/$scene/manifest.json --out $R/$scene/$method \
         --method "$m" "${extra[@]}" --iterations "${ITERS:-10000}" --seed 0 --quiet $again \
         >>$R/$scene/$method.log 2>&1 &
