@@ -109,6 +109,30 @@ def test_estimate_follows_the_true_error_of_encoded_images(tmp_path: Path) -> No
         assert quantization_noise_variance(qy, qc) > 2 * est
 
 
+def test_white_noise_texture_is_the_estimates_hard_case(tmp_path: Path) -> None:
+    """Grey white noise (σ 2..32 levels), the texture least like the model: erased high frequencies count as
+    lossless, so the estimate falls to 0.16-1.0 of the truth at q = 20..90 (measured; the weights
+    σ_ref²/(σ_ref²+σ²) it gives are then too high by up to 3.3x at σ_ref = 2). Checked: finite, positive,
+    never above the tables' bound, within 0.1-2x of the truth, and close to it where the steps are fine
+    against the noise (q = 90, σ >= 8)."""
+    rng = np.random.default_rng(0)
+    for amp in (2, 8, 32):
+        grey = np.clip(128 + rng.normal(0, amp, (96, 128, 1)) * np.ones((1, 1, 3)), 0, 255).astype(np.uint8)
+        ref = _ycbcr(grey)
+        for q in (20, 50, 90):
+            path = tmp_path / f"n{amp}_{q}.jpg"
+            Image.fromarray(grey).save(path, quality=q, subsampling=0)
+            dec = read_ycbcr8(path)
+            truth = float(((dec.astype(np.float64) - ref) ** 2).mean())
+            t = Image.open(path).quantization
+            qy, qc = (np.array(t[i], dtype=np.float64).reshape(8, 8) for i in (0, 1))
+            est = jpeg_noise_variance(dec, qy, qc, "4:4:4")
+            assert np.isfinite(est) and 0 < est <= quantization_noise_variance(qy, qc), (amp, q)
+            assert 0.1 * truth < est < 2.0 * truth, (amp, q, est, truth)
+            if q == 90 and amp >= 8:
+                assert est == pytest.approx(truth, rel=0.2), (amp, est, truth)
+
+
 def test_read_ycbcr8_refuses_other_files(tmp_path: Path) -> None:
     from jsgs.errors import JsgsError
 
