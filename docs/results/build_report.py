@@ -9,7 +9,11 @@ A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``c
 ``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``); its runs
 replace the rows and settings of the same scene, schedule, method, budget and seed. The tables are computed
 at the last step (10,000), or at ``--step N`` (for runs that all stopped earlier); runs that stopped before
-it are listed as such.
+it are listed as such; ``--step auto`` compares each scene at the last evaluation every one of its runs
+reached (:func:`jsgs.bench.budget.common_steps`).
+
+    .venv/bin/python docs/results/build_report.py --step auto docs/results/budget/pixels/ref2/all \
+        .res/llff .res/captures
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import json
 import sys
 from pathlib import Path
 
+from jsgs.bench.budget import common_steps
 from jsgs.bench.markdown import write_report
 from jsgs.bench.results import read_csv, write_csv
 
@@ -26,7 +31,7 @@ def key(r: dict) -> tuple:
     return (r["scene"], r["schedule"], r["method"], str(r["budget"]), str(r["seed"]))
 
 
-def main(target: Path, folders: list[Path], step: int | None = None) -> None:
+def main(target: Path, folders: list[Path], step: int | str | None = None) -> None:
     csv = target / "results.csv"
     rows = read_csv(csv) if csv.is_file() else []
     cfg = target / "configs.json"
@@ -48,18 +53,23 @@ def main(target: Path, folders: list[Path], step: int | None = None) -> None:
         "calls that ran them by `docs/results/build_report.py`; every run's settings and versions in "
         "configs.json, every evaluation in results.csv."
     ]
-    if step is not None:
-        header.append(f"The tables compare step {step:,}, the last evaluation every run reached.")
-    print(write_report(rows, target, header, [], budget_step=step))
+    at: int | dict[str, int] | None = common_steps(rows) if step == "auto" else None
+    if isinstance(step, int):
+        at = step
+    if isinstance(at, dict):
+        header.append("Each scene is compared at the last evaluation every one of its runs reached.")
+    elif at is not None:
+        header.append(f"The tables compare step {at:,}, the last evaluation every run reached.")
+    print(write_report(rows, target, header, [], budget_step=at))
 
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    at = None
+    at: int | str | None = None
     if args[:1] == ["--step"]:
-        if len(args) < 2 or not args[1].isdigit():
-            sys.exit("build_report.py: --step needs a step number")
-        at, args = int(args[1]), args[2:]
+        if len(args) < 2 or not (args[1].isdigit() or args[1] == "auto"):
+            sys.exit("build_report.py: --step needs a step number or auto")
+        at, args = (args[1] if args[1] == "auto" else int(args[1])), args[2:]
     if not args:
-        sys.exit("usage: build_report.py [--step N] TARGET_FOLDER [BENCH_FOLDER ...]")
+        sys.exit("usage: build_report.py [--step N|auto] TARGET_FOLDER [BENCH_FOLDER ...]")
     main(Path(args[0]), [Path(a) for a in args[1:]], at)

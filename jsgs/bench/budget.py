@@ -1,7 +1,8 @@
 """The equal-budget part of a bench report: the runs of ``jsgs bench --strategy mcmc --budgets ...``, where
 gsplat, JSGS and the clean ceiling train with the same Gaussian cap (``budget`` in results.csv).
 
-Everything is compared at the bench's final evaluation step, per scene × schedule × budget:
+Everything is compared at the bench's final evaluation step (or a step given per report or per scene, for
+runs that stopped early), per scene × schedule × budget:
 
 - the metrics of each method (mean ± sd over seeds), its final #Gaussians and training time;
 - the damage recovered against the clean run *at the same budget* (:func:`jsgs.bench.stats.damage_recovered`);
@@ -15,6 +16,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import defaultdict
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +52,19 @@ def budget_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [r for r in rows if r.get("strategy") == "mcmc" and r.get("budget") is not None]
 
 
+def common_steps(rows: list[dict[str, Any]]) -> dict[str, int]:
+    """Per scene, the last evaluation step every one of its equal-budget runs reached (the step to compare
+    runs that stopped at different points)."""
+    last: dict[tuple[str, str, str, str, str], int] = {}
+    for r in budget_rows(rows):
+        k = (r["scene"], r["schedule"], r["method"], str(r["budget"]), str(r["seed"]))
+        last[k] = max(last.get(k, 0), int(r["step"]))
+    out: dict[str, int] = {}
+    for k, st in last.items():
+        out[k[0]] = min(out.get(k[0], st), st)
+    return out
+
+
 def _ci(m: float | None, h: float | None, digits: int) -> str:
     if m is None:
         return "n/a"
@@ -64,12 +79,16 @@ def _table(header: list[str], body: list[list[str]], left: int = 3) -> list[str]
 class BudgetReport:
     """The equal-budget tables of one bench's mcmc rows (see the module docstring)."""
 
-    def __init__(self, rows: list[dict[str, Any]], step: int | None = None):
-        """``step``: the evaluation step the tables compare (default: the last one); evaluations after it
-        are left out, so runs that all stopped early can be compared where every one of them got to."""
+    def __init__(self, rows: list[dict[str, Any]], step: int | Mapping[str, int] | None = None):
+        """``step``: the evaluation step the tables compare (default: the last one), or one per scene
+        (``{scene: step}``, e.g. :func:`common_steps`; scenes not named use the last one); evaluations after
+        it are left out, so runs that stopped early can be compared where every one of them got to."""
         rows = budget_rows(rows)
-        self.step = max((int(r["step"]) for r in rows), default=0) if step is None else step
-        self.rows = [r for r in rows if int(r["step"]) <= self.step]
+        last = max((int(r["step"]) for r in rows), default=0)
+        #: per-scene compare steps (empty: every scene at ``step``)
+        self.scene_steps: dict[str, int] = dict(step) if isinstance(step, Mapping) else {}
+        self.step = last if step is None or isinstance(step, Mapping) else step
+        self.rows = [r for r in rows if int(r["step"]) <= self.step_at(r["scene"])]
         # (scene, schedule, method, budget) -> {seed: final row}
         self.final: dict[tuple[str, str, str, int], dict[int, dict[str, Any]]] = defaultdict(dict)
         # (scene, schedule, method, budget, seed) -> [(step, row)]
@@ -78,7 +97,7 @@ class BudgetReport:
         for r in self.rows:
             k = (r["scene"], r["schedule"], r["method"], int(r["budget"]))
             self.curves[(*k, int(r["seed"]))].append((int(r["step"]), r))
-            if int(r["step"]) == self.step:
+            if int(r["step"]) == self.step_at(r["scene"]):
                 self.final[k][int(r["seed"])] = r
         for c in self.curves.values():
             c.sort(key=lambda x: x[0])
@@ -88,6 +107,17 @@ class BudgetReport:
         #: the JSGS methods compared with gsplat: jsgs first, then its variants (jsgs_eff, ...)
         methods = {m for (_, _, m, _) in self.final if m != "gsplat"}
         self.variants = sorted(methods, key=lambda m: (m != "jsgs", m))
+
+    def step_at(self, scene: str) -> int:
+        """The evaluation step the tables compare for ``scene``."""
+        return self.scene_steps.get(scene, self.step)
+
+    def step_label(self) -> str:
+        """``step N``, or the per-scene steps (``steps: a 10000, b 9000``)."""
+        if not self.scene_steps:
+            return f"step {self.step}"
+        scenes = sorted({r["scene"] for r in self.rows})
+        return "steps: " + ", ".join(f"{sc} {self.step_at(sc)}" for sc in scenes)
 
     def values(self, scene: str, schedule: str, method: str, budget: int, metric: str) -> dict[int, float]:
         """seed -> the metric at the final step."""
@@ -111,7 +141,7 @@ class BudgetReport:
         out: list[int | None] = []
         for seed in sorted(g):
             curve = self.curves.get((sc, sch, method, b, seed))
-            if not curve or curve[-1][0] != self.step:
+            if not curve or curve[-1][0] != self.step_at(sc):
                 continue
             reached = (st for st, r in curve if r.get("lpips") is not None and r["lpips"] <= g[seed])
             out.append(next(reached, None))
@@ -188,7 +218,7 @@ class BudgetReport:
             steps = self.time_to_quality(key, v)
             if not steps:
                 continue
-            fr = sorted((s / self.step) if s is not None else math.inf for s in steps)
+            fr = sorted((s / self.step_at(key[0])) if s is not None else math.inf for s in steps)
             med = fr[len(fr) // 2]
             per_seed = ", ".join("not reached" if s is None else str(s) for s in steps)
             body.append([
@@ -223,7 +253,7 @@ class BudgetReport:
             'the clean run at the same budget, on seed means ("within noise" where the damage is not larger '
             "than the seed spread)."
         )
-        md = [f"## Equal Gaussian budget (gsplat's MCMCStrategy), step {self.step}", "", intro, ""]
+        md = [f"## Equal Gaussian budget (gsplat's MCMCStrategy), {self.step_label()}", "", intro, ""]
         md += [*self.comparison(), ""]
         md += ["### Targets at each budget (jsgs; every scene × schedule × seed pair)", ""]
         md += [*self.targets(), ""]
@@ -271,7 +301,7 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
             ax.set_ylabel(yl)
             ax.grid(alpha=0.3)
         axes[0, 0].legend(fontsize=7)
-        fig.suptitle(f"{sc}: step {rep.step} at each Gaussian budget (means over seeds)")
+        fig.suptitle(f"{sc}: step {rep.step_at(sc)} at each Gaussian budget (means over seeds)")
         fig.tight_layout()
         path = outdir / f"{sc}_budgets.png"
         fig.savefig(path, dpi=110)

@@ -6,6 +6,7 @@ noise") are :mod:`jsgs.bench.stats`'s; the figures are :mod:`jsgs.bench.plots`'s
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -323,11 +324,11 @@ def write_report(
     header_lines: list[str],
     failures: list[dict[str, Any]],
     plots: bool = True,
-    budget_step: int | None = None,
+    budget_step: int | Mapping[str, int] | None = None,
 ) -> Path:
     """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path. The runs of
-    ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`; at ``budget_step``, default
-    the last evaluation); the DefaultStrategy runs the paper's tables."""
+    ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`; at ``budget_step``, one step
+    or one per scene, default the last evaluation); the DefaultStrategy runs the paper's tables."""
     results_dir = Path(results_dir)
     md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
     brep = BudgetReport(rows, budget_step)
@@ -335,10 +336,11 @@ def write_report(
         bpngs = write_budget_plots(brep, results_dir / "plots") if plots else []
         md += brep.markdown(bpngs)
         late_b = sorted(
-            (k, st) for k, c in brep.curves.items() if (st := c[-1][0]) < brep.step
+            (k, st) for k, c in brep.curves.items() if (st := c[-1][0]) < brep.step_at(k[0])
         )
         if late_b:
-            md += [f"Budget runs that stopped before step {brep.step} (not in the tables above):", ""]
+            md += [f"Budget runs that stopped before the compared {brep.step_label()} (not in the tables "
+                   "above):", ""]  # fmt: skip
             md += [f"- `{sc}/{sch}/{m}/mcmc-{b}/s{seed}`: last evaluation at step {st}"
                    for (sc, sch, m, b, seed), st in late_b] + [""]  # fmt: skip
     rows = [r for r in rows if r.get("strategy") in (None, "default")]

@@ -238,3 +238,26 @@ def test_budget_report_at_an_earlier_step() -> None:
     # JSGS at step 700 is 0.6x gsplat at step 700 on every seed; evaluations after step 700 are not used
     assert rep.paired(key, "lpips", relative=True) == pytest.approx([-40.0, -100 / 3, -40.0])
     assert rep.time_to_quality(key) == [500, 500, 500]
+
+
+def test_budget_report_at_a_step_per_scene(tmp_path: Path) -> None:
+    # scene "a" complete at 1,000; scene "b" (the same numbers) with one run stopped at 700: common_steps
+    # finds 1,000 and 700, and each scene is compared there, targets pooled over both
+    from jsgs.bench.budget import common_steps
+    from jsgs.bench.markdown import write_report
+
+    a = [r for r in _hand_rows() if int(r["budget"]) == 300 and r["strategy"] == "mcmc"]
+    b = [r | {"scene": "b"} for r in a if not (r["method"] == "gsplat" and r["seed"] == 0 and r["step"] == 1000)]
+    steps = common_steps(a + b)
+    assert steps == {"a": 1000, "b": 700}
+    rep = BudgetReport(a + b, steps)
+    assert rep.step_at("a") == 1000 and rep.step_at("b") == 700 and rep.step_at("other") == rep.step == 1000
+    assert rep.paired(("a", "gaussian", 300), "lpips", relative=True) == pytest.approx(
+        [-40.0, 100 * (0.08 / 0.12 - 1), -40.0]
+    )
+    assert rep.paired(("b", "gaussian", 300), "lpips", relative=True) == pytest.approx([-40.0, -100 / 3, -40.0])
+    assert rep.time_to_quality(("b", "gaussian", 300)) == [500, 500, 500]
+    targets = "\n".join(rep.targets())
+    assert "| 6 |" in targets and "100 %" in targets
+    report = write_report(a + b, tmp_path, [], [], budget_step=steps).read_text()
+    assert "steps: a 1000, b 700" in report and "stopped before" not in report
