@@ -117,7 +117,8 @@ RESERVED_TERMS = frozenset({"l1", "ssim", "photometric", "loss", "opacity_reg", 
 
 class LossHook:
     """Base class of a method's per-step extension. Subclasses override :meth:`losses` (required) and, when
-    needed, :meth:`extra_channels`, :meth:`render_kwargs`, :meth:`state_dict`, :meth:`load_state_dict`."""
+    needed, :meth:`extra_channels`, :meth:`render_kwargs`, :meth:`describe`, :meth:`notes`,
+    :meth:`state_dict`, :meth:`load_state_dict`."""
 
     name: str = "hook"
 
