@@ -7,6 +7,11 @@ model, and it is the same on the CPU as on the GPU, so it can be measured and te
 :class:`KernelCounter` counts the aten ops dispatched inside it that produce new data (views, detaches and
 aliases are free: they launch nothing). Ops that autograd runs in the backward are counted when the backward
 runs inside the counter on the same thread (always on CPU).
+
+It also adds up the bytes each counted op reads and writes (its tensor inputs and outputs; a broadcast input
+counts its storage, not its expanded size): at large images the same terms are bound by memory traffic
+instead, each unfused elementwise kernel reading and writing whole images, and ``bytes`` / the device's
+bandwidth is a lower bound on their device time.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from typing import Any
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils._pytree import tree_leaves
 
 #: aten ops that are not views by schema but launch no kernel either.
 FREE_OPS = frozenset({"aten.detach", "aten._unsafe_view", "aten.t", "aten.lift_fresh", "aten.alias"})
@@ -28,16 +34,37 @@ class KernelCounter(TorchDispatchMode):
     def __init__(self) -> None:
         super().__init__()
         self.ops: Counter[str] = Counter()
+        #: bytes read and written by the counted ops, by aten op
+        self.traffic: Counter[str] = Counter()
 
     def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
         name = str(func.overloadpacket)
+        out = func(*args, **(kwargs or {}))
         if not func.is_view and name not in FREE_OPS:
             self.ops[name] += 1
-        return func(*args, **(kwargs or {}))
+            self.traffic[name] += sum(_bytes(t) for t in tree_leaves((args, kwargs, out)))
+        return out
 
     @property
     def total(self) -> int:
         return sum(self.ops.values())
+
+    @property
+    def bytes(self) -> int:
+        """Bytes read and written by all counted ops."""
+        return sum(self.traffic.values())
+
+
+def _bytes(t: Any) -> int:
+    """What an op moves for one operand: its elements, or its storage where that is smaller (a broadcast,
+    expanded view is read once); 0 for anything but a tensor."""
+    if not isinstance(t, torch.Tensor):
+        return 0
+    n = t.numel() * t.element_size()
+    try:
+        return min(n, t.untyped_storage().nbytes())
+    except (RuntimeError, NotImplementedError):  # tensors without storage (meta, sparse)
+        return n
 
 
 Phases = list[tuple[str, Callable[[], None]]]
@@ -99,11 +126,16 @@ def jsgs_step(
 def count_phases(phases: Phases) -> dict[str, int]:
     """Kernels per phase, after one warm-up pass of all of them (constants built and cached on first use
     are not per-step work)."""
+    return {name: k.total for name, k in count_phases_detail(phases).items()}
+
+
+def count_phases_detail(phases: Phases) -> dict[str, KernelCounter]:
+    """Each phase's :class:`KernelCounter` (kernels and bytes moved), after one warm-up pass of them all."""
     for _, fn in phases:
         fn()
     out = {}
     for name, fn in phases:
         with KernelCounter() as k:
             fn()
-        out[name] = k.total
+        out[name] = k
     return out

@@ -23,6 +23,17 @@ def test_the_counter_counts_kernels_not_views() -> None:
     assert k.total > 0 and y.shape == (4, 6)
 
 
+def test_the_counter_adds_up_the_bytes_each_kernel_moves() -> None:
+    a, row = torch.rand(100, 50), torch.rand(50)
+    with KernelCounter() as k:
+        b = a + row  # reads a (20,000 B) and the broadcast row once (200 B), writes b (20,000 B)
+        b.view(50, 100).t()  # views move nothing
+    assert k.bytes == 20_000 + 200 + 20_000 == k.traffic["aten.add"]
+    with KernelCounter() as k:
+        a.mul_(2.0)  # in place: read and written
+    assert k.bytes == 2 * 20_000
+
+
 def _jsgs_step_kernels(mode: str) -> tuple[int, int]:
     """(JO + L_obs + DS forward and their backward, deferred GC in the backward) kernels for one view."""
     n = count_phases(jsgs_step(mode, "4:2:0", (96, 64), 500))
