@@ -924,3 +924,32 @@ def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
     bound = quantization_noise_variance(np.array(jpeg_views[1]["jpeg"]["luma_table"]),
                                         np.array(jpeg_views[1]["jpeg"]["chroma_table"]))  # fmt: skip
     assert 0 < px[other].noise_variance < bound == tb[other].noise_variance
+
+
+def test_many_estimates_are_announced_and_match_one_by_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Estimating many views' noise from their files says so first on stderr (it takes seconds per dozen
+    photos) and runs several files at once: the values are those of one file at a time."""
+    from _train_scene import make_scene
+
+    import jsgs.method.image_terms as it
+    from jsgs.images import read_ycbcr8
+    from jsgs.jpeg.noise import jpeg_noise_variance
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.data import load_scene
+
+    manifest = make_scene(tmp_path / "scene", jpeg_train=True)
+    views = load_scene(manifest, TrainConfig(device="cpu")).train_views
+    jpeg_views = [v for v in views if v.jpeg is not None]
+    monkeypatch.setattr(it, "ANNOUNCE_ESTIMATES", len(jpeg_views) - 1)
+    got = it.view_tables(views, torch.device("cpu"), "m", noise="pixels")
+    assert f"estimating the quantisation noise of {len(jpeg_views)} JPEG views" in capsys.readouterr().err
+    for v in jpeg_views:
+        j = v.jpeg
+        one = jpeg_noise_variance(read_ycbcr8(v.image), np.array(j.luma_table, dtype=np.float64).reshape(8, 8),
+                                  np.array(j.chroma_table, dtype=np.float64).reshape(8, 8), j.sampling)  # fmt: skip
+        assert got[v.index].noise_variance == one
+    monkeypatch.setattr(it, "ANNOUNCE_ESTIMATES", len(jpeg_views))
+    it.view_tables(views, torch.device("cpu"), "m", noise="pixels")
+    assert capsys.readouterr().err == ""
