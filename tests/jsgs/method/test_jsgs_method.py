@@ -947,8 +947,8 @@ def test_many_estimates_are_announced_and_match_one_by_one(
     assert f"estimating the quantisation noise of {len(jpeg_views)} JPEG views" in capsys.readouterr().err
     for v in jpeg_views:
         j = v.jpeg
-        one = jpeg_noise_variance(read_ycbcr8(v.image), np.array(j.luma_table, dtype=np.float64).reshape(8, 8),
-                                  np.array(j.chroma_table, dtype=np.float64).reshape(8, 8), j.sampling)  # fmt: skip
+        qy, qc = (np.array(t, dtype=np.float64).reshape(8, 8) for t in (j.luma_table, j.chroma_table))
+        one = jpeg_noise_variance(read_ycbcr8(v.image), qy, qc, j.sampling)
         assert got[v.index].noise_variance == one
     monkeypatch.setattr(it, "ANNOUNCE_ESTIMATES", len(jpeg_views))
     it.view_tables(views, torch.device("cpu"), "m", noise="pixels")
