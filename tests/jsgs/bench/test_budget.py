@@ -184,13 +184,14 @@ def test_bench_at_equal_budget_end_to_end(synth_scene: Path, tmp_path: Path) -> 
     """Reference run first, the 0.5x budget resolved from its count, every run under that cap."""
     from jsgs.cli import main
     from jsgs.schemas import validate
+    from jsgs.train.config import PRESET_METHOD_OPTIONS
 
     cfg = tmp_path / "tiny.json"
     tiny = {"init": {"type": "random", "num_points": 200, "scale": 0.3},
             "eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False}}  # fmt: skip
     cfg.write_text(json.dumps(tiny))
     jcfg = tmp_path / "recipe.json"
-    jcfg.write_text(json.dumps({"loss": {"base_weight": 0.5}, "method_options": {"base_by_view": True}}))
+    jcfg.write_text(json.dumps({"loss": {"base_weight": 0.5}, "method_options": {"base_noise_ref": 3.0}}))
     out = tmp_path / "results"
     args = [
         "bench", str(synth_scene), "--out", str(out), "--schedules", "gaussian,clean", "--methods",
@@ -217,6 +218,9 @@ def test_bench_at_equal_budget_end_to_end(synth_scene: Path, tmp_path: Path) -> 
         assert settings["strategy"]["type"] == "mcmc" and settings["strategy"]["cap_max"] == cap
         assert settings["init"]["num_points"] == 200  # the bench's --config under every run
         assert settings["loss"]["base_weight"] == (0.5 if m == "jsgs" else 1.0)  # the recipe: JSGS only
+        # JSGS gets the mcmc preset's recipe, with --jsgs-config over it; gsplat takes no options
+        recipe = {**PRESET_METHOD_OPTIONS["mcmc"]["jsgs"], "base_noise_ref": 3.0} if m == "jsgs" else {}
+        assert settings["method_options"] == recipe
         assert json.loads((run / "metrics.json").read_text())["num_gaussians"] <= cap
     with open(out / "results.csv", newline="") as f:
         rows = list(csv.DictReader(f))
