@@ -499,15 +499,18 @@ def command_settings(
     if preset_name is None and resume_settings is None:
         preset_name = DEFAULT_PRESET
     start = preset(preset_name) if preset_name is not None else TrainConfig()
+    whole = False  # an earlier run's config.json: its settings are complete, the preset adds nothing
     if config_file is not None:
-        base = load_config_file(config_file, base=start)
+        doc = read_config_document(config_file)
+        whole = is_run_config(doc)
+        base = config_from_document(doc, config_file, base=start)
     elif resume_settings is not None:
         base = resume_settings
     else:
         base = start
     cfg = from_dict(overrides, "command line", base=base)
     recipe = PRESET_METHOD_OPTIONS.get(preset_name or "", {}).get(cfg.method)
-    if recipe and not (config_file is not None and is_run_config(config_file)):
+    if recipe and not whole:
         cfg.method_options = {**recipe, **cfg.method_options}
     if method_flags:
         if cfg.method != "jsgs":
@@ -525,38 +528,45 @@ def command_settings(
     return cfg
 
 
-def is_run_config(path: str | Path) -> bool:
-    """Whether ``--config FILE`` is an earlier run's ``RUN/config.json`` (complete settings, taken whole)
-    rather than partial settings; False for a file :func:`load_config_file` would refuse."""
-    try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return False
+def is_run_config(doc: Any) -> bool:
+    """Whether a ``--config`` document is an earlier run's ``RUN/config.json`` (validated, its ``settings``
+    taken whole) rather than a JSON object of partial settings."""
     return isinstance(doc, dict) and "format" in doc
+
+
+def read_config_document(path: str | Path) -> Any:
+    """The parsed JSON of ``--config FILE``; JsgsError (one line) when it is missing or not JSON."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise JsgsError(f"{path}: no such config file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise JsgsError(f"{path}: not a JSON config file ({e})") from None
+
+
+def config_from_document(doc: Any, path: str | Path, base: TrainConfig | None = None) -> TrainConfig:
+    """The settings of a ``--config`` document read from ``path``: an earlier run's (validated against the
+    schema, taken whole; :func:`is_run_config`) or partial settings over ``base`` (default: the defaults)."""
+    from jsgs.schemas import validate
+
+    whole = is_run_config(doc)
+    if whole:
+        validate(doc, "config", str(path))
+        settings = doc["settings"]
+    else:
+        # a bare settings object: from_dict checks names, types and choices with one-line messages
+        settings = doc
+    cfg = from_dict(settings, str(path), base=None if whole else base)
+    cfg.check(str(path), method_options=isinstance(settings, dict) and "method" in settings)
+    return cfg
 
 
 def load_config_file(path: str | Path, base: TrainConfig | None = None) -> TrainConfig:
     """Read ``--config FILE``: either a ``RUN/config.json`` of an earlier run (validated against the schema;
     its ``settings`` are taken whole) or a JSON object of (partial) settings over ``base`` (default: the
     defaults)."""
-    from jsgs.schemas import validate
-
-    path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise JsgsError(f"{path}: no such config file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise JsgsError(f"{path}: not a JSON config file ({e})") from None
-    if isinstance(doc, dict) and "format" in doc:
-        validate(doc, "config", str(path))
-        settings = doc["settings"]
-    else:
-        # a bare settings object: from_dict checks names, types and choices with one-line messages
-        settings = doc
-    cfg = from_dict(settings, str(path), base=base if "format" not in doc else None)
-    cfg.check(str(path), method_options=isinstance(settings, dict) and "method" in settings)
-    return cfg
+    return config_from_document(read_config_document(path), path, base)
 
 
 # ---------------------------------------------------------------------------------------------------------

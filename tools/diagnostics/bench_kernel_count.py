@@ -38,7 +38,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from jsgs.opcount import count_phases_detail, jsgs_step  # noqa: E402
+from jsgs.opcount import KernelCounter, count_phases_detail, jsgs_step  # noqa: E402
 
 PHASES = ("JO", "L_obs", "DS", "backward", "GC (in backward)")
 
@@ -130,7 +130,6 @@ def main(argv: list[str] | None = None) -> int:
 def ssim_traffic(size: tuple[int, int], device: torch.device) -> tuple[int, str]:
     """Bytes moved by one SSIM forward and backward of a ``size`` (W, H) RGB pair on ``device``, and the
     implementation that ran."""
-    from jsgs.opcount import KernelCounter
     from jsgs.ssim import ssim
 
     w, h = size

@@ -191,7 +191,7 @@ def test_the_mcmc_preset_gives_jsgs_its_recipe_under_the_users_options(tmp_path:
     run_cfg.write_text(json.dumps({"format": "x", "settings": {"method": "jsgs"}}))
     from jsgs.train.config import is_run_config
 
-    assert is_run_config(run_cfg) and not is_run_config(part)
+    assert is_run_config(json.loads(run_cfg.read_text())) and not is_run_config(json.loads(part.read_text()))
     resumed = command_settings(resume_settings=TrainConfig(method="jsgs"))
     assert resumed.method_options == {}
 
