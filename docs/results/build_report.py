@@ -9,11 +9,11 @@ A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``c
 ``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``); its runs
 replace the rows and settings of the same scene, schedule, method, budget and seed. The tables are computed
 at the last step (10,000), or at ``--step N`` (for runs that all stopped earlier); runs that stopped before
-it are listed as such; ``--step auto`` compares each scene at the last evaluation every one of its runs
-reached (:func:`jsgs.bench.budget.common_steps`).
+it are listed as such; ``--step auto`` compares each scene, at each budget, at the last evaluation every
+one of its runs reached (:func:`jsgs.bench.budget.common_steps`).
 
-    .venv/bin/python docs/results/build_report.py --step auto docs/results/budget/pixels/ref2/all \
-        .res/llff .res/captures
+    .venv/bin/python docs/results/build_report.py --step auto docs/results/budget/default \
+        .res/b100 .res/captures
 """
 
 from __future__ import annotations
@@ -53,11 +53,13 @@ def main(target: Path, folders: list[Path], step: int | str | None = None) -> No
         "calls that ran them by `docs/results/build_report.py`; every run's settings and versions in "
         "configs.json, every evaluation in results.csv."
     ]
-    at: int | dict[str, int] | None = common_steps(rows) if step == "auto" else None
+    at: int | dict[tuple[str, int], int] | None = common_steps(rows) if step == "auto" else None
     if isinstance(step, int):
         at = step
     if isinstance(at, dict):
-        header.append("Each scene is compared at the last evaluation every one of its runs reached.")
+        header.append(
+            "Each scene is compared, at each budget, at the last evaluation every one of its runs reached."
+        )
     elif at is not None:
         header.append(f"The tables compare step {at:,}, the last evaluation every run reached.")
     print(write_report(rows, target, header, [], budget_step=at))

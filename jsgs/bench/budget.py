@@ -30,6 +30,7 @@ T975 = (
 )  # fmt: skip
 
 Key = tuple[str, str, int]  # scene, schedule, budget
+StepKey = str | tuple[str, int]  # a scene, or (scene, budget)
 
 
 def t975(df: int) -> float:
@@ -52,16 +53,17 @@ def budget_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [r for r in rows if r.get("strategy") == "mcmc" and r.get("budget") is not None]
 
 
-def common_steps(rows: list[dict[str, Any]]) -> dict[str, int]:
-    """Per scene, the last evaluation step every one of its equal-budget runs reached (the step to compare
-    runs that stopped at different points)."""
+def common_steps(rows: list[dict[str, Any]]) -> dict[tuple[str, int], int]:
+    """Per scene and budget, the last evaluation step every one of its equal-budget runs reached (the step to
+    compare runs that stopped at different points): ``{(scene, budget): step}``."""
     last: dict[tuple[str, str, str, str, str], int] = {}
     for r in budget_rows(rows):
         k = (r["scene"], r["schedule"], r["method"], str(r["budget"]), str(r["seed"]))
         last[k] = max(last.get(k, 0), int(r["step"]))
-    out: dict[str, int] = {}
+    out: dict[tuple[str, int], int] = {}
     for k, st in last.items():
-        out[k[0]] = min(out.get(k[0], st), st)
+        sb = (k[0], int(k[3]))
+        out[sb] = min(out.get(sb, st), st)
     return out
 
 
@@ -79,16 +81,17 @@ def _table(header: list[str], body: list[list[str]], left: int = 3) -> list[str]
 class BudgetReport:
     """The equal-budget tables of one bench's mcmc rows (see the module docstring)."""
 
-    def __init__(self, rows: list[dict[str, Any]], step: int | Mapping[str, int] | None = None):
-        """``step``: the evaluation step the tables compare (default: the last one), or one per scene
-        (``{scene: step}``, e.g. :func:`common_steps`; scenes not named use the last one); evaluations after
-        it are left out, so runs that stopped early can be compared where every one of them got to."""
+    def __init__(self, rows: list[dict[str, Any]], step: int | Mapping[StepKey, int] | None = None):
+        """``step``: the evaluation step the tables compare (default: the last one), or one per scene or per
+        scene and budget (``{scene: step}``, ``{(scene, budget): step}``, e.g. :func:`common_steps`; those not
+        named use the last one); evaluations after it are left out, so runs that stopped early can be
+        compared where every one of them got to."""
         rows = budget_rows(rows)
         last = max((int(r["step"]) for r in rows), default=0)
-        #: per-scene compare steps (empty: every scene at ``step``)
-        self.scene_steps: dict[str, int] = dict(step) if isinstance(step, Mapping) else {}
+        #: compare steps per scene or (scene, budget) (empty: every scene at ``step``)
+        self.scene_steps: dict[StepKey, int] = dict(step) if isinstance(step, Mapping) else {}
         self.step = last if step is None or isinstance(step, Mapping) else step
-        self.rows = [r for r in rows if int(r["step"]) <= self.step_at(r["scene"])]
+        self.rows = [r for r in rows if int(r["step"]) <= self.step_at(r["scene"], int(r["budget"]))]
         # (scene, schedule, method, budget) -> {seed: final row}
         self.final: dict[tuple[str, str, str, int], dict[int, dict[str, Any]]] = defaultdict(dict)
         # (scene, schedule, method, budget, seed) -> [(step, row)]
@@ -97,7 +100,7 @@ class BudgetReport:
         for r in self.rows:
             k = (r["scene"], r["schedule"], r["method"], int(r["budget"]))
             self.curves[(*k, int(r["seed"]))].append((int(r["step"]), r))
-            if int(r["step"]) == self.step_at(r["scene"]):
+            if int(r["step"]) == self.step_at(r["scene"], int(r["budget"])):
                 self.final[k][int(r["seed"])] = r
         for c in self.curves.values():
             c.sort(key=lambda x: x[0])
@@ -108,16 +111,26 @@ class BudgetReport:
         methods = {m for (_, _, m, _) in self.final if m != "gsplat"}
         self.variants = sorted(methods, key=lambda m: (m != "jsgs", m))
 
-    def step_at(self, scene: str) -> int:
-        """The evaluation step the tables compare for ``scene``."""
+    def step_at(self, scene: str, budget: int | None = None) -> int:
+        """The evaluation step the tables compare for ``scene`` (at ``budget``)."""
+        if budget is not None and (scene, budget) in self.scene_steps:
+            return self.scene_steps[(scene, budget)]
         return self.scene_steps.get(scene, self.step)
 
     def step_label(self) -> str:
-        """``step N``, or the per-scene steps (``steps: a 10000, b 9000``)."""
+        """``step N``, or the steps per scene and budget (``steps: a 10000; b 9000 (300,000), 10000
+        (100,000)``)."""
         if not self.scene_steps:
             return f"step {self.step}"
-        scenes = sorted({r["scene"] for r in self.rows})
-        return "steps: " + ", ".join(f"{sc} {self.step_at(sc)}" for sc in scenes)
+        parts = []
+        for sc in sorted({r["scene"] for r in self.rows}):
+            budgets = sorted({int(r["budget"]) for r in self.rows if r["scene"] == sc})
+            steps = {b: self.step_at(sc, b) for b in budgets}
+            if len(set(steps.values())) == 1:
+                parts.append(f"{sc} {steps[budgets[0]]}")
+            else:
+                parts.append(f"{sc} " + ", ".join(f"{st} ({b:,})" for b, st in steps.items()))
+        return "steps: " + "; ".join(parts)
 
     def values(self, scene: str, schedule: str, method: str, budget: int, metric: str) -> dict[int, float]:
         """seed -> the metric at the final step."""
@@ -141,7 +154,7 @@ class BudgetReport:
         out: list[int | None] = []
         for seed in sorted(g):
             curve = self.curves.get((sc, sch, method, b, seed))
-            if not curve or curve[-1][0] != self.step_at(sc):
+            if not curve or curve[-1][0] != self.step_at(sc, b):
                 continue
             reached = (st for st, r in curve if r.get("lpips") is not None and r["lpips"] <= g[seed])
             out.append(next(reached, None))
@@ -218,7 +231,7 @@ class BudgetReport:
             steps = self.time_to_quality(key, v)
             if not steps:
                 continue
-            fr = sorted((s / self.step_at(key[0])) if s is not None else math.inf for s in steps)
+            fr = sorted((s / self.step_at(key[0], key[2])) if s is not None else math.inf for s in steps)
             med = fr[len(fr) // 2]
             per_seed = ", ".join("not reached" if s is None else str(s) for s in steps)
             body.append([
@@ -301,7 +314,9 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
             ax.set_ylabel(yl)
             ax.grid(alpha=0.3)
         axes[0, 0].legend(fontsize=7)
-        fig.suptitle(f"{sc}: step {rep.step_at(sc)} at each Gaussian budget (means over seeds)")
+        steps = sorted({rep.step_at(sc, k[3]) for k in rep.final if k[0] == sc})
+        at = "step " + " / ".join(map(str, steps)) if len(steps) > 1 else f"step {steps[0]}"
+        fig.suptitle(f"{sc}: {at} at each Gaussian budget (means over seeds)")
         fig.tight_layout()
         path = outdir / f"{sc}_budgets.png"
         fig.savefig(path, dpi=110)

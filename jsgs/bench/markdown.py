@@ -10,7 +10,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from jsgs.bench.budget import BudgetReport, write_budget_plots
+from jsgs.bench.budget import BudgetReport, StepKey, write_budget_plots
 from jsgs.bench.plan import ABLATION_ALIAS, ABLATION_PARTS, ABLATION_SCHEDULE, MIXED_SCHEDULES
 from jsgs.bench.plots import write_plots
 from jsgs.bench.stats import (
@@ -324,11 +324,12 @@ def write_report(
     header_lines: list[str],
     failures: list[dict[str, Any]],
     plots: bool = True,
-    budget_step: int | Mapping[str, int] | None = None,
+    budget_step: int | Mapping[StepKey, int] | None = None,
 ) -> Path:
     """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path. The runs of
     ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`; at ``budget_step``, one step
-    or one per scene, default the last evaluation); the DefaultStrategy runs the paper's tables."""
+    or one per scene or per scene and budget, default the last evaluation); the DefaultStrategy runs the
+    paper's tables."""
     results_dir = Path(results_dir)
     md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
     brep = BudgetReport(rows, budget_step)
@@ -336,7 +337,7 @@ def write_report(
         bpngs = write_budget_plots(brep, results_dir / "plots") if plots else []
         md += brep.markdown(bpngs)
         late_b = sorted(
-            (k, st) for k, c in brep.curves.items() if (st := c[-1][0]) < brep.step_at(k[0])
+            (k, st) for k, c in brep.curves.items() if (st := c[-1][0]) < brep.step_at(k[0], k[3])
         )
         if late_b:
             md += [f"Budget runs that stopped before the compared {brep.step_label()} (not in the tables "

@@ -254,9 +254,10 @@ def test_budget_report_at_a_step_per_scene(tmp_path: Path) -> None:
     stopped = ("gsplat", 0, 1000)
     b = [r | {"scene": "b"} for r in a if (r["method"], r["seed"], r["step"]) != stopped]
     steps = common_steps(a + b)
-    assert steps == {"a": 1000, "b": 700}
+    assert steps == {("a", 300): 1000, ("b", 300): 700}
     rep = BudgetReport(a + b, steps)
-    assert rep.step_at("a") == 1000 and rep.step_at("b") == 700 and rep.step_at("other") == rep.step == 1000
+    assert rep.step_at("a", 300) == 1000 and rep.step_at("b", 300) == 700
+    assert rep.step_at("other", 300) == rep.step_at("b") == rep.step == 1000
     assert rep.paired(("a", "gaussian", 300), "lpips", relative=True) == pytest.approx(
         [-40.0, 100 * (0.08 / 0.12 - 1), -40.0]
     )
@@ -266,4 +267,23 @@ def test_budget_report_at_a_step_per_scene(tmp_path: Path) -> None:
     targets = "\n".join(rep.targets())
     assert "| 6 |" in targets and "100 %" in targets
     report = write_report(a + b, tmp_path, [], [], budget_step=steps).read_text()
-    assert "steps: a 1000, b 700" in report and "stopped before" not in report
+    assert "steps: a 1000; b 700" in report and "stopped before" not in report
+
+
+def test_budget_report_at_a_step_per_scene_and_budget(tmp_path: Path) -> None:
+    # one scene at two budgets: at 300 one run stopped at 700, at 100 every run reached 1,000; each budget is
+    # compared at its own step, and the report says which
+    from jsgs.bench.budget import common_steps
+    from jsgs.bench.markdown import write_report
+
+    rows = [r for r in _hand_rows() if r["strategy"] == "mcmc"]
+    rows = [r for r in rows if (r["budget"], r["method"], r["seed"], r["step"]) != (300, "gsplat", 0, 1000)]
+    steps = common_steps(rows)
+    assert steps == {("a", 300): 700, ("a", 100): 1000}
+    rep = BudgetReport(rows, steps)
+    d = rep.paired(("a", "gaussian", 300), "lpips", relative=True)
+    assert d == pytest.approx([-40.0, -100 / 3, -40.0])
+    assert rep.paired(("a", "gaussian", 100), "psnr") == pytest.approx([-1.0, -1.0, -1.0])
+    assert rep.step_label() == "steps: a 1000 (100), 700 (300)"
+    report = write_report(rows, tmp_path, [], [], budget_step=steps).read_text()
+    assert "steps: a 1000 (100), 700 (300)" in report and "stopped before" not in report
