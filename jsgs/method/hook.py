@@ -170,7 +170,8 @@ class JsgsHook(LossHook):
             notes.append(
                 f"base_by_view: the {len(w)} JPEG training views keep {w[0]:.2f}–{w[-1]:.2f} of ℓ_ph (median "
                 f"{w[len(w) // 2]:.2f}; σ² from the {'files' if o.base_noise == 'pixels' else 'tables'}, "
-                f"σ_ref = {o.base_noise_ref:g})"
+                f"σ_ref = {o.base_noise_ref:g}"
+                + (f", k = {o.base_noise_exponent:g})" if o.base_noise_exponent != 1.0 else ")")
             )
         return notes
 
@@ -189,11 +190,12 @@ class JsgsHook(LossHook):
         return {k: w[k] for k in self.active_terms()}
 
     def base_scale(self, tab: ViewJpeg) -> float:
-        """The multiplier on λ_base for a JPEG view: 1, or with ``base_by_view`` σ_ref² / (σ_ref² + σ²)."""
+        """The multiplier on λ_base for a JPEG view: 1, or with ``base_by_view`` 1 / (1 + (σ² / σ_ref²)^k)
+        (k = 1: σ_ref² / (σ_ref² + σ²))."""
         if not self.opts.base_by_view:
             return 1.0
-        ref2 = self.opts.base_noise_ref**2
-        return ref2 / (ref2 + tab.noise_variance)
+        ratio = tab.noise_variance / self.opts.base_noise_ref**2
+        return 1.0 / (1.0 + ratio**self.opts.base_noise_exponent)
 
     def extra_channels(self, step: int, view: View, splats: torch.nn.ParameterDict) -> Tensor | None:
         """The Gaussian Controller's probe (``jsgs.method.pooling.new_probe``) on views it runs on."""

@@ -71,6 +71,12 @@ class JsgsOptions:
         "σ_ref of base_by_view, in 8-bit units: the noise level at which a view's ℓ_ph weight halves.",
         gt=0.0,
     )
+    base_noise_exponent: float = setting(
+        1.0,
+        "k of base_by_view: w = 1 / (1 + (σ² / σ_ref²)^k); 1 is σ_ref² / (σ_ref² + σ²), larger k separates "
+        "views below σ_ref (w → 1) from views above it (w → 0) more sharply.",
+        gt=0.0,
+    )
     base_noise: Literal["tables", "pixels"] = setting(
         "tables",
         "σ² of base_by_view: tables: the bound its tables imply (every coefficient loses Q²/12); pixels: "

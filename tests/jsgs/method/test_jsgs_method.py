@@ -840,10 +840,11 @@ def test_quantization_noise_variance_of_ijg_tables() -> None:
     assert 20 < values[1] < 26 and 500 < values[3] < 650  # q = 90, q = 50
 
 
-@pytest.mark.parametrize("base_noise", ["tables", "pixels"])
-def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: str) -> None:
-    """With base_by_view, each JPEG view's step loss carries λ_base·σ_ref²/(σ_ref²+σ²)·ℓ_ph: recomputed
-    from the logged terms of every step; σ² the tables' bound or the estimate from the file."""
+@pytest.mark.parametrize(("base_noise", "k"), [("tables", 1.0), ("pixels", 1.0), ("pixels", 2.0)])
+def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: str, k: float) -> None:
+    """With base_by_view, each JPEG view's step loss carries λ_base·w·ℓ_ph, w = 1 / (1 + (σ²/σ_ref²)^k)
+    (k = 1: σ_ref²/(σ_ref²+σ²)): recomputed from the logged terms of every step; σ² the tables' bound or the
+    estimate from the file."""
     from _train_scene import make_scene
 
     from jsgs.images import read_ycbcr8
@@ -873,12 +874,18 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: 
 
     cfg = TrainConfig(iterations=4, eval_at=[], device="cpu", method="jsgs")
     cfg.method_options = {"base_by_view": True, "base_noise_ref": 6.0, "base_noise": base_noise, "gc": False}
+    if k != 1.0:
+        cfg.method_options["base_noise_exponent"] = k
+
+    def weight(var: float) -> float:
+        return 36.0 / (36.0 + var) if k == 1.0 else 1.0 / (1.0 + (var / 36.0) ** k)
+
     cfg.strategy.refine_start_iter = 10_000
     said: list[str] = []
     train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[Spy()], log=said.append)
     assert len(seen) == 4
     for view, loss, terms in seen:
-        w = 36.0 / (36.0 + noise[view])
+        w = weight(noise[view])
         assert 0.0 < w < 1.0
         expect = w * terms["photometric"] + 0.2 * terms["obs"] + 0.02 * terms["low"] + 0.03 * terms["mid"]
         assert loss == pytest.approx(expect, rel=1e-6)
@@ -888,10 +895,11 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: 
     assert set(by_view) == set(noise)
     for name, rec in by_view.items():
         assert rec["noise_variance"] == pytest.approx(noise[name], abs=1e-5)
-        assert rec["weight"] == pytest.approx(36.0 / (36.0 + noise[name]), abs=1e-5)
+        assert rec["weight"] == pytest.approx(weight(noise[name]), abs=1e-5)
     w = sorted(r["weight"] for r in by_view.values())
     note = [n for n in said if "base_by_view:" in n]
     assert len(note) == 1 and f"keep {w[0]:.2f}–{w[-1]:.2f} of ℓ_ph" in note[0]
+    assert ("k = 2)" in note[0]) == (k == 2.0)
     assert any("base_by_view:" in n for n in derived["notes"])
     assert any("estimated the noise" in n for n in said) == (base_noise == "pixels")
 
