@@ -314,8 +314,11 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
             ax.set_ylabel(yl)
             ax.grid(alpha=0.3)
         axes[0, 0].legend(fontsize=7)
-        steps = sorted({rep.step_at(sc, k[3]) for k in rep.final if k[0] == sc})
-        at = "step " + " / ".join(map(str, steps)) if len(steps) > 1 else f"step {steps[0]}"
+        steps = {b: rep.step_at(sc, b) for b in sorted({k[3] for k in rep.final if k[0] == sc})}
+        if len(set(steps.values())) == 1:
+            at = f"step {next(iter(steps.values()))}"
+        else:
+            at = "steps " + ", ".join(f"{st} ({b:,})" for b, st in steps.items())
         fig.suptitle(f"{sc}: {at} at each Gaussian budget (means over seeds)")
         fig.tight_layout()
         path = outdir / f"{sc}_budgets.png"
