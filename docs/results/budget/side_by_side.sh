@@ -1,0 +1,22 @@
+# Several confirm.sh benches side by side on one lent machine (they share its GPUs), each in its own folder
+# /tmp/NAME (kept on a warm machine, so the same call repeated resumes every run from its checkpoint) and
+# with its metrics in $OUT/NAME/confirm.tgz. BENCHES lists them, ';' between benches, '|' between fields:
+#   NAME|SCENES|SCHEDULES|METHODS|JOBS_PER_GPU|BUDGETS[|RECIPE]
+# GPU_DIR (default .gpu) holds the clean bases and the LPIPS weights for every bench of the call. Run as
+#   BENCHES="k2|llff_flower llff_fern|gaussian,descending|jsgs|6|300k|{\"method_options\": \
+#     {\"base_noise_exponent\": 2.0}};g|llff_flower|uniform|gsplat,jsgs|3|300k" GPU_DIR=.gpu6 TL=470 \
+#     bash docs/results/budget/side_by_side.sh
+# and gather the folders on the CPU with docs/results/build_report.py.
+set -u
+cd "$(dirname "$0")/../../.."
+bash scripts/gpu_run.sh true  # the CUDA builds, once, before the benches start side by side
+IFS=';' read -ra BS <<< "$BENCHES"
+for spec in "${BS[@]}"; do
+  IFS='|' read -r name scenes schedules methods jobs budgets recipe <<< "$spec"
+  mkdir -p "$OUT/$name"
+  OUT=$OUT/$name OUT_DIR=/tmp/$name SCENES="$scenes" SCHEDULES=$schedules METHODS=$methods JOBS=$jobs \
+    BUDGETS=$budgets RECIPE="${recipe:-}" TL=${TL:-470} GPU_DIR=${GPU_DIR:-.gpu} \
+    bash scripts/gpu_run.sh bash docs/results/budget/confirm.sh > "$OUT/$name/log.txt" 2>&1 &
+done
+wait
+for f in "$OUT"/*/log.txt; do echo "== $f"; grep -E "^bench:|^error:" "$f"; done
