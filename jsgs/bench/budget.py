@@ -56,14 +56,13 @@ def budget_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def common_steps(rows: list[dict[str, Any]]) -> dict[tuple[str, int], int]:
     """Per scene and budget, the last evaluation step every one of its equal-budget runs reached (the step to
     compare runs that stopped at different points): ``{(scene, budget): step}``."""
-    last: dict[tuple[str, str, str, str, str], int] = {}
+    last: dict[tuple[str, str, str, int, int], int] = {}
     for r in budget_rows(rows):
-        k = (r["scene"], r["schedule"], r["method"], str(r["budget"]), str(r["seed"]))
+        k = (r["scene"], r["schedule"], r["method"], int(r["budget"]), int(r["seed"]))
         last[k] = max(last.get(k, 0), int(r["step"]))
     out: dict[tuple[str, int], int] = {}
-    for k, st in last.items():
-        sb = (k[0], int(k[3]))
-        out[sb] = min(out.get(sb, st), st)
+    for (scene, _, _, budget, _), st in last.items():
+        out[(scene, budget)] = min(out.get((scene, budget), st), st)
     return out
 
 
@@ -122,15 +121,17 @@ class BudgetReport:
         (100,000)``)."""
         if not self.scene_steps:
             return f"step {self.step}"
-        parts = []
-        for sc in sorted({r["scene"] for r in self.rows}):
-            budgets = sorted({int(r["budget"]) for r in self.rows if r["scene"] == sc})
-            steps = {b: self.step_at(sc, b) for b in budgets}
-            if len(set(steps.values())) == 1:
-                parts.append(f"{sc} {steps[budgets[0]]}")
-            else:
-                parts.append(f"{sc} " + ", ".join(f"{st} ({b:,})" for b, st in steps.items()))
-        return "steps: " + "; ".join(parts)
+        return "steps: " + "; ".join(f"{sc} {self.scene_step_label(sc)}"
+                                     for sc in sorted({r["scene"] for r in self.rows}))  # fmt: skip
+
+    def scene_step_label(self, scene: str) -> str:
+        """The step ``scene`` is compared at (``10000``), or one per budget where they differ (``9000
+        (300,000), 10000 (100,000)``)."""
+        budgets = sorted({int(r["budget"]) for r in self.rows if r["scene"] == scene})
+        steps = {b: self.step_at(scene, b) for b in budgets}
+        if len(set(steps.values())) <= 1:
+            return str(self.step_at(scene, budgets[0] if budgets else None))
+        return ", ".join(f"{st} ({b:,})" for b, st in steps.items())
 
     def values(self, scene: str, schedule: str, method: str, budget: int, metric: str) -> dict[int, float]:
         """seed -> the metric at the final step."""
@@ -314,12 +315,7 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
             ax.set_ylabel(yl)
             ax.grid(alpha=0.3)
         axes[0, 0].legend(fontsize=7)
-        steps = {b: rep.step_at(sc, b) for b in sorted({k[3] for k in rep.final if k[0] == sc})}
-        if len(set(steps.values())) == 1:
-            at = f"step {next(iter(steps.values()))}"
-        else:
-            at = "steps " + ", ".join(f"{st} ({b:,})" for b, st in steps.items())
-        fig.suptitle(f"{sc}: {at} at each Gaussian budget (means over seeds)")
+        fig.suptitle(f"{sc}: step {rep.scene_step_label(sc)} at each Gaussian budget (means over seeds)")
         fig.tight_layout()
         path = outdir / f"{sc}_budgets.png"
         fig.savefig(path, dpi=110)

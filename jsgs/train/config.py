@@ -459,7 +459,7 @@ PRESETS: dict[str, dict[str, Any]] = {
 #: the preset of a new ``jsgs train`` run given none
 DEFAULT_PRESET = "mcmc"
 #: The method options a preset gives a method, under the config file's and the command line's. ``mcmc`` gives
-#: JSGS the recipe measured at equal budget (docs/results/budget/pixels): λ_obs = 1 and λ_base per JPEG view,
+#: JSGS the recipe measured at equal budget (docs/results/budget/default): λ_obs = 1 and λ_base per JPEG view,
 #: w = σ_ref² / (σ_ref² + σ²) with σ² estimated from the file's coefficients and σ_ref = 2. ``paper`` gives
 #: none: the paper's weights (the options' own defaults).
 PRESET_METHOD_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
