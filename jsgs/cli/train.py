@@ -61,8 +61,9 @@ def _parse_steps(text: str) -> list[int]:
     help="Starting settings under --config and the options. mcmc: gsplat simple_trainer's mcmc recipe "
     "(MCMCStrategy with a budget of strategy.cap_max = 300000 Gaussians, init.opacity 0.5, init.scale 0.1, "
     "loss.opacity_reg 0.01, loss.scale_reg 0.01; for --method jsgs, λ_obs 1 and λ_base per JPEG view: "
-    "method_options lambda_obs 1, base_by_view, base_noise pixels, base_noise_ref 2); paper: the paper's "
-    "protocol (gsplat's DefaultStrategy and default recipe, JSGS at the paper's weights) [default: mcmc].",
+    "method_options lambda_obs 1, base_by_view, base_noise pixels, base_noise_ref 2, base_noise_exponent 2); "
+    "paper: the paper's protocol (gsplat's DefaultStrategy and default recipe, JSGS at the paper's "
+    "weights) [default: mcmc].",
 )
 @click.option(
     "--cap-max",

@@ -460,11 +460,17 @@ PRESETS: dict[str, dict[str, Any]] = {
 DEFAULT_PRESET = "mcmc"
 #: The method options a preset gives a method, under the config file's and the command line's. ``mcmc`` gives
 #: JSGS the recipe measured at equal budget (docs/results/budget/default): λ_obs = 1 and λ_base per JPEG view,
-#: w = σ_ref² / (σ_ref² + σ²) with σ² estimated from the file's coefficients and σ_ref = 2. ``paper`` gives
+#: w = 1 / (1 + (σ² / σ_ref²)²) with σ² estimated from the file's coefficients and σ_ref = 2. ``paper`` gives
 #: none: the paper's weights (the options' own defaults).
 PRESET_METHOD_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
     "mcmc": {
-        "jsgs": {"lambda_obs": 1.0, "base_by_view": True, "base_noise": "pixels", "base_noise_ref": 2.0},
+        "jsgs": {
+            "lambda_obs": 1.0,
+            "base_by_view": True,
+            "base_noise": "pixels",
+            "base_noise_ref": 2.0,
+            "base_noise_exponent": 2.0,
+        },
     },
 }
 

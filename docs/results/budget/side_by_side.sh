@@ -3,8 +3,8 @@
 # with its metrics in $OUT/NAME/confirm.tgz. BENCHES lists them, ';' between benches, '|' between fields:
 #   NAME|SCENES|SCHEDULES|METHODS|JOBS_PER_GPU|BUDGETS[|RECIPE]
 # GPU_DIR (default .gpu) holds the clean bases and the LPIPS weights for every bench of the call. Run as
-#   BENCHES="k2|llff_flower llff_fern|gaussian,descending|jsgs|6|300k|{\"method_options\": \
-#     {\"base_noise_exponent\": 2.0}};g|llff_flower|uniform|gsplat,jsgs|3|300k" GPU_DIR=.gpu6 TL=470 \
+#   BENCHES="ref3|llff_flower llff_fern|gaussian,descending|jsgs|6|300k|{\"method_options\": \
+#     {\"base_noise_ref\": 3.0}};u|llff_flower|uniform|gsplat,jsgs|3|300k" GPU_DIR=.gpu6 TL=470 \
 #     bash docs/results/budget/side_by_side.sh
 # and gather the folders on the CPU with docs/results/build_report.py.
 set -u

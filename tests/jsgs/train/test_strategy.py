@@ -177,7 +177,7 @@ def test_the_mcmc_preset_gives_jsgs_its_recipe_under_the_users_options(tmp_path:
     assert command_settings(overrides={"method": "jsgs"}).method_options == recipe
     opts = parse_options(recipe)
     assert (opts.lambda_obs, opts.base_by_view, opts.base_noise) == (1.0, True, "pixels")
-    assert opts.base_noise_ref == 2.0
+    assert (opts.base_noise_ref, opts.base_noise_exponent) == (2.0, 2.0)
     # gsplat takes no options; the paper preset keeps the paper's weights (the options' own defaults)
     assert command_settings(overrides={"method": "gsplat"}).method_options == {}
     assert command_settings(overrides={"method": "jsgs"}, preset_name="paper").method_options == {}
