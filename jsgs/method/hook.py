@@ -171,7 +171,8 @@ class JsgsHook(LossHook):
                 f"base_by_view: the {len(w)} JPEG training views keep {w[0]:.2f}–{w[-1]:.2f} of ℓ_ph (median "
                 f"{w[len(w) // 2]:.2f}; σ² from the {'files' if o.base_noise == 'pixels' else 'tables'}, "
                 f"σ_ref = {o.base_noise_ref:g}"
-                + (f", k = {o.base_noise_exponent:g})" if o.base_noise_exponent != 1.0 else ")")
+                + (f", k = {o.base_noise_exponent:g}" if o.base_noise_exponent != 1.0 else "")
+                + (f"; from 1 over the first {o.base_ramp_steps} steps)" if o.base_ramp_steps else ")")
             )
         return notes
 
@@ -189,13 +190,18 @@ class JsgsHook(LossHook):
         w = {"obs": o.lambda_obs, "low": o.lambda_low, "mid": o.lambda_mid, "fro": o.lambda_fro}
         return {k: w[k] for k in self.active_terms()}
 
-    def base_scale(self, tab: ViewJpeg) -> float:
-        """The multiplier on λ_base for a JPEG view: 1, or with ``base_by_view`` 1 / (1 + (σ² / σ_ref²)^k)
-        (k = 1: σ_ref² / (σ_ref² + σ²))."""
+    def base_scale(self, tab: ViewJpeg, step: int | None = None) -> float:
+        """The multiplier on λ_base for a JPEG view: 1, or with ``base_by_view`` w = 1 / (1 + (σ² / σ_ref²)^k)
+        (k = 1: σ_ref² / (σ_ref² + σ²)); at 0-based ``step`` < ``base_ramp_steps`` T it is
+        w + (1 − w)(1 − step / T), so the weight falls from 1 at step 0 to w at step T. ``step`` None: w."""
         if not self.opts.base_by_view:
             return 1.0
         ratio = tab.noise_variance / self.opts.base_noise_ref**2
-        return 1.0 / (1.0 + ratio**self.opts.base_noise_exponent)
+        w = 1.0 / (1.0 + ratio**self.opts.base_noise_exponent)
+        ramp = self.opts.base_ramp_steps
+        if step is not None and step < ramp:
+            w += (1.0 - w) * (1.0 - step / ramp)
+        return w
 
     def extra_channels(self, step: int, view: View, splats: torch.nn.ParameterDict) -> Tensor | None:
         """The Gaussian Controller's probe (``jsgs.method.pooling.new_probe``) on views it runs on."""
@@ -280,7 +286,7 @@ class JsgsHook(LossHook):
                 else:
                     terms["fro"], gc_stats = self._gc_deferred(ctx, r_map)
                 stats.update(gc_stats)
-        return HookOutput(terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab))
+        return HookOutput(terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab, ctx.step))
 
     # ------------------------------------------------------------------------------------------------
     def _camera(self, ctx: StepContext) -> tuple[Tensor, Tensor, int, int]:

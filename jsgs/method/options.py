@@ -77,6 +77,13 @@ class JsgsOptions:
         "views below σ_ref (w → 1) from views above it (w → 0) more sharply.",
         gt=0.0,
     )
+    base_ramp_steps: int = setting(
+        0,
+        "With base_by_view: the steps over which each JPEG view's ℓ_ph weight falls linearly from 1 to its w "
+        "(0: w from the first step). Full pixel supervision early lets the model converge as fast as the "
+        "baseline; JO takes over as the weight falls.",
+        ge=0,
+    )
     base_noise: Literal["tables", "pixels"] = setting(
         "tables",
         "σ² of base_by_view: tables: the bound its tables imply (every coefficient loses Q²/12); pixels: "
@@ -124,6 +131,11 @@ class JsgsOptions:
             raise JsgsError(
                 f"{where}: method_options.speed.cuda_graph and method_options.speed.compile "
                 f"({self.speed.compile}) cannot be combined yet; use one of them"
+            )
+        if self.base_ramp_steps and not self.base_by_view:
+            raise JsgsError(
+                f"{where}: method_options.base_ramp_steps ({self.base_ramp_steps}) ramps base_by_view's "
+                "weights, which are off; set base_by_view true or base_ramp_steps 0"
             )
         if not self.jo and (self.ds or self.gc):
             on = " and ".join(n for n, v in (("DS", self.ds), ("GC", self.gc)) if v)

@@ -904,6 +904,48 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: 
     assert any("estimated the noise" in n for n in said) == (base_noise == "pixels")
 
 
+def test_base_ramp_steps_lowers_each_views_weight_from_one(tmp_path: Path) -> None:
+    """base_ramp_steps T: at 0-based step t < T a JPEG view's ℓ_ph weight is w + (1 − w)(1 − t/T) (1 at the
+    first step), from T on its w; recomputed from the logged terms. Without base_by_view the setting is
+    refused in one line."""
+    from _train_scene import make_scene
+
+    from jsgs.errors import JsgsError
+    from jsgs.method.options import parse_options
+    from jsgs.train.callbacks import Callback
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.trainer import train
+
+    manifest = make_scene(tmp_path / "scene", jpeg_train=True)
+    seen: list[tuple[int, str, float, dict[str, float]]] = []
+
+    class Spy(Callback):
+        def on_step_end(self, trainer: Any, result: Any) -> None:
+            seen.append((result.step, result.view, result.loss, dict(result.terms)))
+
+    cfg = TrainConfig(iterations=6, eval_at=[], device="cpu", method="jsgs")
+    cfg.method_options = {"base_by_view": True, "base_noise_ref": 6.0, "base_noise": "tables",
+                          "base_noise_exponent": 2.0, "base_ramp_steps": 4, "gc": False}  # fmt: skip
+    cfg.strategy.refine_start_iter = 10_000
+    said: list[str] = []
+    train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[Spy()], log=said.append)
+    final = {n: r["weight"] for n, r in json.loads((tmp_path / "run" / "config.json").read_text())["derived"][
+        "method"]["base_by_view"].items()}  # fmt: skip
+    assert [s for s, *_ in seen] == list(range(6))
+    for step, view, loss, terms in seen:
+        w = final[view]
+        assert 0.0 < w < 1.0
+        scale = w + (1.0 - w) * (1.0 - step / 4) if step < 4 else w
+        expect = scale * terms["photometric"] + 0.2 * terms["obs"] + 0.02 * terms["low"] + 0.03 * terms["mid"]
+        assert loss == pytest.approx(expect, rel=1e-5)
+        # the ramp is not the final weight: at step 0 the loss is off by (1 − w)·ℓ_ph from the final weight's
+        if step == 0:
+            assert abs(loss - (expect - (1.0 - w) * terms["photometric"])) > 1e-3 * loss
+    assert any("from 1 over the first 4 steps" in n for n in said)
+    with pytest.raises(JsgsError, match=r"^cfg: method_options.base_ramp_steps \(10\).*base_by_view"):
+        parse_options({"base_ramp_steps": 10}, "cfg")
+
+
 def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
     """A manifest written with --analyze records each view's noise estimate: base_noise pixels uses it (no
     second decode); without it the view's file is estimated, and tables keep the bound."""
