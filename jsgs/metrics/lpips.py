@@ -91,8 +91,10 @@ class LpipsAlex(nn.Module):
         """``backbone``: ``features.{0,3,6,8,10}.{weight,bias}`` (as from :func:`load_backbone`);
         ``heads``: five tensors of shape 1 x C_l x 1 x 1 (as from :func:`load_heads`)."""
         super().__init__()
+        # skip_init: no random initialisation (the weights are copied below), so building the model leaves
+        # torch's global random state, and with it the training run that evaluates, untouched
         self.convs = nn.ModuleList(
-            nn.Conv2d(cin, cout, k, stride=s, padding=p) for cin, cout, k, s, p in _CONVS
+            nn.utils.skip_init(nn.Conv2d, cin, cout, k, stride=s, padding=p) for cin, cout, k, s, p in _CONVS
         )
         with torch.no_grad():
             for conv, key in zip(self.convs, _CONV_KEYS, strict=True):
