@@ -311,6 +311,41 @@ def test_mcmc_resume_is_bit_exact(scene: Path, tmp_path: Path) -> None:
             assert torch.equal(sa[k], sb[k]), (name, k)
 
 
+def test_mcmc_resume_is_bit_exact_across_a_first_lpips_evaluation(tmp_path: Path) -> None:
+    """A resumed run is a new process: its first evaluation builds the LPIPS model again, where the run
+    that went on had it already. Building it must not touch the global generator that MCMC's noise and
+    relocation draw from, or the steps after that evaluation differ."""
+    from jsgs.metrics import lpips as L
+
+    scene = make_scene(tmp_path / "scene", width=40, height=32)  # LPIPS needs sides >= 31
+    g = torch.Generator().manual_seed(0)
+    backbone = {}
+    for (cin, cout, k, _, _), key in zip(L._CONVS, L._CONV_KEYS, strict=True):
+        backbone[f"features.{key}.weight"] = torch.randn(cout, cin, k, k, generator=g) * 0.05
+        backbone[f"features.{key}.bias"] = torch.zeros(cout)
+    weights = tmp_path / "alexnet.pth"
+    torch.save(backbone, weights)
+
+    def cfg() -> TrainConfig:
+        c = mcmc_config(iterations=14, eval_at=[4, 10, 14])
+        c.strategy.cap_max = 120
+        c.strategy.min_opacity = 0.3
+        c.eval.lpips_weights = str(weights)
+        return c
+
+    L._CACHE.clear()
+    doc = train(scene, tmp_path / "a", cfg(), progress=False)
+    assert doc["evals"][-1]["lpips"] is not None
+    L._CACHE.clear()
+    train(scene, tmp_path / "b", cfg(), stop_at=7, progress=False)
+    L._CACHE.clear()  # the resumed run's process has no model yet: its evaluation at step 10 builds one
+    train(scene, tmp_path / "b", None, resume=True, progress=False)
+    ca = ckpt.load_checkpoint(tmp_path / "a" / "checkpoints" / "step_000014.pt")
+    cb = ckpt.load_checkpoint(tmp_path / "b" / "checkpoints" / "step_000014.pt")
+    for name, t in ca["splats"].items():
+        assert torch.equal(t, cb["splats"][name]), name
+
+
 def test_jsgs_trains_with_relocated_gaussians(jpeg_scene: Path, tmp_path: Path) -> None:
     """The JSGS method (JO, DS and the Gaussian Controller) on a model whose Gaussians are relocated and
     added every other step: finite terms, the GC active, the budget kept."""
