@@ -19,75 +19,62 @@ from __future__ import annotations
 
 import statistics
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
-from jsgs.bench.budget import common_steps
+from jsgs.bench.budget import BudgetReport, common_steps
 from jsgs.bench.results import read_csv
 
-Key = tuple[str, str, int, int]  # scene, schedule, budget, seed
 
-
-def runs(rows: list[dict], method: str) -> dict[tuple[Key, int], tuple[float, float]]:
-    """{((scene, schedule, budget, seed), step): (lpips, psnr)} of one method's mcmc rows."""
-    out = {}
-    for r in rows:
-        if r["method"] == method and r["strategy"] == "mcmc" and r["lpips"] not in ("", None):
-            key = (r["scene"], r["schedule"], int(r["budget"]), int(r["seed"]))
-            out[(key, int(r["step"]))] = (float(r["lpips"]), float(r["psnr"]))
-    return out
+def cell(r: dict) -> tuple[str, str, int]:
+    return r["scene"], r["schedule"], int(r["budget"])
 
 
 def main(base: Path, variants: list[Path]) -> None:
-    base_rows = read_csv(base / "results.csv")
-    var_rows = [r for v in variants for r in read_csv(v / "results.csv")]
-    gsplat = {**runs(var_rows, "gsplat"), **runs(base_rows, "gsplat")}
-    a, b = runs(base_rows, "jsgs"), runs(var_rows, "jsgs")
-    seeds_b = {k for k, _ in b}
-    # the step: over every run this comparison uses (gsplat's, both recipes') of the variant's cells
-    cells = {k[:3] for k in seeds_b}
-    # (the variant's rows relabelled: common_steps keys runs by method, and both recipes are "jsgs")
-    tagged = base_rows + [{**r, "method": "variant"} if r["method"] == "jsgs" else r for r in var_rows]
-    used = [r for r in tagged if (r["scene"], r["schedule"], int(r["budget"])) in cells
-            and r["method"] in ("gsplat", "jsgs", "variant") and r["strategy"] == "mcmc"]  # fmt: skip
-    at = common_steps(used)
+    base_rows = [r for r in read_csv(base / "results.csv") if r["strategy"] == "mcmc"]
+    var_rows = [r for v in variants for r in read_csv(v / "results.csv") if r["strategy"] == "mcmc"]
+    # the variant's recipe is method "variant" (both are "jsgs"); the comparison covers the variant's cells
+    cells = {cell(r) for r in var_rows if r["method"] == "jsgs"}
+    have = {(*cell(r), int(r["seed"])) for r in base_rows if r["method"] == "gsplat"}
+    rows = [r for r in base_rows if r["method"] in ("gsplat", "jsgs") and cell(r) in cells] + [
+        {**r, "method": "variant"} if r["method"] == "jsgs" else r
+        for r in var_rows
+        if cell(r) in cells and (r["method"] == "jsgs" or
+                                 (r["method"] == "gsplat" and (*cell(r), int(r["seed"])) not in have))
+    ]  # fmt: skip
+    rep = BudgetReport(rows, common_steps(rows))
     print(f"BASE {base}; VARIANT {', '.join(map(str, variants))}\n")
     print("| scene | schedule | budget | step | LPIPS gsplat / BASE / VARIANT | ΔLPIPS % BASE / VARIANT "
           "| PSNR gsplat / BASE / VARIANT | ΔPSNR dB BASE / VARIANT | VARIANT lower than BASE |")
     print("|---|---|---:|---:|---|---|---|---|---:|")
-    all_a: list[tuple[float, float]] = []
-    all_b: list[tuple[float, float]] = []
-    for scene, schedule, budget in sorted(cells):
-        step = at[(scene, budget)]
-        g_l, a_l, b_l, g_p, a_p, b_p, da, db, wins, n = [], [], [], [], [], [], [], [], 0, 0
-        for seed in sorted(s for (sc, sh, bu, s) in seeds_b if (sc, sh, bu) == (scene, schedule, budget)):
-            key = (scene, schedule, budget, seed)
-            g, x, y = gsplat.get((key, step)), a.get((key, step)), b.get((key, step))
-            if g is None or y is None:
-                continue
-            g_l.append(g[0])
-            g_p.append(g[1])
-            b_l.append(y[0])
-            b_p.append(y[1])
-            db.append((100 * (y[0] / g[0] - 1), y[1] - g[1]))
-            if x is not None:
-                a_l.append(x[0])
-                a_p.append(x[1])
-                da.append((100 * (x[0] / g[0] - 1), x[1] - g[1]))
-                n += 1
-                wins += y[0] < x[0]
-        if not db:
+    pairs: dict[str, list[tuple[float, float]]] = {"jsgs": [], "variant": []}
+    for key in sorted(cells):
+        scene, schedule, budget = key
+        step = rep.step_at(scene, budget)
+        var_l = rep.values(scene, schedule, "variant", budget, "lpips")
+        g_l = rep.values(scene, schedule, "gsplat", budget, "lpips")
+        seeds = sorted(set(var_l) & set(g_l))
+        if not seeds:
             print(f"| {scene} | {schedule} | {budget:,} | {step} | no gsplat run at this step | | | | |")
             continue
-        all_a += da
-        all_b += db
-
-        print(f"| {scene} | {schedule} | {budget:,} | {step} | "
-              f"{avg(g_l, 4)} / {avg(a_l, 4)} / {avg(b_l, 4)} | "
-              f"{mean(da, 0, 1)} / {mean(db, 0, 1)} | {avg(g_p, 2)} / {avg(a_p, 2)} / {avg(b_p, 2)} | "
-              f"{mean(da, 1, 2)} / {mean(db, 1, 2)} | {wins}/{n} |")  # fmt: skip
-    print(f"\nover the pairs: BASE {len(all_a)} pairs, ΔLPIPS {mean(all_a, 0, 1)} %, ΔPSNR "
-          f"{mean(all_a, 1, 2)} dB; VARIANT {len(all_b)} pairs, ΔLPIPS {mean(all_b, 0, 1)} %, ΔPSNR "
-          f"{mean(all_b, 1, 2)} dB")  # fmt: skip
+        d = {m: list(zip(rep.paired(key, "lpips", True, m), rep.paired(key, "psnr", method=m), strict=True))
+             for m in pairs}  # fmt: skip
+        for m in pairs:
+            pairs[m] += d[m]
+        cols = {
+            metric: " / ".join(avg(rep.values(scene, schedule, m, budget, metric).values(), digits)
+                               for m in ("gsplat", "jsgs", "variant"))
+            for metric, digits in (("lpips", 4), ("psnr", 2))
+        }  # fmt: skip
+        base_l = rep.values(scene, schedule, "jsgs", budget, "lpips")
+        both = [s for s in seeds if s in base_l]
+        wins = sum(var_l[s] < base_l[s] for s in both)
+        print(f"| {scene} | {schedule} | {budget:,} | {step} | {cols['lpips']} | "
+              f"{mean(d['jsgs'], 0, 1)} / {mean(d['variant'], 0, 1)} | {cols['psnr']} | "
+              f"{mean(d['jsgs'], 1, 2)} / {mean(d['variant'], 1, 2)} | {wins}/{len(both)} |")  # fmt: skip
+    a, b = pairs["jsgs"], pairs["variant"]
+    print(f"\nover the pairs: BASE {len(a)} pairs, ΔLPIPS {mean(a, 0, 1)} %, ΔPSNR {mean(a, 1, 2)} dB; "
+          f"VARIANT {len(b)} pairs, ΔLPIPS {mean(b, 0, 1)} %, ΔPSNR {mean(b, 1, 2)} dB")
 
 
 def mean(v: list[tuple[float, float]], i: int, d: int) -> str:
@@ -95,7 +82,8 @@ def mean(v: list[tuple[float, float]], i: int, d: int) -> str:
     return f"{statistics.mean(p[i] for p in v):+.{d}f}" if v else "—"
 
 
-def avg(v: list[float], d: int) -> str:
+def avg(v: Iterable[float], d: int) -> str:
+    v = list(v)
     return f"{statistics.mean(v):.{d}f}" if v else "—"
 
 

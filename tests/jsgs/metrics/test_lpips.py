@@ -320,12 +320,10 @@ def test_cuda_matches_cpu_despite_tf32() -> None:
 def test_building_the_model_leaves_the_global_random_state_alone() -> None:
     """The first evaluation of a run builds the model: it must not draw from torch's global generator, or
     the training steps after it (MCMC's noise, relocation) would depend on when, and whether, LPIPS ran."""
-    backbone = {}
-    for (cin, cout, k, _, _), key in zip(L._CONVS, L._CONV_KEYS, strict=True):
-        backbone[f"features.{key}.weight"] = torch.full((cout, cin, k, k), 0.01)
-        backbone[f"features.{key}.bias"] = torch.zeros(cout)
+    backbone = random_backbone()
     torch.manual_seed(7)
     before = torch.get_rng_state()
     model = L.LpipsAlex(backbone, L.load_heads())
     assert torch.equal(torch.get_rng_state(), before)
-    assert all(torch.equal(c.weight, torch.full_like(c.weight, 0.01)) for c in model.convs)
+    for conv, key in zip(model.convs, L._CONV_KEYS, strict=True):
+        assert torch.equal(conv.weight, backbone[f"features.{key}.weight"])
