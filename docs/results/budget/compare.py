@@ -3,7 +3,7 @@ schedule and budget, and what each does to PSNR.
 
     cd docs/results/budget
     ../../../.venv/bin/python compare.py pixels/ref2 default
-    ../../../.venv/bin/python compare.py default ../../../.res/ramp/r3000 ../../../.res/ramp/r5000
+    ../../../.venv/bin/python compare.py default ramp
 
 BASE is a results folder (``results.csv``) with gsplat's runs and one recipe's ``jsgs`` runs; each VARIANT
 folder (a bench folder brought back from a GPU call, or several: their rows are pooled) holds the other
@@ -12,7 +12,7 @@ folders where BASE has none for that scene, schedule, budget and seed. Each scen
 budget, at the last evaluation every run in the comparison reached (:func:`jsgs.bench.budget.common_steps`).
 Prints a markdown table: per cell, the seed means of gsplat, BASE and VARIANT, ΔLPIPS % and ΔPSNR dB of each
 recipe against gsplat (paired by seed, then averaged), and on how many seeds VARIANT's LPIPS is below BASE's;
-then the means over all pairs.
+then the means over all pairs. Only the cells and seeds both recipes (and gsplat) hold are compared.
 """
 
 from __future__ import annotations
@@ -33,8 +33,9 @@ def cell(r: dict) -> tuple[str, str, int]:
 def main(base: Path, variants: list[Path]) -> None:
     base_rows = [r for r in read_csv(base / "results.csv") if r["strategy"] == "mcmc"]
     var_rows = [r for v in variants for r in read_csv(v / "results.csv") if r["strategy"] == "mcmc"]
-    # the variant's recipe is method "variant" (both are "jsgs"); the comparison covers the variant's cells
-    cells = {cell(r) for r in var_rows if r["method"] == "jsgs"}
+    # the variant's recipe is method "variant" (both are "jsgs"); the comparison covers the cells both hold
+    cells = {cell(r) for r in var_rows if r["method"] == "jsgs"} & {
+        cell(r) for r in base_rows if r["method"] == "jsgs"}  # fmt: skip
     have = {(*cell(r), int(r["seed"])) for r in base_rows if r["method"] == "gsplat"}
     rows = [r for r in base_rows if r["method"] in ("gsplat", "jsgs") and cell(r) in cells] + [
         {**r, "method": "variant"} if r["method"] == "jsgs" else r
@@ -51,30 +52,29 @@ def main(base: Path, variants: list[Path]) -> None:
     for key in sorted(cells):
         scene, schedule, budget = key
         step = rep.step_at(scene, budget)
-        var_l = rep.values(scene, schedule, "variant", budget, "lpips")
-        g_l = rep.values(scene, schedule, "gsplat", budget, "lpips")
-        seeds = sorted(set(var_l) & set(g_l))
+        vals = {(m, metric): rep.values(scene, schedule, m, budget, metric)
+                for m in ("gsplat", "jsgs", "variant") for metric in ("lpips", "psnr")}  # fmt: skip
+        seeds = sorted(set.intersection(*(set(v) for v in vals.values())))
         if not seeds:
-            print(f"| {scene} | {schedule} | {budget:,} | {step} | no gsplat run at this step | | | | |")
+            print(f"| {scene} | {schedule} | {budget:,} | {step} | no seed with gsplat and both |||||")
             continue
-        d = {m: list(zip(rep.paired(key, "lpips", True, m), rep.paired(key, "psnr", method=m), strict=True))
+        g_l, g_p = vals["gsplat", "lpips"], vals["gsplat", "psnr"]
+        d = {m: [(100.0 * (vals[m, "lpips"][s] / g_l[s] - 1.0), vals[m, "psnr"][s] - g_p[s]) for s in seeds]
              for m in pairs}  # fmt: skip
         for m in pairs:
             pairs[m] += d[m]
         cols = {
-            metric: " / ".join(avg(rep.values(scene, schedule, m, budget, metric).values(), digits)
+            metric: " / ".join(avg([vals[m, metric][s] for s in seeds], digits)
                                for m in ("gsplat", "jsgs", "variant"))
             for metric, digits in (("lpips", 4), ("psnr", 2))
         }  # fmt: skip
-        base_l = rep.values(scene, schedule, "jsgs", budget, "lpips")
-        both = [s for s in seeds if s in base_l]
-        wins = sum(var_l[s] < base_l[s] for s in both)
+        wins = sum(vals["variant", "lpips"][s] < vals["jsgs", "lpips"][s] for s in seeds)
         print(f"| {scene} | {schedule} | {budget:,} | {step} | {cols['lpips']} | "
               f"{mean(d['jsgs'], 0, 1)} / {mean(d['variant'], 0, 1)} | {cols['psnr']} | "
-              f"{mean(d['jsgs'], 1, 2)} / {mean(d['variant'], 1, 2)} | {wins}/{len(both)} |")  # fmt: skip
+              f"{mean(d['jsgs'], 1, 2)} / {mean(d['variant'], 1, 2)} | {wins}/{len(seeds)} |")  # fmt: skip
     a, b = pairs["jsgs"], pairs["variant"]
-    print(f"\nover the pairs: BASE {len(a)} pairs, ΔLPIPS {mean(a, 0, 1)} %, ΔPSNR {mean(a, 1, 2)} dB; "
-          f"VARIANT {len(b)} pairs, ΔLPIPS {mean(b, 0, 1)} %, ΔPSNR {mean(b, 1, 2)} dB")
+    print(f"\nover the {len(a)} seeds with gsplat and both recipes: BASE ΔLPIPS {mean(a, 0, 1)} %, "
+          f"ΔPSNR {mean(a, 1, 2)} dB; VARIANT ΔLPIPS {mean(b, 0, 1)} %, ΔPSNR {mean(b, 1, 2)} dB")
 
 
 def mean(v: list[tuple[float, float]], i: int, d: int) -> str:
