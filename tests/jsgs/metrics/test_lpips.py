@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from _lpips_backbone import random_backbone
 from PIL import Image
 
 from jsgs.errors import JsgsError
@@ -190,15 +191,6 @@ def test_named_missing_weights_is_an_error(tmp_path: Path, monkeypatch: pytest.M
     monkeypatch.setenv(L.ENV_VAR, str(tmp_path / "nope.pth"))
     with pytest.raises(JsgsError, match=r"\$JSGS_LPIPS_WEIGHTS"):
         L.load_lpips()
-
-
-def random_backbone(seed: int = 0) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(seed)
-    out = {}
-    for (cin, cout, k, _, _), key in zip(L._CONVS, L._CONV_KEYS, strict=True):
-        out[f"features.{key}.weight"] = torch.randn(cout, cin, k, k, generator=g) / math.sqrt(cin * k * k)
-        out[f"features.{key}.bias"] = torch.randn(cout, generator=g) * 0.1
-    return out
 
 
 def test_malformed_backbone_files(tmp_path: Path) -> None:

@@ -10,6 +10,7 @@ from typing import Any
 
 import pytest
 import torch
+from _lpips_backbone import random_backbone
 from _train_scene import make_scene
 from test_train import tiny_config
 
@@ -318,13 +319,8 @@ def test_mcmc_resume_is_bit_exact_across_a_first_lpips_evaluation(tmp_path: Path
     from jsgs.metrics import lpips as L
 
     scene = make_scene(tmp_path / "scene", width=40, height=32)  # LPIPS needs sides >= 31
-    g = torch.Generator().manual_seed(0)
-    backbone = {}
-    for (cin, cout, k, _, _), key in zip(L._CONVS, L._CONV_KEYS, strict=True):
-        backbone[f"features.{key}.weight"] = torch.randn(cout, cin, k, k, generator=g) * 0.05
-        backbone[f"features.{key}.bias"] = torch.zeros(cout)
     weights = tmp_path / "alexnet.pth"
-    torch.save(backbone, weights)
+    torch.save(random_backbone(), weights)
 
     def cfg() -> TrainConfig:
         c = mcmc_config(iterations=14, eval_at=[4, 10, 14])
