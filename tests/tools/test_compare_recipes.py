@@ -1,0 +1,54 @@
+"""docs/results/budget/compare.py: two JSGS recipes against the same gsplat runs, on hand-made results whose
+answer is known: only the cells and seeds both recipes hold are compared."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from conftest import load_benchmark
+
+from jsgs.bench.results import write_csv
+
+cmp = load_benchmark("compare", "docs/results/budget")
+
+
+def _row(scene: str, method: str, seed: int, lpips: float, psnr: float, schedule: str = "gaussian") -> dict:
+    return {
+        "scene": scene, "schedule": schedule, "method": method, "seed": seed, "strategy": "mcmc",
+        "budget": 100000, "step": 10000, "psnr": psnr, "ssim": 0.9, "lpips": lpips,
+    }  # fmt: skip
+
+
+def test_compares_only_the_cells_and_seeds_both_recipes_hold(tmp_path: Path, capsys: Any) -> None:
+    base, var = tmp_path / "base", tmp_path / "var"
+    base.mkdir(), var.mkdir()
+    write_csv(
+        [
+            # cell a: gsplat and BASE on seeds 0-2; the variant has seeds 0-1 only
+            *(_row("a", "gsplat", s, 0.2, 25.0) for s in range(3)),
+            _row("a", "jsgs", 0, 0.1, 26.0), _row("a", "jsgs", 1, 0.1, 26.0),
+            _row("a", "jsgs", 2, 0.3, 20.0),  # seed 2: not in the variant, must not count
+            # cell b: BASE only (no variant run): not compared
+            _row("b", "gsplat", 0, 0.2, 25.0), _row("b", "jsgs", 0, 0.4, 20.0),
+        ],
+        base / "results.csv",
+    )  # fmt: skip
+    write_csv(
+        [
+            _row("a", "jsgs", 0, 0.15, 25.5), _row("a", "jsgs", 1, 0.05, 25.5),
+            # cell c: the variant only: not compared
+            _row("c", "gsplat", 0, 0.2, 25.0), _row("c", "jsgs", 0, 0.1, 27.0),
+        ],
+        var / "results.csv",
+    )  # fmt: skip
+    cmp.main(base, [var])
+    out = capsys.readouterr().out
+    table = [line for line in out.splitlines() if line.startswith("| a ") or line.startswith("| b ")
+             or line.startswith("| c ")]  # fmt: skip
+    assert len(table) == 1 and table[0].startswith("| a | gaussian | 100,000 | 10000 |")
+    # seeds 0-1: gsplat 0.2, BASE 0.1 / 0.1 (-50 %), VARIANT 0.15 / 0.05 (-25 %, -75 %: mean -50 %)
+    assert "| 0.2000 / 0.1000 / 0.1000 | -50.0 / -50.0 |" in table[0]
+    assert "| 25.00 / 26.00 / 25.50 | +1.00 / +0.50 | 1/2 |" in table[0]
+    assert "over the 2 seeds with gsplat and both recipes: BASE ΔLPIPS -50.0 %, ΔPSNR +1.00 dB; " \
+           "VARIANT ΔLPIPS -50.0 %, ΔPSNR +0.50 dB" in out  # fmt: skip
