@@ -272,7 +272,13 @@ class BudgetReport:
         md += ["### Targets at each budget (jsgs; every scene × schedule × seed pair)", ""]
         md += [*self.targets(), ""]
         md += ["### Time to quality", "", *self.quality_time(), ""]
-        md += ["### Model size and time", "", "Concurrent runs share a GPU, which inflates every time alike."]
+        md += [
+            "### Model size and time",
+            "",
+            "Each run's time grows with the runs that shared its GPU (`--jobs-per-gpu`, or other benches on "
+            "the same machine): compare times only between runs trained side by side; they are not speed "
+            "figures.",
+        ]
         md += ["", *self.size_time(), ""]
         if plots:
             md += [f"![{p.stem}](plots/{p.name})" for p in plots] + [""]

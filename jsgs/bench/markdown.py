@@ -247,8 +247,9 @@ class Report:
             "",
             f"Means over {len(pairs)} scene × schedule pairs (mixed and fixed schedules, last step). Per "
             f"pair time/iteration ratio JSGS/gsplat: min {_f(min(ratios) if ratios else None, 3)}, max "
-            f"{_f(max(ratios) if ratios else None, 3)} (target ≤ 1.2). Concurrent runs share a GPU "
-            "(--jobs-per-gpu), which inflates every time alike.",
+            f"{_f(max(ratios) if ratios else None, 3)} (target ≤ 1.2). Each run's time grows with the "
+            "runs that shared its GPU (--jobs-per-gpu): compare times only between runs trained side by "
+            "side.",
         ]
 
     def per_scene(self) -> list[str]:
