@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import defaultdict
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -138,11 +138,15 @@ class BudgetReport:
         rows = self.final.get((scene, schedule, method, budget), {})
         return {s: float(r[metric]) for s, r in rows.items() if r.get(metric) is not None}
 
-    def paired(self, key: Key, metric: str, relative: bool = False, method: str = "jsgs") -> list[float]:
-        """``method`` − gsplat per common seed (``relative``: 100 (method / gsplat − 1), in %)."""
+    def paired(
+        self, key: Key, metric: str, relative: bool = False, method: str = "jsgs",
+        within: Iterable[int] | None = None,
+    ) -> list[float]:
+        """``method`` − gsplat per common seed (``relative``: 100 (method / gsplat − 1), in %); ``within``:
+        only those seeds (e.g. the ones another method also holds), else every common seed."""
         sc, sch, b = key
         g, j = self.values(sc, sch, "gsplat", b, metric), self.values(sc, sch, method, b, metric)
-        seeds = sorted(set(g) & set(j))
+        seeds = sorted(set(g) & set(j) if within is None else set(g) & set(j) & set(within))
         if relative:
             return [100.0 * (j[s] / g[s] - 1.0) for s in seeds if g[s]]
         return [j[s] - g[s] for s in seeds]

@@ -44,8 +44,7 @@ def test_compares_only_the_cells_and_seeds_both_recipes_hold(tmp_path: Path, cap
     )  # fmt: skip
     cmp.main(base, [var])
     out = capsys.readouterr().out
-    table = [line for line in out.splitlines() if line.startswith("| a ") or line.startswith("| b ")
-             or line.startswith("| c ")]  # fmt: skip
+    table = [line for line in out.splitlines() if line.startswith(("| a ", "| b ", "| c "))]
     assert len(table) == 1 and table[0].startswith("| a | gaussian | 100,000 | 10000 |")
     # seeds 0-1: gsplat 0.2, BASE 0.1 / 0.1 (-50 %), VARIANT 0.15 / 0.05 (-25 %, -75 %: mean -50 %)
     assert "| 0.2000 / 0.1000 / 0.1000 | -50.0 / -50.0 |" in table[0]

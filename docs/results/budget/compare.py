@@ -58,8 +58,8 @@ def main(base: Path, variants: list[Path]) -> None:
         if not seeds:
             print(f"| {scene} | {schedule} | {budget:,} | {step} | no seed with gsplat and both |||||")
             continue
-        g_l, g_p = vals["gsplat", "lpips"], vals["gsplat", "psnr"]
-        d = {m: [(100.0 * (vals[m, "lpips"][s] / g_l[s] - 1.0), vals[m, "psnr"][s] - g_p[s]) for s in seeds]
+        d = {m: list(zip(rep.paired(key, "lpips", True, m, within=seeds),
+                         rep.paired(key, "psnr", method=m, within=seeds), strict=True))
              for m in pairs}  # fmt: skip
         for m in pairs:
             pairs[m] += d[m]
