@@ -145,6 +145,12 @@ def test_budget_statistics_on_hand_made_numbers() -> None:
     lines = {ln.split("|")[1].strip(): ln for ln in targets.splitlines()[2:]}
     assert "100 %" in lines["300"] and "| met |" in lines["300"]
     assert "0 %" in lines["100"] and "**not met**" in lines["100"] and "a/gaussian lpips" in lines["100"]
+    # the clean run against gsplat, seed by seed: the most a recipe could gain
+    assert rep.ceiling(key) == pytest.approx([-60.0, 100 * (0.05 / 0.12 - 1), 100 * (0.045 / 0.11 - 1)])
+    assert rep.ceiling(key, "psnr") == pytest.approx([2.0, 2.0, 2.0])
+    ceiling = (-60.0 + 100 * (0.05 / 0.12 - 1) + 100 * (0.045 / 0.11 - 1)) / 3
+    assert lines["300"].split("|")[5].strip() == f"{ceiling:+.1f}"
+    assert lines["100"].split("|")[5].strip() == "-50.0"
     table = "\n".join(rep.comparison())
     # R_LPIPS on seed means: (0.11 - 0.0687) / (0.11 - 0.045)
     r = (0.11 - (0.06 + 0.08 + 0.066) / 3) / (0.11 - 0.045)
