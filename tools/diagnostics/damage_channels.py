@@ -1,0 +1,120 @@
+"""Where a dataset's JPEG damage lies: luma or chroma, and how much of the chroma damage is the 4:2:0
+subsampling that every view of the scene shares.
+
+    .venv/bin/python tools/diagnostics/damage_channels.py DATA/cup_gaussian/manifest.json [MANIFEST ...] \
+        [--weights ../shared/lpips/alexnet_features.pth]
+
+For every JPEG training view with a lossless reference R and its decoded JPEG J (Y, Cb, Cr by libjpeg's JFIF
+conversion, ``jsgs.jpeg.color``), four images are compared with R:
+
+- ``jpeg``: J itself;
+- ``luma``: J's Y with R's Cb and Cr (the damage to the luma plane alone);
+- ``chroma``: R's Y with J's Cb and Cr (the damage to the chroma planes alone, subsampling included);
+- ``sub``: R saved by Pillow at quality 100 with the dataset's chroma subsampling and decoded (what the
+  subsampling costs with almost no quantisation: a floor that no JPEG view of the scene is below).
+
+Per manifest: the median over views of PSNR (dB, RGB) and LPIPS-alex of each image against R, and the
+median ratio LPIPS(luma) / LPIPS(jpeg), LPIPS(chroma) / LPIPS(jpeg) and LPIPS(sub) / LPIPS(jpeg). CPU,
+float64 colour conversion, LPIPS in float32. Without LPIPS weights the LPIPS columns read n/a.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import statistics
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from jsgs.images import read_rgb8
+from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb
+from jsgs.manifest import load_manifest
+from jsgs.metrics.lpips import lpips
+
+PILLOW_SUBSAMPLING = {"4:4:4": 0, "4:2:2": 1, "4:2:0": 2}
+IMAGES = ("jpeg", "luma", "chroma", "sub")
+
+
+def _planes(rgb8: np.ndarray) -> torch.Tensor:
+    """[H, W, 3] uint8 RGB -> float64 [3, H, W] Y, Cb, Cr in 0..255."""
+    return rgb_to_ycbcr(torch.from_numpy(np.array(rgb8)).permute(2, 0, 1).double())
+
+
+def _rgb01(ycc: torch.Tensor) -> torch.Tensor:
+    """float64 [3, H, W] Y, Cb, Cr -> float32 [3, H, W] RGB in [0, 1] (clamped, as a display would)."""
+    return (ycbcr_to_rgb(ycc) / 255.0).clamp(0.0, 1.0).float()
+
+
+def _resaved(rgb8: np.ndarray, sampling: str) -> np.ndarray:
+    buf = io.BytesIO()
+    Image.fromarray(rgb8).save(buf, "JPEG", quality=100, subsampling=PILLOW_SUBSAMPLING[sampling])
+    buf.seek(0)
+    return np.asarray(Image.open(buf).convert("RGB"))
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a.double() - b.double()) ** 2).mean())
+    return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+
+
+def view_rows(manifest: Path, weights: str | None) -> list[dict[str, float]]:
+    """One dict per JPEG view with a reference: ``psnr_<image>``, ``lpips_<image>`` (NaN without weights)."""
+    rows = []
+    for v in load_manifest(manifest).views:
+        if v.jpeg is None or v.reference is None:
+            continue
+        ref8 = read_rgb8(v.reference, "reference")
+        j, r = _planes(read_rgb8(v.image, "JPEG view")), _planes(ref8)
+        images = {
+            "jpeg": _rgb01(j),
+            "luma": _rgb01(torch.cat([j[:1], r[1:]])),
+            "chroma": _rgb01(torch.cat([r[:1], j[1:]])),
+            "sub": _rgb01(_planes(_resaved(ref8, v.jpeg.sampling))),
+        }
+        ref = _rgb01(r)
+        row: dict[str, float] = {}
+        with torch.no_grad():
+            batch = torch.stack([images[k] for k in IMAGES])
+            lp = lpips(batch, ref.expand_as(batch), weights)
+        for i, k in enumerate(IMAGES):
+            row[f"psnr_{k}"] = _psnr(images[k], ref)
+            row[f"lpips_{k}"] = float(lp[i]) if lp is not None else float("nan")
+        rows.append(row)
+    return rows
+
+
+def summary(rows: list[dict[str, float]]) -> dict[str, float]:
+    """Medians over views of every column and of each image's LPIPS relative to the JPEG's."""
+    out = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
+    for k in ("luma", "chroma", "sub"):
+        out[f"share_{k}"] = statistics.median(r[f"lpips_{k}"] / r["lpips_jpeg"] for r in rows)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("manifests", nargs="+", type=Path)
+    ap.add_argument("--weights", default=None, help="LPIPS backbone weights (default: as jsgs finds them)")
+    a = ap.parse_args(argv)
+    print("| dataset | views | PSNR jpeg / luma / chroma / sub (dB) | LPIPS jpeg / luma / chroma / sub | "
+          "LPIPS luma / chroma / sub relative to jpeg |")  # fmt: skip
+    print("|---|---:|---|---|---|")
+    for m in a.manifests:
+        rows = view_rows(m, a.weights)
+        if not rows:
+            print(f"error: {m}: no JPEG view with a lossless reference", file=sys.stderr)
+            return 1
+        s = summary(rows)
+        ps = " / ".join(f"{s[f'psnr_{k}']:.2f}" for k in IMAGES)
+        lp = " / ".join(f"{s[f'lpips_{k}']:.4f}" for k in IMAGES)
+        sh = " / ".join(f"{s[f'share_{k}']:.2f}" for k in ("luma", "chroma", "sub"))
+        print(f"| {m.parent.name} | {len(rows)} | {ps} | {lp} | {sh} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
