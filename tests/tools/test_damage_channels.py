@@ -8,6 +8,7 @@ import statistics
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import torch
 from _lpips_backbone import random_backbone
@@ -51,10 +52,21 @@ def test_rows_and_summary(compressed_scene: Path, weights: str) -> None:
         # quality 100 keeps far more than the view's own quality (10..90)
         assert r["psnr_sub"] > r["psnr_jpeg"]
         assert all(math.isfinite(r[f"lpips_{k}"]) and r[f"lpips_{k}"] >= 0 for k in dc.IMAGES)
+        assert 0.0 <= r["zeroed"] <= 1.0
     s = dc.summary(rows)
     chroma = statistics.median(r["lpips_chroma"] / r["lpips_jpeg"] for r in rows)
     assert s["share_chroma"] == pytest.approx(chroma)
     assert s["psnr_sub"] == pytest.approx(statistics.median(r["psnr_sub"] for r in rows))
+
+
+def test_zeroed_share_on_blocks_of_known_coefficients() -> None:
+    # a flat 8x8 block at 128 + d has one coefficient, DC = 8 d (orthonormal DCT); with a DC step of 16:
+    # d = 0.5 -> DC 4, quantised to 0 (error² 16); d = 3 -> DC 24, quantised to 2 steps (error² (24-32)² = 64)
+    table = np.full((8, 8), 16)
+    y = np.concatenate([np.full((8, 8), 128.5), np.full((8, 8), 131.0)], axis=1)
+    assert dc.zeroed_share(y, table) == pytest.approx(16 / 80)
+    assert dc.zeroed_share(np.full((8, 16), 128.0), table) == 0.0  # nothing to lose
+    assert dc.zeroed_share(np.full((8, 8), 128.5), table) == pytest.approx(1.0)
 
 
 def test_summary_on_hand_made_rows() -> None:

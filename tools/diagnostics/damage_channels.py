@@ -16,6 +16,11 @@ conversion, ``jsgs.jpeg.color``), four images are compared with R:
 Per manifest: the median over views of PSNR (dB, RGB) and LPIPS-alex of each image against R, and the
 median ratio LPIPS(luma) / LPIPS(jpeg), LPIPS(chroma) / LPIPS(jpeg) and LPIPS(sub) / LPIPS(jpeg). CPU,
 float64 colour conversion, LPIPS in float32. Without LPIPS weights the LPIPS columns read n/a.
+
+The last column says what kind of luma damage it is: R's luma DCT coefficients quantised with the view's
+luma table (rounding half away from zero), and the share of the squared error that sits in coefficients
+quantised to zero (detail the file drops, about which it tells only that it was smaller than half a step)
+rather than in the rounding of the coefficients it keeps (median over views).
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from PIL import Image
 
 from jsgs.images import read_rgb8
 from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb
+from jsgs.jpeg.noise import plane_dct
 from jsgs.manifest import load_manifest
 from jsgs.metrics.lpips import lpips
 
@@ -56,6 +62,18 @@ def _resaved(rgb8: np.ndarray, sampling: str) -> np.ndarray:
     return np.asarray(Image.open(buf).convert("RGB"))
 
 
+def zeroed_share(y: np.ndarray, luma_table: np.ndarray) -> float:
+    """Of the squared error of quantising plane ``y`` [H, W] (0..255) with ``luma_table`` (8, 8), natural
+    order, the share in coefficients quantised to zero (0..1; 0 when nothing is lost)."""
+    c = plane_dct(y).astype(np.float64)
+    steps = luma_table.reshape(1, 64).astype(np.float64)
+    z = c / steps
+    q = np.trunc(z + np.copysign(0.5, z))
+    err = (c - q * steps) ** 2
+    total = float(err.sum())
+    return float(err[q == 0].sum()) / total if total > 0 else 0.0
+
+
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a.double() - b.double()) ** 2).mean())
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
@@ -76,7 +94,7 @@ def view_rows(manifest: Path, weights: str | None) -> list[dict[str, float]]:
             "sub": _rgb01(_planes(_resaved(ref8, v.jpeg.sampling))),
         }
         ref = _rgb01(r)
-        row: dict[str, float] = {}
+        row: dict[str, float] = {"zeroed": zeroed_share(r[0].numpy(), v.jpeg.luma_table)}
         with torch.no_grad():
             batch = torch.stack([images[k] for k in IMAGES])
             lp = lpips(batch, ref.expand_as(batch), weights)
@@ -101,8 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--weights", default=None, help="LPIPS backbone weights (default: as jsgs finds them)")
     a = ap.parse_args(argv)
     print("| dataset | views | PSNR jpeg / luma / chroma / sub (dB) | LPIPS jpeg / luma / chroma / sub | "
-          "LPIPS luma / chroma / sub relative to jpeg |")  # fmt: skip
-    print("|---|---:|---|---|---|")
+          "LPIPS luma / chroma / sub relative to jpeg | luma error in zeroed coefficients |")  # fmt: skip
+    print("|---|---:|---|---|---|---:|")
     for m in a.manifests:
         rows = view_rows(m, a.weights)
         if not rows:
@@ -112,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         ps = " / ".join(f"{s[f'psnr_{k}']:.2f}" for k in IMAGES)
         lp = " / ".join(f"{s[f'lpips_{k}']:.4f}" for k in IMAGES)
         sh = " / ".join(f"{s[f'share_{k}']:.2f}" for k in ("luma", "chroma", "sub"))
-        print(f"| {m.parent.name} | {len(rows)} | {ps} | {lp} | {sh} |")
+        print(f"| {m.parent.name} | {len(rows)} | {ps} | {lp} | {sh} | {s['zeroed']:.2f} |")
     return 0
 
 
