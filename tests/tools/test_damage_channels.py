@@ -52,7 +52,7 @@ def test_rows_and_summary(compressed_scene: Path, weights: str) -> None:
         # quality 100 keeps far more than the view's own quality (10..90)
         assert r["psnr_sub"] > r["psnr_jpeg"]
         assert all(math.isfinite(r[f"lpips_{k}"]) and r[f"lpips_{k}"] >= 0 for k in dc.IMAGES)
-        assert 0.0 <= r["zeroed"] <= 1.0
+        assert 0.0 <= r["zeroed"] <= 1.0 and r["noise"] > 0 and r["blockiness"] > 0
     s = dc.summary(rows)
     chroma = statistics.median(r["lpips_chroma"] / r["lpips_jpeg"] for r in rows)
     assert s["share_chroma"] == pytest.approx(chroma)
@@ -89,7 +89,29 @@ def test_main_prints_a_row_and_refuses_a_dataset_without_jpegs(
     assert dc.main([str(compressed_scene / "manifest.json"), "--weights", weights]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[2].startswith(f"| {compressed_scene.name} | ")
+    # the correlation table: one manifest, so no pooled row
+    assert out[4].startswith("| views of |") and out[6].startswith(f"| {compressed_scene.name} | ")
+    assert len(out) == 7
     clean = tmp_path / "clean"
     compress(synth_scene, clean, "clean", seed=0, jobs=1)
     assert dc.main([str(clean / "manifest.json"), "--weights", weights]) == 1
     assert "no JPEG view with a lossless reference" in capsys.readouterr().err
+
+
+def test_blockiness_sees_the_block_grid_and_nothing_else() -> None:
+    rng = np.random.default_rng(0)
+    blocks = np.kron(rng.uniform(0, 255, (6, 8)), np.ones((8, 8)))  # flat 8x8 blocks: steps only at edges
+    assert dc.blockiness(blocks) > 1e6
+    ramp = np.add.outer(np.arange(48.0), 2.0 * np.arange(64.0))  # a smooth gradient: the same step everywhere
+    assert dc.blockiness(ramp) == pytest.approx(1.0)
+    texture = rng.uniform(0, 255, (48, 64))  # texture without a grid
+    assert abs(dc.blockiness(texture) - 1.0) < 0.1
+    # the same blocks one pixel off the grid: their edges fall inside the 8x8 cells
+    assert dc.blockiness(np.roll(blocks, 1, axis=(0, 1))) < 0.2
+
+
+def test_spearman() -> None:
+    assert dc.spearman([1.0, 2.0, 3.0, 4.0], [10.0, 20.0, 25.0, 100.0]) == pytest.approx(1.0)
+    assert dc.spearman([1.0, 2.0, 3.0, 4.0], [4.0, 3.0, 2.0, 1.0]) == pytest.approx(-1.0)
+    assert dc.spearman([1.0, 2.0, 3.0, 4.0, 5.0], [2.0, 1.0, 4.0, 3.0, 5.0]) == pytest.approx(0.8)
+    assert math.isnan(dc.spearman([1.0, 2.0], [2.0, 1.0]))

@@ -21,6 +21,12 @@ The last column says what kind of luma damage it is: R's luma DCT coefficients q
 luma table (rounding half away from zero), and the share of the squared error that sits in coefficients
 quantised to zero (detail the file drops, about which it tells only that it was smaller than half a step)
 rather than in the rounding of the coefficients it keeps (median over views).
+
+A second table asks which measure read from the file alone tells the views' visible damage apart: the
+Spearman rank correlation, over the views of each manifest and over all of them together, of LPIPS(jpeg)
+with the file's estimated quantisation-noise variance (``jsgs.jpeg.noise.jpeg_noise_variance``, what
+``method_options.base_noise: pixels`` weights by) and with the blockiness of its decoded luma
+(:func:`blockiness`: steps across the 8×8 block edges against steps inside the blocks).
 """
 
 from __future__ import annotations
@@ -35,9 +41,9 @@ import numpy as np
 import torch
 from PIL import Image
 
-from jsgs.images import read_rgb8
+from jsgs.images import read_rgb8, read_ycbcr8
 from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb
-from jsgs.jpeg.noise import plane_dct
+from jsgs.jpeg.noise import jpeg_noise_variance, plane_dct
 from jsgs.manifest import load_manifest
 from jsgs.metrics.lpips import lpips
 
@@ -74,6 +80,27 @@ def zeroed_share(y: np.ndarray, luma_table: np.ndarray) -> float:
     return float(err[q == 0].sum()) / total if total > 0 else 0.0
 
 
+def blockiness(y: np.ndarray) -> float:
+    """Mean absolute step between neighbouring pixels across the 8×8 block edges over the same inside the
+    blocks, horizontal and vertical averaged, of plane ``y`` [H, W]: about 1 where the blocks do not show
+    (texture or smooth gradients alike), above 1 where the block grid does. Unitless, no reference."""
+    y = np.asarray(y, dtype=np.float64)
+    ratios = []
+    for d in (np.abs(np.diff(y, axis=1)), np.abs(np.diff(y, axis=0)).T):
+        edge = (np.arange(d.shape[1]) % 8) == 7  # the step from pixel 8k + 7 to 8k + 8
+        ratios.append((d[:, edge].mean() + 1e-6) / (d[:, ~edge].mean() + 1e-6))
+    return float(np.mean(ratios))
+
+
+def spearman(a: list[float], b: list[float]) -> float:
+    """Spearman's rank correlation of two equally long samples (ties broken by order; NaN under 3)."""
+    if len(a) < 3:
+        return float("nan")
+    ra = np.argsort(np.argsort(np.asarray(a)))
+    rb = np.argsort(np.argsort(np.asarray(b)))
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a.double() - b.double()) ** 2).mean())
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
@@ -94,7 +121,13 @@ def view_rows(manifest: Path, weights: str | None) -> list[dict[str, float]]:
             "sub": _rgb01(_planes(_resaved(ref8, v.jpeg.sampling))),
         }
         ref = _rgb01(r)
-        row: dict[str, float] = {"zeroed": zeroed_share(r[0].numpy(), v.jpeg.luma_table)}
+        ycc8 = read_ycbcr8(v.image, "JPEG view")
+        chroma_table = v.jpeg.chroma_table if v.jpeg.chroma_table is not None else v.jpeg.luma_table
+        row: dict[str, float] = {
+            "zeroed": zeroed_share(r[0].numpy(), v.jpeg.luma_table),
+            "noise": jpeg_noise_variance(ycc8, v.jpeg.luma_table, chroma_table, v.jpeg.sampling),
+            "blockiness": blockiness(ycc8[..., 0]),
+        }
         with torch.no_grad():
             batch = torch.stack([images[k] for k in IMAGES])
             lp = lpips(batch, ref.expand_as(batch), weights)
@@ -121,16 +154,29 @@ def main(argv: list[str] | None = None) -> int:
     print("| dataset | views | PSNR jpeg / luma / chroma / sub (dB) | LPIPS jpeg / luma / chroma / sub | "
           "LPIPS luma / chroma / sub relative to jpeg | luma error in zeroed coefficients |")  # fmt: skip
     print("|---|---:|---|---|---|---:|")
+    every: dict[str, list[dict[str, float]]] = {}
     for m in a.manifests:
         rows = view_rows(m, a.weights)
         if not rows:
             print(f"error: {m}: no JPEG view with a lossless reference", file=sys.stderr)
             return 1
+        every[m.parent.name] = rows
         s = summary(rows)
         ps = " / ".join(f"{s[f'psnr_{k}']:.2f}" for k in IMAGES)
         lp = " / ".join(f"{s[f'lpips_{k}']:.4f}" for k in IMAGES)
         sh = " / ".join(f"{s[f'share_{k}']:.2f}" for k in ("luma", "chroma", "sub"))
         print(f"| {m.parent.name} | {len(rows)} | {ps} | {lp} | {sh} | {s['zeroed']:.2f} |")
+    print()
+    print("| views of | views | median noise variance (8-bit²) | median blockiness | "
+          "rank correlation of LPIPS(jpeg) with noise variance / blockiness |")  # fmt: skip
+    print("|---|---:|---:|---:|---|")
+    pooled = [r for rs in every.values() for r in rs]
+    groups = list(every.items()) + ([("all", pooled)] if len(every) > 1 else [])
+    for name, rows in groups:
+        lp = [r["lpips_jpeg"] for r in rows]
+        noise, blocks = [r["noise"] for r in rows], [r["blockiness"] for r in rows]
+        print(f"| {name} | {len(rows)} | {statistics.median(noise):.1f} | {statistics.median(blocks):.2f} | "
+              f"{spearman(lp, noise):.2f} / {spearman(lp, blocks):.2f} |")
     return 0
 
 
