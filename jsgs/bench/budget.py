@@ -66,6 +66,17 @@ def common_steps(rows: list[dict[str, Any]]) -> dict[tuple[str, int], int]:
     return out
 
 
+def _differences(
+    base: dict[int, float], other: dict[int, float], relative: bool, within: Iterable[int] | None = None
+) -> list[float]:
+    """``other`` − ``base`` per seed both hold (and ``within``, if given), in seed order; ``relative``:
+    100 (other / base − 1), in %, leaving out seeds where ``base`` is 0."""
+    seeds = sorted(set(base) & set(other) if within is None else set(base) & set(other) & set(within))
+    if relative:
+        return [100.0 * (other[s] / base[s] - 1.0) for s in seeds if base[s]]
+    return [other[s] - base[s] for s in seeds]
+
+
 def _ci(m: float | None, h: float | None, digits: int) -> str:
     if m is None:
         return "n/a"
@@ -146,20 +157,14 @@ class BudgetReport:
         only those seeds (e.g. the ones another method also holds), else every common seed."""
         sc, sch, b = key
         g, j = self.values(sc, sch, "gsplat", b, metric), self.values(sc, sch, method, b, metric)
-        seeds = sorted(set(g) & set(j) if within is None else set(g) & set(j) & set(within))
-        if relative:
-            return [100.0 * (j[s] / g[s] - 1.0) for s in seeds if g[s]]
-        return [j[s] - g[s] for s in seeds]
+        return _differences(g, j, relative, within)
 
     def ceiling(self, key: Key, metric: str = "lpips") -> list[float]:
         """The clean run − gsplat per common seed at ``key``'s budget (LPIPS: 100 (clean / gsplat − 1), in %):
         what a recipe would gain by removing all of the JPEG damage."""
         sc, sch, b = key
         g, c = self.values(sc, sch, "gsplat", b, metric), self.values(sc, "clean", "gsplat", b, metric)
-        seeds = sorted(set(g) & set(c))
-        if metric == "lpips":
-            return [100.0 * (c[s] / g[s] - 1.0) for s in seeds if g[s]]
-        return [c[s] - g[s] for s in seeds]
+        return _differences(g, c, relative=metric == "lpips")
 
     def time_to_quality(self, key: Key, method: str = "jsgs") -> list[int | None]:
         """Per seed with both runs: the first evaluation step at which ``method``'s LPIPS is at most gsplat's

@@ -44,8 +44,10 @@ from PIL import Image
 from jsgs.images import read_rgb8, read_ycbcr8
 from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb
 from jsgs.jpeg.noise import jpeg_noise_variance, plane_dct
+from jsgs.jpeg.rounding import round_half_away
 from jsgs.manifest import load_manifest
 from jsgs.metrics.lpips import lpips
+from jsgs.metrics.psnr import psnr
 
 PILLOW_SUBSAMPLING = {"4:4:4": 0, "4:2:2": 1, "4:2:0": 2}
 IMAGES = ("jpeg", "luma", "chroma", "sub")
@@ -73,8 +75,7 @@ def zeroed_share(y: np.ndarray, luma_table: np.ndarray) -> float:
     order, the share in coefficients quantised to zero (0..1; 0 when nothing is lost)."""
     c = plane_dct(y).astype(np.float64)
     steps = luma_table.reshape(1, 64).astype(np.float64)
-    z = c / steps
-    q = np.trunc(z + np.copysign(0.5, z))
+    q = round_half_away(torch.from_numpy(c / steps)).numpy()
     err = (c - q * steps) ** 2
     total = float(err.sum())
     return float(err[q == 0].sum()) / total if total > 0 else 0.0
@@ -99,11 +100,6 @@ def spearman(a: list[float], b: list[float]) -> float:
     ra = np.argsort(np.argsort(np.asarray(a)))
     rb = np.argsort(np.argsort(np.asarray(b)))
     return float(np.corrcoef(ra, rb)[0, 1])
-
-
-def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(((a.double() - b.double()) ** 2).mean())
-    return float("inf") if mse == 0 else -10.0 * np.log10(mse)
 
 
 def view_rows(manifest: Path, weights: str | None) -> list[dict[str, float]]:
@@ -131,8 +127,9 @@ def view_rows(manifest: Path, weights: str | None) -> list[dict[str, float]]:
         with torch.no_grad():
             batch = torch.stack([images[k] for k in IMAGES])
             lp = lpips(batch, ref.expand_as(batch), weights)
+            ps = psnr(batch, ref.expand_as(batch))
         for i, k in enumerate(IMAGES):
-            row[f"psnr_{k}"] = _psnr(images[k], ref)
+            row[f"psnr_{k}"] = float(ps[i])
             row[f"lpips_{k}"] = float(lp[i]) if lp is not None else float("nan")
         rows.append(row)
     return rows
