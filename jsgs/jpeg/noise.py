@@ -141,3 +141,22 @@ def jpeg_noise_variance(ycbcr: np.ndarray, luma: np.ndarray, chroma: np.ndarray,
             p = p[:h, :w].reshape(h // fy, fy, w // fx, fx).mean(axis=(1, 3))
         total += plane_noise_variance(p, chroma)
     return total / PLANES
+
+
+def blockiness(plane: np.ndarray) -> float:
+    """How much a decoded plane's 8×8 block grid shows: the mean absolute step between neighbouring samples
+    across the block edges (from sample 8k + 7 to 8k + 8) over the same inside the blocks, for rows and
+    columns, averaged. ``plane`` ``(H, W)`` samples (any units; the ratio is unitless), on its own block grid.
+    About 1 where no grid shows, whether the plane is textured or smooth; above 1 where it does (the
+    shared scenes' views at q = 90: 1.03–1.16, at q = 10: 2.3–3.9). Read from the file alone, it ranks the
+    views' visible damage (LPIPS against the lossless original) across scenes where the noise variance
+    does not: Spearman 0.78 against 0.29 over the four shared scenes' 162 views
+    (``tools/diagnostics/damage_channels.py``). A plane too small to hold a block edge reads 1."""
+    y = np.asarray(plane, dtype=np.float64)
+    ratios = []
+    for d in (np.abs(np.diff(y, axis=1)), np.abs(np.diff(y, axis=0)).T):
+        edge = (np.arange(d.shape[1]) % 8) == 7
+        if d.shape[0] == 0 or not edge.any():
+            continue
+        ratios.append((d[:, edge].mean() + 1e-6) / (d[:, ~edge].mean() + 1e-6))
+    return float(np.mean(ratios)) if ratios else 1.0

@@ -156,7 +156,7 @@ class JsgsHook(LossHook):
             out["base_by_view"] = {
                 self.view_names.get(i, str(i)): {
                     "noise_variance": round(tab.noise_variance, 6), "weight": round(self.base_scale(tab), 6)
-                }
+                } | ({"blockiness": round(tab.blockiness, 6)} if self.opts.base_block_ref else {})
                 for i, tab in sorted(self.tables.items())
             }  # fmt: skip
         return out
@@ -172,6 +172,7 @@ class JsgsHook(LossHook):
                 f"{w[len(w) // 2]:.2f}; σ² from the {'files' if o.base_noise == 'pixels' else 'tables'}, "
                 f"σ_ref = {o.base_noise_ref:g}"
                 + (f", k = {o.base_noise_exponent:g}" if o.base_noise_exponent != 1.0 else "")
+                + (f"; times the blockiness factor, b = {o.base_block_ref:g}" if o.base_block_ref else "")
                 + (f"; from 1 over the first {o.base_ramp_steps} steps)" if o.base_ramp_steps else ")")
             )
         return notes
@@ -192,13 +193,16 @@ class JsgsHook(LossHook):
 
     def base_scale(self, tab: ViewJpeg, step: int | None = None) -> float:
         """The multiplier on λ_base for a JPEG view: 1, or with ``base_by_view`` w = 1 / (1 + (σ² / σ_ref²)^k)
-        (k = 1: σ_ref² / (σ_ref² + σ²)); at 0-based ``step`` < ``base_ramp_steps`` T it is
+        (k = 1: σ_ref² / (σ_ref² + σ²)), times 1 / (1 + (max(B − 1, 0) / b)^k) with ``base_block_ref``
+        b > 0 (B the view's blockiness); at 0-based ``step`` < ``base_ramp_steps`` T it is
         w + (1 − w)(1 − step / T), so the weight falls from 1 at step 0 to w at step T. ``step`` None: w."""
-        if not self.opts.base_by_view:
+        o = self.opts
+        if not o.base_by_view:
             return 1.0
-        ratio = tab.noise_variance / self.opts.base_noise_ref**2
-        w = 1.0 / (1.0 + ratio**self.opts.base_noise_exponent)
-        ramp = self.opts.base_ramp_steps
+        w = 1.0 / (1.0 + (tab.noise_variance / o.base_noise_ref**2) ** o.base_noise_exponent)
+        if o.base_block_ref:
+            w /= 1.0 + (max(tab.blockiness - 1.0, 0.0) / o.base_block_ref) ** o.base_noise_exponent
+        ramp = o.base_ramp_steps
         if step is not None and step < ramp:
             w += (1.0 - w) * (1.0 - step / ramp)
         return w
@@ -397,7 +401,8 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
     use_cuda_graph(opts, device)  # its error before the tables are built
     noise = opts.base_noise if opts.base_by_view else "tables"  # the estimate reads every view: only if used
     t0 = time.perf_counter()
-    tables = view_tables(scene.train_views, device, str(scene.manifest_path), opts.tables, noise)
+    blocks = opts.base_by_view and opts.base_block_ref > 0
+    tables = view_tables(scene.train_views, device, str(scene.manifest_path), opts.tables, noise, blocks)
     setup_notes = []
     read = sum(1 for v in scene.train_views if v.jpeg is not None and v.jpeg.noise_variance is None)
     if noise == "pixels" and read:

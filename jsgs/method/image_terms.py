@@ -139,6 +139,8 @@ class ViewJpeg:
     #: σ² of the view's quantisation noise (8-bit units²): the tables' bound
     #: (:func:`quantization_noise_variance`) or the estimate from the file (:func:`jsgs.jpeg.noise`)
     noise_variance: float = 0.0
+    #: blockiness of the decoded luma (:func:`jsgs.jpeg.noise.blockiness`; 1 where not measured)
+    blockiness: float = 1.0
     #: ``method_options.tables: effective`` on a view compressed twice: [2, 8, 8] the effective tables (the
     #: coarser of the earlier and the header's step per coefficient), quantized with before ``tables``; DS
     #: weights by their luma. None: one quantization with ``tables``.
@@ -165,14 +167,20 @@ def quantization_noise_variance(luma: np.ndarray, chroma: np.ndarray) -> float:
 
 
 def view_tables(
-    views: list[View], device: torch.device, where: str, tables: str = "header", noise: str = "tables"
+    views: list[View],
+    device: torch.device,
+    where: str,
+    tables: str = "header",
+    noise: str = "tables",
+    blocks: bool = False,
 ) -> dict[int, ViewJpeg]:
     """view index -> its tables and sampling for every JPEG training view. JsgsError naming the view when
     JO cannot represent its JPEG state (greyscale, or a chroma sampling other than 4:4:4 / 4:2:2 / 4:2:0).
     ``tables`` effective: views the manifest's analysis finds compressed twice also get ``first`` (their
     effective tables); a JPEG view without an analysis is a JsgsError. ``noise``: how ``noise_variance`` is
     found, ``tables`` (the bound) or ``pixels`` (the estimate ``manifest --analyze`` recorded, made with the
-    effective tables, else estimated here from the decoded file with the tables JO uses)."""
+    effective tables, else estimated here from the decoded file with the tables JO uses). ``blocks``: also
+    measure each view's ``blockiness`` from its decoded file."""
     checked: list[tuple[View, Tensor, Tensor | None, np.ndarray]] = []
     for v in views:
         j = v.jpeg
@@ -210,6 +218,7 @@ def view_tables(
     # manifest --analyze's estimate (made with the effective tables) where recorded, else from the file
     todo = [(v, q) for v, _, _, q in checked if noise == "pixels" and v.jpeg.noise_variance is None]
     estimates = _noise_estimates(todo)
+    grid = _blockiness([v for v, _, _, _ in checked]) if blocks else {}
     out: dict[int, ViewJpeg] = {}
     for v, header, first, q in checked:
         j = v.jpeg
@@ -217,7 +226,8 @@ def view_tables(
             sigma2 = j.noise_variance if j.noise_variance is not None else estimates[v.index]
         else:
             sigma2 = quantization_noise_variance(q[0], q[1])
-        out[v.index] = ViewJpeg(header.to(device, torch.float32).reshape(2, 8, 8), j.sampling, sigma2, first)
+        tab = header.to(device, torch.float32).reshape(2, 8, 8)
+        out[v.index] = ViewJpeg(tab, j.sampling, sigma2, grid.get(v.index, 1.0), first)
     return out
 
 
@@ -230,9 +240,6 @@ def _noise_estimates(todo: list[tuple[View, np.ndarray]]) -> dict[int, float]:
     the tables ``q`` ``(2, 8, 8)`` that JO uses, for each ``(view, q)``; several files at once (numpy
     releases the GIL in the block DCT), one stderr line first when there are many. JsgsError naming the view
     whose file cannot be read."""
-    from concurrent.futures import ThreadPoolExecutor
-    from os import cpu_count
-
     from jsgs.images import read_ycbcr8
     from jsgs.jpeg.noise import jpeg_noise_variance
 
@@ -245,10 +252,30 @@ def _noise_estimates(todo: list[tuple[View, np.ndarray]]) -> dict[int, float]:
         assert v.jpeg is not None
         return jpeg_noise_variance(read_ycbcr8(v.image, f"view {v.name!r}"), q[0], q[1], v.jpeg.sampling)
 
-    if not todo:
-        return {}
-    with ThreadPoolExecutor(max(1, min(8, cpu_count() or 1, len(todo)))) as pool:
-        return dict(zip((v.index for v, _ in todo), pool.map(one, todo), strict=True))
+    return dict(zip((v.index for v, _ in todo), _per_file(one, todo), strict=True))
+
+
+def _blockiness(views: list[View]) -> dict[int, float]:
+    """view index -> the blockiness of its decoded luma (:func:`jsgs.jpeg.noise.blockiness`), several files
+    at once. JsgsError naming the view whose file cannot be read."""
+    from jsgs.images import read_ycbcr8
+    from jsgs.jpeg.noise import blockiness
+
+    def one(v: View) -> float:
+        return blockiness(read_ycbcr8(v.image, f"view {v.name!r}")[..., 0])
+
+    return dict(zip((v.index for v in views), _per_file(one, views), strict=True))
+
+
+def _per_file(fn: Callable[[Any], float], items: list[Any]) -> list[float]:
+    """``[fn(item) for item in items]`` on up to 8 threads (decoding and numpy release the GIL)."""
+    from concurrent.futures import ThreadPoolExecutor
+    from os import cpu_count
+
+    if not items:
+        return []
+    with ThreadPoolExecutor(max(1, min(8, cpu_count() or 1, len(items)))) as pool:
+        return list(pool.map(fn, items))
 
 
 class CompiledOrEager:

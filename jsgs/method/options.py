@@ -91,6 +91,15 @@ class JsgsOptions:
         "to the quantised values), 20-200x smaller on real images and close to the error the file carries "
         "(recorded by jsgstools manifest --analyze, else computed when training starts).",
     )
+    base_block_ref: float = setting(
+        0.0,
+        "b of base_by_view's second factor (0: off): each JPEG view's weight is also multiplied by "
+        "1 / (1 + ((B − 1) / b)^k), B the blockiness of its decoded luma (jsgs.jpeg.noise.blockiness: the "
+        "steps across its 8×8 block edges over those inside, about 1 where no grid shows) and k "
+        "base_noise_exponent. B ranks the views' visible damage across scenes, where σ² ranks it within one: "
+        "views whose squared error is small but whose block grid shows lose ℓ_ph too.",
+        ge=0.0,
+    )
     jpeg_mode: Literal["paper", "float", "exact"] = setting(
         "paper", "Forward of the JPEG observation operator's rounding (jsgs.jpeg.observe)."
     )
@@ -136,6 +145,11 @@ class JsgsOptions:
             raise JsgsError(
                 f"{where}: method_options.base_ramp_steps ({self.base_ramp_steps}) ramps base_by_view's "
                 "weights, which are off; set base_by_view true or base_ramp_steps 0"
+            )
+        if self.base_block_ref and not self.base_by_view:
+            raise JsgsError(
+                f"{where}: method_options.base_block_ref ({self.base_block_ref:g}) scales base_by_view's "
+                "weights, which are off; set base_by_view true or base_block_ref 0"
             )
         if not self.jo and (self.ds or self.gc):
             on = " and ".join(n for n, v in (("DS", self.ds), ("GC", self.gc)) if v)

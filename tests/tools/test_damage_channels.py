@@ -98,18 +98,6 @@ def test_main_prints_a_row_and_refuses_a_dataset_without_jpegs(
     assert "no JPEG view with a lossless reference" in capsys.readouterr().err
 
 
-def test_blockiness_sees_the_block_grid_and_nothing_else() -> None:
-    rng = np.random.default_rng(0)
-    blocks = np.kron(rng.uniform(0, 255, (6, 8)), np.ones((8, 8)))  # flat 8x8 blocks: steps only at edges
-    assert dc.blockiness(blocks) > 1e6
-    ramp = np.add.outer(np.arange(48.0), 2.0 * np.arange(64.0))  # a smooth gradient: the same step everywhere
-    assert dc.blockiness(ramp) == pytest.approx(1.0)
-    texture = rng.uniform(0, 255, (48, 64))  # texture without a grid
-    assert abs(dc.blockiness(texture) - 1.0) < 0.1
-    # the same blocks one pixel off the grid: their edges fall inside the 8x8 cells
-    assert dc.blockiness(np.roll(blocks, 1, axis=(0, 1))) < 0.2
-
-
 def test_spearman() -> None:
     assert dc.spearman([1.0, 2.0, 3.0, 4.0], [10.0, 20.0, 25.0, 100.0]) == pytest.approx(1.0)
     assert dc.spearman([1.0, 2.0, 3.0, 4.0], [4.0, 3.0, 2.0, 1.0]) == pytest.approx(-1.0)

@@ -26,7 +26,7 @@ A second table asks which measure read from the file alone tells the views' visi
 Spearman rank correlation, over the views of each manifest and over all of them together, of LPIPS(jpeg)
 with the file's estimated quantisation-noise variance (``jsgs.jpeg.noise.jpeg_noise_variance``, what
 ``method_options.base_noise: pixels`` weights by) and with the blockiness of its decoded luma
-(:func:`blockiness`: steps across the 8×8 block edges against steps inside the blocks).
+(:func:`jsgs.jpeg.noise.blockiness`: steps across the 8×8 block edges against steps inside the blocks).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from PIL import Image
 
 from jsgs.images import read_rgb8, read_ycbcr8
 from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb
-from jsgs.jpeg.noise import jpeg_noise_variance, plane_dct
+from jsgs.jpeg.noise import blockiness, jpeg_noise_variance, plane_dct
 from jsgs.jpeg.rounding import round_half_away
 from jsgs.manifest import load_manifest
 from jsgs.metrics.lpips import lpips
@@ -79,18 +79,6 @@ def zeroed_share(y: np.ndarray, luma_table: np.ndarray) -> float:
     err = (c - q * steps) ** 2
     total = float(err.sum())
     return float(err[q == 0].sum()) / total if total > 0 else 0.0
-
-
-def blockiness(y: np.ndarray) -> float:
-    """Mean absolute step between neighbouring pixels across the 8×8 block edges over the same inside the
-    blocks, horizontal and vertical averaged, of plane ``y`` [H, W]: about 1 where the blocks do not show
-    (texture or smooth gradients alike), above 1 where the block grid does. Unitless, no reference."""
-    y = np.asarray(y, dtype=np.float64)
-    ratios = []
-    for d in (np.abs(np.diff(y, axis=1)), np.abs(np.diff(y, axis=0)).T):
-        edge = (np.arange(d.shape[1]) % 8) == 7  # the step from pixel 8k + 7 to 8k + 8
-        ratios.append((d[:, edge].mean() + 1e-6) / (d[:, ~edge].mean() + 1e-6))
-    return float(np.mean(ratios))
 
 
 def spearman(a: list[float], b: list[float]) -> float:

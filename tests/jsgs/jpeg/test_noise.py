@@ -16,7 +16,7 @@ from PIL import Image
 from jsgs.images import read_ycbcr8
 from jsgs.jpeg.color import rgb_to_ycbcr
 from jsgs.jpeg.dct import dct_matrix
-from jsgs.jpeg.noise import jpeg_noise_variance, laplacian_quantization_error, plane_dct
+from jsgs.jpeg.noise import blockiness, jpeg_noise_variance, laplacian_quantization_error, plane_dct
 from jsgs.method.image_terms import quantization_noise_variance
 
 
@@ -172,3 +172,33 @@ def test_estimate_on_shared_scenes(tmp_path: Path, scene: str) -> None:
             if q <= 50:
                 assert quantization_noise_variance(qy, qc) > 10 * truth
     assert 0.5 < float(np.median(ratios)) < 2.0
+
+
+def test_blockiness_sees_the_block_grid_and_nothing_else() -> None:
+    rng = np.random.default_rng(0)
+    blocks = np.kron(rng.uniform(0, 255, (6, 8)), np.ones((8, 8)))  # flat 8x8 blocks: steps only at edges
+    assert blockiness(blocks) > 1e6
+    ramp = np.add.outer(np.arange(48.0), 2.0 * np.arange(64.0))  # a smooth gradient: the same step everywhere
+    assert blockiness(ramp) == pytest.approx(1.0)
+    texture = rng.uniform(0, 255, (48, 64))  # texture without a grid
+    assert abs(blockiness(texture) - 1.0) < 0.1
+    # the same blocks one pixel off the grid: their edges fall inside the 8x8 cells
+    assert blockiness(np.roll(blocks, 1, axis=(0, 1))) < 0.2
+    # a plane too small to hold a block edge, and a flat one, read 1 (no NaN)
+    assert blockiness(np.zeros((4, 5))) == 1.0 and blockiness(np.zeros((1, 1))) == 1.0
+    assert blockiness(np.full((16, 16), 7.0)) == pytest.approx(1.0)
+
+
+def test_blockiness_grows_as_libjpeg_quality_falls() -> None:
+    """Files Pillow (libjpeg) writes from one smooth image: the decoded luma's blockiness is near 1 at
+    q = 95 and rises monotonically as the quality falls."""
+    yy, xx = np.mgrid[0:96, 0:128]
+    img = np.stack([128 + 60 * np.sin(xx / 9.0) * np.cos(yy / 13.0), 100 + xx * 0.8, 90 + yy], -1)
+    rgb = np.clip(img, 0, 255).astype(np.uint8)
+    seen = []
+    for q in (95, 70, 40, 15):
+        buf = io.BytesIO()
+        Image.fromarray(rgb).save(buf, "JPEG", quality=q)
+        y = np.asarray(Image.open(io.BytesIO(buf.getvalue())).convert("L"), dtype=np.float64)
+        seen.append(blockiness(y))
+    assert seen[0] < 1.2 and seen == sorted(seen) and seen[-1] > 1.5, seen

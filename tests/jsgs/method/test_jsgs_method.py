@@ -840,15 +840,21 @@ def test_quantization_noise_variance_of_ijg_tables() -> None:
     assert 20 < values[1] < 26 and 500 < values[3] < 650  # q = 90, q = 50
 
 
-@pytest.mark.parametrize(("base_noise", "k"), [("tables", 1.0), ("pixels", 1.0), ("pixels", 2.0)])
-def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: str, k: float) -> None:
+@pytest.mark.parametrize(
+    ("base_noise", "k", "b"),
+    [("tables", 1.0, 0.0), ("pixels", 1.0, 0.0), ("pixels", 2.0, 0.0), ("pixels", 2.0, 0.1)],
+)
+def test_base_by_view_scales_the_photometric_weight(
+    tmp_path: Path, base_noise: str, k: float, b: float
+) -> None:
     """With base_by_view, each JPEG view's step loss carries λ_base·w·ℓ_ph, w = 1 / (1 + (σ²/σ_ref²)^k)
     (k = 1: σ_ref²/(σ_ref²+σ²)): recomputed from the logged terms of every step; σ² the tables' bound or the
-    estimate from the file."""
+    estimate from the file. With base_block_ref b, w is also divided by 1 + ((B − 1)/b)^k, B the blockiness
+    of the view's decoded luma."""
     from _train_scene import make_scene
 
     from jsgs.images import read_ycbcr8
-    from jsgs.jpeg.noise import jpeg_noise_variance
+    from jsgs.jpeg.noise import blockiness, jpeg_noise_variance
     from jsgs.method.image_terms import quantization_noise_variance
     from jsgs.train.callbacks import Callback
     from jsgs.train.config import TrainConfig
@@ -856,13 +862,14 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: 
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
     doc = json.loads(manifest.read_text())
-    noise, bound = {}, {}
+    noise, bound, grid = {}, {}, {}
     for v in doc["views"]:
         if v.get("jpeg"):
             qy, qc = np.array(v["jpeg"]["luma_table"]), np.array(v["jpeg"]["chroma_table"])
             bound[v["name"]] = quantization_noise_variance(qy, qc)
             dec = read_ycbcr8(manifest.parent / v["image"])
             noise[v["name"]] = jpeg_noise_variance(dec, qy, qc, v["jpeg"]["sampling"])
+            grid[v["name"]] = blockiness(dec[..., 0])
             assert 0.0 < noise[v["name"]] < bound[v["name"]]
     if base_noise == "tables":
         noise = bound
@@ -876,16 +883,21 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: 
     cfg.method_options = {"base_by_view": True, "base_noise_ref": 6.0, "base_noise": base_noise, "gc": False}
     if k != 1.0:
         cfg.method_options["base_noise_exponent"] = k
+    if b:
+        cfg.method_options["base_block_ref"] = b
+        assert max(grid.values()) > 1.05  # the factor bites on these views
 
-    def weight(var: float) -> float:
-        return 36.0 / (36.0 + var) if k == 1.0 else 1.0 / (1.0 + (var / 36.0) ** k)
+    def weight(name: str) -> float:
+        var = noise[name]
+        w = 36.0 / (36.0 + var) if k == 1.0 else 1.0 / (1.0 + (var / 36.0) ** k)
+        return w / (1.0 + (max(grid[name] - 1.0, 0.0) / b) ** k) if b else w
 
     cfg.strategy.refine_start_iter = 10_000
     said: list[str] = []
     train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[Spy()], log=said.append)
     assert len(seen) == 4
     for view, loss, terms in seen:
-        w = weight(noise[view])
+        w = weight(view)
         assert 0.0 < w < 1.0
         expect = w * terms["photometric"] + 0.2 * terms["obs"] + 0.02 * terms["low"] + 0.03 * terms["mid"]
         assert loss == pytest.approx(expect, rel=1e-6)
@@ -895,11 +907,15 @@ def test_base_by_view_scales_the_photometric_weight(tmp_path: Path, base_noise: 
     assert set(by_view) == set(noise)
     for name, rec in by_view.items():
         assert rec["noise_variance"] == pytest.approx(noise[name], abs=1e-5)
-        assert rec["weight"] == pytest.approx(weight(noise[name]), abs=1e-5)
+        assert rec["weight"] == pytest.approx(weight(name), abs=1e-5)
+        assert ("blockiness" in rec) == bool(b)
+        if b:
+            assert rec["blockiness"] == pytest.approx(grid[name], abs=1e-5)
     w = sorted(r["weight"] for r in by_view.values())
     note = [n for n in said if "base_by_view:" in n]
     assert len(note) == 1 and f"keep {w[0]:.2f}–{w[-1]:.2f} of ℓ_ph" in note[0]
-    assert ("k = 2)" in note[0]) == (k == 2.0)
+    assert ("k = 2" in note[0]) == (k == 2.0)
+    assert ("blockiness factor, b = 0.1" in note[0]) == bool(b)
     assert any("base_by_view:" in n for n in derived["notes"])
     assert any("estimated the noise" in n for n in said) == (base_noise == "pixels")
 
@@ -944,6 +960,8 @@ def test_base_ramp_steps_lowers_each_views_weight_from_one(tmp_path: Path) -> No
     assert any("from 1 over the first 4 steps" in n for n in said)
     with pytest.raises(JsgsError, match=r"^cfg: method_options.base_ramp_steps \(10\).*base_by_view"):
         parse_options({"base_ramp_steps": 10}, "cfg")
+    with pytest.raises(JsgsError, match=r"^cfg: method_options.base_block_ref \(0.5\).*base_by_view"):
+        parse_options({"base_block_ref": 0.5}, "cfg")
 
 
 def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
