@@ -60,6 +60,7 @@ from jsgs.method.controller import (
 from jsgs.method.graphed import GraphCaptureFailed, GraphedController, GraphedImageTerms
 from jsgs.method.image_terms import (
     ViewJpeg,
+    base_weight,
     image_term_settings,
     jpeg_terms,
     maybe_compile,
@@ -192,20 +193,8 @@ class JsgsHook(LossHook):
         return {k: w[k] for k in self.active_terms()}
 
     def base_scale(self, tab: ViewJpeg, step: int | None = None) -> float:
-        """The multiplier on λ_base for a JPEG view: 1, or with ``base_by_view`` w = 1 / (1 + (σ² / σ_ref²)^k)
-        (k = 1: σ_ref² / (σ_ref² + σ²)), times 1 / (1 + (max(B − 1, 0) / b)^k) with ``base_block_ref``
-        b > 0 (B the view's blockiness); at 0-based ``step`` < ``base_ramp_steps`` T it is
-        w + (1 − w)(1 − step / T), so the weight falls from 1 at step 0 to w at step T. ``step`` None: w."""
-        o = self.opts
-        if not o.base_by_view:
-            return 1.0
-        w = 1.0 / (1.0 + (tab.noise_variance / o.base_noise_ref**2) ** o.base_noise_exponent)
-        if o.base_block_ref:
-            w /= 1.0 + (max(tab.blockiness - 1.0, 0.0) / o.base_block_ref) ** o.base_noise_exponent
-        ramp = o.base_ramp_steps
-        if step is not None and step < ramp:
-            w += (1.0 - w) * (1.0 - step / ramp)
-        return w
+        """The multiplier on λ_base for a JPEG view at 0-based ``step`` (:func:`base_weight`)."""
+        return base_weight(self.opts, tab, step)
 
     def extra_channels(self, step: int, view: View, splats: torch.nn.ParameterDict) -> Tensor | None:
         """The Gaussian Controller's probe (``jsgs.method.pooling.new_probe``) on views it runs on."""

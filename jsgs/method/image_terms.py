@@ -155,6 +155,22 @@ class ViewJpeg:
         return self.tables[1]
 
 
+def base_weight(opts: JsgsOptions, tab: ViewJpeg, step: int | None = None) -> float:
+    """The multiplier on λ_base (ℓ_ph's weight) for a JPEG view: 1, or with ``base_by_view``
+    w = 1 / (1 + (σ² / σ_ref²)^k) (k = 1: σ_ref² / (σ_ref² + σ²)), times 1 / (1 + (max(B − 1, 0) / b)^k)
+    with ``base_block_ref`` b > 0 (B the view's blockiness); at 0-based ``step`` < ``base_ramp_steps`` T it
+    is w + (1 − w)(1 − step / T), so the weight falls from 1 at step 0 to w at step T. ``step`` None: w."""
+    if not opts.base_by_view:
+        return 1.0
+    w = 1.0 / (1.0 + (tab.noise_variance / opts.base_noise_ref**2) ** opts.base_noise_exponent)
+    if opts.base_block_ref:
+        w /= 1.0 + (max(tab.blockiness - 1.0, 0.0) / opts.base_block_ref) ** opts.base_noise_exponent
+    ramp = opts.base_ramp_steps
+    if step is not None and step < ramp:
+        w += (1.0 - w) * (1.0 - step / ramp)
+    return w
+
+
 def quantization_noise_variance(luma: np.ndarray, chroma: np.ndarray) -> float:
     """Per-pixel variance (8-bit units²) of the noise that quantising with these tables adds, averaged over
     Y, Cb and Cr: a uniform quantiser of step Q adds variance Q²/12 to a coefficient, and the orthonormal
