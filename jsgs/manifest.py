@@ -45,6 +45,8 @@ class JpegState:
     double_compressed: bool | None = None
     #: the analysis's estimate of the view's quantisation-noise variance (8-bit units²), when recorded
     noise_variance: float | None = None
+    #: the analysis's blockiness of the view's decoded luma (jsgs.jpeg.noise.blockiness), when recorded
+    blockiness: float | None = None
 
 
 @dataclass(frozen=True)
@@ -227,6 +229,7 @@ def _analysis(a: dict[str, Any] | None) -> dict[str, Any]:
         "effective_chroma_table": None if ec is None else np.asarray(ec, dtype=np.int32),
         "double_compressed": bool(a["double_compressed"]),
         "noise_variance": None if a.get("noise_variance") is None else float(a["noise_variance"]),
+        "blockiness": None if a.get("blockiness") is None else float(a["blockiness"]),
     }
 
 

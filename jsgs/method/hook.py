@@ -393,11 +393,16 @@ def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> Jsgs
     blocks = opts.base_by_view and opts.base_block_ref > 0
     tables = view_tables(scene.train_views, device, str(scene.manifest_path), opts.tables, noise, blocks)
     setup_notes = []
-    read = sum(1 for v in scene.train_views if v.jpeg is not None and v.jpeg.noise_variance is None)
-    if noise == "pixels" and read:
+    jpegs = [v.jpeg for v in scene.train_views if v.jpeg is not None]
+    read = sum(1 for j in jpegs if j.noise_variance is None) if noise == "pixels" else 0
+    grids = sum(1 for j in jpegs if j.blockiness is None) if blocks else 0
+    if read or grids:
+        what = " and ".join(
+            f"the {m} of {n} JPEG view(s)" for m, n in (("noise", read), ("blockiness", grids)) if n
+        )
         setup_notes.append(
-            f"base_noise pixels: estimated the noise of {read} JPEG view(s) from their files in "
-            f"{time.perf_counter() - t0:.1f} s (jsgstools manifest --analyze records it in the manifest)"
+            f"method_options: measured {what} from their files in {time.perf_counter() - t0:.1f} s "
+            "(jsgstools manifest --analyze records both in the manifest)"
         )
     return JsgsHook(
         opts,

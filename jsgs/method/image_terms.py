@@ -196,7 +196,7 @@ def view_tables(
     effective tables); a JPEG view without an analysis is a JsgsError. ``noise``: how ``noise_variance`` is
     found, ``tables`` (the bound) or ``pixels`` (the estimate ``manifest --analyze`` recorded, made with the
     effective tables, else estimated here from the decoded file with the tables JO uses). ``blocks``: also
-    measure each view's ``blockiness`` from its decoded file."""
+    take each view's ``blockiness`` from the analysis, else measure it from its decoded file."""
     checked: list[tuple[View, Tensor, Tensor | None, np.ndarray]] = []
     for v in views:
         j = v.jpeg
@@ -234,7 +234,8 @@ def view_tables(
     # manifest --analyze's estimate (made with the effective tables) where recorded, else from the file
     todo = [(v, q) for v, _, _, q in checked if noise == "pixels" and v.jpeg.noise_variance is None]
     estimates = _noise_estimates(todo)
-    grid = _blockiness([v for v, _, _, _ in checked]) if blocks else {}
+    # manifest --analyze's blockiness where recorded, else measured from the file
+    grid = _blockiness([v for v, _, _, _ in checked if v.jpeg.blockiness is None]) if blocks else {}
     out: dict[int, ViewJpeg] = {}
     for v, header, first, q in checked:
         j = v.jpeg
@@ -242,8 +243,9 @@ def view_tables(
             sigma2 = j.noise_variance if j.noise_variance is not None else estimates[v.index]
         else:
             sigma2 = quantization_noise_variance(q[0], q[1])
+        b = (j.blockiness if j.blockiness is not None else grid[v.index]) if blocks else 1.0
         tab = header.to(device, torch.float32).reshape(2, 8, 8)
-        out[v.index] = ViewJpeg(tab, j.sampling, sigma2, grid.get(v.index, 1.0), first)
+        out[v.index] = ViewJpeg(tab, j.sampling, sigma2, b, first)
     return out
 
 

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from jsgs.errors import JsgsError, one_line
-from jsgs.jpeg.noise import jpeg_noise_variance, plane_noise_variance
+from jsgs.jpeg.noise import blockiness, jpeg_noise_variance, plane_noise_variance
 from jsgs.jpeg.noise import plane_dct as block_dct
 from jsgs.jpeg.tables import BASE_CHROMA, BASE_LUMA, SAMPLING_FACTORS, ijg_table
 from jsgstools.dqt.header import JpegHeader
@@ -180,6 +180,9 @@ class Analysis:
     #: estimated quantisation-noise variance of the decoded pixels against the uncompressed original, 8-bit
     #: units², mean over the planes (jsgs.jpeg.noise, with the effective tables); None where not estimated
     noise_variance: float | None = None
+    #: how much the decoded luma's 8×8 block grid shows (jsgs.jpeg.noise.blockiness; about 1 where it does
+    #: not); None where not measured
+    blockiness: float | None = None
 
     @property
     def psnr_estimate(self) -> float | None:
@@ -204,6 +207,7 @@ class Analysis:
             "effective_luma_table": tab(self.effective_luma_table),
             "effective_chroma_table": tab(self.effective_chroma_table),
             "noise_variance": None if self.noise_variance is None else round(self.noise_variance, 3),
+            "blockiness": None if self.blockiness is None else round(self.blockiness, 4),
         }
 
 
@@ -315,7 +319,7 @@ def analyze_bytes(data: bytes, header: JpegHeader) -> Analysis:
         if same and header.sampling == "4:4:4":
             chroma = [full[:, :, 1], full[:, :, 2]]
     a = analyze_planes(luma, header.luma_table.values, chroma, chroma_table)
-    return replace(a, noise_variance=_noise(full, a, header.sampling))
+    return replace(a, noise_variance=_noise(full, a, header.sampling), blockiness=blockiness(luma))
 
 
 def _noise(full: np.ndarray, a: Analysis, sampling: str) -> float | None:

@@ -32,6 +32,7 @@ KEYS = {
     "effective_luma_table",
     "effective_chroma_table",
     "noise_variance",
+    "blockiness",
 }
 
 
@@ -163,6 +164,13 @@ def test_cli_json_analysis_validates(files: tuple[Path, Path]) -> None:
         truth = float(((dec - np.asarray(photo(7).convert("YCbCr"), dtype=np.float64)) ** 2).mean())
         assert 0.4 * truth < a["noise_variance"] < 1.5 * truth, (f.name, a["noise_variance"], truth)
     assert double["noise_variance"] > single["noise_variance"]
+    # the blockiness is the decoded luma's (jsgs.jpeg.noise.blockiness), as the trainer would measure it
+    from jsgs.images import read_ycbcr8
+    from jsgs.jpeg.noise import blockiness
+
+    for f, a in zip(files, (single, double), strict=True):
+        assert a["blockiness"] == pytest.approx(blockiness(read_ycbcr8(f)[..., 0]), abs=1e-4)
+        assert a["blockiness"] > 0.5
 
 
 def test_cli_table_column(files: tuple[Path, Path]) -> None:

@@ -917,7 +917,8 @@ def test_base_by_view_scales_the_photometric_weight(
     assert ("k = 2" in note[0]) == (k == 2.0)
     assert ("blockiness factor, b = 0.1" in note[0]) == bool(b)
     assert any("base_by_view:" in n for n in derived["notes"])
-    assert any("estimated the noise" in n for n in said) == (base_noise == "pixels")
+    assert any("measured the noise of" in n for n in said) == (base_noise == "pixels")
+    assert any("blockiness of" in n and "from their files" in n for n in said) == bool(b)
 
 
 def test_base_ramp_steps_lowers_each_views_weight_from_one(tmp_path: Path) -> None:
@@ -965,8 +966,9 @@ def test_base_ramp_steps_lowers_each_views_weight_from_one(tmp_path: Path) -> No
 
 
 def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
-    """A manifest written with --analyze records each view's noise estimate: base_noise pixels uses it (no
-    second decode); without it the view's file is estimated, and tables keep the bound."""
+    """A manifest written with --analyze records each view's noise estimate and blockiness: base_noise
+    pixels and base_block_ref use them (no second decode); without them the view's file is read, and tables
+    keep the bound."""
     from _train_scene import make_scene
 
     from jsgs.method.image_terms import quantization_noise_variance, view_tables
@@ -980,7 +982,8 @@ def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
     j = first["jpeg"]
     j["analysis"] = {"double_compressed": False, "confidence": 0.9, "evidence": 1.0, "primary_quality": None,
                      "primary_luma_table": None, "effective_luma_table": j["luma_table"],
-                     "effective_chroma_table": j["chroma_table"], "noise_variance": 7.5}  # fmt: skip
+                     "effective_chroma_table": j["chroma_table"], "noise_variance": 7.5,
+                     "blockiness": 1.7}  # fmt: skip
     manifest.write_text(json.dumps(doc))
     views = load_scene(manifest, TrainConfig(device="cpu")).train_views
     cpu = torch.device("cpu")
@@ -992,6 +995,15 @@ def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
     bound = quantization_noise_variance(np.array(jpeg_views[1]["jpeg"]["luma_table"]),
                                         np.array(jpeg_views[1]["jpeg"]["chroma_table"]))  # fmt: skip
     assert 0 < px[other].noise_variance < bound == tb[other].noise_variance
+    # blockiness likewise: the recorded value, else measured from the file; 1 when not asked for
+    from jsgs.images import read_ycbcr8
+    from jsgs.jpeg.noise import blockiness
+
+    bk = view_tables(views, cpu, "m", noise="pixels", blocks=True)
+    assert bk[by_name[first["name"]]].blockiness == 1.7
+    other_view = next(v for v in views if v.index == other)
+    assert bk[other].blockiness == blockiness(read_ycbcr8(other_view.image)[..., 0]) != 1.0
+    assert px[other].blockiness == 1.0
 
 
 def test_many_estimates_are_announced_and_match_one_by_one(
