@@ -12,7 +12,8 @@ folders where BASE has none for that scene, schedule, budget and seed. Each scen
 budget, at the last evaluation every run in the comparison reached (:func:`jsgs.bench.budget.common_steps`).
 Prints a markdown table: per cell, the seed means of gsplat, BASE and VARIANT, ΔLPIPS % and ΔPSNR dB of each
 recipe against gsplat (paired by seed, then averaged), and on how many seeds VARIANT's LPIPS is below BASE's;
-then the means over all pairs. Only the cells and seeds both recipes (and gsplat) hold are compared.
+then the means over all pairs, and VARIANT's shift from BASE seed by seed (its ΔLPIPS points and ΔPSNR dB
+minus BASE's) with a 95 % t-interval. Only the cells and seeds both recipes (and gsplat) hold are compared.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import sys
 from collections.abc import Iterable
 from pathlib import Path
 
-from jsgs.bench.budget import BudgetReport, common_steps
+from jsgs.bench.budget import BudgetReport, common_steps, mean_ci
 from jsgs.bench.results import read_csv
 
 
@@ -75,11 +76,24 @@ def main(base: Path, variants: list[Path]) -> None:
     a, b = pairs["jsgs"], pairs["variant"]
     print(f"\nover the {len(a)} seeds with gsplat and both recipes: BASE ΔLPIPS {mean(a, 0, 1)} %, "
           f"ΔPSNR {mean(a, 1, 2)} dB; VARIANT ΔLPIPS {mean(b, 0, 1)} %, ΔPSNR {mean(b, 1, 2)} dB")
+    if a:
+        shift = [(q[0] - p[0], q[1] - p[1]) for p, q in zip(a, b, strict=True)]
+        print(f"VARIANT − BASE, seed by seed: ΔLPIPS {ci([s[0] for s in shift], 1)} points, "
+              f"ΔPSNR {ci([s[1] for s in shift], 2)} dB (mean ± 95 % t-interval); VARIANT's ΔLPIPS lower "
+              f"on {sum(s[0] < 0 for s in shift)} of {len(shift)}")
 
 
 def mean(v: list[tuple[float, float]], i: int, d: int) -> str:
     """The mean of the i-th member of paired differences, signed, d decimals."""
     return f"{statistics.mean(p[i] for p in v):+.{d}f}" if v else "—"
+
+
+def ci(v: list[float], d: int) -> str:
+    """``mean ± half-width`` of the 95 % t-interval (:func:`jsgs.bench.budget.mean_ci`), d decimals."""
+    m, h = mean_ci(v)
+    if m is None:
+        return "—"
+    return f"{m:+.{d}f}" + (f" ± {h:.{d}f}" if h is not None else "")
 
 
 def avg(v: Iterable[float], d: int) -> str:
