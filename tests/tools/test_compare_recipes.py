@@ -51,3 +51,7 @@ def test_compares_only_the_cells_and_seeds_both_recipes_hold(tmp_path: Path, cap
     assert "| 25.00 / 26.00 / 25.50 | +1.00 / +0.50 | 1/2 |" in table[0]
     assert "over the 2 seeds with gsplat and both recipes: BASE ΔLPIPS -50.0 %, ΔPSNR +1.00 dB; " \
            "VARIANT ΔLPIPS -50.0 %, ΔPSNR +0.50 dB" in out  # fmt: skip
+    # seed by seed the variant's ΔLPIPS is +25 and -25 points off BASE's (mean 0, t(1) 12.706 x 25 = 317.65),
+    # its ΔPSNR -0.5 dB on both
+    assert "VARIANT − BASE, seed by seed: ΔLPIPS +0.0 ± 317.6 points, ΔPSNR -0.50 ± 0.00 dB" in out
+    assert "VARIANT's ΔLPIPS lower on 1 of 2" in out

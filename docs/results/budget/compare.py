@@ -93,6 +93,7 @@ def ci(v: list[float], d: int) -> str:
     m, h = mean_ci(v)
     if m is None:
         return "—"
+    m = round(m, d) or 0.0  # no "-0.0"
     return f"{m:+.{d}f}" + (f" ± {h:.{d}f}" if h is not None else "")
 
 
