@@ -40,7 +40,8 @@ def _emit(text: str, err: bool = False) -> None:
     "--analyze",
     is_flag=True,
     help="Also decode each image and look for an earlier, coarser quantization on its 8x8 grid (double "
-    "compression), and estimate its quantisation noise: DOUBLE and EST. PSNR columns in the table, an "
+    "compression), and estimate its quantisation noise and how much its block grid shows: DOUBLE, EST. "
+    "PSNR and BLOCKS columns in the table, an "
     "`analysis` object per file in --json (docs/double_compression.md).",
 )
 @user_errors
@@ -67,7 +68,9 @@ def inspect_dqt(images: tuple[Path, ...], as_json: bool, show_tables: bool, anal
     closest IJG quality of the earlier tables, and the confidence in that verdict; --json adds the earlier
     and the effective tables (per coefficient the coarser of the two steps). EST. PSNR is how far the file
     is from its uncompressed original through quantisation, estimated from its own DCT coefficients with
-    the effective tables (--json: noise_variance, in 8-bit units squared).
+    the effective tables (--json: noise_variance, in 8-bit units squared). BLOCKS is the blockiness of the
+    decoded luma: the mean step between neighbouring samples across the 8x8 block edges over the same inside
+    the blocks, about 1 where no grid shows (--json: blockiness).
     """
     from jsgstools.dqt import dumps_json, format_table, inspect_files
 

@@ -159,10 +159,17 @@ def _psnr_text(a: Analysis | JsgsError) -> str:
     return "-" if p is None else f"{p:.1f} dB"
 
 
+def _blocks_text(a: Analysis | JsgsError) -> str:
+    if isinstance(a, JsgsError):
+        return "?"
+    return "-" if a.blockiness is None else f"{a.blockiness:.2f}"
+
+
 def format_table(ins: Inspection, show_tables: bool = False, analyze: bool = False) -> str:
     """Human-readable report: one row per good file, then a summary line (and the 8x8 tables on request).
     With ``analyze`` (and analyses present) a DOUBLE column: "no" or "yes qNN", and the confidence; and EST.
-    PSNR: the PSNR against the uncompressed original that the estimated quantisation noise implies."""
+    PSNR: the PSNR against the uncompressed original that the estimated quantisation noise implies; BLOCKS:
+    how much the decoded luma's 8x8 block grid shows (about 1 where it does not)."""
     head: tuple[str, ...] = (
         "FILE",
         "SIZE",
@@ -175,7 +182,7 @@ def format_table(ins: Inspection, show_tables: bool = False, analyze: bool = Fal
     )
     with_double = analyze and ins.analyses is not None
     if with_double:
-        head = (*head, "DOUBLE (confidence)", "EST. PSNR")
+        head = (*head, "DOUBLE (confidence)", "EST. PSNR", "BLOCKS")
     rows = [
         (
             h.path,
@@ -187,7 +194,11 @@ def format_table(ins: Inspection, show_tables: bool = False, analyze: bool = Fal
             _tables_text(h),
             str(h.restart_interval) if h.restart_interval else "-",
             *(
-                (_double_text(ins.analyses[h.path]), _psnr_text(ins.analyses[h.path]))
+                (
+                    _double_text(ins.analyses[h.path]),
+                    _psnr_text(ins.analyses[h.path]),
+                    _blocks_text(ins.analyses[h.path]),
+                )
                 if with_double and ins.analyses is not None
                 else ()
             ),
