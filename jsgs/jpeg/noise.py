@@ -143,20 +143,38 @@ def jpeg_noise_variance(ycbcr: np.ndarray, luma: np.ndarray, chroma: np.ndarray,
     return total / PLANES
 
 
-def blockiness(plane: np.ndarray) -> float:
-    """How much a decoded plane's 8×8 block grid shows: the mean absolute step between neighbouring samples
-    across the block edges (from sample 8k + 7 to 8k + 8) over the same inside the blocks, for rows and
-    columns, averaged. ``plane`` ``(H, W)`` samples (any units; the ratio is unitless), on its own block grid.
-    About 1 where no grid shows, whether the plane is textured or smooth; above 1 where it does (the
-    shared scenes' views at q = 90: 1.03–1.16, at q = 10: 2.3–3.9). Read from the file alone, it ranks the
-    views' visible damage (LPIPS against the lossless original) across scenes where the noise variance
-    does not: Spearman 0.78 against 0.29 over the four shared scenes' 162 views
-    (``tools/diagnostics/damage_channels.py``). A plane too small to hold a block edge reads 1."""
+def _direction_steps(plane: np.ndarray) -> list[tuple[float, float]]:
+    """Per direction (rows, columns) holding a block edge: the mean absolute step between neighbouring
+    samples across the 8×8 block edges (from sample 8k + 7 to 8k + 8) and inside the blocks."""
     y = np.asarray(plane, dtype=np.float64)
-    ratios = []
+    out = []
     for d in (np.abs(np.diff(y, axis=1)), np.abs(np.diff(y, axis=0)).T):
         edge = (np.arange(d.shape[1]) % 8) == 7
-        if d.shape[0] == 0 or not edge.any():
-            continue
-        ratios.append((d[:, edge].mean() + 1e-6) / (d[:, ~edge].mean() + 1e-6))
-    return float(np.mean(ratios)) if ratios else 1.0
+        if d.shape[0] and edge.any():
+            out.append((float(d[:, edge].mean()), float(d[:, ~edge].mean())))
+    return out
+
+
+def block_steps(plane: np.ndarray) -> tuple[float, float]:
+    """``(E, I)``: the mean absolute step between neighbouring samples of ``plane`` ``(H, W)`` across its
+    8×8 block edges and inside its blocks, rows and columns averaged, in the plane's units. ``(0, 0)`` for
+    a plane too small to hold a block edge."""
+    steps = _direction_steps(plane)
+    if not steps:
+        return 0.0, 0.0
+    return float(np.mean([e for e, _ in steps])), float(np.mean([i for _, i in steps]))
+
+
+def blockiness(plane: np.ndarray) -> float:
+    """How much a decoded plane's 8×8 block grid shows: the mean absolute step between neighbouring samples
+    across the block edges over the same inside the blocks (:func:`_direction_steps`, +1e-6 on both), for
+    rows and columns, averaged. ``plane`` ``(H, W)`` samples (any units; the ratio is unitless), on its own
+    block grid. About 1 where no grid shows, whether the plane is textured or smooth; above 1 where it does
+    (the shared scenes' views at q = 90: 1.03–1.16, at q = 10: 2.3–3.9). Read from the file alone, it ranks
+    the views' visible damage (LPIPS against the lossless original) across scenes where the noise variance
+    does not: Spearman 0.78 against 0.29 over the four shared scenes' 162 views
+    (``tools/diagnostics/damage_channels.py``). A plane too small to hold a block edge reads 1."""
+    steps = _direction_steps(plane)
+    if not steps:
+        return 1.0
+    return float(np.mean([(e + 1e-6) / (i + 1e-6) for e, i in steps]))

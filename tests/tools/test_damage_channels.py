@@ -53,6 +53,7 @@ def test_rows_and_summary(compressed_scene: Path, weights: str) -> None:
         assert r["psnr_sub"] > r["psnr_jpeg"]
         assert all(math.isfinite(r[f"lpips_{k}"]) and r[f"lpips_{k}"] >= 0 for k in dc.IMAGES)
         assert 0.0 <= r["zeroed"] <= 1.0 and r["noise"] > 0 and r["blockiness"] > 0
+        assert math.isfinite(r["contrast"])
     s = dc.summary(rows)
     chroma = statistics.median(r["lpips_chroma"] / r["lpips_jpeg"] for r in rows)
     assert s["share_chroma"] == pytest.approx(chroma)
@@ -96,6 +97,18 @@ def test_main_prints_a_row_and_refuses_a_dataset_without_jpegs(
     compress(synth_scene, clean, "clean", seed=0, jobs=1)
     assert dc.main([str(clean / "manifest.json"), "--weights", weights]) == 1
     assert "no JPEG view with a lossless reference" in capsys.readouterr().err
+
+
+def test_block_contrast_grows_with_the_grid_not_the_texture() -> None:
+    rng = np.random.default_rng(1)
+    texture = rng.uniform(0, 20, (48, 64))
+    assert abs(dc.block_contrast(texture)) < 0.5  # no grid: edge and inside steps alike
+    grid = np.kron(rng.uniform(0, 30, (6, 8)), np.ones((8, 8)))
+    assert dc.block_contrast(texture + grid) > dc.block_contrast(texture)
+    # the same edge excess counts for less on busier texture (masking), more on smooth planes
+    smooth = np.add.outer(np.arange(48.0), np.arange(64.0)) * 0.1
+    assert dc.block_contrast(smooth + grid) > dc.block_contrast(texture + grid)
+    assert dc.block_contrast(np.zeros((16, 16))) == 0.0
 
 
 def test_spearman() -> None:

@@ -25,8 +25,10 @@ rather than in the rounding of the coefficients it keeps (median over views).
 A second table asks which measure read from the file alone tells the views' visible damage apart: the
 Spearman rank correlation, over the views of each manifest and over all of them together, of LPIPS(jpeg)
 with the file's estimated quantisation-noise variance (``jsgs.jpeg.noise.jpeg_noise_variance``, what
-``method_options.base_noise: pixels`` weights by) and with the blockiness of its decoded luma
-(:func:`jsgs.jpeg.noise.blockiness`: steps across the 8×8 block edges against steps inside the blocks).
+``method_options.base_noise: pixels`` weights by), with the blockiness of its decoded luma
+(:func:`jsgs.jpeg.noise.blockiness`: steps across the 8×8 block edges over steps inside the blocks, what
+``method_options.base_block_ref`` weights by) and with its block contrast (:func:`block_contrast`: the
+excess of the edge steps over the inside steps, against the square root of the inside steps).
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ from PIL import Image
 
 from jsgs.images import read_rgb8, read_ycbcr8
 from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb
-from jsgs.jpeg.noise import blockiness, jpeg_noise_variance, plane_dct
+from jsgs.jpeg.noise import block_steps, blockiness, jpeg_noise_variance, plane_dct
 from jsgs.jpeg.rounding import round_half_away
 from jsgs.manifest import load_manifest
 from jsgs.metrics.lpips import lpips
@@ -81,6 +83,14 @@ def zeroed_share(y: np.ndarray, luma_table: np.ndarray) -> float:
     return float(err[q == 0].sum()) / total if total > 0 else 0.0
 
 
+def block_contrast(y: np.ndarray) -> float:
+    """(E − I) / √I of :func:`jsgs.jpeg.noise.block_steps` (8-bit units^½): how far the steps across the
+    8×8 block edges exceed those inside the blocks, against the square root of the inside steps (texture
+    masks a grid, less than in proportion). 0 where no grid shows; NaN-free (I + 1e-6)."""
+    e, i = block_steps(y)
+    return (e - i) / float(np.sqrt(i + 1e-6))
+
+
 def spearman(a: list[float], b: list[float]) -> float:
     """Spearman's rank correlation of two equally long samples (ties broken by order; NaN under 3)."""
     if len(a) < 3:
@@ -111,6 +121,7 @@ def view_rows(manifest: Path, weights: str | None) -> list[dict[str, float]]:
             "zeroed": zeroed_share(r[0].numpy(), v.jpeg.luma_table),
             "noise": jpeg_noise_variance(ycc8, v.jpeg.luma_table, chroma_table, v.jpeg.sampling),
             "blockiness": blockiness(ycc8[..., 0]),
+            "contrast": block_contrast(ycc8[..., 0]),
         }
         with torch.no_grad():
             batch = torch.stack([images[k] for k in IMAGES])
@@ -152,16 +163,18 @@ def main(argv: list[str] | None = None) -> int:
         sh = " / ".join(f"{s[f'share_{k}']:.2f}" for k in ("luma", "chroma", "sub"))
         print(f"| {m.parent.name} | {len(rows)} | {ps} | {lp} | {sh} | {s['zeroed']:.2f} |")
     print()
-    print("| views of | views | median noise variance (8-bit²) | median blockiness | "
-          "rank correlation of LPIPS(jpeg) with noise variance / blockiness |")  # fmt: skip
-    print("|---|---:|---:|---:|---|")
+    print("| views of | views | median noise variance (8-bit²) | median blockiness | median block contrast | "
+          "rank correlation of LPIPS(jpeg) with noise variance / blockiness / block contrast |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---|")
     pooled = [r for rs in every.values() for r in rs]
     groups = list(every.items()) + ([("all", pooled)] if len(every) > 1 else [])
     for name, rows in groups:
         lp = [r["lpips_jpeg"] for r in rows]
         noise, blocks = [r["noise"] for r in rows], [r["blockiness"] for r in rows]
+        contrast = [r["contrast"] for r in rows]
         print(f"| {name} | {len(rows)} | {statistics.median(noise):.1f} | {statistics.median(blocks):.2f} | "
-              f"{spearman(lp, noise):.2f} / {spearman(lp, blocks):.2f} |")
+              f"{statistics.median(contrast):.2f} | {spearman(lp, noise):.2f} / {spearman(lp, blocks):.2f} / "
+              f"{spearman(lp, contrast):.2f} |")
     return 0
 
 
