@@ -177,12 +177,14 @@ def test_cli_table_column(files: tuple[Path, Path]) -> None:
     code, out, _ = run(["--analyze", *map(str, files)])
     assert code == 0
     lines = out.splitlines()
-    assert lines[0].split()[-4:] == ["DOUBLE", "(confidence)", "EST.", "PSNR"]
+    assert lines[0].split()[-5:] == ["DOUBLE", "(confidence)", "EST.", "PSNR", "BLOCKS"]
     single, double = lines[1].split(), lines[2].split()
-    assert single[-4] == "no" and double[-5] == "yes"
-    assert abs(int(double[-4].removeprefix("q")) - 50) <= 3
+    assert single[-5] == "no" and double[-6] == "yes"
+    assert abs(int(double[-5].removeprefix("q")) - 50) <= 3
     # the estimated PSNR: the file saved at 50 then 90 is further from the original than the one saved at 80
-    assert single[-1] == double[-1] == "dB" and 25 < float(double[-2]) < float(single[-2]) < 50
+    assert single[-2] == double[-2] == "dB" and 25 < float(double[-3]) < float(single[-3]) < 50
+    # and its block grid shows more, although its header is the finer one
+    assert 1.0 < float(single[-1]) < float(double[-1])
     assert "double       1 of 2 double-compressed" in out
 
 
