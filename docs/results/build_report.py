@@ -14,6 +14,13 @@ one of its runs reached (:func:`jsgs.bench.budget.common_steps`).
 
     .venv/bin/python docs/results/build_report.py --step auto docs/results/budget/default \
         .res/b100 .res/captures
+
+``--baseline FOLDER`` also copies, from another results folder, the runs that are not JSGS (gsplat, and the
+clean runs of every scene and budget concerned) for the cells the bench folders bring, with their settings:
+a folder of JSGS runs of one recipe then holds its own comparison (what ``blockiness/`` and ``levers/`` hold).
+
+    .venv/bin/python docs/results/build_report.py --step auto --baseline docs/results/budget/default \
+        docs/results/budget/blockiness/b0.5 .res/cb5 .res/lb5
 """
 
 from __future__ import annotations
@@ -31,7 +38,25 @@ def key(r: dict) -> tuple:
     return (r["scene"], r["schedule"], r["method"], str(r["budget"]), str(r["seed"]))
 
 
-def main(target: Path, folders: list[Path], step: int | str | None = None) -> None:
+def run_key(r: dict) -> str:
+    """The run's folder under ``runs/`` (and its key in configs.json)."""
+    return f"{r['scene']}/{r['schedule']}/{r['method']}/mcmc-{r['budget']}/s{r['seed']}"
+
+
+def baseline(folder: Path, cells: set[tuple[str, str, str]]) -> tuple[list[dict], dict]:
+    """``folder``'s rows that are not JSGS for the (scene, schedule, budget) ``cells``, and the clean runs
+    of their scenes and budgets, with those runs' settings from its configs.json."""
+    scenes = {(s, b) for s, _, b in cells}
+    rows = [r for r in read_csv(folder / "results.csv")
+            if r["strategy"] == "mcmc" and r["method"] != "jsgs"
+            and ((r["scene"], r["schedule"], str(r["budget"])) in cells
+                 or (r["schedule"] == "clean" and (r["scene"], str(r["budget"])) in scenes))]  # fmt: skip
+    cfg = folder / "configs.json"
+    known = json.loads(cfg.read_text()) if cfg.is_file() else {}
+    return rows, {k: known[k] for k in {run_key(r) for r in rows} if k in known}
+
+
+def main(target: Path, folders: list[Path], step: int | str | None = None, base: Path | None = None) -> None:
     csv = target / "results.csv"
     rows = read_csv(csv) if csv.is_file() else []
     cfg = target / "configs.json"
@@ -44,6 +69,12 @@ def main(target: Path, folders: list[Path], step: int | str | None = None) -> No
             doc = json.loads(c.read_text())
             run = str(c.parent.relative_to(f / "runs"))
             configs[run] = {k: doc[k] for k in ("settings", "versions", "command")}
+    if base is not None:
+        cells = {(r["scene"], r["schedule"], str(r["budget"])) for r in rows if r["method"] == "jsgs"}
+        extra, extra_cfg = baseline(base, cells)
+        have = {key(r) for r in rows}
+        rows += [r for r in extra if key(r) not in have]
+        configs = {**extra_cfg, **configs}
     rows.sort(key=lambda r: (*key(r), int(r["step"])))
     target.mkdir(parents=True, exist_ok=True)
     write_csv(rows, csv)
@@ -68,10 +99,19 @@ def main(target: Path, folders: list[Path], step: int | str | None = None) -> No
 if __name__ == "__main__":
     args = sys.argv[1:]
     at: int | str | None = None
-    if args[:1] == ["--step"]:
-        if len(args) < 2 or not (args[1].isdigit() or args[1] == "auto"):
-            sys.exit("build_report.py: --step needs a step number or auto")
-        at, args = (args[1] if args[1] == "auto" else int(args[1])), args[2:]
+    base: Path | None = None
+    while args[:1] in (["--step"], ["--baseline"]):
+        if len(args) < 2:
+            sys.exit(f"build_report.py: {args[0]} needs a value")
+        if args[0] == "--step":
+            if not (args[1].isdigit() or args[1] == "auto"):
+                sys.exit("build_report.py: --step needs a step number or auto")
+            at = args[1] if args[1] == "auto" else int(args[1])
+        else:
+            base = Path(args[1])
+            if not (base / "results.csv").is_file():
+                sys.exit(f"build_report.py: --baseline {base}: no results.csv there")
+        args = args[2:]
     if not args:
-        sys.exit("usage: build_report.py [--step N|auto] TARGET_FOLDER [BENCH_FOLDER ...]")
-    main(Path(args[0]), [Path(a) for a in args[1:]], at)
+        sys.exit("usage: build_report.py [--step N|auto] [--baseline FOLDER] TARGET [BENCH_FOLDER ...]")
+    main(Path(args[0]), [Path(a) for a in args[1:]], at, base)
