@@ -1,0 +1,22 @@
+# Kernel-level profile of one window of training steps at camera resolution: gsplat against JSGS (the mcmc
+# preset's recipe) on jpeg_mouse, 1440×1920 camera JPEGs, where whole runs take 1.53× gsplat's time per step
+# and the extra is device work (README, Speed at equal budget). On the CPU first, into the carried folder
+# that holds the capture (`docs/results/real/real.sh` made .gpu3):
+#   .venv/bin/python -c "import json; from jsgs.train.config import PRESETS; \
+#       json.dump(PRESETS['mcmc'], open('.gpu3/mcmc.json', 'w'))"
+# then on a lent 2-GPU machine, carrying .whl and .gpu3:
+#   bash docs/results/budget/speed/profile_camera.sh
+# GPU 0: the window after 1,500 steps; GPU 1: after 4,000 steps (more Gaussians). Each method trains its
+# warm-up twice (once to checkpoint, once unresumed), so the 4,000 window takes about 16,000 steps in all.
+# Tables in $OUT/cam_*.txt, numbers in $OUT/cam_*.json.
+set -u
+P=tools/diagnostics/profile_step.py; M=.gpu3/jpeg_mouse/manifest.json
+O='{"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0,"base_noise_exponent":2.0}'
+bash scripts/gpu_run.sh true
+CUDA_VISIBLE_DEVICES=1 timeout 540 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda \
+    --config .gpu3/mcmc.json --jsgs-options "$O" --warmup 4000 --steps 30 --top 25 \
+    --out $OUT/cam_4000.json > $OUT/cam_4000.txt 2>&1 &
+CUDA_VISIBLE_DEVICES=0 timeout 300 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda \
+    --config .gpu3/mcmc.json --jsgs-options "$O" --warmup 1500 --steps 30 --top 25 --python-top 30 \
+    --out $OUT/cam_1500.json > $OUT/cam_1500.txt 2>&1
+wait
