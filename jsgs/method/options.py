@@ -94,8 +94,8 @@ class JsgsOptions:
     base_block_ref: float = setting(
         0.0,
         "b of base_by_view's second factor (0: off): each JPEG view's weight is also multiplied by "
-        "1 / (1 + (max(B − 1, 0) / b)^k), B the blockiness of its decoded luma (jsgs.jpeg.noise.blockiness: the "
-        "steps across its 8×8 block edges over those inside, about 1 where no grid shows) and k "
+        "1 / (1 + (max(B − 1, 0) / b)^k), B the blockiness of its decoded luma (jsgs.jpeg.noise.blockiness: "
+        "the steps across its 8×8 block edges over those inside, about 1 where no grid shows) and k "
         "base_noise_exponent. B ranks the views' visible damage across scenes, where σ² ranks it within one: "
         "views whose squared error is small but whose block grid shows lose ℓ_ph too.",
         ge=0.0,
