@@ -231,19 +231,24 @@ def view_tables(
                 first = torch.as_tensor(eff).to(device, torch.float32).reshape(2, 8, 8)
         q = (first.cpu().numpy() if first is not None else header.numpy()).astype(np.float64)
         checked.append((v, header, first, q))
-    # manifest --analyze's estimate (made with the effective tables) where recorded, else from the file
-    todo = [(v, q) for v, _, _, q in checked if noise == "pixels" and v.jpeg.noise_variance is None]
-    estimates = _noise_estimates(todo)
-    # manifest --analyze's blockiness where recorded, else measured from the file
-    grid = _blockiness([v for v, _, _, _ in checked if v.jpeg.blockiness is None]) if blocks else {}
+    # manifest --analyze's records (its estimate made with the effective tables) where present, else read from
+    # the file: each file decoded once for whatever it lacks
+    todo = []
+    for v, _, _, q in checked:
+        want_noise = noise == "pixels" and v.jpeg.noise_variance is None
+        want_block = blocks and v.jpeg.blockiness is None
+        if want_noise or want_block:
+            todo.append((v, q if want_noise else None, want_block))
+    measured = _from_files(todo)
     out: dict[int, ViewJpeg] = {}
     for v, header, first, q in checked:
         j = v.jpeg
+        sigma2_read, b_read = measured.get(v.index, (None, None))
         if noise == "pixels":
-            sigma2 = j.noise_variance if j.noise_variance is not None else estimates[v.index]
+            sigma2 = j.noise_variance if j.noise_variance is not None else sigma2_read
         else:
             sigma2 = quantization_noise_variance(q[0], q[1])
-        b = (j.blockiness if j.blockiness is not None else grid[v.index]) if blocks else 1.0
+        b = (j.blockiness if j.blockiness is not None else b_read) if blocks else 1.0
         tab = header.to(device, torch.float32).reshape(2, 8, 8)
         out[v.index] = ViewJpeg(tab, j.sampling, sigma2, b, first)
     return out
@@ -253,47 +258,37 @@ def view_tables(
 ANNOUNCE_ESTIMATES = 16
 
 
-def _noise_estimates(todo: list[tuple[View, np.ndarray]]) -> dict[int, float]:
-    """view index -> σ² estimated from the decoded file (:func:`jsgs.jpeg.noise.jpeg_noise_variance`) with
-    the tables ``q`` ``(2, 8, 8)`` that JO uses, for each ``(view, q)``; several files at once (numpy
-    releases the GIL in the block DCT), one stderr line first when there are many. JsgsError naming the view
-    whose file cannot be read."""
-    from jsgs.images import read_ycbcr8
-    from jsgs.jpeg.noise import jpeg_noise_variance
-
-    if len(todo) > ANNOUNCE_ESTIMATES:
-        print(f"estimating the quantisation noise of {len(todo)} JPEG views from their files "
-              "(method_options.base_noise pixels) ...", file=sys.stderr, flush=True)  # fmt: skip
-
-    def one(item: tuple[View, np.ndarray]) -> float:
-        v, q = item
-        assert v.jpeg is not None
-        return jpeg_noise_variance(read_ycbcr8(v.image, f"view {v.name!r}"), q[0], q[1], v.jpeg.sampling)
-
-    return dict(zip((v.index for v, _ in todo), _per_file(one, todo), strict=True))
-
-
-def _blockiness(views: list[View]) -> dict[int, float]:
-    """view index -> the blockiness of its decoded luma (:func:`jsgs.jpeg.noise.blockiness`), several files
-    at once. JsgsError naming the view whose file cannot be read."""
-    from jsgs.images import read_ycbcr8
-    from jsgs.jpeg.noise import blockiness
-
-    def one(v: View) -> float:
-        return blockiness(read_ycbcr8(v.image, f"view {v.name!r}")[..., 0])
-
-    return dict(zip((v.index for v in views), _per_file(one, views), strict=True))
-
-
-def _per_file(fn: Callable[[Any], float], items: list[Any]) -> list[float]:
-    """``[fn(item) for item in items]`` on up to 8 threads (decoding and numpy release the GIL)."""
+def _from_files(
+    todo: list[tuple[View, np.ndarray | None, bool]],
+) -> dict[int, tuple[float | None, float | None]]:
+    """view index -> (σ², B) read from its decoded file, for each ``(view, q, block)``: σ² estimated
+    (:func:`jsgs.jpeg.noise.jpeg_noise_variance`) with the tables ``q`` ``(2, 8, 8)`` that JO uses, None
+    where ``q`` is None; B the blockiness of its luma (:func:`jsgs.jpeg.noise.blockiness`) where ``block``,
+    else None. Each file is decoded once; several files at once (decoding and numpy's block DCT release the
+    GIL), one stderr line first when many noise estimates are due. JsgsError naming the view whose file
+    cannot be read."""
     from concurrent.futures import ThreadPoolExecutor
     from os import cpu_count
 
-    if not items:
-        return []
-    with ThreadPoolExecutor(max(1, min(8, cpu_count() or 1, len(items)))) as pool:
-        return list(pool.map(fn, items))
+    from jsgs.images import read_ycbcr8
+    from jsgs.jpeg.noise import blockiness, jpeg_noise_variance
+
+    estimates = sum(q is not None for _, q, _ in todo)
+    if estimates > ANNOUNCE_ESTIMATES:
+        print(f"estimating the quantisation noise of {estimates} JPEG views from their files "
+              "(method_options.base_noise pixels) ...", file=sys.stderr, flush=True)  # fmt: skip
+
+    def one(item: tuple[View, np.ndarray | None, bool]) -> tuple[float | None, float | None]:
+        v, q, block = item
+        assert v.jpeg is not None
+        ycc = read_ycbcr8(v.image, f"view {v.name!r}")
+        sigma2 = None if q is None else jpeg_noise_variance(ycc, q[0], q[1], v.jpeg.sampling)
+        return sigma2, (blockiness(ycc[..., 0]) if block else None)
+
+    if not todo:
+        return {}
+    with ThreadPoolExecutor(max(1, min(8, cpu_count() or 1, len(todo)))) as pool:
+        return dict(zip((v.index for v, _, _ in todo), pool.map(one, todo), strict=True))
 
 
 class CompiledOrEager:
