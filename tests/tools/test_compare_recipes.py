@@ -55,3 +55,26 @@ def test_compares_only_the_cells_and_seeds_both_recipes_hold(tmp_path: Path, cap
     # its ΔPSNR -0.5 dB on both
     assert "VARIANT − BASE, seed by seed: ΔLPIPS +0.0 ± 317.6 points, ΔPSNR -0.50 ± 0.00 dB" in out
     assert "VARIANT's ΔLPIPS lower on 1 of 2" in out
+
+
+def test_the_shift_per_scene(tmp_path: Path, capsys: Any) -> None:
+    base, var = tmp_path / "base", tmp_path / "var"
+    base.mkdir(), var.mkdir()
+    # scene a: the variant 10 points lower on both seeds, PSNR level; scene b: 20 points higher on its one
+    # seed, 1 dB lower
+    write_csv(
+        [
+            *(_row(sc, "gsplat", s, 0.2, 25.0) for sc in "ab" for s in range(2)),
+            *(_row("a", "jsgs", s, 0.1, 26.0) for s in range(2)), _row("b", "jsgs", 0, 0.1, 26.0),
+        ],
+        base / "results.csv",
+    )  # fmt: skip
+    write_csv([*(_row("a", "jsgs", s, 0.08, 26.0) for s in range(2)), _row("b", "jsgs", 0, 0.14, 25.0)],
+              var / "results.csv")  # fmt: skip
+    cmp.main(base, [var])
+    out = capsys.readouterr().out
+    assert "| a | 2 | -10.0 ± 0.0 | +0.00 ± 0.00 | 2 of 2 |" in out
+    assert "| b | 1 | +20.0 | -1.00 | 0 of 1 |" in out
+    # over the three seeds: (-10 - 10 + 20) / 3 = 0
+    assert "VARIANT − BASE, seed by seed: ΔLPIPS +0.0 ± " in out
+    assert "VARIANT's ΔLPIPS lower on 2 of 3" in out

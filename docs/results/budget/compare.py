@@ -13,7 +13,8 @@ budget, at the last evaluation every run in the comparison reached (:func:`jsgs.
 Prints a markdown table: per cell, the seed means of gsplat, BASE and VARIANT, ΔLPIPS % and ΔPSNR dB of each
 recipe against gsplat (paired by seed, then averaged), and on how many seeds VARIANT's LPIPS is below BASE's;
 then the means over all pairs, and VARIANT's shift from BASE seed by seed (its ΔLPIPS points and ΔPSNR dB
-minus BASE's) with a 95 % t-interval. Only the cells and seeds both recipes (and gsplat) hold are compared.
+minus BASE's) with a 95 % t-interval, per scene (with more than one) and over all pairs. Only the cells
+and seeds both recipes (and gsplat) hold are compared.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ def main(base: Path, variants: list[Path]) -> None:
           "| PSNR gsplat / BASE / VARIANT | ΔPSNR dB BASE / VARIANT | VARIANT lower than BASE |")
     print("|---|---|---:|---:|---|---|---|---|---:|")
     pairs: dict[str, list[tuple[float, float]]] = {"jsgs": [], "variant": []}
+    by_scene: dict[str, list[tuple[float, float]]] = {}  # scene -> VARIANT − BASE per seed (LPIPS, PSNR)
     for key in sorted(cells):
         scene, schedule, budget = key
         step = rep.step_at(scene, budget)
@@ -64,6 +66,7 @@ def main(base: Path, variants: list[Path]) -> None:
              for m in pairs}  # fmt: skip
         for m in pairs:
             pairs[m] += d[m]
+        by_scene.setdefault(scene, []).extend(shifts(d["jsgs"], d["variant"]))
         cols = {
             metric: " / ".join(avg([vals[m, metric][s] for s in seeds], digits)
                                for m in ("gsplat", "jsgs", "variant"))
@@ -76,11 +79,23 @@ def main(base: Path, variants: list[Path]) -> None:
     a, b = pairs["jsgs"], pairs["variant"]
     print(f"\nover the {len(a)} seeds with gsplat and both recipes: BASE ΔLPIPS {mean(a, 0, 1)} %, "
           f"ΔPSNR {mean(a, 1, 2)} dB; VARIANT ΔLPIPS {mean(b, 0, 1)} %, ΔPSNR {mean(b, 1, 2)} dB")
+    if len(by_scene) > 1:
+        print("\n| scene | pairs | VARIANT − BASE: ΔLPIPS points | ΔPSNR dB | VARIANT's ΔLPIPS lower |")
+        print("|---|---:|---|---|---:|")
+        for scene, sh in sorted(by_scene.items()):
+            print(f"| {scene} | {len(sh)} | {ci([x[0] for x in sh], 1)} | {ci([x[1] for x in sh], 2)} | "
+                  f"{sum(x[0] < 0 for x in sh)} of {len(sh)} |")
+        print()
     if a:
-        shift = [(q[0] - p[0], q[1] - p[1]) for p, q in zip(a, b, strict=True)]
+        shift = shifts(a, b)
         print(f"VARIANT − BASE, seed by seed: ΔLPIPS {ci([s[0] for s in shift], 1)} points, "
               f"ΔPSNR {ci([s[1] for s in shift], 2)} dB (mean ± 95 % t-interval); VARIANT's ΔLPIPS lower "
               f"on {sum(s[0] < 0 for s in shift)} of {len(shift)}")
+
+
+def shifts(base: list[tuple[float, float]], variant: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """VARIANT's paired (ΔLPIPS %, ΔPSNR dB) minus BASE's, seed by seed."""
+    return [(q[0] - p[0], q[1] - p[1]) for p, q in zip(base, variant, strict=True)]
 
 
 def mean(v: list[tuple[float, float]], i: int, d: int) -> str:
