@@ -249,11 +249,29 @@ def _camera(d: dict[str, Any]) -> ManifestCamera:
     )
 
 
-def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
-    """Read, validate and type ``path``. Image and reference paths are resolved against the manifest's folder
-    (absolute paths are taken as they are); with ``check_files`` each must exist. Any defect raises one
-    JsgsError naming the file."""
+MANIFEST_NAME = "manifest.json"
+
+
+def manifest_file(path: str | Path) -> Path:
+    """``path`` itself, or for a folder the ``manifest.json`` in it (what ``jsgstools compress`` and
+    ``manifest --out FOLDER/manifest.json`` write); a folder without one is a JsgsError saying how to make
+    it."""
     path = Path(path)
+    if not path.is_dir():
+        return path
+    if (path / MANIFEST_NAME).is_file():
+        return path / MANIFEST_NAME
+    raise JsgsError(
+        f"{path}: a folder without {MANIFEST_NAME}; write one with "
+        f"`jsgstools manifest {path} --out {path / MANIFEST_NAME}`"
+    )
+
+
+def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
+    """Read, validate and type ``path`` (a manifest, or a folder holding ``manifest.json``). Image and
+    reference paths are resolved against the manifest's folder (absolute paths are taken as they are); with
+    ``check_files`` each must exist. Any defect raises one JsgsError naming the file."""
+    path = manifest_file(path)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

@@ -28,7 +28,7 @@ def _parse_steps(text: str) -> list[int]:
     context_settings=CONTEXT,
     epilog=EXAMPLE.format("jsgs train flower_gaussian/manifest.json --out runs/jsgs --method jsgs"),
 )
-@click.argument("manifest", type=click.Path(path_type=Path, dir_okay=False))
+@click.argument("manifest", type=click.Path(path_type=Path))
 @click.option(
     "--out",
     "out",
@@ -156,7 +156,8 @@ def train_command(
     viewer_port: int | None,
     stop_at: int | None,
 ) -> None:
-    """Train Gaussians on the views of MANIFEST (a jsgs manifest; see `jsgstools manifest`)."""
+    """Train Gaussians on the views of MANIFEST (a jsgs manifest, or the folder holding its manifest.json;
+    see `jsgstools manifest`)."""
     from jsgs.train.config import command_settings
     from jsgs.train.trainer import load_run_settings, train
 

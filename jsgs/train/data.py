@@ -130,9 +130,9 @@ def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
     trainer additionally refuses: distorted cameras, no training views, evaluation steps with no test
     views, test views without a lossless image (when ``scene.require_lossless_reference``), too few points
     for SfM initialisation."""
-    from jsgs.manifest import load_manifest
+    from jsgs.manifest import load_manifest, manifest_file
 
-    manifest_path = Path(manifest_path)
+    manifest_path = manifest_file(manifest_path)
     where = str(manifest_path)
     manifest = load_manifest(manifest_path)
     try:

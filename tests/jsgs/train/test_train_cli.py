@@ -53,9 +53,12 @@ def test_cli_trains_and_resumes(scene: Path, tmp_path: Path, fast_config: Path) 
     conf = json.loads((out / "config.json").read_text())
     assert conf["settings"]["seed"] == 3 and conf["settings"]["eval_at"] == [2, 4]
     assert conf["command"].startswith("jsgs train ") and "--stop-at 2" in conf["command"]
-    # resuming with the run's own settings (flags repeated identically are accepted)
-    r = run(str(scene), "--out", str(out), "--resume", "--quiet", "--iterations", "4")
+    # resuming with the run's own settings (flags repeated identically are accepted); the manifest named by
+    # the folder that holds it
+    assert scene.name == "manifest.json"
+    r = run(str(scene.parent), "--out", str(out), "--resume", "--quiet", "--iterations", "4")
     assert r.exit_code == 0, r.output + r.stderr
+    assert json.loads((out / "config.json").read_text())["manifest"]["path"] == str(scene.resolve())
     assert "complete: 4/4 steps" in r.output and "PSNR" in r.output
     m = json.loads((out / "metrics.json").read_text())
     assert m["status"] == "complete" and [e["step"] for e in m["evals"]] == [2, 4]
@@ -194,6 +197,9 @@ def test_cli_bad_manifests_fail_in_one_line(
 def test_cli_other_one_line_errors(scene: Path, tmp_path: Path) -> None:
     out = str(tmp_path / "run")
     one_line_error(run(str(tmp_path / "none.json"), "--out", out), "manifest not found")
+    (tmp_path / "empty").mkdir()
+    one_line_error(run(str(tmp_path / "empty"), "--out", out),
+                   r"empty: a folder without manifest.json; write one with `jsgstools manifest ")  # fmt: skip
     notjson = tmp_path / "m.json"
     notjson.write_text("{")
     one_line_error(run(str(notjson), "--out", out), "not JSON")
