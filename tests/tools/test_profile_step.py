@@ -169,3 +169,42 @@ def test_bench_graph_host_refuses_without_cuda(capsys: Any) -> None:
     assert capsys.readouterr().err.strip() == (
         "error: bench_graph_host needs CUDA (it times host launches of GPU work)"
     )
+
+
+def test_pairs_interleave_and_report_medians(tmp_path: Path, capsys: Any) -> None:
+    from jsgs.schemas import validate
+
+    abba = [["gsplat", "jsgs"], ["jsgs", "gsplat"], ["gsplat", "jsgs"]]
+    assert ps.pair_order(["gsplat", "jsgs"], 3) == abba
+    cfg = tmp_path / "tiny.json"
+    cfg.write_text(json.dumps(TINY))
+    out = tmp_path / "profile.json"
+    work = tmp_path / "work"
+    argv = [
+        "--size", "48x32", "--views", "6", "--warmup", "3", "--settle", "1", "--steps", "2",
+        "--device", "cpu", "--config", str(cfg), "--top", "3", "--workdir", str(work), "--out", str(out),
+        "--pairs", "3",
+    ]  # fmt: skip
+    assert ps.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "3 interleaved windows per method, resumed from the same checkpoint (order: gsplat, jsgs; jsgs, " \
+           "gsplat; gsplat, jsgs)" in printed  # fmt: skip
+    doc = json.loads(out.read_text())
+    validate(doc, "profile_step", str(out))
+    walls = {m: r["paired_wall_ms_per_step"] for m, r in doc["results"].items()}
+    assert all(len(v) == 3 and min(v) > 0 for v in walls.values())
+    pairs = doc["pairs"]
+    assert pairs["count"] == 3 and list(pairs["ratio"]) == ["jsgs"]
+    # the numbers are the medians and ratios of the windows themselves
+    per_pair = [j / g for j, g in zip(walls["jsgs"], walls["gsplat"], strict=True)]
+    assert pairs["ratio"]["jsgs"]["per_pair"] == pytest.approx(per_pair)
+    assert pairs["ratio"]["jsgs"]["median"] == pytest.approx(sorted(per_pair)[1])
+    assert pairs["median_ms_per_step"]["gsplat"] == pytest.approx(sorted(walls["gsplat"])[1])
+    assert f"| jsgs | {', '.join(f'{v:.2f}' for v in walls['jsgs'])} |" in printed
+    assert list(work.iterdir()) == []
+
+
+def test_pairs_must_not_be_negative(capsys: Any) -> None:
+    with pytest.raises(SystemExit):
+        ps.parse_args(["--pairs", "-1"])
+    assert "--pairs must be >= 0, got -1" in capsys.readouterr().err

@@ -51,6 +51,11 @@ Columns (per training step, averaged over the window):
 - syncs/step: host-device synchronisations (``cudaStreamSynchronize``, ``cudaDeviceSynchronize``,
   ``cudaEventSynchronize``, blocking ``cudaMemcpy``; not the one that closes the window); CUDA only.
 
+With ``--pairs K``, after every method is profiled, each method's checkpoint is resumed K more times, plain,
+interleaved in alternating order (baseline first, then last, ...: gsplat, jsgs, jsgs, gsplat, gsplat, jsgs
+for K = 3), so that drift of the machine falls on both: the K wall times per method, their median, and the
+median over the K pairs of each method's time over the baseline's in the same pair (the ratio to quote).
+
 Then, for every method against the first (normally jsgs − gsplat), the ``--top`` kernels by extra device
 time per step and by extra host launches per step. Kernels replayed from a CUDA graph count as runs, not as
 host launches. On the CPU the "kernels" are the counted aten ops and their time is the op's own host time.
@@ -64,6 +69,7 @@ import json
 import math
 import pstats
 import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -496,6 +502,39 @@ def profile_method(
     return result, stats
 
 
+def pair_order(methods: Sequence[str], pairs: int) -> list[list[str]]:
+    """The methods' order in each of ``pairs`` rounds: as given, then reversed, alternately (ABBA...)."""
+    return [list(methods) if i % 2 == 0 else list(reversed(methods)) for i in range(pairs)]
+
+
+def interleaved_windows(
+    manifest: Path, work: Path, methods: Sequence[str], device: torch.device, settle: int, steps: int,
+    pairs: int,
+) -> tuple[dict[str, list[float]], dict[str, Any]]:  # fmt: skip
+    """``pairs`` more plain windows per method, each resumed from ``work/METHOD/warm`` (left by
+    :func:`profile_method`), in :func:`pair_order`: ``({method: [ms/step per round]}, the document's
+    ``pairs`` object)``. The ratios are each method's ms/step over the first method's in the same round."""
+    order = pair_order(methods, pairs)
+    walls: dict[str, list[float]] = {m: [] for m in methods}
+    for i, round_ in enumerate(order):
+        for m in round_:
+            copy = work / m / f"pair{i}"
+            shutil.copytree(work / m / "warm", copy)
+            clock = StepWindow(device, settle, steps)
+            train(manifest, copy, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(clock)])
+            walls[m].append(clock.ms_per_step())
+            shutil.rmtree(copy)
+    base = methods[0]
+    ratios = {m: [a / b for a, b in zip(walls[m], walls[base], strict=True)] for m in methods[1:]}
+    doc = {
+        "count": pairs,
+        "order": order,
+        "median_ms_per_step": {m: statistics.median(v) for m, v in walls.items()},
+        "ratio": {m: {"per_pair": r, "median": statistics.median(r)} for m, r in ratios.items()},
+    }
+    return walls, doc
+
+
 # ------------------------------------------------------------------------------------------------------------
 # Output
 
@@ -569,6 +608,25 @@ def print_report(doc: dict[str, Any]) -> None:
             )
 
 
+def print_pairs(doc: dict[str, Any]) -> None:
+    """The ``--pairs`` table: each method's interleaved windows, their median, the median ratio."""
+    pairs = doc.get("pairs")
+    if not pairs:
+        return
+    base = next(iter(doc["results"]))
+    order = "; ".join(", ".join(r) for r in pairs["order"])
+    print()
+    n = pairs["count"]
+    print(f"{n} interleaved windows per method, resumed from the same checkpoint (order: {order})")
+    print()
+    print(f"| method | wall ms/step, each window | median | median over the pairs of ms/step ÷ {base}'s |")
+    print("|---|---|---:|---:|")
+    for m, r in doc["results"].items():
+        each = ", ".join(f"{v:.2f}" for v in r["paired_wall_ms_per_step"])
+        ratio = "1" if m == base else f"{pairs['ratio'][m]['median']:.3f}"
+        print(f"| {m} | {each} | {pairs['median_ms_per_step'][m]:.2f} | {ratio} |")
+
+
 def print_python(doc: dict[str, Any]) -> None:
     for m, r in doc["results"].items():
         if "python_top" not in r:
@@ -620,12 +678,18 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--trace", type=Path,
         help="write each method's Chrome trace of the profiled window (with Python stacks) into this folder",
     )  # fmt: skip
+    ap.add_argument(
+        "--pairs", type=int, default=0,
+        help="then resume each method's checkpoint this many more times, interleaved, and report medians [0]",
+    )  # fmt: skip
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     ap.add_argument("--workdir", type=Path, help="the runs' temporary folder goes here [system's]")
     ap.add_argument("--out", type=Path, help="write the results as JSON here")
     args = ap.parse_args(argv)
     if args.warmup < 1 or args.settle < 1 or args.steps < 1 or args.top < 1:
         ap.error("--warmup, --settle, --steps and --top must be >= 1")
+    if args.pairs < 0:
+        ap.error(f"--pairs must be >= 0, got {args.pairs}")
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if not methods or len(set(methods)) != len(methods):
         ap.error(f"--methods {args.methods!r}: give distinct method names")
@@ -670,6 +734,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 None if args.trace is None else args.trace / f"{m}.trace.json",
             )
             results[m]["kernels"] = kernel_rows(stats[m].kernels, args.steps, args.top)
+        pairs = None
+        if args.pairs > 0:
+            walls, pairs = interleaved_windows(
+                manifest, work, methods, device, args.settle, args.steps, args.pairs
+            )
+            for m in methods:
+                results[m]["paired_wall_ms_per_step"] = walls[m]
     baseline = methods[0]
     differences = {}
     for m in methods[1:]:
@@ -689,7 +760,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "steps": args.steps,
         "results": results,
         "differences": differences,
-    }
+    } | ({"pairs": pairs} if pairs is not None else {})
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -697,6 +768,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         doc = run(args)
         print_report(doc)
+        print_pairs(doc)
         print_python(doc)
         if args.out:
             from jsgs.schemas import validate
