@@ -306,6 +306,15 @@ class BudgetReport:
         return md
 
 
+def count_label(v: float) -> str:
+    """A Gaussian count for an axis, to three significant digits: 0, 950, 100k, 101k (100,682), 1.5M."""
+    if abs(v) >= 1e6:
+        return f"{v / 1e6:.3g}M"
+    if abs(v) >= 1e3:
+        return f"{v / 1e3:.3g}k"
+    return f"{v:.3g}"
+
+
 def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
     """Per scene: LPIPS and PSNR at the final step against #Gaussians and against training time, one line per
     method and schedule through its budgets (means over seeds); returns the files written."""
@@ -315,6 +324,7 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter, MaxNLocator
 
     outdir.mkdir(parents=True, exist_ok=True)
     colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
@@ -323,6 +333,7 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
     for sc in sorted({k[0] for k in rep.final}):
         fig, axes = plt.subplots(2, 2, figsize=(11, 8))
         series = sorted({(sch, m) for (s, sch, m, _) in rep.final if s == sc})
+        sizes: set[float] = set()  # the mean #Gaussians of every point drawn
         for sch, m in series:
             pts = []
             for b in sorted({k[3] for k in rep.final if k[:3] == (sc, sch, m)}):
@@ -330,6 +341,7 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
                 pts.append(tuple(agg([r.get(k) for r in rs]).mean
                                  for k in ("num_gaussians", "train_seconds", "lpips", "psnr")))  # fmt: skip
             color = "gray" if sch == "clean" else colors.get(m, "black")
+            sizes.update(p[0] for p in pts if p[0] is not None)
             for ax, (xi, yi) in zip(axes.flat, [(0, 2), (0, 3), (1, 2), (1, 3)], strict=True):
                 xy = [(p[xi], p[yi]) for p in pts if p[xi] is not None and p[yi] is not None]
                 if xy:
@@ -341,6 +353,13 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
             ax.set_xlabel(xl)
             ax.set_ylabel(yl)
             ax.grid(alpha=0.3)
+        for ax in axes[0]:  # counts as 100k, 1.5M (six-digit tick labels run into each other), ticked at the
+            # budgets' sizes where there are few
+            if len(sizes) <= 6:
+                ax.set_xticks(sorted(sizes))
+            else:
+                ax.xaxis.set_major_locator(MaxNLocator(nbins=6))
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: count_label(v)))
         axes[0, 0].legend(fontsize=7)
         fig.suptitle(f"{sc}: step {rep.scene_step_label(sc)} at each Gaussian budget (means over seeds)")
         fig.tight_layout()

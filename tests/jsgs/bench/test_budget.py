@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from jsgs.bench import plan as plan_mod
-from jsgs.bench.budget import BudgetReport, mean_ci, t975
+from jsgs.bench.budget import BudgetReport, count_label, mean_ci, t975
 from jsgs.errors import JsgsError
 
 
@@ -293,3 +293,8 @@ def test_budget_report_at_a_step_per_scene_and_budget(tmp_path: Path) -> None:
     assert rep.step_label() == "steps: a 1000 (100), 700 (300)"
     report = write_report(rows, tmp_path, [], [], budget_step=steps).read_text()
     assert "steps: a 1000 (100), 700 (300)" in report and "stopped before" not in report
+
+
+def test_count_label_keeps_counts_short() -> None:
+    assert [count_label(v) for v in (0, 950, 100_000, 100_682, 125_000, 300_000, 1_500_000)] == [
+        "0", "950", "100k", "101k", "125k", "300k", "1.5M"]  # fmt: skip
