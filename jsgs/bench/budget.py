@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from jsgs.bench.stats import HIGHER_BETTER, agg, damage_recovered, mean_of, worse_beyond_spread
-from jsgs.bench.tables import md_table, number
+from jsgs.bench.tables import count_label, md_table, number
 
 #: two-sided 95 % quantiles of Student's t with 1..30 degrees of freedom (beyond: the normal's 1.960)
 T975 = (
@@ -304,15 +304,6 @@ class BudgetReport:
         if plots:
             md += [f"![{p.stem}](plots/{p.name})" for p in plots] + [""]
         return md
-
-
-def count_label(v: float) -> str:
-    """A Gaussian count for an axis, to three significant digits: 0, 950, 100k, 101k (100,682), 1.5M."""
-    if abs(v) >= 1e6:
-        return f"{v / 1e6:.3g}M"
-    if abs(v) >= 1e3:
-        return f"{v / 1e3:.3g}k"
-    return f"{v:.3g}"
 
 
 def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:

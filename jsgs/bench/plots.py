@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from jsgs.bench.stats import agg
+from jsgs.bench.tables import count_label
 
 if TYPE_CHECKING:
     from jsgs.bench.markdown import Report
@@ -19,6 +20,7 @@ def write_plots(rep: Report, outdir: Path) -> list[Path]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
 
     outdir.mkdir(parents=True, exist_ok=True)
     written = []
@@ -65,6 +67,8 @@ def write_plots(rep: Report, outdir: Path) -> list[Path]:
             ax.set_xlabel(xl)
             ax.set_ylabel(yl)
             ax.grid(alpha=0.3)
+        for ax in axes[1]:  # 300k, 1.1M rather than matplotlib's 0.3 … 1.1 with "1e6" in the corner
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: count_label(v)))
         axes[0, 0].legend(fontsize=7)
         fig.suptitle(f"{sc}: test metrics at each evaluation step (means over seeds)")
         fig.tight_layout()

@@ -13,7 +13,8 @@ import pytest
 from click.testing import CliRunner
 
 from jsgs.bench import plan as plan_mod
-from jsgs.bench.budget import BudgetReport, count_label, mean_ci, t975
+from jsgs.bench.budget import BudgetReport, mean_ci, t975
+from jsgs.bench.tables import count_label
 from jsgs.errors import JsgsError
 
 
