@@ -47,7 +47,7 @@ def baseline(folder: Path, cells: set[tuple[str, str, str]]) -> tuple[list[dict]
     """``folder``'s rows that are not JSGS for the (scene, schedule, budget) ``cells``, and the clean runs
     of their scenes and budgets, with those runs' settings from its configs.json."""
     scenes = {(s, b) for s, _, b in cells}
-    rows = [r for r in read_csv(folder / "results.csv")
+    rows = [r for r in budget_csv(folder / "results.csv")
             if r["strategy"] == "mcmc" and r["method"] != "jsgs"
             and ((r["scene"], r["schedule"], str(r["budget"])) in cells
                  or (r["schedule"] == "clean" and (r["scene"], str(r["budget"])) in scenes))]  # fmt: skip
@@ -56,13 +56,23 @@ def baseline(folder: Path, cells: set[tuple[str, str, str]]) -> tuple[list[dict]
     return rows, {k: known[k] for k in {run_key(r) for r in rows} if k in known}
 
 
+def budget_csv(path: Path) -> list[dict]:
+    """``path``'s rows; SystemExit (one line) where it is not an equal-budget bench's results.csv (one made
+    before the ``strategy`` and ``budget`` columns, e.g. ``paper_protocol/``'s DefaultStrategy runs)."""
+    rows = read_csv(path)
+    if rows and not {"strategy", "budget"} <= rows[0].keys():
+        sys.exit(f"build_report.py: {path}: no strategy and budget columns; it rebuilds the results of "
+                 "`jsgs bench --strategy mcmc` only")  # fmt: skip
+    return rows
+
+
 def main(target: Path, folders: list[Path], step: int | str | None = None, base: Path | None = None) -> None:
     csv = target / "results.csv"
-    rows = read_csv(csv) if csv.is_file() else []
+    rows = budget_csv(csv) if csv.is_file() else []
     cfg = target / "configs.json"
     configs = json.loads(cfg.read_text()) if cfg.is_file() else {}
     for f in folders:
-        new = [r for r in read_csv(f / "results.csv") if r["strategy"] == "mcmc"]
+        new = [r for r in budget_csv(f / "results.csv") if r["strategy"] == "mcmc"]
         done = {key(r) for r in new}
         rows = [r for r in rows if key(r) not in done] + new
         for c in sorted(f.glob("runs/*/*/*/mcmc-*/s*/config.json")):

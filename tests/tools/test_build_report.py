@@ -4,9 +4,11 @@ nothing else."""
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
+import pytest
 from conftest import load_benchmark
 
 from jsgs.bench.results import read_csv, write_csv
@@ -45,3 +47,19 @@ def test_baseline_brings_the_cells_gsplat_and_clean_runs(tmp_path: Path) -> None
     want = {f"a/{sch}/gsplat/mcmc-100000/s{s}" for sch in ("uniform", "clean") for s in (0, 1)}
     assert set(configs) == want
     assert (target / "report.md").is_file()
+
+
+def test_refuses_results_without_budget_columns(tmp_path: Path) -> None:
+    old = tmp_path / "old"
+    old.mkdir()
+    # a results.csv from before the strategy and budget columns (write_csv would add them, empty)
+    row = _row("a", "gaussian", "gsplat", 0, 0.2)
+    row = {k: v for k, v in row.items() if k not in ("strategy", "budget")}
+    with (old / "results.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(row))
+        w.writeheader()
+        w.writerow(row)
+    with pytest.raises(SystemExit, match=r"old/results.csv: no strategy and budget columns; it rebuilds"):
+        br.main(old, [])
+    # nothing written into the folder it refused
+    assert sorted(p.name for p in old.iterdir()) == ["results.csv"]
