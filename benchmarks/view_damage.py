@@ -37,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jsgs.errors import JsgsError  # noqa: E402
+from jsgs.errors import JsgsError, reports_user_errors  # noqa: E402
 
 MIXED = ("uniform", "gaussian", "descending")
 LOW_QUALITY = 30
@@ -260,6 +260,7 @@ def _ints(text: str, what: str) -> list[int]:
         raise JsgsError(f"{what} {text!r}: expected comma-separated integers") from None
 
 
+@reports_user_errors
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", nargs="+", type=Path, help="clean COLMAP scenes (lossless images)")
@@ -294,9 +295,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.out:
             validate(doc, "view_damage", str(args.out))
             write_json_atomic(args.out, doc)
-    except JsgsError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
     except OSError as e:
         print(f"error: {e.filename or ''}: {e.strerror or e}", file=sys.stderr)
         return 1

@@ -25,7 +25,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jsgs.errors import JsgsError  # noqa: E402
+from jsgs.errors import JsgsError, reports_user_errors  # noqa: E402
 
 TERMS = ("photometric", "obs", "low", "mid", "fro")
 
@@ -87,42 +87,39 @@ def _num(x: float | None) -> str:
     return "–" if x is None else f"{x:.4f}"
 
 
+@reports_user_errors
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", type=Path, help="run folders (metrics.json)")
     ap.add_argument("--manifest", type=Path, required=True, help="the manifest the runs trained on")
     ap.add_argument("--low-quality", type=int, default=30, help="views of quality <= this are 'low' [30]")
     a = ap.parse_args(argv)
-    try:
-        quality = view_qualities(a.manifest)
-        print(
-            f"| run | interval | low views | low steps | total loss | ℓ_ph | L_obs | L_low | L_mid | L_fro | "
-            f"ℓ_ph / step, q ≤ {a.low_quality} | ℓ_ph / step, q > {a.low_quality} |"
-        )
-        print("|---|---|" + "---:|" * 10)
-        for run in a.runs:
-            path = run / "metrics.json"
+    quality = view_qualities(a.manifest)
+    print(
+        f"| run | interval | low views | low steps | total loss | ℓ_ph | L_obs | L_low | L_mid | L_fro | "
+        f"ℓ_ph / step, q ≤ {a.low_quality} | ℓ_ph / step, q > {a.low_quality} |"
+    )
+    print("|---|---|" + "---:|" * 10)
+    for run in a.runs:
+        path = run / "metrics.json"
+        try:
+            doc = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise JsgsError(f"{path}: cannot read the run's metrics ({e})") from None
+        prev = 0
+        for e in doc.get("evals", []):
+            interval = f"{prev}–{e['step']}"
+            prev = e["step"]
             try:
-                doc = json.loads(path.read_text())
-            except (OSError, ValueError) as e:
-                raise JsgsError(f"{path}: cannot read the run's metrics ({e})") from None
-            prev = 0
-            for e in doc.get("evals", []):
-                interval = f"{prev}–{e['step']}"
-                prev = e["step"]
-                try:
-                    s = interval_shares(e["train"], quality, a.low_quality)
-                except JsgsError as err:
-                    raise JsgsError(f"{path}: {err}") from None
-                if s is None:
-                    print(f"| {run} | {interval} | no per-view log |" + " |" * 9)
-                    continue
-                cells = [_pct(s[k]) for k in ("views", "steps", "loss", *TERMS)]
-                cells += [_num(s["lph_low"]), _num(s["lph_high"])]
-                print(f"| {run} | {interval} | " + " | ".join(cells) + " |")
-    except JsgsError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+                s = interval_shares(e["train"], quality, a.low_quality)
+            except JsgsError as err:
+                raise JsgsError(f"{path}: {err}") from None
+            if s is None:
+                print(f"| {run} | {interval} | no per-view log |" + " |" * 9)
+                continue
+            cells = [_pct(s[k]) for k in ("views", "steps", "loss", *TERMS)]
+            cells += [_num(s["lph_low"]), _num(s["lph_high"])]
+            print(f"| {run} | {interval} | " + " | ".join(cells) + " |")
     return 0
 
 

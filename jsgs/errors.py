@@ -1,5 +1,14 @@
 """The one exception type that reaches the user as a single line (CLI: message, exit code 1, no traceback)."""
 
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Callable
+from typing import ParamSpec
+
+P = ParamSpec("P")
+
 
 def one_line(err: BaseException) -> str:
     """``Type: first line of the message`` (just ``Type`` for an empty message): an exception from a library
@@ -15,3 +24,18 @@ class JsgsError(Exception):
 
 class Terminated(Exception):  # noqa: N818 - named for the signal, like KeyboardInterrupt
     """SIGTERM reached a command that installed :func:`jsgs.cli._common.terminate_on_sigterm` (exit 143)."""
+
+
+def reports_user_errors(main: Callable[P, int]) -> Callable[P, int]:
+    """For the ``main`` of an argparse tool (the click commands have ``jsgs.cli._common.user_errors``): a
+    JsgsError it raises becomes ``error: <message>`` on stderr and exit code 1, without a traceback."""
+
+    @functools.wraps(main)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> int:
+        try:
+            return main(*args, **kwargs)
+        except JsgsError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+
+    return wrapper

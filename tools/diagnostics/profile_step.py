@@ -87,7 +87,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_train_overhead import build_scene, variant_config  # noqa: E402
 
 import jsgs  # noqa: E402
-from jsgs.errors import JsgsError  # noqa: E402
+from jsgs.errors import JsgsError, reports_user_errors  # noqa: E402
 from jsgs.io import write_json_atomic  # noqa: E402
 from jsgs.opcount import FREE_OPS  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
@@ -763,21 +763,18 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     } | ({"pairs": pairs} if pairs is not None else {})
 
 
+@reports_user_errors
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
-    try:
-        doc = run(args)
-        print_report(doc)
-        print_pairs(doc)
-        print_python(doc)
-        if args.out:
-            from jsgs.schemas import validate
+    doc = run(args)
+    print_report(doc)
+    print_pairs(doc)
+    print_python(doc)
+    if args.out:
+        from jsgs.schemas import validate
 
-            validate(doc, "profile_step", str(args.out))
-            write_json_atomic(args.out, doc)
-    except JsgsError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+        validate(doc, "profile_step", str(args.out))
+        write_json_atomic(args.out, doc)
     return 0
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from jsgs.errors import JsgsError
+from jsgs.errors import JsgsError, reports_user_errors
 from jsgs.method.image_terms import ViewJpeg, base_weight, view_tables
 from jsgs.method.options import JsgsOptions, parse_options
 from jsgs.train.config import PRESET_METHOD_OPTIONS, TrainConfig
@@ -77,6 +77,7 @@ def markdown(manifest: Path, rows: list[dict], names: list[str]) -> str:
     return "\n".join(lines)
 
 
+@reports_user_errors
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("manifests", nargs="+", type=Path)
@@ -84,18 +85,14 @@ def main(argv: list[str] | None = None) -> int:
         "--recipe", action="append", default=[], help="NAME=JSON: method_options over the preset's"
     )
     a = ap.parse_args(argv)
-    try:
-        raw = {"default": dict(PRESET_METHOD_OPTIONS["mcmc"]["jsgs"])}
-        raw.update(parse_recipe(t) for t in a.recipe)
-        recipes = {n: parse_options(o, f"--recipe {n}") for n, o in raw.items()}
-        for m in a.manifests:
-            rows = view_table(m, recipes)
-            if not rows:
-                raise JsgsError(f"{m}: no JPEG training view")
-            print(markdown(m, rows, list(recipes)) + "\n")
-    except JsgsError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    raw = {"default": dict(PRESET_METHOD_OPTIONS["mcmc"]["jsgs"])}
+    raw.update(parse_recipe(t) for t in a.recipe)
+    recipes = {n: parse_options(o, f"--recipe {n}") for n, o in raw.items()}
+    for m in a.manifests:
+        rows = view_table(m, recipes)
+        if not rows:
+            raise JsgsError(f"{m}: no JPEG training view")
+        print(markdown(m, rows, list(recipes)) + "\n")
     return 0
 
 
