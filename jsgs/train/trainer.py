@@ -7,9 +7,9 @@ One step (0-based ``step``), as simple_trainer's ``train()``:
 1. sample a training view (shuffled epochs), SH degree = min(step // 1000, 3);
 2. rasterise it; ``DefaultStrategy.step_pre_backward`` (retain the screen-space means' gradient);
 3. l_ph = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM) (:func:`jsgs.jpeg.losses.photometric_terms`); plus the
-   method hook's terms (see :mod:`jsgs.train.method`); check every term and every gradient for NaN/Inf;
-4. backward, Adam step on every group, the means' LR decay, ``DefaultStrategy.step_post_backward``
-   (densify / prune);
+   method hook's terms (see :mod:`jsgs.train.method`);
+4. backward, Adam step on every group, the means' LR decay; every term and every gradient checked for
+   NaN/Inf (TrainingDiverged), then ``DefaultStrategy.step_post_backward`` (densify / prune);
 5. after steps listed in ``eval_at`` (1-based counts): evaluate on the test views, write metrics.json and a
    checkpoint.
 
@@ -247,9 +247,11 @@ def _finite_check(
     names: list[str],
     values: list[float],
     grad_names: list[str],
-    grad_ok: list[float],
+    grad_norms: list[float],
     last_ckpt: str,
 ) -> None:
+    """TrainingDiverged at the first non-finite loss term, or gradient (``grad_norms``: each gradient's L1
+    norm, NaN or Inf where the gradient holds such a value, or where its magnitudes overflow float32)."""
     for n, v in zip(names, values, strict=True):
         if not math.isfinite(v):
             kind = "NaN" if math.isnan(v) else "Inf"
@@ -257,12 +259,11 @@ def _finite_check(
                 f"iteration {step + 1}: loss term {n!r} is {kind}; training stopped (last good checkpoint: "
                 f"{last_ckpt})"
             )
-    for n, ok in zip(grad_names, grad_ok, strict=True):
-        if not ok:
+    for n, v in zip(grad_names, grad_norms, strict=True):
+        if not math.isfinite(v):
             raise TrainingDiverged(
-                f"iteration {step + 1}: the gradient of {n!r} has NaN/Inf values (loss terms finite); "
-                "training "
-                f"stopped (last good checkpoint: {last_ckpt})"
+                f"iteration {step + 1}: the gradient of {n!r} is not finite (NaN/Inf values; loss terms "
+                f"finite); training stopped (last good checkpoint: {last_ckpt})"
             )
 
 
@@ -668,27 +669,32 @@ class Trainer:
         else:
             with profiler.phase("backward"):
                 loss.backward()
-        # one host sync per step: every logged value and the gradients' finiteness together
+        # every logged value and each gradient's L1 norm (NaN/Inf wherever a value is), packed on the device
+        # and read in one host sync per step, *after* the optimizer's kernels are queued: the host issues the
+        # update while the device finishes the backward. A non-finite step has then updated the Gaussians in
+        # memory, which nothing keeps: the run stops here and its checkpoints hold the last good state.
         names = list(terms)
         grad_names = [n for n in PARAM_NAMES if splats[n].grad is not None]
-        packed_vals = torch.stack(
+        grad_norms = torch._foreach_norm([splats[n].grad for n in grad_names], 1) if grad_names else []
+        packed = torch.stack(
             [loss.detach().float()]
             + [terms[n].detach().float().reshape(()) for n in names]
             + [_stat_tensor(stats[k], device) for k in stats]
-            + [torch.isfinite(splats[n].grad).all().float() for n in grad_names]
-        ).tolist()
-        term_v = packed_vals[1 : 1 + len(names)]
-        # Summed from the term values read *after* the backward: a method may fill a term's value during
-        # the backward (JSGS's deferred L_fro), which the pre-backward total cannot include.
-        loss_v = packed_vals[0] if hook is None else _weighted_sum(names, term_v, weights)
-        stat_v = packed_vals[1 + len(names) : 1 + len(names) + len(stats)]
-        grad_ok = packed_vals[1 + len(names) + len(stats) :]
-        _finite_check(step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_ok, self.last_checkpoint)
+            + [g.float() for g in grad_norms]
+        )
         with profiler.phase("optimizer"):
             for o in optimizers.values():
                 o.step()
                 o.zero_grad(set_to_none=True)
             self.scheduler.step()
+        packed_vals = packed.tolist()
+        term_v = packed_vals[1 : 1 + len(names)]
+        # Summed from the term values read *after* the backward: a method may fill a term's value during
+        # the backward (JSGS's deferred L_fro), which the pre-backward total cannot include.
+        loss_v = packed_vals[0] if hook is None else _weighted_sum(names, term_v, weights)
+        stat_v = packed_vals[1 + len(names) : 1 + len(names) + len(stats)]
+        grad_v = packed_vals[1 + len(names) + len(stats) :]
+        _finite_check(step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_v, self.last_checkpoint)
         with profiler.phase("densify"):
             if not empty:  # the strategies read the screen-space gradients this step does not have
                 strategy.step_post_backward(

@@ -183,7 +183,7 @@ def test_pairs_interleave_and_report_medians(tmp_path: Path, capsys: Any) -> Non
     argv = [
         "--size", "48x32", "--views", "6", "--warmup", "3", "--settle", "1", "--steps", "2",
         "--device", "cpu", "--config", str(cfg), "--top", "3", "--workdir", str(work), "--out", str(out),
-        "--pairs", "3",
+        "--pairs", "3", "--no-fresh",
     ]  # fmt: skip
     assert ps.main(argv) == 0
     printed = capsys.readouterr().out
@@ -192,6 +192,8 @@ def test_pairs_interleave_and_report_medians(tmp_path: Path, capsys: Any) -> Non
     doc = json.loads(out.read_text())
     validate(doc, "profile_step", str(out))
     walls = {m: r["paired_wall_ms_per_step"] for m, r in doc["results"].items()}
+    # --no-fresh: no run from step 0, so no such column value
+    assert not any("wall_ms_per_step_fresh" in r for r in doc["results"].values())
     assert all(len(v) == 3 and min(v) > 0 for v in walls.values())
     pairs = doc["pairs"]
     assert pairs["count"] == 3 and list(pairs["ratio"]) == ["jsgs"]

@@ -34,7 +34,7 @@ Columns (per training step, averaged over the window):
 
 - wall ms/step (unprofiled): the plain copy's device-synchronised wall time; the number to quote;
 - the same, run not resumed: the same window timed in a third run trained from step 0 in this process
-  (a check that resuming from the checkpoint does not change the step);
+  (a check that resuming from the checkpoint does not change the step; ``--no-fresh`` skips it: "–");
 - wall ms/step (profiled): the same window under the profiler (inflated by its bookkeeping, more so for
   launch-heavy code);
 - kernel launches/step: on CUDA, host calls of ``cudaLaunchKernel`` / ``cudaLaunchKernelExC`` /
@@ -428,10 +428,12 @@ def profile_method(
     steps: int,
     python_top: int = 0,
     trace: Path | None = None,
+    fresh: bool = True,
 ) -> tuple[dict[str, Any], WindowStats]:
     """Warm-up run, then the plain and the profiled copy of the window (module docstring); with
     ``python_top``, a third copy under cProfile; with ``trace``, the profiled copy also records Python stacks
-    and its Chrome trace is written there (``tools/diagnostics/trace_gaps.py`` reads it)."""
+    and its Chrome trace is written there (``tools/diagnostics/trace_gaps.py`` reads it); with ``fresh``
+    (default), the window is also timed in a run trained from step 0 (``wall_ms_per_step_fresh``)."""
     warm = work / "warm"
     train(manifest, warm, cfg, force=True, stop_at=warmup, progress=False, log=_quiet)
     cuda = device.type == "cuda"
@@ -444,12 +446,14 @@ def profile_method(
 
     # the same window timed inside a run from step 0 (no resume): a check that resuming does not change
     # the step
-    fresh_clock = StepWindow(device, warmup + settle, steps)
-    train(
-        manifest, work / "fresh", cfg, force=True, progress=False, log=_quiet,
-        callbacks=[StepCallback(fresh_clock)],
-    )  # fmt: skip
-    wall_fresh = fresh_clock.ms_per_step()
+    wall_fresh = None
+    if fresh:
+        fresh_clock = StepWindow(device, warmup + settle, steps)
+        train(
+            manifest, work / "fresh", cfg, force=True, progress=False, log=_quiet,
+            callbacks=[StepCallback(fresh_clock)],
+        )  # fmt: skip
+        wall_fresh = fresh_clock.ms_per_step()
 
     profiled = work / "profiled"
     shutil.copytree(warm, profiled)
@@ -479,7 +483,6 @@ def profile_method(
 
     result = {
         "wall_ms_per_step": wall,
-        "wall_ms_per_step_fresh": wall_fresh,
         "wall_ms_per_step_profiled": wall_prof,
         "kernel_launches_per_step": stats.launches / steps,
         "graph_launches_per_step": stats.graph_launches / steps,
@@ -492,6 +495,8 @@ def profile_method(
         "device_name": doc["device_name"],
         "backend": doc["backend"],
     }
+    if wall_fresh is not None:
+        result["wall_ms_per_step_fresh"] = wall_fresh
     if python_top > 0:
         py = work / "python"
         shutil.copytree(warm, py)
@@ -682,6 +687,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--pairs", type=int, default=0,
         help="then resume each method's checkpoint this many more times, interleaved, and report medians [0]",
     )  # fmt: skip
+    ap.add_argument(
+        "--no-fresh", dest="fresh", action="store_false",
+        help="skip the check run trained from step 0 (it costs another --warmup steps per method)",
+    )  # fmt: skip
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     ap.add_argument("--workdir", type=Path, help="the runs' temporary folder goes here [system's]")
     ap.add_argument("--out", type=Path, help="write the results as JSON here")
@@ -732,6 +741,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 args.steps,
                 args.python_top,
                 None if args.trace is None else args.trace / f"{m}.trace.json",
+                args.fresh,
             )
             results[m]["kernels"] = kernel_rows(stats[m].kernels, args.steps, args.top)
         pairs = None

@@ -366,6 +366,43 @@ def test_nan_stops_with_the_term_and_step_and_keeps_checkpoint(scene: Path, tmp_
     assert all(torch.isfinite(t).all() for t in good["splats"].values())
 
 
+class _BadGradient(torch.autograd.Function):
+    """Identity forward (a finite loss); its backward puts ``bad`` into every gradient element."""
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor, bad: float) -> torch.Tensor:
+        ctx.bad = bad
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx: Any, g: torch.Tensor) -> tuple[torch.Tensor, None]:
+        return torch.full_like(g, ctx.bad), None
+
+
+class BadGradientAt(LossHook):
+    name = "badgrad"
+
+    def __init__(self, step: int, bad: float) -> None:
+        self.step, self.bad = step, bad
+
+    def losses(self, ctx: StepContext) -> HookOutput:
+        if ctx.step != self.step:
+            return HookOutput(terms={"probe": ctx.render.mean() * 0.0}, weights={"probe": 1.0})
+        opac = _BadGradient.apply(ctx.splats["opacities"], self.bad)
+        return HookOutput(terms={"probe": opac.mean() * 0.0}, weights={"probe": 1.0})
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_non_finite_gradient_stops_the_run(scene: Path, tmp_path: Path, bad: float) -> None:
+    run = tmp_path / "run"
+    with pytest.raises(TrainingDiverged, match=r"iteration 4: the gradient of 'opacities' is not finite"):
+        train(scene, run, tiny_config(iterations=10, eval_at=[2, 10]), hook=BadGradientAt(3, bad),
+              progress=False)  # fmt: skip
+    assert [s for s, _ in ckpt.list_checkpoints(run / "checkpoints")] == [2]
+    good = ckpt.load_checkpoint(run / "checkpoints" / "step_000002.pt")
+    assert all(torch.isfinite(t).all() for t in good["splats"].values())
+
+
 class ExtraTerms(LossHook):
     """A JSGS-like hook: one weighted term, an extra rasterised channel, a statistic."""
 

@@ -1,0 +1,26 @@
+# Two versions of the code, each timed with the protocol on the same machine in one call: the
+# checkout (A) and another commit's jsgs package (B, in .gpu4/base), each with profile_step.py --pairs
+# (interleaved gsplat / JSGS windows resumed from one checkpoint; medians and the median ratio), 100-step
+# windows, llff_flower, gaussian schedule, the mcmc preset, JSGS with the default recipe. B runs this
+# checkout's profile_step.py against its own jsgs package. On the CPU first (as for pairs.sh, then):
+#   mkdir -p .gpu4/base && git archive COMMIT jsgs scripts | tar -x -C .gpu4/base && cp -r tools .gpu4/base/
+# then on a lent 2-GPU machine, carrying .whl and .gpu4:
+#   bash docs/results/budget/speed/pairs_ab.sh
+# GPU 0: the window after 1,500 steps (about 38,000 Gaussians), 7 pairs; GPU 1: after 6,000 (the 300,000
+# budget reached), 5 pairs; A then B on each. Tables in $OUT/{a,b}_pairs_*.txt, numbers in the .json beside.
+set -u
+O='{"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0,"base_noise_exponent":2.0}'
+R=$PWD; export TORCH_EXTENSIONS_DIR=$R/.torch_ext
+bash scripts/gpu_run.sh true
+ab() {  # ab GPU WARMUP PAIRS LIMIT: A, then B, on one GPU
+    for v in a b; do
+        if [ $v = a ]; then d=.; else d=.gpu4/base; fi
+        (cd $d && CUDA_VISIBLE_DEVICES=$1 timeout $4 bash scripts/gpu_run.sh python3 \
+            tools/diagnostics/profile_step.py --manifest "$R/.gpu4/flower_gaussian/manifest.json" \
+            --device cuda --config "$R/.gpu4/mcmc.json" --jsgs-options "$O" --warmup $2 --steps 100 \
+            --pairs $3 --no-fresh --out $OUT/${v}_pairs_$2.json > $OUT/${v}_pairs_$2.txt 2>&1)
+    done
+}
+ab 1 6000 5 250 &
+ab 0 1500 7 200
+wait
