@@ -7,7 +7,8 @@
 # then on a lent 2-GPU machine, carrying .whl and .gpu4:
 #   bash docs/results/budget/speed/pairs_ab.sh
 # GPU 0: the window after 1,500 steps (about 38,000 Gaussians), 7 pairs; GPU 1: after 6,000 (the 300,000
-# budget reached), 5 pairs; A then B on each. Tables in $OUT/{a,b}_pairs_*.txt, numbers in the .json beside.
+# budget reached), 5 pairs; A then B on each; then GPU 0 runs the checkout's GPU tests (the CUDA paths of the
+# code being timed; $OUT/gpu_tests.txt). Tables in $OUT/{a,b}_pairs_*.txt, numbers in the .json beside.
 set -u
 O='{"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0,"base_noise_exponent":2.0}'
 R=$PWD; export TORCH_EXTENSIONS_DIR=$R/.torch_ext
@@ -23,4 +24,7 @@ ab() {  # ab GPU WARMUP PAIRS LIMIT: A, then B, on one GPU
 }
 ab 1 6000 5 250 &
 ab 0 1500 7 200
+CUDA_VISIBLE_DEVICES=0 JSGS_GPU_MANIFEST=$R/.gpu4/flower_gaussian/manifest.json timeout 200 \
+    bash scripts/gpu_run.sh python3 -m pytest -m gpu tests -q -x -p no:cacheprovider 2>&1 | tail -15 \
+    > $OUT/gpu_tests.txt
 wait
