@@ -6,24 +6,25 @@
 #   mkdir -p .gpu4/base && git archive COMMIT jsgs scripts | tar -x -C .gpu4/base && cp -r tools .gpu4/base/
 # then on a lent 2-GPU machine, carrying .whl and .gpu4:
 #   bash docs/results/budget/speed/pairs_ab.sh
-# GPU 0: the window after 1,500 steps (about 38,000 Gaussians), 7 pairs; GPU 1: after 6,000 (the 300,000
-# budget reached), 5 pairs; A then B on each; then GPU 0 runs the checkout's GPU tests (the CUDA paths of the
-# code being timed; $OUT/gpu_tests.txt). Tables in $OUT/{a,b}_pairs_*.txt, numbers in the .json beside.
+# A on GPU 0 and B on GPU 1, side by side: the window after 6,000 steps (the 300,000 budget reached), then
+# the one after 1,500 (about 38,000 Gaussians), 5 pairs each; then GPU 0 runs the checkout's GPU tests (the
+# CUDA paths of the code being timed; $OUT/gpu_tests.txt). Tables in $OUT/{a,b}_pairs_*.txt, numbers in the
+# .json beside.
 set -u
 O='{"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0,"base_noise_exponent":2.0}'
 R=$PWD; export TORCH_EXTENSIONS_DIR=$R/.torch_ext
 bash scripts/gpu_run.sh true
-ab() {  # ab GPU WARMUP PAIRS LIMIT: A, then B, on one GPU
-    for v in a b; do
-        if [ $v = a ]; then d=.; else d=.gpu4/base; fi
-        (cd $d && CUDA_VISIBLE_DEVICES=$1 timeout $4 bash scripts/gpu_run.sh python3 \
+one() {  # one VERSION GPU: both windows of one version on one GPU
+    if [ $1 = a ]; then d=.; else d=.gpu4/base; fi
+    for w in 6000 1500; do
+        (cd $d && CUDA_VISIBLE_DEVICES=$2 timeout 240 bash scripts/gpu_run.sh python3 \
             tools/diagnostics/profile_step.py --manifest "$R/.gpu4/flower_gaussian/manifest.json" \
-            --device cuda --config "$R/.gpu4/mcmc.json" --jsgs-options "$O" --warmup $2 --steps 100 \
-            --pairs $3 --no-fresh --out $OUT/${v}_pairs_$2.json > $OUT/${v}_pairs_$2.txt 2>&1)
+            --device cuda --config "$R/.gpu4/mcmc.json" --jsgs-options "$O" --warmup $w --steps 100 \
+            --pairs 5 --no-fresh --out $OUT/$1_pairs_$w.json > $OUT/$1_pairs_$w.txt 2>&1)
     done
 }
-ab 1 6000 5 250 &
-ab 0 1500 7 200
+one b 1 &
+one a 0
 CUDA_VISIBLE_DEVICES=0 JSGS_GPU_MANIFEST=$R/.gpu4/flower_gaussian/manifest.json timeout 200 \
     bash scripts/gpu_run.sh python3 -m pytest -m gpu tests -q -x -p no:cacheprovider 2>&1 | tail -15 \
     > $OUT/gpu_tests.txt
