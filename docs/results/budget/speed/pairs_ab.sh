@@ -14,10 +14,14 @@ set -u
 O='{"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0,"base_noise_exponent":2.0}'
 R=$PWD; export TORCH_EXTENSIONS_DIR=$R/.torch_ext
 bash scripts/gpu_run.sh true
+# B builds jsgs's kernels from its own path into its own folder (a shared one would rebuild at every switch);
+# gsplat's build is the same for both and is copied
+B=$R/.gpu4/base/.torch_ext; mkdir -p $B && cp -r $TORCH_EXTENSIONS_DIR/gsplat_cuda $B/
+(cd .gpu4/base && TORCH_EXTENSIONS_DIR=$B bash scripts/gpu_run.sh true)
 one() {  # one VERSION GPU: both windows of one version on one GPU
-    if [ $1 = a ]; then d=.; else d=.gpu4/base; fi
+    if [ $1 = a ]; then d=.; e=$TORCH_EXTENSIONS_DIR; else d=.gpu4/base; e=$B; fi
     for w in 6000 1500; do
-        (cd $d && CUDA_VISIBLE_DEVICES=$2 timeout 240 bash scripts/gpu_run.sh python3 \
+        (cd $d && CUDA_VISIBLE_DEVICES=$2 TORCH_EXTENSIONS_DIR=$e timeout 240 bash scripts/gpu_run.sh python3 \
             tools/diagnostics/profile_step.py --manifest "$R/.gpu4/flower_gaussian/manifest.json" \
             --device cuda --config "$R/.gpu4/mcmc.json" --jsgs-options "$O" --warmup $w --steps 100 \
             --pairs 5 --no-fresh --out $OUT/$1_pairs_$w.json > $OUT/$1_pairs_$w.txt 2>&1)
@@ -25,7 +29,7 @@ one() {  # one VERSION GPU: both windows of one version on one GPU
 }
 one b 1 &
 one a 0
-CUDA_VISIBLE_DEVICES=0 JSGS_GPU_MANIFEST=$R/.gpu4/flower_gaussian/manifest.json timeout 200 \
+CUDA_VISIBLE_DEVICES=0 JSGS_GPU_MANIFEST=$R/.gpu4/flower_gaussian/manifest.json timeout 150 \
     bash scripts/gpu_run.sh python3 -m pytest -m gpu tests -q -x -p no:cacheprovider 2>&1 | tail -15 \
     > $OUT/gpu_tests.txt
 wait
