@@ -4,19 +4,20 @@
 # that holds the capture (`docs/results/real/real.sh` made .gpu3):
 #   .venv/bin/python -c "import json; from jsgs.train.config import PRESETS; \
 #       json.dump(PRESETS['mcmc'], open('.gpu3/mcmc.json', 'w'))"
-# then on a lent 2-GPU machine, carrying .whl and .gpu3:
+# then on a lent GPU machine (one GPU), carrying .whl and .gpu3:
 #   bash docs/results/budget/speed/profile_camera.sh
-# GPU 0: the window after 1,500 steps; GPU 1: after 4,000 steps (more Gaussians). Each method trains its
-# warm-up twice (once to checkpoint, once unresumed), so the 4,000 window takes about 16,000 steps in all.
-# Tables in $OUT/cam_*.txt, numbers in $OUT/cam_*.json.
+# One after the other: the window after 1,500 steps, then after 4,000 (more Gaussians), 30 steps each, then
+# three interleaved pairs of windows (the issue's protocol: medians and the median ratio). Tables in
+# $OUT/cam_*.txt, numbers in $OUT/cam_*.json.
 set -u
 P=tools/diagnostics/profile_step.py; M=.gpu3/jpeg_mouse/manifest.json
 O='{"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0,"base_noise_exponent":2.0}'
+export CUDA_VISIBLE_DEVICES=0
 bash scripts/gpu_run.sh true
-CUDA_VISIBLE_DEVICES=1 timeout 540 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda \
-    --config .gpu3/mcmc.json --jsgs-options "$O" --warmup 4000 --steps 30 --top 25 \
-    --out $OUT/cam_4000.json > $OUT/cam_4000.txt 2>&1 &
-CUDA_VISIBLE_DEVICES=0 timeout 300 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda \
-    --config .gpu3/mcmc.json --jsgs-options "$O" --warmup 1500 --steps 30 --top 25 --python-top 30 \
+timeout 200 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --config .gpu3/mcmc.json \
+    --jsgs-options "$O" --warmup 1500 --steps 30 --top 25 --pairs 3 --no-fresh \
     --out $OUT/cam_1500.json > $OUT/cam_1500.txt 2>&1
-wait
+timeout 300 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --config .gpu3/mcmc.json \
+    --jsgs-options "$O" --warmup 4000 --steps 30 --top 25 --pairs 3 --no-fresh \
+    --out $OUT/cam_4000.json > $OUT/cam_4000.txt 2>&1
+tail -4 $OUT/cam_*.txt
