@@ -20,4 +20,4 @@ timeout 200 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --con
 timeout 300 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --config .gpu3/mcmc.json \
     --jsgs-options "$O" --warmup 4000 --steps 30 --top 25 --pairs 3 --no-fresh \
     --out $OUT/cam_4000.json > $OUT/cam_4000.txt 2>&1
-tail -4 $OUT/cam_*.txt
+tail -n 4 $OUT/cam_*.txt
