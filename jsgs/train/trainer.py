@@ -262,8 +262,8 @@ def _finite_check(
     for n, v in zip(grad_names, grad_norms, strict=True):
         if not math.isfinite(v):
             raise TrainingDiverged(
-                f"iteration {step + 1}: the gradient of {n!r} is not finite (NaN/Inf values; loss terms "
-                f"finite); training stopped (last good checkpoint: {last_ckpt})"
+                f"iteration {step + 1}: the gradient of {n!r} is not finite (NaN/Inf values, or beyond "
+                f"float32's range; loss terms finite); training stopped (last good checkpoint: {last_ckpt})"
             )
 
 
