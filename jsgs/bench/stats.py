@@ -155,3 +155,23 @@ def worse_beyond_spread(baseline: Agg, method: Agg, higher_is_better: bool) -> b
 def mean_of(xs: list[float | None]) -> float | None:
     ys = [x for x in xs if x is not None]
     return statistics.fmean(ys) if ys else None
+
+
+def median_interval(values: list[float], level: float = 0.95) -> tuple[float, float, float]:
+    """A distribution-free interval for the median of the distribution ``values`` were drawn from
+    (independently): the order statistics ``(x_(j), x_(n+1-j))`` with the largest j whose coverage
+    ``1 - 2 P(Binomial(n, 1/2) < j)`` is at least ``level``, or ``(min, max)`` when even that falls short
+    (n < 6 at 0.95). Returns ``(low, high, coverage)``; coverage is exact for continuous values.
+    ValueError when ``values`` is empty."""
+    x = sorted(values)
+    n = len(x)
+    if n == 0:
+        raise ValueError("median_interval of no values")
+
+    def coverage(j: int) -> float:
+        return 1.0 - 2.0 * sum(math.comb(n, i) for i in range(j)) / 2.0**n
+
+    j = 1
+    while j + 1 <= (n + 1) // 2 and coverage(j + 1) >= level:
+        j += 1
+    return x[j - 1], x[n - j], coverage(j)

@@ -201,6 +201,10 @@ def test_pairs_interleave_and_report_medians(tmp_path: Path, capsys: Any) -> Non
     per_pair = [j / g for j, g in zip(walls["jsgs"], walls["gsplat"], strict=True)]
     assert pairs["ratio"]["jsgs"]["per_pair"] == pytest.approx(per_pair)
     assert pairs["ratio"]["jsgs"]["median"] == pytest.approx(sorted(per_pair)[1])
+    # three pairs: the median's distribution-free interval is (min, max), covering 1 - 2/8
+    assert pairs["ratio"]["jsgs"]["interval"] == pytest.approx([min(per_pair), max(per_pair)])
+    assert pairs["ratio"]["jsgs"]["interval_coverage"] == pytest.approx(0.75)
+    assert "(75.0 %) |" in printed
     assert pairs["median_ms_per_step"]["gsplat"] == pytest.approx(sorted(walls["gsplat"])[1])
     assert f"| jsgs | {', '.join(f'{v:.2f}' for v in walls['jsgs'])} |" in printed
     assert list(work.iterdir()) == []

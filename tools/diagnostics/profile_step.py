@@ -54,7 +54,10 @@ Columns (per training step, averaged over the window):
 With ``--pairs K``, after every method is profiled, each method's checkpoint is resumed K more times, plain,
 interleaved in alternating order (baseline first, then last, ...: gsplat, jsgs, jsgs, gsplat, gsplat, jsgs
 for K = 3), so that drift of the machine falls on both: the K wall times per method, their median, and the
-median over the K pairs of each method's time over the baseline's in the same pair (the ratio to quote).
+median over the K pairs of each method's time over the baseline's in the same pair (the ratio to quote),
+with a distribution-free interval for that median (two order statistics of the K ratios, at least 95 %
+from 6 pairs on; below that (min, max) and its coverage, e.g. 93.8 % for 5 pairs:
+:func:`jsgs.bench.stats.median_interval`).
 
 Then, for every method against the first (normally jsgs − gsplat), the ``--top`` kernels by extra device
 time per step and by extra host launches per step. Kernels replayed from a CUDA graph count as runs, not as
@@ -87,6 +90,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_train_overhead import build_scene, variant_config  # noqa: E402
 
 import jsgs  # noqa: E402
+from jsgs.bench.stats import median_interval  # noqa: E402
 from jsgs.errors import JsgsError, reports_user_errors  # noqa: E402
 from jsgs.io import write_json_atomic  # noqa: E402
 from jsgs.opcount import FREE_OPS  # noqa: E402
@@ -512,6 +516,14 @@ def pair_order(methods: Sequence[str], pairs: int) -> list[list[str]]:
     return [list(methods) if i % 2 == 0 else list(reversed(methods)) for i in range(pairs)]
 
 
+def _ratio_doc(per_pair: list[float]) -> dict[str, Any]:
+    """The pairs document's entry for one method: the ratios, their median and its distribution-free interval
+    (:func:`jsgs.bench.stats.median_interval`, at least 95 % where there are enough pairs)."""
+    lo, hi, cov = median_interval(per_pair)
+    return {"per_pair": per_pair, "median": statistics.median(per_pair), "interval": [lo, hi],
+            "interval_coverage": cov}  # fmt: skip
+
+
 def interleaved_windows(
     manifest: Path, work: Path, methods: Sequence[str], device: torch.device, settle: int, steps: int,
     pairs: int,
@@ -535,7 +547,7 @@ def interleaved_windows(
         "count": pairs,
         "order": order,
         "median_ms_per_step": {m: statistics.median(v) for m, v in walls.items()},
-        "ratio": {m: {"per_pair": r, "median": statistics.median(r)} for m, r in ratios.items()},
+        "ratio": {m: _ratio_doc(r) for m, r in ratios.items()},
     }
     return walls, doc
 
@@ -624,12 +636,19 @@ def print_pairs(doc: dict[str, Any]) -> None:
     n = pairs["count"]
     print(f"{n} interleaved windows per method, resumed from the same checkpoint (order: {order})")
     print()
-    print(f"| method | wall ms/step, each window | median | median over the pairs of ms/step ÷ {base}'s |")
-    print("|---|---|---:|---:|")
+    print(
+        f"| method | wall ms/step, each window | median | median over the pairs of ms/step ÷ {base}'s | "
+        "its interval (coverage) |"
+    )
+    print("|---|---|---:|---:|---|")
     for m, r in doc["results"].items():
         each = ", ".join(f"{v:.2f}" for v in r["paired_wall_ms_per_step"])
-        ratio = "1" if m == base else f"{pairs['ratio'][m]['median']:.3f}"
-        print(f"| {m} | {each} | {pairs['median_ms_per_step'][m]:.2f} | {ratio} |")
+        ratio, interval = "1", ""
+        if m != base:
+            q = pairs["ratio"][m]
+            ratio = f"{q['median']:.3f}"
+            interval = f"{q['interval'][0]:.3f}–{q['interval'][1]:.3f} ({100 * q['interval_coverage']:.1f} %)"
+        print(f"| {m} | {each} | {pairs['median_ms_per_step'][m]:.2f} | {ratio} | {interval} |")
 
 
 def print_python(doc: dict[str, Any]) -> None:
