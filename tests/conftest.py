@@ -108,8 +108,8 @@ def one_torch_thread() -> Iterator[None]:
 
 
 def load_benchmark(name: str, folder: str = "benchmarks") -> Any:
-    """``<folder>/<name>.py`` (``benchmarks/`` or ``tools/diagnostics/``) imported as a module (these are
-    scripts, not a package)."""
+    """``<folder>/<name>.py`` (``benchmarks/``, ``tools/diagnostics/`` or ``tools/results/``) imported as a
+    module (these are scripts, not a package)."""
     import importlib.util
 
     path = Path(__file__).resolve().parents[1] / folder / f"{name}.py"

@@ -1,4 +1,4 @@
-"""docs/results/build_report.py --baseline: a folder of one recipe's JSGS runs gets the other folder's
+"""tools/results/build_report.py --baseline: a folder of one recipe's JSGS runs gets the other folder's
 gsplat runs of the same cells and the clean runs of the same scenes and budgets, with their settings, and
 nothing else."""
 
@@ -13,7 +13,7 @@ from conftest import load_benchmark
 
 from jsgs.bench.results import read_csv, write_csv
 
-br = load_benchmark("build_report", "docs/results")
+br = load_benchmark("build_report", "tools/results")
 
 
 def _row(scene: str, schedule: str, method: str, seed: int, lpips: float, budget: int = 100000) -> dict:

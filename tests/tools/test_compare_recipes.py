@@ -1,4 +1,4 @@
-"""docs/results/budget/compare.py: two JSGS recipes against the same gsplat runs, on hand-made results whose
+"""tools/results/compare.py: two JSGS recipes against the same gsplat runs, on hand-made results whose
 answer is known: only the cells and seeds both recipes hold are compared."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from conftest import load_benchmark
 
 from jsgs.bench.results import write_csv
 
-cmp = load_benchmark("compare", "docs/results/budget")
+cmp = load_benchmark("compare", "tools/results")
 
 
 def _row(scene: str, method: str, seed: int, lpips: float, psnr: float, schedule: str = "gaussian") -> dict:

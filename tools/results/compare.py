@@ -2,8 +2,8 @@
 schedule and budget, and what each does to PSNR.
 
     cd docs/results/budget
-    ../../../.venv/bin/python compare.py pixels/ref2 default
-    ../../../.venv/bin/python compare.py default ramp
+    ../../../.venv/bin/python ../../../tools/results/compare.py pixels/ref2 default
+    ../../../.venv/bin/python ../../../tools/results/compare.py default ramp
 
 BASE is a results folder (``results.csv``) with gsplat's runs and one recipe's ``jsgs`` runs; each VARIANT
 folder (a bench folder brought back from a GPU call, or several: their rows are pooled) holds the other

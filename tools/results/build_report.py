@@ -1,9 +1,9 @@
 """Rebuild an equal-budget results folder's ``report.md`` (and plots) from its ``results.csv`` with the
 bench's own report code, first adding the runs of bench folders brought back from GPU calls.
 
-    .venv/bin/python docs/results/build_report.py docs/results/budget/confirm .res/flower .res/b100
-    .venv/bin/python docs/results/build_report.py docs/results/double .res/double
-    .venv/bin/python docs/results/build_report.py --step 7000 docs/results/budget/captures .res/captures
+    .venv/bin/python tools/results/build_report.py docs/results/budget/confirm .res/flower .res/b100
+    .venv/bin/python tools/results/build_report.py docs/results/double .res/double
+    .venv/bin/python tools/results/build_report.py --step 7000 docs/results/budget/captures .res/captures
 
 A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``confirm.sh`` or
 ``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``); its runs
@@ -12,14 +12,14 @@ at the last step (10,000), or at ``--step N`` (for runs that all stopped earlier
 it are listed as such; ``--step auto`` compares each scene, at each budget, at the last evaluation every
 one of its runs reached (:func:`jsgs.bench.budget.common_steps`).
 
-    .venv/bin/python docs/results/build_report.py --step auto docs/results/budget/default \
+    .venv/bin/python tools/results/build_report.py --step auto docs/results/budget/default \
         .res/b100 .res/captures
 
 ``--baseline FOLDER`` also copies, from another results folder, the runs that are not JSGS (gsplat, and the
 clean runs of every scene and budget concerned) for the cells the bench folders bring, with their settings:
 a folder of JSGS runs of one recipe then holds its own comparison (what ``blockiness/`` and ``levers/`` hold).
 
-    .venv/bin/python docs/results/build_report.py --step auto --baseline docs/results/budget/default \
+    .venv/bin/python tools/results/build_report.py --step auto --baseline docs/results/budget/default \
         docs/results/budget/blockiness/b0.5 .res/cb5 .res/lb5
 """
 
@@ -91,7 +91,7 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
     cfg.write_text(json.dumps(dict(sorted(configs.items())), indent=1) + "\n")
     header = [
         f"Every equal-budget run of `{target.name}` (`jsgs bench --strategy mcmc`), gathered from the GPU "
-        "calls that ran them by `docs/results/build_report.py`; every run's settings and versions in "
+        "calls that ran them by `tools/results/build_report.py`; every run's settings and versions in "
         "configs.json, every evaluation in results.csv."
     ]
     at: int | dict[tuple[str, int], int] | None = common_steps(rows) if step == "auto" else None
