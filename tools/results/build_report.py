@@ -5,8 +5,8 @@ bench's own report code, first adding the runs of bench folders brought back fro
     .venv/bin/python tools/results/build_report.py docs/results/double .res/double
     .venv/bin/python tools/results/build_report.py --step 7000 docs/results/budget/captures .res/captures
 
-A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``confirm.sh`` or
-``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``); its runs
+A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``tools/campaigns/confirm.sh``
+or ``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``); its runs
 replace the rows and settings of the same scene, schedule, method, budget and seed. The tables are computed
 at the last step (10,000), or at ``--step N`` (for runs that all stopped earlier); runs that stopped before
 it are listed as such; ``--step auto`` compares each scene, at each budget, at the last evaluation every

@@ -3,9 +3,9 @@
 # trace_gaps.py (device idle time attributed to the host's Python frames, JSGS against gsplat).
 # STRATEGIES (default "mcmc default"), each on its own GPU in that order: mcmc, the mcmc preset (cap
 # 300,000; .gpu4/mcmc.json); default, DefaultStrategy (the config's defaults).
-# Prepared on the CPU as profile.sh says; run on a lent 2-GPU machine carrying .whl and .gpu4:
-#   bash docs/results/budget/speed/trace.sh
-# or on one GPU: STRATEGIES=mcmc bash docs/results/budget/speed/trace.sh
+# Prepared on the CPU as speed_profile.sh says; run on a lent 2-GPU machine carrying .whl and .gpu4:
+#   bash tools/campaigns/speed_trace.sh
+# or on one GPU: STRATEGIES=mcmc bash tools/campaigns/speed_trace.sh
 # Tables in $OUT/trace_{mcmc,default}.txt and gaps_{mcmc,default}.txt, numbers in trace_*.json.
 set -u
 P=tools/diagnostics/profile_step.py; M=.gpu4/flower_gaussian/manifest.json; T=/tmp/traces

@@ -3,11 +3,11 @@
 # resumed from one checkpoint; medians and the median ratio), 100-step windows, llff_flower, gaussian
 # schedule, the mcmc preset, JSGS with the default recipe. b runs this checkout's profile_step.py against its
 # own jsgs package. The jobs run one after another, each alone on GPU 0, in the order given:
-#   bash docs/results/budget/speed/pairs_ab.sh a:1500 b:1500 b:6000 a:6000
+#   bash tools/campaigns/speed_pairs_ab.sh a:1500 b:1500 b:6000 a:6000
 # VERSION:WARMUP: the window after 1,500 steps (about 38,000 Gaussians) or 6,000 (the 300,000 budget
 # reached); PAIRS (default 5) interleaved pairs each; with GPU_TESTS=1, then the checkout's GPU tests (the
 # CUDA paths of the code being timed; $OUT/gpu_tests.txt). Tables in $OUT/VERSION_pairs_WARMUP.txt, numbers
-# in the .json beside. On the CPU first (as for pairs.sh, then):
+# in the .json beside. On the CPU first (as for speed_pairs.sh, then):
 #   mkdir -p .gpu4/base && git archive COMMIT jsgs scripts | tar -x -C .gpu4/base && cp -r tools .gpu4/base/
 # then on a lent GPU machine, carrying .whl and .gpu4. Chained calls on a warm machine reuse the builds.
 set -u

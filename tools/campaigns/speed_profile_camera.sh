@@ -1,11 +1,11 @@
 # Kernel-level profile of one window of training steps at camera resolution: gsplat against JSGS (the mcmc
 # preset's recipe) on jpeg_mouse, 1440×1920 camera JPEGs, where whole runs take 1.53× gsplat's time per step
 # and the extra is device work (README, Speed at equal budget). On the CPU first, into the carried folder
-# that holds the capture (`docs/results/real/real.sh` made .gpu3):
+# that holds the capture (`tools/campaigns/real.sh` made .gpu3):
 #   .venv/bin/python -c "import json; from jsgs.train.config import PRESETS; \
 #       json.dump(PRESETS['mcmc'], open('.gpu3/mcmc.json', 'w'))"
 # then on a lent GPU machine (one GPU), carrying .whl and .gpu3:
-#   bash docs/results/budget/speed/profile_camera.sh
+#   bash tools/campaigns/speed_profile_camera.sh
 # One after the other: the window after 1,500 steps, then after 4,000 (more Gaussians), 30 steps each, then
 # three interleaved pairs of windows (the issue's protocol: medians and the median ratio). Tables in
 # $OUT/cam_*.txt, numbers in $OUT/cam_*.json.

@@ -1,7 +1,7 @@
 # JSGS's step with torch.compile (inductor) of JO, L_obs and DS against the default (the graphed JO/DS, no
 # compile), each beside gsplat, in one call on a lent 2-GPU machine (one GPU each), carrying .whl and .gpu4
-# (made as profile.sh says): llff_flower, gaussian schedule, the mcmc preset, the window after 1,500 steps.
-#   bash docs/results/budget/speed/compile.sh
+# (made as speed_profile.sh says): llff_flower, gaussian schedule, the mcmc preset, the window after 1,500 steps.
+#   bash tools/campaigns/speed_compile.sh
 set -u
 P=tools/diagnostics/profile_step.py; M=.gpu4/flower_gaussian/manifest.json
 O='{"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0'

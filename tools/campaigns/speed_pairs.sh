@@ -1,12 +1,12 @@
 # Time per step at equal budget with the issue's protocol: gsplat against JSGS (the mcmc preset's recipe),
 # windows of 50 steps resumed from one checkpoint per method, three pairs interleaved in one call
 # (profile_step.py --pairs 3: gsplat, jsgs / jsgs, gsplat / gsplat, jsgs), medians and the median ratio.
-# llff_flower, gaussian schedule. On the CPU first, into a carried folder (as for profile.sh):
+# llff_flower, gaussian schedule. On the CPU first, into a carried folder (as for speed_profile.sh):
 #   .venv/bin/jsgstools compress ../shared/scenes/llff_flower --out .gpu4/flower_gaussian --schedule gaussian
 #   .venv/bin/python -c "import json; from jsgs.train.config import PRESETS; \
 #       json.dump(PRESETS['mcmc'], open('.gpu4/mcmc.json', 'w'))"
 # then on a lent 2-GPU machine, carrying .whl and .gpu4:
-#   bash docs/results/budget/speed/pairs.sh
+#   bash tools/campaigns/speed_pairs.sh
 # GPU 0: the window after 1,500 steps (about 38,000 Gaussians); GPU 1: after 6,000 (the 300,000 budget
 # reached). Tables in $OUT/pairs_*.txt (the interleaved table after the profile's), numbers in pairs_*.json.
 set -u

@@ -1,7 +1,7 @@
 # Photos saved twice, at equal Gaussian budget: gsplat vs JSGS with the header tables (jsgs) vs JSGS with the
 # effective tables the pixels reveal (jsgs_eff), on LLFF flower and fern whose gaussian-schedule JPEG training
 # views were decoded and saved once more at quality 90 (`gaussian+r90`). Run on a lent GPU machine as
-#   bash scripts/gpu_run.sh bash docs/results/double/double.sh
+#   bash scripts/gpu_run.sh bash tools/campaigns/double.sh
 # with the clean bases of `scripts/gpu_prepare.sh` in .gpu; metrics come back in $OUT/double.tgz and
 # `jsgs bench --report-only` rebuilds the report on the CPU.
 set -u

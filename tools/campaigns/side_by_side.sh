@@ -7,11 +7,11 @@
 # GPU_DIR (default .gpu) holds the clean bases and the LPIPS weights for every bench of the call. Run as
 #   BENCHES="ref3|llff_flower llff_fern|gaussian,descending|jsgs|6|300k|{\"method_options\": \
 #     {\"base_noise_ref\": 3.0}};u|llff_flower|uniform|gsplat,jsgs|3|300k" GPU_DIR=.gpu6 TL=470 \
-#     bash docs/results/budget/side_by_side.sh
-# and gather the folders on the CPU with docs/results/build_report.py (after
+#     bash tools/campaigns/side_by_side.sh
+# and gather the folders on the CPU with tools/results/build_report.py (after
 #   mkdir -p .res/NAME && tar xzf NAME.tgz -O ./confirm.tgz | tar xz -C .res/NAME).
 set -u
-cd "$(dirname "$0")/../../.."
+cd "$(dirname "$0")/../.."
 bash scripts/gpu_run.sh true  # the CUDA builds, once, before the benches start side by side
 IFS=';' read -ra BS <<< "$BENCHES"
 if [ "${#BS[@]}" -gt 8 ]; then
@@ -23,7 +23,7 @@ for spec in "${BS[@]}"; do
   mkdir -p "$OUT/$name"
   OUT=$OUT/$name OUT_DIR=/tmp/$name SCENES="$scenes" SCHEDULES=$schedules METHODS=$methods JOBS=$jobs \
     BUDGETS=$budgets RECIPE="${recipe:-}" TL=${TL:-470} GPU_DIR=${GPU_DIR:-.gpu} \
-    bash scripts/gpu_run.sh bash docs/results/budget/confirm.sh > "$OUT/$name/log.txt" 2>&1 &
+    bash scripts/gpu_run.sh bash tools/campaigns/confirm.sh > "$OUT/$name/log.txt" 2>&1 &
 done
 wait
 for spec in "${BS[@]}"; do

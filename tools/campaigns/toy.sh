@@ -2,7 +2,7 @@
 # three seeds: gsplat, JSGS's default recipe (k2), with k = 1 (k1), and with base_ramp_steps 750 (r750).
 # Two runs at a time on a 2-core CPU, about 15 minutes; logs in .res/toy/s/. Run after `make demo`.
 set -u
-cd "$(dirname "$0")/../../.."
+cd "$(dirname "$0")/../.."
 export OMP_NUM_THREADS=1
 [ -z "${JSGS_LPIPS_WEIGHTS:-}" ] && [ -f ../shared/lpips/alexnet_features.pth ] && \
     export JSGS_LPIPS_WEIGHTS=$PWD/../shared/lpips/alexnet_features.pth

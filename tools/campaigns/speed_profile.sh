@@ -5,7 +5,7 @@
 #   .venv/bin/python -c "import json; from jsgs.train.config import PRESETS; \
 #       json.dump(PRESETS['mcmc'], open('.gpu4/mcmc.json', 'w'))"
 # then on a lent 2-GPU machine, carrying .whl and .gpu4:
-#   bash docs/results/budget/speed/profile.sh
+#   bash tools/campaigns/speed_profile.sh
 # GPU 1: the window after 6,000 steps (the 300,000 budget reached); GPU 0: after 1,500 steps (about 38,000
 # Gaussians), with the recipe and with the paper's weights. Tables in $OUT/prof_*.txt, numbers in prof_*.json.
 set -u

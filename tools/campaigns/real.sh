@@ -2,7 +2,7 @@
 # `jsgstools manifest SCENE --out SCENE/manifest.json --analyze` into .gpu3/<scene>): gsplat and JSGS with
 # the mcmc preset (300,000 Gaussians), test views evaluated against their JPEGs. JSGS trains at the paper's
 # weights (PAPER.json below, over the preset's JSGS recipe; PAPER=0: the recipe, `jsgs train`'s default).
-#   RUNS="jpeg_cup:gsplat:0 jpeg_cup:jsgs:1" bash scripts/gpu_run.sh bash docs/results/real/real.sh
+#   RUNS="jpeg_cup:gsplat:0 jpeg_cup:jsgs:1" bash scripts/gpu_run.sh bash tools/campaigns/real.sh
 # Each entry is scene:method[+effective]:gpu; ITERS sets the steps (default 10000), TL the seconds a run may
 # take (default 500): `timeout` stops a run with SIGTERM, which `jsgs train` answers with a checkpoint, and the
 # same command on the still-warm machine resumes it. Metrics, settings and the first test view's last render of
