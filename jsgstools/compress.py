@@ -48,6 +48,7 @@ import numpy as np
 from jsgs import __version__
 from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
+from jsgs.jpeg.tables import CHROMA_SAMPLINGS
 from jsgs.schemas import validate as schema_validate
 
 from .scene import (
@@ -61,8 +62,10 @@ from .scene import (
 
 QUALITIES: tuple[int, ...] = tuple(range(10, 100, 10))
 SCHEDULES = ("uniform", "gaussian", "descending", "fixed", "clean")
-#: --subsampling value -> (name, Pillow's ``subsampling`` argument)
-SUBSAMPLING = {"444": ("4:4:4", 0), "422": ("4:2:2", 1), "420": ("4:2:0", 2)}
+#: --subsampling value ("420" for "4:2:0") -> (name, Pillow's ``subsampling`` argument), what Pillow writes
+SUBSAMPLING = {
+    name.replace(":", ""): (name, s.pillow) for name, s in CHROMA_SAMPLINGS.items() if s.pillow is not None
+}
 #: What ``compress`` writes into DIR (and removes first with --force).
 OWNED = ("images", "reference", "sparse", "compress.json", "manifest.json")
 

@@ -15,12 +15,13 @@ integer, so the result is bit-exact on any device (no integer matmul is needed, 
 
 from __future__ import annotations
 
-import math
 from functools import cache
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from .tables import dct_basis
 
 CONST_BITS = 13
 PASS1_BITS = 2
@@ -46,23 +47,14 @@ FIX_3_072711026 = 25172
 
 
 @cache
-def _dct_matrix_np() -> np.ndarray:
-    k = np.arange(8)[:, None]
-    n = np.arange(8)[None, :]
-    d = np.cos((2 * n + 1) * k * math.pi / 16) * 0.5
-    d[0, :] = math.sqrt(1 / 8)
-    return d
-
-
-@cache
 def _dct_matrix_cached(dtype: torch.dtype, device: torch.device) -> Tensor:
     # Cached per device: building it from numpy every call would be a blocking host-to-device copy.
-    return torch.as_tensor(_dct_matrix_np(), dtype=dtype, device=device)
+    return torch.tensor(dct_basis(), dtype=dtype, device=device)
 
 
 def dct_matrix(dtype: torch.dtype = torch.float32, device: torch.device | str | None = None) -> Tensor:
     """The orthonormal 8x8 DCT-II matrix ``D`` (``D[k, n] = c_k cos((2n + 1) k pi / 16)``), ``D @ D.T =
-    I``."""
+    I``: :func:`jsgs.jpeg.tables.dct_basis` as a tensor."""
     return _dct_matrix_cached(dtype, torch.device(device if device is not None else "cpu"))
 
 

@@ -27,7 +27,7 @@ from functools import cache
 
 import numpy as np
 
-from jsgs.jpeg.tables import SAMPLING_FACTORS
+from jsgs.jpeg.tables import SAMPLING_FACTORS, dct_basis
 
 #: Plane noise variances are averaged over Y, Cb and Cr (as the table bound is).
 PLANES = 3
@@ -37,11 +37,9 @@ ROUNDING = 1.0 / 12.0
 
 @cache
 def _basis_t() -> np.ndarray:
-    k = np.arange(8)[:, None]
-    x = np.arange(8)[None, :]
-    c = np.cos((2 * x + 1) * k * np.pi / 16) * np.sqrt(2 / 8)
-    c[0] /= np.sqrt(2)
-    return np.ascontiguousarray(np.kron(c, c).T.astype(np.float32))
+    # (64, 64) float32: a flattened block (row-major y*8+x) times this gives its coefficients in natural order
+    d = dct_basis()
+    return np.ascontiguousarray(np.kron(d, d).T.astype(np.float32))
 
 
 def plane_dct(plane: np.ndarray) -> np.ndarray:

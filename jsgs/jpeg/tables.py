@@ -1,4 +1,5 @@
-"""IJG (libjpeg) quantization tables, quality scaling and its inverse.
+"""JPEG's constant tables: IJG (libjpeg) quantization tables, quality scaling and its inverse, the chroma
+sampling layouts and the 8x8 DCT basis (numpy only, so the toolkit reads them without torch).
 
 All tables are 8x8 in natural row-major order (entry [v, u]: v vertical, u horizontal frequency). The JPEG
 file stores them in zigzag order; ``ZIGZAG`` maps zigzag position k to the natural index.
@@ -6,13 +7,50 @@ file stores them in zigzag order; ``ZIGZAG`` maps zigzag position k to the natur
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
-#: chroma sampling name -> (h, v): luma-to-chroma ratio horizontally and vertically (the subsamplings the
-#: observation operator and the noise estimate handle).
-SAMPLING_FACTORS: dict[str, tuple[int, int]] = {"4:4:4": (1, 1), "4:2:2": (2, 1), "4:2:0": (2, 2)}
+
+@dataclass(frozen=True)
+class ChromaSampling:
+    """A chroma sampling layout: the luma-to-chroma ratio ``h`` horizontally and ``v`` vertically, Pillow's
+    ``subsampling=`` code where Pillow writes it, and whether the observation operator, DCT supervision and
+    the noise estimate handle it."""
+
+    h: int
+    v: int
+    pillow: int | None = None
+    observable: bool = False
+
+
+#: Every named chroma sampling of a three-component JPEG (the names ``jsgstools.dqt`` reports), the one table
+#: of them; the views below derive from it.
+CHROMA_SAMPLINGS: dict[str, ChromaSampling] = {
+    "4:4:4": ChromaSampling(1, 1, pillow=0, observable=True),
+    "4:2:2": ChromaSampling(2, 1, pillow=1, observable=True),
+    "4:2:0": ChromaSampling(2, 2, pillow=2, observable=True),
+    "4:4:0": ChromaSampling(1, 2),
+    "4:1:1": ChromaSampling(4, 1),
+}
+#: chroma sampling name -> (h, v), for the samplings the observation operator and the noise estimate handle.
+SAMPLING_FACTORS: dict[str, tuple[int, int]] = {
+    name: (s.h, s.v) for name, s in CHROMA_SAMPLINGS.items() if s.observable
+}
+
+
+@cache
+def dct_basis() -> np.ndarray:
+    """The orthonormal 8x8 DCT-II matrix ``D`` in float64 (``D[k, n] = c_k cos((2n + 1) k pi / 16)``, c_0 =
+    sqrt(1/8), c_k = 1/2), ``coef = D @ block @ D.T``; read-only, shared by every caller."""
+    k = np.arange(8)[:, None]
+    n = np.arange(8)[None, :]
+    d = np.cos((2 * n + 1) * k * math.pi / 16) * 0.5
+    d[0, :] = math.sqrt(1 / 8)
+    d.flags.writeable = False
+    return d
 
 # ITU-T T.81 Annex K, tables K.1 (luminance) and K.2 (chrominance), natural order.
 BASE_LUMA = np.array(

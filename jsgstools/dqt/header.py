@@ -10,9 +10,8 @@ from typing import Any
 import numpy as np
 
 from jsgs.errors import JsgsError
-from jsgs.jpeg.tables import QualityEstimate, estimate_quality, ijg_tables
+from jsgs.jpeg.tables import CHROMA_SAMPLINGS, QualityEstimate, estimate_quality, ijg_tables
 from jsgstools.dqt.cache import _CACHE_MAX, _ESTIMATE_CACHE
-from jsgstools.dqt.markers import _RATIO_NAMES
 
 # The result classes are plain slotted dataclasses (cheap to build: this is a hot path); treat them as
 # read-only. QuantTable is frozen and its array read-only because headers share them through a cache.
@@ -215,6 +214,10 @@ def _color_space(ids: Sequence[int], jfif: bool, adobe_transform: int | None) ->
     if n == 4:
         return "CMYK" if adobe_transform in (None, 0) else "YCCK"
     return "unknown"
+
+
+#: (luma-to-chroma h, v) -> sampling name
+_RATIO_NAMES = {(s.h, s.v): name for name, s in CHROMA_SAMPLINGS.items()}
 
 
 def sampling_name(factors: Sequence[tuple[int, int]], color_space: str) -> str:

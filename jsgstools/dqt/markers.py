@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import re
 
+from jsgs.jpeg.tables import CHROMA_SAMPLINGS
+
 #: named marker codes (the byte after 0xFF)
 SOI, EOI, SOS, DQT, DHT, DRI = 0xD8, 0xD9, 0xDA, 0xDB, 0xC4, 0xDD
 APP0, APP14, APP15 = 0xE0, 0xEE, 0xEF
@@ -65,8 +67,9 @@ _COMPONENT_NAMES = {
     "CMYK": ("C", "M", "Y", "K"),
     "YCCK": ("Y", "Cb", "Cr", "K"),
 }
-_RATIO_NAMES = {(1, 1): "4:4:4", (2, 1): "4:2:2", (2, 2): "4:2:0", (1, 2): "4:4:0", (4, 1): "4:1:1"}
-SAMPLING_NAMES = ("4:4:4", "4:2:2", "4:2:0", "4:4:0", "4:1:1", "gray", "other")
+#: Every sampling name a header can report: the named layouts of ``jsgs.jpeg.tables.CHROMA_SAMPLINGS``, then
+#: one component, then any other layout.
+SAMPLING_NAMES = (*CHROMA_SAMPLINGS, "gray", "other")
 
 TABLE_ORDER_NOTE = (
     "Quantization tables are 8x8 in natural row-major order: values[v][u], v = vertical frequency (row), "

@@ -47,11 +47,12 @@ from jsgs.images import read_rgb8, read_ycbcr8
 from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb
 from jsgs.jpeg.noise import block_steps, blockiness, jpeg_noise_variance, plane_dct
 from jsgs.jpeg.rounding import round_half_away
+from jsgs.jpeg.tables import CHROMA_SAMPLINGS
 from jsgs.manifest import load_manifest
 from jsgs.metrics.lpips import lpips
 from jsgs.metrics.psnr import psnr
 
-PILLOW_SUBSAMPLING = {"4:4:4": 0, "4:2:2": 1, "4:2:0": 2}
+PILLOW_SUBSAMPLING = {name: s.pillow for name, s in CHROMA_SAMPLINGS.items() if s.pillow is not None}
 IMAGES = ("jpeg", "luma", "chroma", "sub")
 
 
