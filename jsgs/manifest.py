@@ -47,6 +47,9 @@ class JpegState:
     noise_variance: float | None = None
     #: the analysis's blockiness of the view's decoded luma (jsgs.jpeg.noise.blockiness), when recorded
     blockiness: float | None = None
+    #: SHA-256 of the file's decoding header segments (jsgs.jpeg.header_digest) when the manifest was
+    #: written; None in manifests written before it was recorded
+    header_sha256: str | None = None
 
 
 @dataclass(frozen=True)
@@ -216,6 +219,7 @@ def _jpeg(d: dict[str, Any] | None) -> JpegState | None:
         precision=int(d["precision"]),
         frame=d.get("frame"),
         color_space=d.get("color_space"),
+        header_sha256=d.get("header_sha256"),
         **_analysis(d.get("analysis")),
     )
 

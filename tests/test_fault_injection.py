@@ -200,3 +200,144 @@ def test_sigterm_is_one_line_and_leaves_nothing_running(synth_scene: Path, tmp_p
     assert _wait_for(lambda: not _processes_naming(str(out)), 10), "orphaned processes remain"
     assert not _half_written(out)
     assert not (out / "manifest.json").exists()
+
+
+# ---------------------------------------------------------------------------------------------------------
+# training state: checkpoints, resume, the JPEG files, a model that turns non-finite
+
+FAST_TRAIN = ["--device", "cpu", "--quiet", "--preset", "paper"]
+
+
+@pytest.fixture(scope="module")
+def stopped_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(the manifest of a tiny scene, a run on it stopped after 2 of 4 steps with a checkpoint)."""
+    from _train_scene import make_scene
+
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.trainer import train
+
+    root = tmp_path_factory.mktemp("stopped")
+    manifest = make_scene(root / "scene")
+    cfg = TrainConfig(iterations=4, eval_at=[4], device="cpu")
+    cfg.eval.fps_passes, cfg.eval.fps_warmup = 1, 0
+    train(manifest, root / "run", cfg, stop_at=2, progress=False, log=lambda s: None)
+    return manifest, root / "run"
+
+
+def _ckpt_edit(fn: Callable[[dict], None]) -> Callable[[Path], None]:
+    def edit(run: Path) -> None:
+        import torch
+
+        path = run / "checkpoints" / "step_000002.pt"
+        doc = torch.load(path, weights_only=True)
+        fn(doc)
+        torch.save(doc, path)
+
+    return edit
+
+
+def _config_edit(fn: Callable[[dict], None]) -> Callable[[Path], None]:
+    def edit(run: Path) -> None:
+        doc = json.loads((run / "config.json").read_text())
+        fn(doc)
+        (run / "config.json").write_text(json.dumps(doc))
+
+    return edit
+
+
+def _nan_means(d: dict) -> None:
+    d["splats"]["means"][0, 0] = float("nan")
+
+
+def _rename(run: Path) -> None:
+    (run / "checkpoints" / "step_000002.pt").rename(run / "checkpoints" / "step_000003.pt")
+
+
+RESUME_CASES: list[tuple[str, Callable[[Path], None], str]] = [
+    ("NaN parameter", _ckpt_edit(_nan_means),
+     r"step_000002.pt: not a usable checkpoint \(at splats.means: non-finite"),
+    ("missing key", _ckpt_edit(lambda d: d.pop("rng")),
+     r"step_000002.pt: not a usable checkpoint \(at rng: missing"),
+    ("wrong shape", _ckpt_edit(lambda d: d["splats"].update(quats=d["splats"]["quats"][:, :3])),
+     r"at splats.quats: shape \(\d+, 3\), expected \(N, 4\)"),
+    ("wrong dtype", _ckpt_edit(lambda d: d["splats"].update(means=d["splats"]["means"].double())),
+     "at splats.means: dtype float64, expected float32"),
+    ("negative step", _ckpt_edit(lambda d: d.update(step=-1)), "at step: -1 is not a non-negative integer"),
+    ("Inf Adam state",
+     _ckpt_edit(lambda d: d["optimizers"]["sh0"]["state"][0]["exp_avg"].fill_(float("inf"))),
+     r"at optimizers.sh0.state\[0\].exp_avg: non-finite"),
+    ("renamed", _rename, "at step: 2 but the file is named for step 3"),
+    ("another scene", _ckpt_edit(lambda d: d.update(manifest_sha256="0" * 64)),
+     "written for another manifest than the one .*config.json names"),
+    ("config.json edited", _config_edit(lambda d: d["settings"].update(seed=7)),
+     r"written with other settings than .*config.json .*: seed \(7 in config.json, 42 in the checkpoint\)"),
+    ("iterations below the step", _config_edit(lambda d: d["settings"].update(iterations=1, eval_at=[1])),
+     r"other settings .*: eval_at \(\[1\] in config.json, \[4\] in the checkpoint\)"),
+    ("truncated", lambda run: _truncate(run / "checkpoints" / "step_000002.pt"),
+     "step_000002.pt: not a readable checkpoint"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("name", "edit", "needle"), RESUME_CASES, ids=[c[0] for c in RESUME_CASES])
+def test_resume_uses_only_a_checkpoint_it_can_check(
+    stopped_run: tuple[Path, Path], tmp_path: Path, name: str, edit: Callable[[Path], None], needle: str
+) -> None:
+    import re
+
+    manifest, run = stopped_run
+    mine = tmp_path / "run"
+    shutil.copytree(run, mine)
+    edit(mine)
+    before = _tree(mine)
+    r = CliRunner().invoke(jsgs_main, ["train", str(manifest), "--out", str(mine), "--resume", "--quiet"])
+    _check_one_line(r.output, r.exit_code)
+    assert re.search(needle, r.output), r.output
+    assert _tree(mine) == before, "a refused resume changes nothing"
+
+
+def test_resume_with_fewer_iterations_than_done_is_one_line(stopped_run: tuple[Path, Path]) -> None:
+    manifest, run = stopped_run
+    args = ["train", str(manifest), "--out", str(run), "--resume", "--iterations", "1", "--eval-at", "1"]
+    r = CliRunner().invoke(jsgs_main, args)
+    _check_one_line(r.output, r.exit_code)
+    assert "differs: eval_at" in r.output or "differs: iterations" in r.output
+
+
+def test_a_jpeg_saved_again_after_its_manifest_is_named(compressed_scene: Path, tmp_path: Path) -> None:
+    """The manifest records each JPEG's header digest; a file saved again with other tables is refused by
+    name before training. A manifest without digests (an older one) trains, with a note saying so."""
+    scene = tmp_path / "data"
+    shutil.copytree(compressed_scene, scene)
+    doc = json.loads((scene / "manifest.json").read_text())
+    view = next(v for v in doc["views"] if v["jpeg"] is not None and v["split"] == "train")
+    assert len(view["jpeg"]["header_sha256"]) == 64
+    jpeg = scene / view["image"]
+    Image.open(jpeg).convert("RGB").save(jpeg, quality=view["jpeg"]["quality"] % 97 + 2)
+    args = ["train", str(scene), "--iterations", "1", "--eval-at", "", *FAST_TRAIN]
+    r = CliRunner().invoke(jsgs_main, [*args, "--out", str(tmp_path / "run")])
+    _check_one_line(r.output, r.exit_code)
+    assert f"{jpeg}: changed since" in r.output and "write the manifest again" in r.output, r.output
+    for v in doc["views"]:
+        if v["jpeg"] is not None:
+            del v["jpeg"]["header_sha256"]
+    (scene / "manifest.json").write_text(json.dumps(doc))
+    r = CliRunner().invoke(jsgs_main, [*args, "--out", str(tmp_path / "old")])
+    assert r.exit_code == 0, r.output
+    assert "have no header digest in the manifest" in r.output
+
+
+def test_a_model_that_turns_non_finite_stops_with_one_line(tmp_path: Path) -> None:
+    """A view's pose at 1e308: the reader refuses it, or training stops at the first non-finite parameter;
+    either way one line, and never a run that says complete without its model."""
+    from _train_scene import edit_manifest, make_scene
+
+    manifest = make_scene(tmp_path / "scene")
+    edit_manifest(manifest, lambda d: d["views"][1].update(t=[1e308, 0.0, 0.0]))
+    run = tmp_path / "run"
+    r = CliRunner().invoke(jsgs_main, ["train", str(manifest), "--out", str(run), "--iterations", "4",
+                                       "--eval-at", "2,4", *FAST_TRAIN])  # fmt: skip
+    _check_one_line(r.output, r.exit_code)
+    assert not (run / "point_cloud.ply").exists()
+    if (run / "metrics.json").exists():
+        m = json.loads((run / "metrics.json").read_text())
+        assert m["status"] == "diverged" and "became non-finite" in m["error"], m

@@ -213,7 +213,8 @@ def train_command(
         if doc.get("reference") in ("jpeg", "mixed"):
             summary += " (test views against their JPEGs: no lossless copy)"
     click.echo(summary)
-    click.echo(f"outputs in {out}/ (metrics.json, config.json, point_cloud.ply, renders/, checkpoints/)")
+    names = ("metrics.json", "config.json", "point_cloud.ply", "renders/", "checkpoints/")
+    click.echo(f"outputs in {out}/ ({', '.join(n for n in names if (out / n.rstrip('/')).exists())})")
 
 
 def register(group: click.Group) -> None:

@@ -11,7 +11,7 @@ order:
 - ``on_checkpoint(trainer, step)``: at a checkpoint point after ``step`` steps (evaluation steps, the end,
   ``checkpoint_every``), after the evaluation of that step;
 - ``on_end(trainer, doc)``: when the run ends, with the final metrics document (``status`` complete,
-  stopped or diverged), or None when an unexpected error stopped it.
+  stopped, diverged or failed), or None when an unexpected error stopped it.
 
 The standard ones: :class:`ProgressBar`, :class:`StepProfiler`, :class:`CheckpointSaver`,
 :class:`MetricsWriter` (:func:`jsgs.train.trainer.train` installs them in that order).

@@ -8,6 +8,7 @@ error, and so is a camera with lens distortion (undistorting would resample a JP
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,7 @@ import torch
 from torch import Tensor
 
 from jsgs.errors import JsgsError
-from jsgs.manifest import JpegState
+from jsgs.manifest import JpegState, ManifestView
 from jsgs.train.config import TrainConfig
 from jsgs.train.normalize import camera_extent, normalize_world
 
@@ -171,6 +172,7 @@ def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
                 distortion=coeffs,
             )
         )
+    notes += _check_jpeg_headers(manifest.views, where)
     xyz = np.asarray(manifest.points_xyz, dtype=np.float64).reshape(-1, 3)
     rgb = np.asarray(manifest.points_rgb, dtype=np.uint8).reshape(-1, 3)
 
@@ -223,6 +225,34 @@ def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
         scene_scale=scene_scale,
         notes=notes,
     )
+
+
+def _check_jpeg_headers(views: Sequence[ManifestView], where: str) -> list[str]:
+    """The JPEG state the trainer uses is the manifest's: refuse (one line naming the file) a JPEG whose
+    header is no longer the one the manifest recorded (``jpeg.header_sha256``;
+    :mod:`jsgs.jpeg.header_digest`). A manifest that records no digests (written before they existed)
+    trains unchecked: returns a note."""
+    from jsgs.jpeg.header_digest import header_digest
+
+    jpegs = [v for v in views if v.jpeg is not None]
+    unchecked = 0
+    for v in jpegs:
+        assert v.jpeg is not None
+        if v.jpeg.header_sha256 is None:
+            unchecked += 1
+        elif header_digest(v.image) != v.jpeg.header_sha256:
+            raise JsgsError(
+                f"{v.image}: changed since {where} was written (its JPEG header, i.e. tables, sampling or "
+                f"frame, is not the one recorded for view {v.name!r}); write the manifest again (jsgstools "
+                "manifest) so that training uses the file's own JPEG state"
+            )
+    if not unchecked:
+        return []
+    return [
+        f"{unchecked} of {len(jpegs)} JPEG views have no header digest in the manifest (written by an older "
+        "jsgstools): those files are not checked for changes since; write the manifest again to have them "
+        "checked"
+    ]
 
 
 def load_image(path: Path, width: int, height: int, what: str) -> Tensor:

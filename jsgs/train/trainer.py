@@ -72,7 +72,16 @@ RUN_ENTRIES = (
 
 
 class TrainingDiverged(JsgsError):
-    """A loss term or a gradient became NaN/Inf. The message names it and the iteration."""
+    """A parameter, a loss term or a gradient became NaN/Inf. The message names it and the iteration;
+    ``step`` is the number of steps completed before the one that failed (metrics.json ``step``)."""
+
+    def __init__(self, message: str, step: int | None = None) -> None:
+        super().__init__(message)
+        self.step = step
+
+
+class RunFailed(JsgsError):
+    """An error after the training steps (writing the model) ended the run: metrics.json says ``failed``."""
 
 
 class TrainingInterrupted(JsgsError):
@@ -176,17 +185,46 @@ def _seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def _diff_settings(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> str | None:
-    """The first dotted key whose value differs between two settings dicts."""
+def _diff_settings(
+    a: dict[str, Any], b: dict[str, Any], prefix: str = "", labels: tuple[str, str] = ("in the run", "now")
+) -> str | None:
+    """The first dotted key whose value differs between two settings dicts (``labels``: where each is)."""
     for k in sorted(set(a) | set(b)):
         va, vb = a.get(k), b.get(k)
         if isinstance(va, dict) and isinstance(vb, dict) and k != "method_options":
-            d = _diff_settings(va, vb, prefix + k + ".")
+            d = _diff_settings(va, vb, prefix + k + ".", labels)
             if d:
                 return d
         elif va != vb:
-            return f"{prefix}{k} ({va!r} in the run, {vb!r} now)"
+            text = f"{prefix}{k} ({va!r} {labels[0]}, {vb!r} {labels[1]})"
+            return text if len(text) <= 300 else text[:297] + "..."
     return None
+
+
+def _checkpoint_agrees(doc: dict[str, Any], path: Path, paths: RunPaths, cfg: TrainConfig) -> None:
+    """A checkpoint is used only where it belongs to RUN as it is now: the settings of RUN/config.json, the
+    manifest that config.json names, a step within the run's iterations. One line says what differs and how
+    to go on otherwise."""
+    from jsgs.train.config import from_dict
+
+    start_over = "move it out of the way to resume from the checkpoint before it, or start over with --force"
+    run_sha = json_load(paths.config).get("manifest", {}).get("sha256")
+    if doc["manifest_sha256"] != run_sha:
+        raise JsgsError(
+            f"{path}: written for another manifest than the one {paths.config} names (its manifest hash "
+            f"differs); {start_over}"
+        )
+    mine = to_dict(from_dict(doc["settings"], str(path)))
+    d = _diff_settings(to_dict(cfg), mine, labels=(f"in {paths.config.name}", "in the checkpoint"))
+    if d:
+        raise JsgsError(
+            f"{path}: written with other settings than {paths.config} (edited after the checkpoint?): {d}; "
+            f"restore config.json, or start over with --force"
+        )
+    if doc["step"] > cfg.iterations:
+        raise JsgsError(
+            f"{path}: at step {doc['step']}, beyond the run's {cfg.iterations} iterations; {start_over}"
+        )
 
 
 def _check_out(paths: RunPaths, resume: bool, force: bool) -> None:
@@ -248,23 +286,58 @@ def _finite_check(
     values: list[float],
     grad_names: list[str],
     grad_norms: list[float],
+    param_norms: list[float],
     last_ckpt: str,
 ) -> None:
-    """TrainingDiverged at the first non-finite loss term, or gradient (``grad_norms``: each gradient's L1
-    norm, NaN or Inf where the gradient holds such a value, or where its magnitudes overflow float32)."""
+    """TrainingDiverged at the first non-finite parameter (``param_norms``: each parameter's L1 norm as it
+    entered step ``step``, i.e. as step ``step - 1`` and the densification after it left it), loss term or
+    gradient (``grad_norms``: each gradient's L1 norm). An L1 norm is NaN or Inf where the tensor holds
+    such a value, or where its magnitudes sum beyond float32's range."""
+    for n, v in zip(PARAM_NAMES, param_norms, strict=True):
+        if not math.isfinite(v):
+            raise TrainingDiverged(_param_message(step, n, last_ckpt), step - 1)
     for n, v in zip(names, values, strict=True):
         if not math.isfinite(v):
             kind = "NaN" if math.isnan(v) else "Inf"
             raise TrainingDiverged(
                 f"iteration {step + 1}: loss term {n!r} is {kind}; training stopped (last good checkpoint: "
-                f"{last_ckpt})"
+                f"{last_ckpt})",
+                step,
             )
     for n, v in zip(grad_names, grad_norms, strict=True):
         if not math.isfinite(v):
             raise TrainingDiverged(
                 f"iteration {step + 1}: the gradient of {n!r} is not finite (NaN/Inf values, or beyond "
-                f"float32's range; loss terms finite); training stopped (last good checkpoint: {last_ckpt})"
+                f"float32's range; loss terms finite); training stopped (last good checkpoint: {last_ckpt})",
+                step,
             )
+
+
+def _param_message(iteration: int, name: str, last_ckpt: str) -> str:
+    return (
+        f"iteration {iteration}: parameter {name!r} became non-finite (NaN/Inf values, or magnitudes beyond "
+        f"float32's range); training stopped (last good checkpoint: {last_ckpt})"
+    )
+
+
+def param_norms(splats: torch.nn.ParameterDict) -> list[Tensor]:
+    """Each parameter's L1 norm (PARAM_NAMES order), on the device: one fused multi-tensor reduction."""
+    with torch.no_grad():
+        return list(torch._foreach_norm([splats[n] for n in PARAM_NAMES], 1))
+
+
+def first_nonfinite_param(splats: torch.nn.ParameterDict) -> str | None:
+    """The name of the first parameter holding NaN/Inf (or magnitudes summing beyond float32), else None
+    (one host sync: for checkpoint points and the start, not every step)."""
+    values = torch.stack(param_norms(splats)).tolist()
+    return next((n for n, v in zip(PARAM_NAMES, values, strict=True) if not math.isfinite(v)), None)
+
+
+def check_params_finite(splats: torch.nn.ParameterDict, iteration: int, last_ckpt: str) -> None:
+    """TrainingDiverged naming the first non-finite parameter after ``iteration`` steps."""
+    bad = first_nonfinite_param(splats)
+    if bad is not None:
+        raise TrainingDiverged(_param_message(iteration, bad, last_ckpt), max(iteration - 1, 0))
 
 
 def _stat_tensor(value: Any, device: torch.device) -> torch.Tensor:
@@ -397,6 +470,7 @@ class Trainer:
         self.empty_views: set[str] = set()
         self.interrupted: str | None = None
         self.last_checkpoint = "none"
+        self.lock: OutputLock | None = None
         self._clock = 0.0
 
     # -- events ---------------------------------------------------------------------------------------
@@ -423,13 +497,7 @@ class Trainer:
                         f"{paths.root}: --resume continues the run with its own settings; differs: {d}"
                     )
             cfg = stored
-            found = ckpt.list_checkpoints(paths.checkpoints)
-            if not found:
-                raise JsgsError(
-                    f"{paths.checkpoints}: no checkpoint to resume from; start the run again with --force"
-                )
-            start_ckpt = ckpt.load_checkpoint(found[-1][1])
-            start_ckpt["_path"] = str(found[-1][1])
+            start_ckpt = self.read_checkpoint(cfg)
         cfg = cfg if cfg is not None else TrainConfig()
         cfg.check()
         self.cfg = cfg
@@ -500,14 +568,15 @@ class Trainer:
             self.splats = init_splats(
                 points, colors, cfg, scene.scene_scale, device, max_points=self.strategy.cap_max
             )
+            bad = first_nonfinite_param(self.splats)
+            if bad is not None:
+                raise JsgsError(
+                    f"{scene.manifest_path}: the initial Gaussians' {bad!r} are not finite (the points or "
+                    "the cameras, after world normalisation, lie beyond float32's range)"
+                )
+            self.build_optimization()
         else:
-            self.splats = splats_from_state(start_ckpt["splats"], device)
-        self.optimizers = make_optimizers(self.splats, cfg, scene.scene_scale)
-        self.scheduler = make_means_scheduler(self.optimizers["means"], cfg)
-        self.strategy.check_sanity(self.splats, self.optimizers)
-        self.strategy_state = self.strategy.initialize_state(scene_scale=scene.scene_scale)
-        if start_ckpt is not None:
-            self.resume(start_ckpt)
+            self.restore(start_ckpt)
 
         derived = {
             "device": str(device),
@@ -572,6 +641,66 @@ class Trainer:
         ckpt.save_checkpoint(path, self.checkpoint_state(step_done))
         self.last_checkpoint = str(path)
         return str(path)
+
+    def build_optimization(self) -> None:
+        """The optimizers, the means' scheduler and the strategy's state, fresh, for ``self.splats``."""
+        cfg = self.cfg
+        assert cfg is not None
+        self.optimizers = make_optimizers(self.splats, cfg, self.scene.scene_scale)
+        self.scheduler = make_means_scheduler(self.optimizers["means"], cfg)
+        self.strategy.check_sanity(self.splats, self.optimizers)
+        self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene.scene_scale)
+
+    def read_checkpoint(self, cfg: TrainConfig) -> dict[str, Any]:
+        """The last checkpoint in RUN/checkpoints, read and checked against the run folder (its structure,
+        its step, the settings of config.json, the manifest config.json names); ``_path``: the file."""
+        found = ckpt.list_checkpoints(self.paths.checkpoints)
+        if not found:
+            raise JsgsError(
+                f"{self.paths.checkpoints}: no checkpoint to resume from; start the run again with --force"
+            )
+        ckpt_step, ckpt_path = found[-1]
+        doc = ckpt.load_checkpoint(ckpt_path)
+        ckpt.check_structure(doc, ckpt_path, ckpt_step)
+        _checkpoint_agrees(doc, ckpt_path, self.paths, cfg)
+        doc["_path"] = str(ckpt_path)
+        return doc
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """The Gaussians, optimizers, scheduler, strategy and everything :meth:`resume` sets, from a
+        checkpoint read by :meth:`read_checkpoint`, each part checked against this run before it is used (one
+        line naming the file and the key otherwise)."""
+        cfg = self.cfg
+        assert cfg is not None
+        path = Path(state["_path"])
+        ckpt.check_splats(state, path, (cfg.render.sh_degree + 1) ** 2 - 1)
+        self.splats = splats_from_state(state["splats"], self.device)
+        self.build_optimization()
+        self._check_checkpoint_state(state)
+        try:
+            self.resume(state)
+        except JsgsError:
+            raise
+        except Exception as e:  # a defect the checks do not know of: still one line naming the file
+            raise ckpt.unusable(path, e) from None
+
+    def _check_checkpoint_state(self, state: dict[str, Any]) -> None:
+        """The checkpoint's optimizer, scheduler, strategy, generator, sampler, log and evaluation states
+        against this run's fresh ones (:func:`jsgs.train.checkpoint.check_state`)."""
+        from jsgs.schemas import load_schema
+
+        metrics = load_schema("metrics")
+        ckpt.check_state(
+            state,
+            Path(state["_path"]),
+            optimizers={n: o.state_dict() for n, o in self.optimizers.items()},
+            scheduler=self.scheduler.state_dict(),
+            strategy=self.strategy_state,
+            rng=ckpt.rng_state(),
+            sampler=self.sampler.state_dict(),
+            num_views=len(self.train_views),
+            eval_schema={"type": "array", "items": {"$ref": "#/$defs/eval"}, "$defs": metrics["$defs"]},
+        )
 
     def resume(self, state: dict[str, Any]) -> None:
         """Continue from a checkpoint (:meth:`checkpoint_state`; ``_path``: the file it was read from):
@@ -669,18 +798,27 @@ class Trainer:
         else:
             with profiler.phase("backward"):
                 loss.backward()
-        # every logged value and each gradient's L1 norm (NaN/Inf wherever a value is), packed on the device
-        # and read in one host sync per step, *after* the optimizer's kernels are queued: the host issues the
-        # update while the device finishes the backward. A non-finite step has then updated the Gaussians in
-        # memory, which nothing keeps: the run stops here and its checkpoints hold the last good state.
+        # every logged value, each gradient's L1 norm and each parameter's L1 norm (NaN/Inf wherever a value
+        # is), packed on the device and read in one host sync per step, *after* the optimizer's kernels are
+        # queued: the host issues the update while the device finishes the backward. A non-finite step has
+        # then updated the Gaussians in memory, which nothing keeps: the run stops here and its checkpoints
+        # hold the last good state. The parameters are the ones this step started from (what the previous
+        # step's update and densification left); the state after the last step is checked at each
+        # checkpoint point (check_params_finite). Gradients and parameters go through ONE _foreach_norm (a
+        # fused multi-tensor reduction: on CUDA one kernel launch over all twelve tensors, reading each value
+        # once, as the optimizer's own step does) and the same stack and host read as before: no extra sync,
+        # no extra launch per parameter.
         names = list(terms)
         grad_names = [n for n in PARAM_NAMES if splats[n].grad is not None]
-        grad_norms = torch._foreach_norm([splats[n].grad for n in grad_names], 1) if grad_names else []
+        with torch.no_grad():
+            norms = torch._foreach_norm(
+                [*(splats[n].grad for n in grad_names), *(splats[n] for n in PARAM_NAMES)], 1
+            )
         packed = torch.stack(
             [loss.detach().float()]
             + [terms[n].detach().float().reshape(()) for n in names]
             + [_stat_tensor(stats[k], device) for k in stats]
-            + [g.float() for g in grad_norms]
+            + list(norms)
         )
         with profiler.phase("optimizer"):
             for o in optimizers.values():
@@ -693,8 +831,11 @@ class Trainer:
         # the backward (JSGS's deferred L_fro), which the pre-backward total cannot include.
         loss_v = packed_vals[0] if hook is None else _weighted_sum(names, term_v, weights)
         stat_v = packed_vals[1 + len(names) : 1 + len(names) + len(stats)]
-        grad_v = packed_vals[1 + len(names) + len(stats) :]
-        _finite_check(step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_v, self.last_checkpoint)
+        norm_v = packed_vals[1 + len(names) + len(stats) :]
+        grad_v, param_v = norm_v[: len(grad_names)], norm_v[len(grad_names) :]
+        _finite_check(
+            step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_v, param_v, self.last_checkpoint
+        )
         with profiler.phase("densify"):
             if not empty:  # the strategies read the screen-space gradients this step does not have
                 strategy.step_post_backward(
@@ -771,11 +912,11 @@ class Trainer:
         )
 
     def status_at(self, step_done: int) -> str:
-        """metrics.json ``status`` after ``step_done`` steps."""
+        """metrics.json ``status`` after ``step_done`` steps: ``complete`` only once the model is written
+        (:meth:`train` writes it after the last step's checkpoint), so the last checkpoint point says
+        ``running``."""
         assert self.cfg is not None
-        if step_done == self.cfg.iterations:
-            return "complete"
-        return "stopped" if step_done == self.end_step else "running"
+        return "stopped" if step_done == self.end_step < self.cfg.iterations else "running"
 
     def metrics_doc(self, status: str, step: int, error: str | None = None) -> dict[str, Any]:
         """The metrics document (``jsgs/schemas/metrics.schema.json``) of the run so far."""
@@ -816,15 +957,51 @@ class Trainer:
 
     def train(self) -> dict[str, Any]:
         """Set up, run the steps up to ``stop_at`` (or the end) with evaluations and checkpoints, write the
-        PLY at the end of the run; returns the final metrics document (callbacks: ``on_end`` with it)."""
-        self.setup()
+        PLY at the end of the run; returns the final metrics document (callbacks: ``on_end`` with it). The
+        output lock is held until the last file is written, and let go however the run ends."""
+        try:
+            self.setup()
+            return self._run()
+        finally:
+            if self.lock is not None:
+                self.lock.release()
+
+    def _finish(self, step: int) -> dict[str, Any]:
+        """Write the model after ``step`` = iterations steps, then metrics.json ``complete``; a model that
+        cannot be written ends the run ``failed`` (RunFailed), never ``complete`` without its PLY."""
+        try:
+            self.export_ply()
+        except Exception as e:
+            from jsgs.errors import one_line
+
+            why = str(e) if isinstance(e, JsgsError) else one_line(e)
+            message = f"{self.paths.ply}: the model could not be written ({why}); the run is not complete"
+            self._end_quietly(self.metrics_doc("failed", step, message))
+            raise RunFailed(message) from None
+        doc = self.metrics_doc("complete", step)
+        self.fire("on_end", doc)
+        return doc
+
+    def _end_quietly(self, doc: dict[str, Any]) -> None:
+        """``on_end`` for a run that is failing already: a second error (a full disk) does not hide the
+        first."""
+        try:
+            self.fire("on_end", doc)
+        except JsgsError:
+            pass
+
+    def _run(self) -> dict[str, Any]:
         cfg = self.cfg
         assert cfg is not None
         if self.start_step >= cfg.iterations:
-            self.say(f"{self.paths.root}: the run is already complete ({cfg.iterations} iterations)")
-            doc = self.metrics_doc("complete", self.start_step)
-            self.fire("on_end", doc)
-            return doc
+            if self._complete_on_disk():
+                self.say(f"{self.paths.root}: the run is already complete ({cfg.iterations} iterations)")
+                doc = self.metrics_doc("complete", self.start_step)
+                self.fire("on_end", doc)
+                return doc
+            # every step ran but the model was not written (a crash or an error after the last checkpoint)
+            self.say(f"{self.paths.root}: every step has run; writing the model")
+            return self._finish(self.start_step)
         self._clock = time.perf_counter()
         step = self.start_step
         restore = self._catch_signals()
@@ -835,6 +1012,9 @@ class Trainer:
                 self.fire("on_step_end", result)
                 done = step + 1
                 if self.checkpoint_due(done) or self.interrupted is not None:
+                    # the state after this step (the step checks the state it starts from): no checkpoint,
+                    # evaluation or model of non-finite Gaussians
+                    check_params_finite(self.splats, done, self.last_checkpoint)
                     synchronize(self.device)
                     self.train_time += time.perf_counter() - self._clock
                     if done in self.eval_steps:
@@ -848,21 +1028,33 @@ class Trainer:
                     )
                     self.fire("on_end", self.metrics_doc("stopped", done, message))
                     raise TrainingInterrupted(message)
-        except (TrainingDiverged, TrainingInterrupted) as e:
-            if isinstance(e, TrainingDiverged):
-                self.fire("on_end", self.metrics_doc("diverged", step, str(e)))
+        except TrainingDiverged as e:
+            self._end_quietly(self.metrics_doc("diverged", step if e.step is None else e.step, str(e)))
+            raise
+        except TrainingInterrupted:
+            raise
+        except JsgsError as e:  # e.g. a checkpoint that cannot be written
+            self._end_quietly(self.metrics_doc("failed", step, str(e)))
             raise
         except BaseException:
             self.fire("on_end", None)
             raise
         finally:
             restore()
-            self.lock.release()
-        doc = self.metrics_doc(self.status_at(self.end_step), self.end_step)
         if self.end_step == cfg.iterations:
-            self.export_ply()
+            return self._finish(self.end_step)
+        doc = self.metrics_doc(self.status_at(self.end_step), self.end_step)
         self.fire("on_end", doc)
         return doc
+
+    def _complete_on_disk(self) -> bool:
+        """Whether RUN holds the model and metrics.json says ``complete``."""
+        if not self.paths.ply.is_file():
+            return False
+        try:
+            return json.loads(self.paths.metrics.read_text()).get("status") == "complete"
+        except (OSError, ValueError, AttributeError):
+            return False
 
 
 def train(

@@ -19,6 +19,7 @@ from click.testing import CliRunner
 from PIL import Image
 
 from jsgs.errors import JsgsError
+from jsgs.jpeg.header_digest import header_digest
 from jsgs.manifest import load_manifest, validate_document
 from jsgstools.cli import main
 from jsgstools.manifest_writer import build_manifest, manifest, write_manifest
@@ -58,6 +59,7 @@ def test_round_trip_of_a_compressed_scene(compressed_scene: Path) -> None:
             state = read_header(v.image).manifest_state()
             assert np.array_equal(v.jpeg.luma_table, state["luma_table"])
             assert np.array_equal(v.jpeg.chroma_table, state["chroma_table"])
+            assert v.jpeg.header_sha256 == header_digest(v.image)
     xyz = np.array([rec.points3D[p].xyz for p in sorted(rec.points3D)])
     rgb = np.array([rec.points3D[p].color for p in sorted(rec.points3D)])
     assert np.array_equal(m.points_xyz, xyz) and np.array_equal(m.points_rgb, rgb)

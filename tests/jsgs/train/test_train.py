@@ -403,6 +403,68 @@ def test_a_non_finite_gradient_stops_the_run(scene: Path, tmp_path: Path, bad: f
     assert all(torch.isfinite(t).all() for t in good["splats"].values())
 
 
+def _poison(at_step: int, name: str) -> Any:
+    """A callback that puts one NaN into parameter ``name`` after 0-based step ``at_step`` (what an update
+    gone wrong leaves), the way nothing in the loss or the gradients shows."""
+    from jsgs.train.callbacks import Callback
+
+    class Poison(Callback):
+        def on_step_end(self, trainer: Any, result: Any) -> None:
+            if result.step == at_step:
+                with torch.no_grad():
+                    trainer.splats[name].view(-1)[0] = float("nan")
+
+    return Poison()
+
+
+@pytest.mark.parametrize(("at_step", "name"), [(4, "scales"), (9, "quats")])
+def test_a_parameter_that_turns_non_finite_stops_the_run(
+    scene: Path, tmp_path: Path, at_step: int, name: str
+) -> None:
+    """Checked on the step's own host sync (the parameters each step starts from) and at each checkpoint
+    point (the state after the last step): the run stops at the iteration that made them, names the
+    parameter, keeps the last good checkpoint, writes no checkpoint or model of the broken state, and says
+    diverged; the last step (9, 0-based) included."""
+    run = tmp_path / "run"
+    it = at_step + 1
+    with pytest.raises(TrainingDiverged, match=rf"iteration {it}: parameter '{name}' became non-finite.*"
+                                               r"step_000003\.pt"):  # fmt: skip
+        train(scene, run, tiny_config(iterations=10, eval_at=[3, 10]), progress=False,
+              callbacks=[_poison(at_step, name)])  # fmt: skip
+    assert [s for s, _ in ckpt.list_checkpoints(run / "checkpoints")] == [3]
+    assert not (run / "point_cloud.ply").exists()
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["status"] == "diverged" and m["step"] == at_step and name in m["error"]
+
+
+def test_no_run_is_complete_without_its_model(
+    scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A model that cannot be written ends the run failed, with its checkpoint; --resume then writes it."""
+    from jsgs.train.trainer import RunFailed, Trainer
+
+    run = tmp_path / "run"
+
+    def full_disk(self: Trainer) -> None:
+        raise JsgsError(f"{self.paths.ply}: cannot write (No space left on device)")
+
+    with monkeypatch.context() as m:
+        m.setattr(Trainer, "export_ply", full_disk)
+        with pytest.raises(RunFailed, match=r"point_cloud.ply: the model could not be written .*No space"):
+            train(scene, run, tiny_config(iterations=3, eval_at=[3]), progress=False)
+    doc = json.loads((run / "metrics.json").read_text())
+    assert doc["status"] == "failed" and doc["step"] == 3 and "No space" in doc["error"]
+    assert not (run / "point_cloud.ply").exists() and (run / "checkpoints" / "step_000003.pt").is_file()
+    lines: list[str] = []
+    doc = train(scene, run, None, resume=True, progress=False, log=lines.append)
+    assert doc["status"] == "complete" and (run / "point_cloud.ply").is_file()
+    assert any("writing the model" in s for s in lines)
+    assert json.loads((run / "metrics.json").read_text())["status"] == "complete"
+    lines.clear()
+    train(scene, run, None, resume=True, progress=False, log=lines.append)
+    assert any("already complete" in s for s in lines)
+
+
 class ExtraTerms(LossHook):
     """A JSGS-like hook: one weighted term, an extra rasterised channel, a statistic."""
 
