@@ -159,10 +159,11 @@ def scaled_K(K: np.ndarray, width: int, height: int, new_width: int, new_height:
 def read_path(path: Path, frames: int, K: np.ndarray, width: int, height: int) -> CameraPath:
     """A camera path JSON written by ``jsgs render`` (taken as it is), or ``viewer_cameras.json`` (its cameras
     are key frames: ``frames`` frames interpolated through them at the run's intrinsics)."""
+    from jsgs.io import read_regular_text
     from jsgs.schemas import validate
 
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(read_regular_text(path))
     except FileNotFoundError:
         raise JsgsError(f"--path {path}: no such file (or give interpolate, spiral, ellipse, test)") from None
     except (OSError, ValueError) as e:

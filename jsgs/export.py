@@ -109,13 +109,31 @@ def to_colmap_frame(p: dict[str, np.ndarray], normalization: np.ndarray) -> dict
     }
 
 
+def written_count(data: bytes, fmt: str) -> int:
+    """The Gaussians in an exported file's bytes: the PLY header's vertex count, or 32 bytes per splat."""
+    if fmt == "splat":
+        return len(data) // 32
+    head = data[: data.find(b"end_header")].decode("ascii", "replace")
+    for line in head.splitlines():
+        parts = line.split()
+        if parts[:2] == ["element", "vertex"] and len(parts) == 3:
+            return int(parts[2])
+    raise JsgsError(f"gsplat's {fmt} exporter wrote no vertex count")  # not expected: a library change
+
+
 def export_run(run: str | Path, out: str | Path, fmt: str = "ply", frame: str = "colmap",
-               force: bool = False) -> dict[str, Any]:  # fmt: skip
+               force: bool = False, run_owned: bool = False) -> dict[str, Any]:  # fmt: skip
     """Write ``out`` (and ``out`` + ``.json``, its record: ``jsgs/schemas/export.schema.json``) from
-    ``RUN/point_cloud.ply``; returns the record."""
+    ``RUN/point_cloud.ply``; returns the record. The run's own files are never replaced (``run_owned``: the
+    trainer's own export, which is one of them). A model without Gaussians, with a non-finite value or a zero
+    rotation is refused (:func:`jsgs.run_files.check_gaussians`); ``gaussians`` in the record is what the
+    file holds (``ply-compressed`` leaves out the nearly transparent ones: ``dropped``)."""
+    import os
+
     import jsgs
-    from jsgs.io import write_bytes_atomic, write_json_atomic
+    from jsgs.io import atomic_path, read_regular_text, write_json_atomic
     from jsgs.ply import load_ply
+    from jsgs.run_files import check_gaussians, refuse_run_files
     from jsgs.schemas import validate
 
     run, out = Path(run), Path(out)
@@ -131,19 +149,23 @@ def export_run(run: str | Path, out: str | Path, fmt: str = "ply", frame: str = 
             f"{run}: no point_cloud.ply (the run is not finished: jsgs train --resume continues it)"
         )
     record_path = out.with_name(out.name + ".json")
+    if not run_owned:
+        refuse_run_files(run, (out, record_path), "export writes only new files (choose another --out)")
     for p in (out, record_path):
-        if p.exists() and not force:
+        if os.path.lexists(p) and not force:
             raise JsgsError(f"{p}: exists (use --force to replace it)")
-        if p.resolve() == ply.resolve():
-            raise JsgsError(f"{p}: is the run's own point_cloud.ply; choose another file")
+        if p.is_dir():
+            raise JsgsError(f"{p}: is a folder; give a file name")
     try:
-        doc = json.loads(config.read_text())
+        doc = json.loads(read_regular_text(config))
         normalization = np.asarray(doc["derived"]["normalization"], dtype=np.float64)
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise JsgsError(f"{config}: no usable derived.normalization ({e})") from None
     arrays = load_ply(ply)
+    n = check_gaussians(arrays, ply)
     if frame == "colmap":
         arrays = to_colmap_frame(arrays, normalization)
+        check_gaussians(arrays, f"{ply} in the COLMAP frame")
     from gsplat.exporter import export_splats
 
     t = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in arrays.items()}
@@ -151,8 +173,9 @@ def export_run(run: str | Path, out: str | Path, fmt: str = "ply", frame: str = 
         t["means"], t["scales_log"], t["quats"], t["opacities_logit"], t["sh0"], t["shN"],
         format=fmt.replace("-", "_"),  # type: ignore[arg-type]
     )  # fmt: skip
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_bytes_atomic(out, data)
+    written = written_count(data, fmt)
+    if written == 0:
+        raise JsgsError(f"{ply}: none of its {n} Gaussians is opaque enough for {fmt} (opacity > 1/255)")
     record = {
         "format": RECORD_FORMAT,
         "format_version": RECORD_VERSION,
@@ -161,12 +184,15 @@ def export_run(run: str | Path, out: str | Path, fmt: str = "ply", frame: str = 
         "run": str(run),
         "file": out.name,
         "settings": {"format": fmt, "frame": frame},
-        "gaussians": int(arrays["means"].shape[0]),
+        "gaussians": written,
+        "dropped": n - written,
         "bytes": len(data),
         "normalization": normalization.tolist(),
         "note": "colmap: the training frame's normalisation undone (centres, rotations, scales, SH); "
         "training: as trained",
     }
     validate(record, "export", str(record_path))
-    write_json_atomic(record_path, record)
+    with atomic_path(out) as tmp:  # the file goes into place only once its record is written
+        tmp.write_bytes(data)
+        write_json_atomic(record_path, record)
     return record

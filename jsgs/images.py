@@ -61,9 +61,11 @@ def _decode(path: str | Path, what: str, read: Any) -> np.ndarray:
     truncated, not an image, or over the pixel limit."""
     from PIL import Image, UnidentifiedImageError
 
+    from jsgs.io import open_regular
+
     apply_pixel_limit()
     try:
-        with Image.open(path) as im:
+        with open_regular(path) as f, Image.open(f) as im:
             return read(im)
     except FileNotFoundError:
         raise JsgsError(f"{path}: {what} not found") from None

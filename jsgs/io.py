@@ -1,14 +1,25 @@
-"""Atomic file writing: a crash or Ctrl-C never leaves a half-written file under the final name."""
+"""Safe file writing and reading.
+
+Writing: a crash or Ctrl-C never leaves a half-written file under the final name. Every file is first
+written to a temporary file with an unpredictable name in the destination folder, created exclusively
+(``mkstemp``: ``O_CREAT | O_EXCL``, so a link planted under any name is never followed), then renamed onto
+the final name (``os.replace``: a link at the final name is replaced, never written through); a failure
+removes the temporary file.
+
+Reading a user's file: :func:`open_regular` refuses at once what is not a regular file (a FIFO would block
+the open forever, a device would never end), with one line naming it.
+"""
 
 from __future__ import annotations
 
 import json
 import os
+import stat
 import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 
 def _umask() -> int:
@@ -28,18 +39,20 @@ def atomic_path(final: str | os.PathLike[str]) -> Iterator[Path]:
         fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part" + final.suffix, dir=final.parent)
     except OSError as e:
         raise JsgsError(f"{final}: cannot write ({e.strerror or e})") from None
-    os.close(fd)
+    try:
+        # mkstemp creates 0600 files; give the result the permissions a plain open() would have.
+        os.fchmod(fd, 0o666 & ~_umask())
+    finally:
+        os.close(fd)
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        # mkstemp creates 0600 files; give the result the permissions a plain open() would have.
-        os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, final)
     except OSError as e:
         # a full disk or a read-only file system shows up on the temporary file: name the file asked for
         raise JsgsError(f"{final}: cannot write ({e.strerror or e})") from None
     finally:
-        if tmp_path.exists():
+        if os.path.lexists(tmp_path):
             tmp_path.unlink()
 
 
@@ -56,6 +69,77 @@ def write_with_atomic(final: str | os.PathLike[str], writer: Callable[[Path], No
     """Call ``writer(tmp_path)`` (e.g. ``img.save``) and move the result onto ``final``."""
     with atomic_path(final) as tmp:
         writer(tmp)
+
+
+def open_log(path: str | os.PathLike[str]) -> BinaryIO:
+    """A log file opened for writing from its start (a child process may write into it as it runs), created
+    if absent; a link at ``path`` is refused (``O_NOFOLLOW``) rather than written through."""
+    from jsgs.errors import JsgsError
+
+    path = Path(path)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags, 0o666)
+    except OSError as e:
+        if path.is_symlink():
+            raise JsgsError(f"{path}: is a link; logs are written only to plain files") from None
+        raise JsgsError(f"{path}: cannot write ({e.strerror or e})") from None
+    return os.fdopen(fd, "wb")
+
+
+_KINDS = (
+    (stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+)  # fmt: skip
+
+
+def _kind(mode: int) -> str:
+    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
+
+
+def open_regular(path: str | os.PathLike[str], buffering: int = -1) -> BinaryIO:
+    """``path`` opened for reading in binary mode, refused at once (JsgsError, one line) when it is not a
+    regular file: the open does not wait for a FIFO's writer (``O_NONBLOCK``), and the check is made on the
+    opened file (``fstat``), so nothing can be swapped in between. A missing or unreadable file raises the
+    usual OSError (FileNotFoundError, PermissionError), which callers already turn into their own line."""
+    from jsgs.errors import JsgsError
+
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise JsgsError(f"{os.fspath(path)}: is {_kind(st.st_mode)}, not a regular file")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+    except BaseException:
+        os.close(fd)
+        raise
+    return os.fdopen(fd, "rb", buffering=buffering)
+
+
+def read_regular_bytes(path: str | os.PathLike[str]) -> bytes:
+    """The bytes of the regular file at ``path`` (see :func:`open_regular`)."""
+    with open_regular(path) as f:
+        return f.read()
+
+
+def read_regular_text(path: str | os.PathLike[str], encoding: str = "utf-8") -> str:
+    """The text of the regular file at ``path`` (see :func:`open_regular`); UnicodeDecodeError (a
+    ValueError) when it is not ``encoding``."""
+    return read_regular_bytes(path).decode(encoding)
+
+
+def refuse_non_regular(path: str | os.PathLike[str]) -> None:
+    """JsgsError when ``path`` exists and is not a regular file (for readers that take a path and open it
+    themselves, such as pycolmap); a missing file is left to the reader."""
+    from jsgs.errors import JsgsError
+
+    try:
+        st = os.stat(path)
+    except OSError:
+        return
+    if not stat.S_ISREG(st.st_mode):
+        raise JsgsError(f"{os.fspath(path)}: is {_kind(st.st_mode)}, not a regular file")
 
 
 LOCK_NAME = ".jsgs.lock"
@@ -112,10 +196,12 @@ class OutputLock:
 
 
 def _lock_holder(path: Path) -> tuple[int, str] | None:
+    from jsgs.errors import JsgsError
+
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(read_regular_text(path))
         return int(doc["pid"]), str(doc.get("what", "another process"))
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, JsgsError):
         return None
 
 

@@ -275,9 +275,11 @@ def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
     """Read, validate and type ``path`` (a manifest, or a folder holding ``manifest.json``). Image and
     reference paths are resolved against the manifest's folder (absolute paths are taken as they are); with
     ``check_files`` each must exist. Any defect raises one JsgsError naming the file."""
+    from jsgs.io import read_regular_text
+
     path = manifest_file(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_regular_text(path)
     except FileNotFoundError:
         raise JsgsError(f"{path}: manifest not found") from None
     except (OSError, UnicodeDecodeError) as e:

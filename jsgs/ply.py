@@ -141,8 +141,10 @@ def read_ply_vertices(path: str | os.PathLike[str]) -> np.ndarray:
     scalar property, in file order). Raises JsgsError for anything else (ASCII or big-endian files, list
     properties in or before ``vertex``, a truncated body). Elements declared before ``vertex`` are skipped.
     """
+    from jsgs.io import read_regular_bytes
+
     path = Path(path)
-    data = path.read_bytes()
+    data = read_regular_bytes(path)
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply\n") or end < 0:
         raise JsgsError(f"{path}: not a PLY file (no 'ply' magic or no 'end_header')")

@@ -6,7 +6,9 @@ CPU)."""
 
 from __future__ import annotations
 
+import math
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -15,10 +17,15 @@ import numpy as np
 from jsgs.errors import JsgsError
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi")
+#: the largest width or height rendered (an 8K frame): one frame is held at a time, but the rasterizer's
+#: buffers grow with the pixels, so a larger request is refused before anything is loaded
+MAX_SIDE = 8192
+#: frames per second accepted by --fps (ffmpeg takes any positive rate; beyond this it is a typo)
+MAX_FPS = 1000.0
 
 
 def parse_size(text: str | None) -> tuple[int, int] | None:
-    """``"WxH"`` -> (W, H); None -> None."""
+    """``"WxH"`` -> (W, H), each side 1 .. :data:`MAX_SIDE`; None -> None."""
     if text is None:
         return None
     parts = text.lower().split("x")
@@ -28,7 +35,22 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
             raise ValueError
     except ValueError:
         raise JsgsError(f"--size {text!r}: give WIDTHxHEIGHT in pixels, e.g. 640x480") from None
+    check_size(w, h, f"--size {text}")
     return w, h
+
+
+def check_size(width: int, height: int, source: str) -> None:
+    """JsgsError naming ``source`` when a side exceeds :data:`MAX_SIDE`."""
+    if max(width, height) > MAX_SIDE:
+        raise JsgsError(
+            f"{source}: {width}x{height} is larger than jsgs render draws (at most {MAX_SIDE} pixels a side)"
+        )
+
+
+def check_fps(fps: float) -> None:
+    """JsgsError unless ``fps`` is finite, positive and at most :data:`MAX_FPS`."""
+    if not (math.isfinite(fps) and 0 < fps <= MAX_FPS):
+        raise JsgsError(f"--fps {fps:g}: give frames per second above 0 and at most {MAX_FPS:g}")
 
 
 def _even(img: np.ndarray) -> np.ndarray:
@@ -57,35 +79,49 @@ def render_run(
     force: bool = False,
 ) -> dict[str, Any]:
     """Render ``run`` along ``path`` into ``out`` (a video for a video suffix, else a folder of PNG frames)
-    and write the camera path JSON beside it; returns ``{"frames", "out", "cameras", "width", "height"}``."""
+    and write the camera path JSON beside it; returns ``{"frames", "out", "cameras", "width", "height"}``.
+
+    Frames are rendered one at a time and streamed to the encoder (or to their PNG files), so memory holds
+    one frame whatever the path's length. The video goes through a temporary file of an unpredictable name
+    in its folder (:func:`jsgs.io.atomic_path`); a failure leaves neither it nor any frame of this call. The
+    run's own files are never written (:func:`jsgs.run_files.refuse_run_files`), and a model that would
+    draw nothing (no Gaussians, a non-finite value, a zero rotation) is refused."""
     from tqdm import tqdm
 
     from jsgs.camera_path import KINDS, CameraPath, build_path, read_path, scaled_K
-    from jsgs.io import write_json_atomic
+    from jsgs.run_files import check_gaussians, refuse_run_files
     from jsgs.schemas import validate
     from jsgs.train.data import load_image
     from jsgs.viewer import load_run_model, render_rgb
 
     out = Path(out)
-    if fps <= 0:
-        raise JsgsError(f"--fps {fps:g}: must be positive")
+    check_fps(fps)
+    if size is not None:
+        check_size(*size, f"--size {size[0]}x{size[1]}")
     video = out.suffix.lower() in VIDEO_SUFFIXES
     if not video and out.suffix:
         raise JsgsError(f"{out}: give a video ({', '.join(VIDEO_SUFFIXES)}) or a folder for PNG frames")
     cameras = out.with_name(out.name + ".cameras.json") if video else out / "cameras.json"
-    if video and (out.exists() or cameras.exists()) and not force:
+    refuse_run_files(run, (out, cameras), "render writes only new files (choose another --out)")
+    if video and out.is_dir():
+        raise JsgsError(f"{out}: is a folder; give a video file name")
+    if video and (os.path.lexists(out) or os.path.lexists(cameras)) and not force:
         raise JsgsError(f"{out}: exists (use --force to replace it)")
+    if not video and (os.path.lexists(out) and not out.is_dir()):
+        raise JsgsError(f"{out}: exists and is not a folder")
     if not video and out.is_dir() and any(out.iterdir()) and not force:
         raise JsgsError(f"{out}: folder is not empty (use --force to replace its frames)")
 
     model = load_run_model(run, device)
+    check_gaussians(model.splats, Path(run) / "point_cloud.ply")
     views = sorted(model.scene.train_views, key=lambda v: v.name)
     if not views:
         raise JsgsError(f"{run}: its manifest has no training views")
     v0 = views[0]
     width, height = size or (v0.width, v0.height)
+    check_size(width, height, f"{run}: the training images' size (give --size)")
     K = scaled_K(v0.K, v0.width, v0.height, width, height)
-    references: list[np.ndarray] = []
+    tests = []
     if path == "test":
         tests = sorted(model.scene.test_views, key=lambda v: v.name)
         if not tests:
@@ -93,50 +129,91 @@ def render_run(
         c2w = np.stack([v.camtoworld for v in tests])
         cam = CameraPath(c2w, K, width, height, "test")
         Ks = [scaled_K(v.K, v.width, v.height, width, height) for v in tests]
-        references = [load_image(v.eval_image_path(), v.width, v.height, "reference").numpy() for v in tests]
     elif path in KINDS:
         cam = build_path(path, np.stack([v.camtoworld for v in views]), K, width, height, frames)
         Ks = [cam.K] * len(cam.camtoworld)
     else:
         cam = read_path(Path(path), frames, K, width, height)
+        check_size(cam.width, cam.height, f"{path}: its width and height")
         Ks = [cam.K] * len(cam.camtoworld)
 
     doc = cam.to_json(fps)
     validate(doc, "camera_path", str(cameras))
-    imgs = []
-    for i, c2w in enumerate(tqdm(cam.camtoworld, desc="render", unit="frame", disable=not progress)):
-        img = render_rgb(model, np.linalg.inv(c2w), Ks[i], cam.width, cam.height)
-        imgs.append(_side_by_side(img, references[i]) if references else img)
+
+    def images() -> Iterator[np.ndarray]:
+        for i, c2w in enumerate(tqdm(cam.camtoworld, desc="render", unit="frame", disable=not progress)):
+            img = render_rgb(model, np.linalg.inv(c2w), Ks[i], cam.width, cam.height)
+            if tests:
+                v = tests[i]
+                ref = load_image(v.eval_image_path(), v.width, v.height, "reference").numpy()
+                img = _side_by_side(img, ref)
+            yield img
 
     if video:
-        import imageio.v2 as iio
+        count, shape = _write_video(out, images(), fps, cameras, doc)
+    else:
+        count, shape = _write_frames(out, images(), cameras, doc)
+    return {"frames": count, "out": str(out), "cameras": str(cameras), "width": shape[1], "height": shape[0]}
 
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.stem}.part{out.suffix}")
+
+def _write_video(
+    out: Path, images: Iterator[np.ndarray], fps: float, cameras: Path, doc: dict[str, Any]
+) -> tuple[int, tuple[int, ...]]:
+    """Stream ``images`` to an H.264 video (imageio-ffmpeg) in a temporary file of ``out``'s folder, write
+    ``cameras``, then rename the video onto ``out``."""
+    import imageio.v2 as iio
+
+    from jsgs.errors import one_line
+    from jsgs.io import atomic_path, write_json_atomic
+
+    count, shape = 0, (0, 0)
+    with atomic_path(out) as tmp:
         try:
             writer = iio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1)
             try:
-                for img in imgs:
+                for img in images:
                     writer.append_data(_even(img))
+                    count, shape = count + 1, img.shape
             finally:
                 writer.close()
-            os.replace(tmp, out)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
-    else:
-        from jsgs.io import write_with_atomic
+        except (OSError, RuntimeError, ValueError) as e:  # the encoder's failures: ffmpeg's exit, a full disk
+            raise JsgsError(f"{out}: the video encoder failed ({one_line(e)})") from None
+        write_json_atomic(cameras, doc)
+    return count, shape
 
-        out.mkdir(parents=True, exist_ok=True)
-        from PIL import Image
 
-        for old in out.glob("frame_*.png"):
-            old.unlink()
-        for i, img in enumerate(imgs):
+def _write_frames(
+    out: Path, images: Iterator[np.ndarray], cameras: Path, doc: dict[str, Any]
+) -> tuple[int, tuple[int, ...]]:
+    """Each image to ``out/frame_NNNNN.png`` as it comes (atomically), then ``cameras``; a failure removes
+    the frames written by this call (and ``out`` when this call made it)."""
+    from PIL import Image
+
+    from jsgs.io import write_json_atomic, write_with_atomic
+
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("frame_*.png"):
+        old.unlink()
+    written: list[Path] = []
+    shape: tuple[int, ...] = (0, 0)
+    try:
+        for i, img in enumerate(images):
+
             def save(p: Path, a: np.ndarray = img) -> None:
                 Image.fromarray(a).save(p, format="PNG")
 
-            write_with_atomic(out / f"frame_{i:05d}.png", save)
-    write_json_atomic(cameras, doc)
-    return {"frames": len(imgs), "out": str(out), "cameras": str(cameras), "width": imgs[0].shape[1],
-            "height": imgs[0].shape[0]}  # fmt: skip
+            written.append(out / f"frame_{i:05d}.png")
+            write_with_atomic(written[-1], save)
+            shape = img.shape
+        write_json_atomic(cameras, doc)
+    except BaseException:
+        for p in written:
+            p.unlink(missing_ok=True)
+        if made:
+            try:
+                out.rmdir()
+            except OSError:
+                pass
+        raise
+    return len(written), shape

@@ -53,8 +53,10 @@ def camera_models() -> dict[int, tuple[str, int, list[int], list[int], list[int]
 
 class _Reader:
     def __init__(self, path: Path):
+        from jsgs.io import read_regular_bytes
+
         self.path = path
-        self.data = path.read_bytes()
+        self.data = read_regular_bytes(path)
         self.pos = 0
 
     def take(self, fmt: str, what: str) -> tuple:

@@ -56,6 +56,7 @@ from .scene import (
     ColmapCamera,
     image_stem,
     prepare_output_dir,
+    removes_partial_output,
     undistorted_camera,
     view_camera,
 )
@@ -368,6 +369,7 @@ def _output_model(
     return new
 
 
+@removes_partial_output
 def compress(
     scene_dir: str | Path,
     out: str | Path,

@@ -28,7 +28,7 @@ from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
 
 from .compress import SUBSAMPLING, check_recompress, load_rgb, observed_jpeg, plan, schedule_settings
-from .scene import image_stem, prepare_output_dir
+from .scene import image_stem, prepare_output_dir, removes_partial_output
 
 #: What ``derive`` writes into OUT (and removes first with ``force``).
 OWNED = ("images", "manifest.json")
@@ -46,8 +46,10 @@ def read_base(base_manifest: str | Path) -> tuple[dict[str, Any], dict[str, str]
     path = Path(base_manifest)
     if path.is_dir():
         path = path / "manifest.json"
+    from jsgs.io import read_regular_text
+
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(read_regular_text(path))
     except OSError as e:
         raise JsgsError(f"{path}: cannot read the base manifest ({e.strerror or e})") from None
     except ValueError as e:
@@ -82,6 +84,7 @@ def read_base(base_manifest: str | Path) -> tuple[dict[str, Any], dict[str, str]
     return doc, source_names
 
 
+@removes_partial_output
 def derive(
     base_manifest: str | Path,
     out: str | Path,

@@ -14,9 +14,12 @@ Conventions (the same as COLMAP's, and the manifest's):
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -183,6 +186,11 @@ def find_model_dir(root: Path) -> tuple[Path, str]:
 def read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
     import pycolmap
 
+    from jsgs.io import refuse_non_regular
+
+    for name in ("cameras", "images", "points3D", "rigs", "frames"):
+        for ext in (".bin", ".txt"):
+            refuse_non_regular(model_dir / (name + ext))  # pycolmap would wait on a FIFO forever
     try:
         return pycolmap.Reconstruction(str(model_dir))
     except Exception as e:  # pycolmap raises ValueError/RuntimeError with a C++ check message
@@ -225,10 +233,11 @@ def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | 
     from PIL import Image, UnidentifiedImageError
 
     from jsgs.images import ENV_MAX_PIXELS, apply_pixel_limit
+    from jsgs.io import open_regular
 
     apply_pixel_limit()
     try:
-        with Image.open(path) as im:
+        with open_regular(path) as f, Image.open(f) as im:
             try:
                 orientation = int(im.getexif().get(0x0112, 1) or 1)
             except Exception:  # noqa: BLE001 - a broken EXIF block is not the image's problem here
@@ -236,6 +245,8 @@ def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | 
             return (int(im.width), int(im.height)), str(im.format), None, orientation
     except Image.DecompressionBombError as e:
         return None, None, f"exceeds the pixel limit ({e}); raise it with ${ENV_MAX_PIXELS}", 1
+    except JsgsError as e:  # not a regular file
+        return None, None, str(e).removeprefix(f"{path}: "), 1
     except (UnidentifiedImageError, OSError, ValueError) as e:
         return None, None, f"cannot read image: {e}", 1
 
@@ -571,6 +582,47 @@ def read_marker(out: Path) -> str | None:
     return doc.get("tool") if isinstance(doc, dict) and isinstance(doc.get("tool"), str) else None
 
 
+#: the output folders prepared inside the current call of a tool decorated with :func:`removes_partial_output`
+_PREPARED: ContextVar[list[tuple[Path, tuple[str, ...], bool]] | None] = ContextVar("_PREPARED", default=None)
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def removes_partial_output(func: F) -> F:
+    """For a tool that writes its folder through :func:`prepare_output_dir`: when the tool fails (an error,
+    a full disk, Ctrl-C, SIGTERM), what it wrote there is removed again: its own entries (which
+    :func:`prepare_output_dir` found absent or cleared) and the marker file when the folder had none, so a
+    failed command leaves no half-made dataset, nor a marker that would later claim a folder for the tool."""
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        token = _PREPARED.set([])
+        try:
+            return func(*args, **kwargs)
+        except BaseException:
+            for out, owned, had_marker in _PREPARED.get() or []:
+                _remove_written(out, owned + (() if had_marker else (MARKER,)))
+            raise
+        finally:
+            _PREPARED.reset(token)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _remove_written(out: Path, names: tuple[str, ...]) -> None:
+    import shutil
+
+    for name in names:
+        p = out / name
+        try:
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            elif p.exists() or p.is_symlink():
+                p.unlink()
+        except OSError:
+            pass  # best effort: the failure being reported matters more
+
+
 def prepare_output_dir(
     out: Path, force: bool, owned: tuple[str, ...], protect: Path | None = None, tool: str = "compress"
 ) -> None:
@@ -610,6 +662,9 @@ def prepare_output_dir(
             elif p.exists() or p.is_symlink():
                 p.unlink()
     out.mkdir(parents=True, exist_ok=True)
+    prepared = _PREPARED.get()
+    if prepared is not None:
+        prepared.append((out, owned, read_marker(out) == tool))
     now = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     write_json_atomic(out / MARKER, {"tool": tool, "jsgstools_version": jsgs.__version__, "created": now})
 
@@ -624,7 +679,9 @@ def write_model_atomic(rec: pycolmap.Reconstruction, dest: Path) -> None:
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", suffix=".part", dir=dest.parent))
     try:
         rec.write_binary(str(tmp))
-        if dest.exists():
+        if dest.is_symlink() or dest.is_file():
+            dest.unlink()  # a link is replaced, never followed
+        elif dest.exists():
             shutil.rmtree(dest)
         tmp.rename(dest)
     finally:

@@ -22,7 +22,7 @@ from typing import Any
 
 from jsgs.errors import JsgsError
 
-from .scene import IMAGE_EXTENSIONS, prepare_output_dir, write_model_atomic
+from .scene import IMAGE_EXTENSIONS, prepare_output_dir, removes_partial_output, write_model_atomic
 
 OWNED = ("images", "sparse", "database.db", "sfm.json")
 MATCHERS = ("exhaustive", "sequential")
@@ -43,15 +43,18 @@ def _sizes(photos: list[Path]) -> set[tuple[int, int]]:
     from PIL import Image
 
     out = set()
+    from jsgs.io import open_regular
+
     for p in photos:
         try:
-            with Image.open(p) as im:
+            with open_regular(p) as f, Image.open(f) as im:
                 out.add(im.size)
         except (OSError, ValueError) as e:
             raise JsgsError(f"{p}: cannot read image ({e})") from None
     return out
 
 
+@removes_partial_output
 def sfm(
     photos_dir: str | Path,
     out: str | Path,

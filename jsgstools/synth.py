@@ -27,7 +27,7 @@ import numpy as np
 from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
 
-from .scene import prepare_output_dir, write_model_atomic
+from .scene import prepare_output_dir, removes_partial_output, write_model_atomic
 
 Texture = Callable[
     [np.ndarray, np.ndarray], np.ndarray
@@ -405,6 +405,7 @@ class SynthResult:
     camera: SynthCamera
 
 
+@removes_partial_output
 def synth(
     out: str | Path,
     views: int = 32,

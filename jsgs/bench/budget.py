@@ -317,6 +317,8 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter, MaxNLocator
 
+    from jsgs.io import write_with_atomic
+
     outdir.mkdir(parents=True, exist_ok=True)
     colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
     styles = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
@@ -355,7 +357,7 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
         fig.suptitle(f"{sc}: step {rep.scene_step_label(sc)} at each Gaussian budget (means over seeds)")
         fig.tight_layout()
         path = outdir / f"{sc}_budgets.png"
-        fig.savefig(path, dpi=110)
+        write_with_atomic(path, lambda p, fig=fig: fig.savefig(p, dpi=110, format="png"))
         plt.close(fig)
         written.append(path)
     return written

@@ -365,8 +365,8 @@ def write_report(
         md += [f"- `{f['id']}`: {f.get('error')}" for f in not_run]
     if not failures:
         md += ["None."]
+    from jsgs.io import write_bytes_atomic
+
     path = results_dir / "report.md"
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(md) + "\n")
-    tmp.replace(path)
+    write_bytes_atomic(path, ("\n".join(md) + "\n").encode())
     return path

@@ -22,6 +22,8 @@ def write_plots(rep: Report, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter
 
+    from jsgs.io import write_with_atomic
+
     outdir.mkdir(parents=True, exist_ok=True)
     written = []
     colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
@@ -73,7 +75,7 @@ def write_plots(rep: Report, outdir: Path) -> list[Path]:
         fig.suptitle(f"{sc}: test metrics at each evaluation step (means over seeds)")
         fig.tight_layout()
         path = outdir / f"{sc}.png"
-        fig.savefig(path, dpi=110)
+        write_with_atomic(path, lambda p, fig=fig: fig.savefig(p, dpi=110, format="png"))
         plt.close(fig)
         written.append(path)
     return written

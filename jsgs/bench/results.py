@@ -68,14 +68,16 @@ def write_csv(rows: list[dict[str, Any]], path: str | Path) -> list[str]:
     """Write the CSV (atomically); returns its header."""
     dynamic = sorted({k for r in rows for k in r} - set(COLUMNS) - set(EXTRA))
     header = COLUMNS + EXTRA + dynamic
-    path = Path(path)
-    tmp = path.with_suffix(".csv.tmp")
-    with open(tmp, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(header)
-        for r in rows:
-            w.writerow([_fmt(r.get(k)) for k in header])
-    tmp.replace(path)
+    import io
+
+    from jsgs.io import write_bytes_atomic
+
+    buf = io.StringIO(newline="")
+    w = csv.writer(buf)
+    w.writerow(header)
+    for r in rows:
+        w.writerow([_fmt(r.get(k)) for k in header])
+    write_bytes_atomic(path, buf.getvalue().encode())
     return header
 
 

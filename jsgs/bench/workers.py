@@ -18,7 +18,7 @@ from typing import Any
 
 from jsgs.bench import plan as plan_mod
 from jsgs.bench.plan import Run
-from jsgs.io import die_with_parent
+from jsgs.io import die_with_parent, open_log
 
 TAIL_CHARS = 4000
 
@@ -113,7 +113,7 @@ def run_one(
     log.parent.mkdir(parents=True, exist_ok=True)
     Path(run.out).parent.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    with open(log, "wb") as f:
+    with open_log(log) as f:
         f.write(("$ " + " ".join(argv) + "\n").encode())
         f.flush()
         timed_out = False

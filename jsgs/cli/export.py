@@ -34,7 +34,9 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, user_errors
     show_default=True,
     help="colmap: the scene's own frame (the trainer's normalisation undone); training: as trained.",
 )
-@click.option("--force", is_flag=True, help="Replace an existing FILE.")
+@click.option(
+    "--force", is_flag=True, help="Replace an existing FILE (never one of the run's own files)."
+)
 @user_errors
 def export_command(run: Path, out: Path, fmt: str, frame: str, force: bool) -> None:
     """Write a finished RUN's Gaussians to FILE (and FILE.json, what it holds), in the scene's COLMAP frame by
@@ -43,6 +45,8 @@ def export_command(run: Path, out: Path, fmt: str, frame: str, force: bool) -> N
 
     rec = export_run(run, out, fmt, frame, force=force)
     what = f"{rec['gaussians']} Gaussians, {fmt}, {frame} frame, {rec['bytes']} bytes"
+    if rec["dropped"]:
+        what += f"; {rec['dropped']} nearly transparent ones left out by {fmt}"
     click.echo(f"wrote {out} ({what}) and {out}.json")
 
 

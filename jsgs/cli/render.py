@@ -32,10 +32,22 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, user_errors
     "references), or a JSON file: a path written by jsgs render, or RUN/viewer_cameras.json (key cameras).",
 )
 @click.option("--frames", type=click.IntRange(1, 100_000), default=120, show_default=True, help="Frames.")
-@click.option("--fps", type=float, default=30.0, show_default=True, help="Frames per second of the video.")
-@click.option("--size", default=None, help="WIDTHxHEIGHT [default: the training images' size].")
+@click.option(
+    "--fps",
+    type=float,
+    default=30.0,
+    show_default=True,
+    help="Frames per second of the video (above 0, at most 1000).",
+)
+@click.option(
+    "--size", default=None, help="WIDTHxHEIGHT, at most 8192 a side [default: the training images' size]."
+)
 @click.option("--device", type=click.Choice(["auto", "cuda", "cpu"]), default="auto", show_default=True)
-@click.option("--force", is_flag=True, help="Replace an existing video or the frames of a folder.")
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Replace an existing video or the frames of a folder (never one of the run's own files).",
+)
 @user_errors
 def render_command(
     run: Path, out: Path, path: str, frames: int, fps: float, size: str | None, device: str, force: bool

@@ -160,9 +160,14 @@ def _as_batch(x: Tensor) -> Tensor:
 
 
 def _torch_load(path: Path, what: str) -> dict[str, Tensor]:
+    from jsgs.io import open_regular
+
     try:
         # weights_only: a weights file must not be able to run code when loaded
-        obj = torch.load(path, map_location="cpu", weights_only=True)
+        with open_regular(path) as f:
+            obj = torch.load(f, map_location="cpu", weights_only=True)
+    except JsgsError:
+        raise
     except Exception as e:  # torch raises many types (pickle, zip, runtime) for a bad file
         raise JsgsError(f"{path}: cannot read {what} ({one_line(e)})") from e
     if not isinstance(obj, dict) or not all(isinstance(k, str) for k in obj):

@@ -542,9 +542,11 @@ def is_run_config(doc: Any) -> bool:
 
 def read_config_document(path: str | Path) -> Any:
     """The parsed JSON of ``--config FILE``; JsgsError (one line) when it is missing or not JSON."""
+    from jsgs.io import read_regular_text
+
     path = Path(path)
     try:
-        return json.loads(path.read_text())
+        return json.loads(read_regular_text(path))
     except FileNotFoundError:
         raise JsgsError(f"{path}: no such config file") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:

@@ -953,7 +953,7 @@ class Trainer:
 
         s = self.splats
         save_ply(self.paths.ply, s["means"], s["scales"], s["quats"], s["opacities"], s["sh0"], s["shN"])
-        export_run(self.paths.root, self.paths.root / COLMAP_PLY, "ply", "colmap", force=True)
+        export_run(self.paths.root, self.paths.root / COLMAP_PLY, "ply", "colmap", force=True, run_owned=True)
 
     def train(self) -> dict[str, Any]:
         """Set up, run the steps up to ``stop_at`` (or the end) with evaluations and checkpoints, write the

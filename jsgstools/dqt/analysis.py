@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from jsgs.errors import JsgsError, one_line
+from jsgs.io import read_regular_bytes
 from jsgs.jpeg.noise import blockiness, jpeg_noise_variance, plane_noise_variance
 from jsgs.jpeg.noise import plane_dct as block_dct
 from jsgs.jpeg.tables import BASE_CHROMA, BASE_LUMA, SAMPLING_FACTORS, ijg_table
@@ -336,8 +337,7 @@ def analyze_file(path: str | os.PathLike[str]) -> Analysis:
     """Read, parse and analyse the JPEG file at ``path``."""
     name = str(path)
     try:
-        with open(path, "rb") as f:
-            data = f.read()
+        data = read_regular_bytes(path)
     except OSError as e:
         raise JsgsError(f"{name}: cannot read: {e.strerror or e}") from None
     header = read_header_from(io.BytesIO(data), name, len(data))

@@ -515,9 +515,12 @@ def read_header_from(f: BinaryIO, name: str, size: int | None = None) -> JpegHea
 
 def read_header(path: str | os.PathLike[str]) -> JpegHeader:
     """Parse the header of the JPEG file at ``path`` (reads only the header bytes; see module docstring)."""
+    from jsgs.io import open_regular
+
     name = str(path)
     try:
-        f = open(path, "rb", buffering=0)  # unbuffered: read only the header bytes, nothing ahead
+        # unbuffered: read only the header bytes, nothing ahead; a FIFO or a device is refused at once
+        f = open_regular(path, buffering=0)
     except OSError as e:
         raise JsgsError(f"{name}: cannot open: {e.strerror or e}") from None
     with f:

@@ -11,6 +11,7 @@ from typing import Any
 
 from jsgs import __version__
 from jsgs.errors import JsgsError
+from jsgs.io import read_regular_bytes
 from jsgstools.dqt.analysis import Analysis, analyze_bytes
 from jsgstools.dqt.header import JpegHeader
 from jsgstools.dqt.markers import TABLE_ORDER_NOTE
@@ -99,9 +100,7 @@ def dumps_json(doc: Any, indent: int = 1, _level: int = 0) -> str:
 def _analyze(path: str, header: JpegHeader) -> Analysis | JsgsError:
     """Decode and analyse one file whose header parsed (reads the whole file)."""
     try:
-        with open(path, "rb") as f:
-            data = f.read()
-        return analyze_bytes(data, header)
+        return analyze_bytes(read_regular_bytes(path), header)
     except OSError as e:
         return JsgsError(f"{path}: cannot read: {e.strerror or e}")
     except JsgsError as e:

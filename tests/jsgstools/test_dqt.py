@@ -691,7 +691,7 @@ def test_cli_missing_file_and_directory(good_files: tuple[Path, Path], tmp_path:
     assert code == 1 and "Traceback" not in out + err
     assert err.splitlines() == [
         f"error: {missing}: cannot open: No such file or directory",
-        f"error: {tmp_path}: cannot open: Is a directory",
+        f"error: {tmp_path}: is a folder, not a regular file",
     ]
     assert "summary: 3 files, 1 ok, 2 errors\n" in out
 
