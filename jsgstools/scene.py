@@ -202,7 +202,7 @@ def resolve_image(images_dir: Path, name: str) -> Path | None:
     """The file holding model image ``name``: the exact name, else the only same-stem file with a known
     image extension (case-insensitive). None when there is none or several."""
     exact = images_dir / name
-    if exact.is_file():
+    if exact.exists() and not exact.is_dir():  # a FIFO or device too: reading it then says what it is
         return exact
     rel = Path(name)
     folder = images_dir / rel.parent

@@ -321,6 +321,27 @@ def test_other_readers_refuse_a_fifo(run: Path, tmp_path: Path, fifo: Path) -> N
         line = _one_line(r.output, r.exit_code)
         assert line == f"error: {fifo}: is a FIFO (named pipe), not a regular file"
     assert not (tmp_path / "r" / "config.json").exists() and not (tmp_path / "v.mp4").exists()
+    # a newer "checkpoint" that is a FIFO (through a link: the same open) stops --resume in one line
+    resumed = tmp_path / "resumed"
+    shutil.copytree(run, resumed)
+    (resumed / "checkpoints" / "step_999999.pt").symlink_to(fifo)
+    args = ["train", manifest, "--out", str(resumed), "--resume", "--device", "cpu"]
+    r = CliRunner().invoke(jsgs_main, args)
+    assert "step_999999.pt: is a FIFO (named pipe)" in _one_line(r.output, r.exit_code)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_fifo_among_a_scenes_images_is_named(synth_scene: Path, tmp_path: Path, fifo: Path) -> None:
+    scene = tmp_path / "scene"
+    shutil.copytree(synth_scene, scene)
+    image = sorted((scene / "images").iterdir())[0]
+    image.unlink()
+    image.symlink_to(fifo)
+    for args in (["validate", str(scene)], ["manifest", str(scene), "--out", str(tmp_path / "m.json")]):
+        r = CliRunner().invoke(tools_main, args)
+        assert f"{image}: is a FIFO (named pipe)" in r.output and r.exit_code != 0, r.output
+        assert "Traceback" not in r.output
+    assert not (tmp_path / "m.json").exists()
 
 
 def test_every_entry_the_trainer_writes_is_protected() -> None:

@@ -91,8 +91,13 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
+    from jsgs.io import open_regular
+
     try:
-        doc = torch.load(path, map_location="cpu", weights_only=True)
+        with open_regular(path) as f:  # a FIFO named like a checkpoint is refused, not waited on
+            doc = torch.load(f, map_location="cpu", weights_only=True)
+    except JsgsError:
+        raise
     except Exception as e:  # torch raises a variety of types for a damaged file, with multi-line messages
         from jsgs.errors import one_line
 
