@@ -156,9 +156,12 @@ def scaled_K(K: np.ndarray, width: int, height: int, new_width: int, new_height:
     return out
 
 
-def read_path(path: Path, frames: int, K: np.ndarray, width: int, height: int) -> CameraPath:
+def read_path(
+    path: Path, frames: int, K: np.ndarray, width: int, height: int, max_cameras: int | None = None
+) -> CameraPath:
     """A camera path JSON written by ``jsgs render`` (taken as it is), or ``viewer_cameras.json`` (its cameras
-    are key frames: ``frames`` frames interpolated through them at the run's intrinsics)."""
+    are key frames: ``frames`` frames interpolated through them at the run's intrinsics). ``max_cameras``:
+    a file holding more is refused before it is validated."""
     from jsgs.io import read_regular_text
     from jsgs.schemas import validate
 
@@ -169,6 +172,9 @@ def read_path(path: Path, frames: int, K: np.ndarray, width: int, height: int) -
     except (OSError, ValueError) as e:
         raise JsgsError(f"{path}: not a camera path JSON file ({e})") from None
     kind = doc.get("format") if isinstance(doc, dict) else None
+    listed = doc.get("camtoworld" if kind == PATH_FORMAT else "cameras") if isinstance(doc, dict) else None
+    if max_cameras is not None and isinstance(listed, list) and len(listed) > max_cameras:
+        raise JsgsError(f"{path}: {len(listed)} cameras; render draws at most {max_cameras:,}")
     if kind == PATH_FORMAT:
         validate(doc, "camera_path", str(path))
         c2w = np.asarray(doc["camtoworld"], dtype=np.float64)

@@ -22,6 +22,8 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi")
 MAX_SIDE = 8192
 #: frames per second accepted by --fps (ffmpeg takes any positive rate; beyond this it is a typo)
 MAX_FPS = 1000.0
+#: the most frames one call renders (--frames, or the cameras of a path file)
+MAX_FRAMES = 100_000
 
 
 def parse_size(text: str | None) -> tuple[int, int] | None:
@@ -133,7 +135,7 @@ def render_run(
         cam = build_path(path, np.stack([v.camtoworld for v in views]), K, width, height, frames)
         Ks = [cam.K] * len(cam.camtoworld)
     else:
-        cam = read_path(Path(path), frames, K, width, height)
+        cam = read_path(Path(path), frames, K, width, height, max_cameras=MAX_FRAMES)
         check_size(cam.width, cam.height, f"{path}: its width and height")
         Ks = [cam.K] * len(cam.camtoworld)
 

@@ -211,6 +211,28 @@ def test_render_refuses_sizes_and_rates_up_front(tmp_path: Path, option: list[st
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    ("cameras", "size", "needle"),
+    [(100_001, (32, 24), "100001 cameras; render draws at most 100,000"),
+     (2, (100_000, 24), "100000x24 is larger than jsgs render draws")],
+)  # fmt: skip
+def test_render_refuses_camera_path_files_beyond_the_limits(
+    run: Path, tmp_path: Path, cameras: int, size: tuple[int, int], needle: str
+) -> None:
+    from jsgs.camera_path import CameraPath
+
+    K = np.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
+    doc = CameraPath(np.repeat(np.eye(4)[None], 2, 0), K, *size, "interpolate").to_json(30.0)
+    if cameras > 2:
+        doc["camtoworld"] = [0] * cameras  # counted before anything else is read of them
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps(doc))
+    args = ["render", str(run), "--out", str(tmp_path / "v.mp4"), "--path", str(path), "--device", "cpu"]
+    r = CliRunner().invoke(jsgs_main, args)
+    assert needle in _one_line(r.output, r.exit_code)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["path.json"]
+
+
 def test_render_streams_frames_to_the_encoder(
     run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
