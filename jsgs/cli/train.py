@@ -124,6 +124,19 @@ def _parse_steps(text: str) -> list[int]:
     help="Serve the browser viewer (jsgs view) on the model as it trains, on this port [flag alone: 8080].",
 )
 @click.option(
+    "--gpus",
+    type=int,
+    default=None,
+    help="Train on this many GPUs of this machine, one process each, every step's views split across "
+    "them (starts the processes as torchrun would; on several machines use torchrun; docs/performance.md).",
+)
+@click.option(
+    "--processes",
+    type=int,
+    default=None,
+    help="As --gpus on whatever --device is (on the CPU: gloo and the reference rasterizer).",
+)
+@click.option(
     "--stop-at",
     "stop_at",
     type=int,
@@ -154,6 +167,8 @@ def train_command(
     quiet: bool,
     profile: bool,
     viewer_port: int | None,
+    gpus: int | None,
+    processes: int | None,
     stop_at: int | None,
 ) -> None:
     """Train Gaussians on the views of MANIFEST (a jsgs manifest, or the folder holding its manifest.json;
@@ -163,6 +178,11 @@ def train_command(
 
     if resume and force:
         raise JsgsError("--resume and --force exclude each other")
+    ctx = click.get_current_context()
+    if gpus is not None or processes is not None:
+        from jsgs.train.launch import launch_command
+
+        ctx.exit(launch_command(invocation(ctx, "jsgs"), gpus, processes, device))
     overrides = {
         k: v
         for k, v in (("method", method), ("iterations", iterations), ("device", device), ("seed", seed))
@@ -191,7 +211,6 @@ def train_command(
     if cap_max is not None and cfg.strategy.type != "mcmc":
         kind = cfg.strategy.type
         raise JsgsError(f"--cap-max applies to strategy.type mcmc (not --preset paper); it is {kind!r}")
-    ctx = click.get_current_context()
     callbacks = []
     if viewer_port is not None:
         from jsgs.viewer import LiveViewer

@@ -734,6 +734,12 @@ def config_schema() -> dict[str, Any]:
                     "num_train_views": {"type": "integer"},
                     "num_test_views": {"type": "integer"},
                     "initial_gaussians": {"type": "integer"},
+                    "world_size": {
+                        "type": "integer",
+                        "minimum": 1,
+                        "description": "Processes that trained the run (torchrun / jsgs train --gpus N), "
+                        "each rendering one view per step; 1 when absent.",
+                    },
                     "notes": {"type": "array", "items": {"type": "string"}},
                     "ssim_kernel": {
                         "enum": ["torch", "cuda"],

@@ -42,6 +42,7 @@ from jsgs.errors import JsgsError
 from jsgs.io import LOCK_NAME, OutputLock, write_json_atomic
 from jsgs.strategy import Densifier, initial_subset
 from jsgs.train import checkpoint as ckpt
+from jsgs.train import distributed as dd
 from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, to_dict
 from jsgs.train.data import ViewSampler, load_eval_images, load_scene, load_train_images
 from jsgs.train.evaluate import evaluate, synchronize
@@ -472,20 +473,45 @@ class Trainer:
         self.last_checkpoint = "none"
         self.lock: OutputLock | None = None
         self._clock = 0.0
+        self.world = dd.World()  # one process unless started by torchrun / --gpus (setup joins the others)
+        self._signal: str | None = None
+        self._stop_everywhere = False
 
     # -- events ---------------------------------------------------------------------------------------
     def fire(self, event: str, *args: Any) -> None:
-        """Call ``event`` (e.g. "on_step_end") on every callback, in order."""
+        """Call ``event`` (e.g. "on_step_end") on every callback, in order (on rank 0 only: the callbacks
+        write the run folder and report progress)."""
+        if not self.world.is_main:
+            return
         for cb in self.callbacks:
             getattr(cb, event)(self, *args)
 
     # -- setup ----------------------------------------------------------------------------------------
     def setup(self) -> None:
         """Check RUN and the settings, load the scene, build the Gaussians, optimizers and strategy, resume
-        from the last checkpoint (``resume``) or write ``config.json``; then ``on_setup``."""
+        from the last checkpoint (``resume``) or write ``config.json``; then ``on_setup``. On several
+        processes (:mod:`jsgs.train.distributed`) every process sets up, rank 0 alone touches RUN, and an
+        error on any of them stops all of them."""
+        self.world = dd.world_from_environment()
+        use_cuda = torch.cuda.is_available() and (self.cfg is None or self.cfg.device != "cpu")
+        dd.start(self.world, use_cuda)
+        error: JsgsError | None = None
+        self.lock = None
+        self._run_config: dict[str, Any] | None = None
+        try:
+            self._setup()
+        except JsgsError as e:
+            error = e
+        dd.agree(self.world, error)
+        if self._run_config is not None:  # written once every process is ready
+            write_json_atomic(self.paths.config, self._run_config)
+        self.fire("on_setup")
+
+    def _setup(self) -> None:
         paths = self.paths
-        _check_out(paths, self.resuming, self.force)
-        self.lock = OutputLock(paths.root, f"jsgs train (into {paths.root})")
+        if self.world.is_main:
+            _check_out(paths, self.resuming, self.force)
+            self.lock = OutputLock(paths.root, f"jsgs train (into {paths.root})")
         cfg = self.cfg
         start_ckpt: dict[str, Any] | None = None
         if self.resuming:
@@ -504,9 +530,16 @@ class Trainer:
         if self.stop_at is not None and not 1 <= self.stop_at <= cfg.iterations:
             raise JsgsError(f"stop_at must lie in 1..{cfg.iterations} (got {self.stop_at})")
         self.end_step = cfg.iterations if self.stop_at is None else self.stop_at
+        if self.resuming:
+            ran_on = int(json_load(paths.config).get("derived", {}).get("world_size", 1))
+            if ran_on != self.world.size:
+                raise JsgsError(
+                    f"{paths.root}: the run was trained on {ran_on} process(es); resume it on as many (now "
+                    f"{self.world.size})"
+                )
 
         t_setup = time.perf_counter()
-        self.device = device = resolve_device(cfg.device)
+        self.device = device = dd.local_device(self.world, resolve_device(cfg.device))
         self.profiler.device = device
         self.backend = resolve_backend(cfg, device)
         _seed_everything(cfg.seed)
@@ -545,6 +578,7 @@ class Trainer:
         for note in hook_notes:
             self.say(f"note: {note}")
         self.strategy = Densifier(cfg.strategy)
+        dd.share_strategy_statistics(self.strategy, self.world)
         self.sampler = ViewSampler(len(self.train_views), cfg.seed)
 
         if start_ckpt is None:
@@ -594,8 +628,9 @@ class Trainer:
             if use_kernels(cfg.speed.ssim_kernel, device, "speed.ssim_kernel")
             else "torch",
             "method": self.hook.describe() if self.hook is not None else {},
+            "world_size": self.world.size,
         }
-        if not self.resuming:
+        if not self.resuming and self.world.is_main:
             _clear_out(paths)  # only now that the settings and the manifest have been checked
             run_config = {
                 "format": RUN_CONFIG_FORMAT,
@@ -610,9 +645,8 @@ class Trainer:
             from jsgs.schemas import validate
 
             validate(run_config, "config", str(paths.config))
-            write_json_atomic(paths.config, run_config)
+            self._run_config = run_config
         self.setup_time = time.perf_counter() - t_setup
-        self.fire("on_setup")
 
     # -- checkpoints ----------------------------------------------------------------------------------
     def checkpoint_state(self, step_done: int) -> dict[str, Any]:
@@ -647,6 +681,7 @@ class Trainer:
         cfg = self.cfg
         assert cfg is not None
         self.optimizers = make_optimizers(self.splats, cfg, self.scene.scene_scale)
+        dd.scale_optimizers(self.optimizers, self.world.size)  # a batch of world_size views per step
         self.scheduler = make_means_scheduler(self.optimizers["means"], cfg)
         self.strategy.check_sanity(self.splats, self.optimizers)
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene.scene_scale)
@@ -712,6 +747,7 @@ class Trainer:
         self.scheduler.load_state_dict(state["scheduler"])
         self.strategy_state = ckpt.to_device(state["strategy"], device)
         ckpt.set_rng_state(state["rng"])
+        dd.align_cuda_rng(self.world, state["rng"], device)
         self.sampler.load_state_dict(state["sampler"])
         if self.hook is not None:
             self.hook.load_state_dict(ckpt.to_device(state["hook"], device))
@@ -732,7 +768,7 @@ class Trainer:
         assert cfg is not None
         optimizers, strategy = self.optimizers, self.strategy
         with profiler.phase("data"):
-            view = self.train_views[self.sampler.next()]
+            view = self.train_views[dd.pick_view(self.world, self.sampler.next)]
             target = self.train_images[view.index].float()[None] / 255.0
             sh_degree = sh_degree_at(step, cfg)
             extra_feats = hook.extra_channels(step, view, splats) if hook is not None else None
@@ -798,6 +834,11 @@ class Trainer:
         else:
             with profiler.phase("backward"):
                 loss.backward()
+        if self.world.enabled:
+            params = [splats[n] for n in PARAM_NAMES if splats[n].requires_grad]
+            flags = dd.average_gradients(self.world, params, not empty, self._signal is not None)
+            self._stop_everywhere = flags.stop
+            empty = flags.rendered == 0
         # every logged value, each gradient's L1 norm and each parameter's L1 norm (NaN/Inf wherever a value
         # is), packed on the device and read in one host sync per step, *after* the optimizer's kernels are
         # queued: the host issues the update while the device finishes the backward. A non-finite step has
@@ -833,6 +874,12 @@ class Trainer:
         stat_v = packed_vals[1 + len(names) : 1 + len(names) + len(stats)]
         norm_v = packed_vals[1 + len(names) + len(stats) :]
         grad_v, param_v = norm_v[: len(grad_names)], norm_v[len(grad_names) :]
+        views = [(view.name, loss_v, term_v, stats)]
+        if self.world.enabled:  # every view's values on every process: all of them stop alike on a NaN
+            views = dd.gather(self.world, (view.name, loss_v, term_v, dict(zip(stats, stat_v, strict=True))))
+            for _, v_loss, v_terms, _ in views:
+                v_values = [*v_terms, v_loss]
+                _finite_check(step, [*names, "loss"], v_values, [], [], param_v, self.last_checkpoint)
         _finite_check(
             step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_v, param_v, self.last_checkpoint
         )
@@ -854,7 +901,11 @@ class Trainer:
             dict(zip(names, term_v, strict=True)),
             dict(zip(stats, stat_v, strict=True)),
         )
-        self.acc.add(result.loss, result.terms, result.stats, view.name)
+        if self.world.enabled:
+            for v_name, v_loss, v_terms, v_stats in views:
+                self.acc.add(v_loss, dict(zip(names, v_terms, strict=True)), v_stats, v_name)
+        else:
+            self.acc.add(result.loss, result.terms, result.stats, view.name)
         return result
 
     # -- evaluation -----------------------------------------------------------------------------------
@@ -886,10 +937,12 @@ class Trainer:
             return lambda: None
 
         def request_stop(signum: int, frame: Any) -> None:
-            if self.interrupted is not None:
+            if self._signal is not None:
                 raise KeyboardInterrupt
-            self.interrupted = signal.Signals(signum).name
-            self.say(f"{self.interrupted}: stopping after this step with a checkpoint (again: stop at once)")
+            self._signal = signal.Signals(signum).name
+            if not self.world.enabled:
+                self.interrupted = self._signal
+            self.say(f"{self._signal}: stopping after this step with a checkpoint (again: stop at once)")
 
         previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
 
@@ -934,6 +987,7 @@ class Trainer:
             "device": str(device),
             "device_name": _device_name(device),
             "backend": self.backend,
+            "world_size": self.world.size,
             "iterations": cfg.iterations,
             "step": step,
             "num_gaussians": int(self.splats["means"].shape[0]),
@@ -961,16 +1015,20 @@ class Trainer:
         output lock is held until the last file is written, and let go however the run ends."""
         try:
             self.setup()
-            return self._run()
+            doc = self._run()
         finally:
             if self.lock is not None:
                 self.lock.release()
+        dd.barrier(self.world, "the end of the run")  # the others end once rank 0 has written everything
+        dd.stop()
+        return doc
 
     def _finish(self, step: int) -> dict[str, Any]:
         """Write the model after ``step`` = iterations steps, then metrics.json ``complete``; a model that
         cannot be written ends the run ``failed`` (RunFailed), never ``complete`` without its PLY."""
         try:
-            self.export_ply()
+            if self.world.is_main:  # one writer
+                self.export_ply()
         except Exception as e:
             from jsgs.errors import one_line
 
@@ -1008,7 +1066,11 @@ class Trainer:
         try:
             for step in range(self.start_step, self.end_step):
                 self.fire("on_step_begin", step)
+                self._stop_everywhere = False
                 result = self.step(step)
+                if self._stop_everywhere and self.interrupted is None:
+                    # a signal reached some process: all of them stop after this same step
+                    self.interrupted = self._signal or "a signal to another process"
                 self.fire("on_step_end", result)
                 done = step + 1
                 if self.checkpoint_due(done) or self.interrupted is not None:
@@ -1017,7 +1079,8 @@ class Trainer:
                     check_params_finite(self.splats, done, self.last_checkpoint)
                     synchronize(self.device)
                     self.train_time += time.perf_counter() - self._clock
-                    if done in self.eval_steps:
+                    dd.check_replicas(self.world, [self.splats[n] for n in PARAM_NAMES], done)
+                    if done in self.eval_steps and self.world.is_main:  # evaluated once, by rank 0
                         self.evaluate(done)
                     self.fire("on_checkpoint", done)
                     self._clock = time.perf_counter()
