@@ -15,7 +15,6 @@ A path is written as JSON (``jsgs/schemas/camera_path.schema.json``) and read ba
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from jsgs.errors import JsgsError
+from jsgs.limits import read_json
 from jsgs.rotations import matrix_to_quat, quat_to_matrix
 
 KINDS = ("interpolate", "spiral", "ellipse", "test")
@@ -156,33 +156,45 @@ def scaled_K(K: np.ndarray, width: int, height: int, new_width: int, new_height:
     return out
 
 
+def _poses(values: Any, where: str) -> np.ndarray:
+    """(N, 4, 4) camera-to-world matrices read from a file: finite, positions within
+    ±:data:`jsgs.limits.MAX_COORDINATE`, rotations that are rotations; JsgsError naming the first that is
+    not."""
+    from jsgs.limits import check_coordinates
+
+    c2w = np.asarray(values, dtype=np.float64).reshape(-1, 4, 4)
+    check_coordinates(c2w, where, by_row=True)
+    for i, R in enumerate(c2w[:, :3, :3]):
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+            raise JsgsError(f"{where}/{i}: not a camera pose (its rotation is not a rotation)")
+    return c2w
+
+
 def read_path(
     path: Path, frames: int, K: np.ndarray, width: int, height: int, max_cameras: int | None = None
 ) -> CameraPath:
     """A camera path JSON written by ``jsgs render`` (taken as it is), or ``viewer_cameras.json`` (its cameras
     are key frames: ``frames`` frames interpolated through them at the run's intrinsics). ``max_cameras``:
     a file holding more is refused before it is validated."""
-    from jsgs.io import read_regular_text
     from jsgs.schemas import validate
 
-    try:
-        doc = json.loads(read_regular_text(path))
-    except FileNotFoundError:
-        raise JsgsError(f"--path {path}: no such file (or give interpolate, spiral, ellipse, test)") from None
-    except (OSError, ValueError) as e:
-        raise JsgsError(f"{path}: not a camera path JSON file ({e})") from None
+    if not path.exists():
+        raise JsgsError(f"--path {path}: no such file (or give interpolate, spiral, ellipse, test)")
+    doc = read_json(path, "a camera path JSON file")
     kind = doc.get("format") if isinstance(doc, dict) else None
     listed = doc.get("camtoworld" if kind == PATH_FORMAT else "cameras") if isinstance(doc, dict) else None
     if max_cameras is not None and isinstance(listed, list) and len(listed) > max_cameras:
         raise JsgsError(f"{path}: {len(listed)} cameras; render draws at most {max_cameras:,}")
     if kind == PATH_FORMAT:
         validate(doc, "camera_path", str(path))
-        c2w = np.asarray(doc["camtoworld"], dtype=np.float64)
+        c2w = _poses(doc["camtoworld"], f"{path}: camtoworld")
         K_doc = np.asarray(doc["K"], dtype=np.float64)
+        if not (K_doc[0, 0] > 0 and K_doc[1, 1] > 0):
+            raise JsgsError(f"{path}: K: a focal length is not positive")
         return CameraPath(c2w, K_doc, int(doc["width"]), int(doc["height"]), str(doc["kind"]))
     if kind == "jsgs-viewer-cameras":
         validate(doc, "viewer_cameras", str(path))
-        keys = np.asarray([c["camtoworld"] for c in doc["cameras"]], dtype=np.float64)
+        keys = _poses([c["camtoworld"] for c in doc["cameras"]], f"{path}: cameras")
         if len(keys) == 0:
             raise JsgsError(f"{path}: holds no saved camera")
         return CameraPath(interpolate(keys, frames), K, width, height, "interpolate")

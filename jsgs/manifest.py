@@ -15,7 +15,6 @@ take seconds for a real scene's tens of thousands of points.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from jsgs.errors import JsgsError
+from jsgs.limits import MAX_COORDINATE, MAX_FOCAL_RATIO, MIN_FOCAL_RATIO, check_coordinates, parse_json
 
 
 @dataclass(frozen=True)
@@ -158,6 +158,8 @@ def _check_points(points: Any, where: str) -> None:
                     f"{where}: not a valid manifest file: at points/rgb/{i}: {c!r} is not 3 integers "
                     "in 0..255"
                 )
+    if isinstance(xyz, list) and xyz:
+        check_coordinates(xyz, f"{where}: not a valid manifest file: at points/xyz", by_row=True)
     if isinstance(xyz, list) and isinstance(rgb, list) and type(count) is int:
         if not len(xyz) == len(rgb) == count:
             raise JsgsError(
@@ -172,10 +174,32 @@ def _finite(x: Any) -> bool:
     return not isinstance(x, float) or math.isfinite(x)
 
 
+def _check_camera(cam: dict[str, Any], loc: str) -> None:
+    """Focal lengths within [MIN_FOCAL_RATIO, MAX_FOCAL_RATIO] x the longer side, the principal point within
+    MAX_FOCAL_RATIO x the longer side of the origin, finite distortion (jsgs.limits)."""
+    side = max(cam["width"], cam["height"])
+    for key in ("fx", "fy"):
+        f = cam[key]
+        if not MIN_FOCAL_RATIO * side <= f <= MAX_FOCAL_RATIO * side:
+            raise JsgsError(
+                f"{loc}/camera/{key}: focal length {f:g} px is outside [{MIN_FOCAL_RATIO:g}, "
+                f"{MAX_FOCAL_RATIO:g}] x the image's longer side ({side} px)"
+            )
+    for key in ("cx", "cy"):
+        if abs(cam[key]) > MAX_FOCAL_RATIO * side:
+            raise JsgsError(
+                f"{loc}/camera/{key}: principal point {cam[key]:g} px lies beyond {MAX_FOCAL_RATIO:g} x the "
+                f"image's longer side ({side} px)"
+            )
+    dist = cam["distortion"]
+    if dist is not None and not _finite(dist["params"]):
+        raise JsgsError(f"{loc}/camera/distortion: a parameter is not finite ({dist['params']})")
+
+
 def validate_document(doc: Any, where: str) -> None:
     """Raise JsgsError (one line naming ``where``) unless ``doc`` is a valid manifest: the schema, plus what a
-    schema cannot say — finite numbers, matching point counts, unique view names, rotations that are
-    rotations."""
+    schema cannot say — finite numbers within the limits of :mod:`jsgs.limits` (coordinates, focal lengths,
+    principal points), matching point counts, unique view names, rotations that are rotations."""
     from jsgs.schemas import validate
 
     if isinstance(doc, dict) and isinstance(doc.get("points"), dict):
@@ -197,6 +221,9 @@ def validate_document(doc: Any, where: str) -> None:
         cam = v["camera"]
         if not _finite([v["R"], v["t"], cam["fx"], cam["fy"], cam["cx"], cam["cy"]]):
             raise JsgsError(f"{loc}: non-finite camera or pose")
+        if not all(abs(x) <= MAX_COORDINATE for x in v["t"]):
+            raise JsgsError(f"{loc}/t: translation {v['t']} lies beyond ±{MAX_COORDINATE:g} (world units)")
+        _check_camera(cam, loc)
         R = np.asarray(v["R"], dtype=np.float64)
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-5 or np.linalg.det(R) < 0:
             raise JsgsError(f"{loc}/R: not a rotation matrix (R R^T != I or det < 0)")
@@ -284,10 +311,7 @@ def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
         raise JsgsError(f"{path}: manifest not found") from None
     except (OSError, UnicodeDecodeError) as e:
         raise JsgsError(f"{path}: cannot read the manifest: {e}") from None
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise JsgsError(f"{path}: not JSON: {e.msg} at line {e.lineno}, column {e.colno}") from None
+    doc = parse_json(text, path)
     validate_document(doc, str(path))
 
     base = path.parent

@@ -27,6 +27,7 @@ import numpy as np
 
 from jsgs.errors import JsgsError
 from jsgs.io import atomic_path
+from jsgs.run_files import check_gaussians
 
 ArrayLike = Any  # numpy array or torch tensor (any device, any float dtype)
 
@@ -175,7 +176,10 @@ def read_ply_vertices(path: str | os.PathLike[str]) -> np.ndarray:
     for name, count, props in elements:
         if any(t == "list" for _, t in props):
             raise JsgsError(f"{path}: list property in element '{name}' (before or in 'vertex'): unsupported")
-        dtype = np.dtype(props)
+        try:
+            dtype = np.dtype(props)
+        except (ValueError, TypeError) as e:  # a property named twice, or a name numpy cannot take
+            raise JsgsError(f"{path}: element '{name}': unusable properties ({e})") from None
         if name == "vertex":
             size = count * dtype.itemsize
             if len(data) - offset < size:
@@ -190,7 +194,9 @@ def load_ply(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     :func:`save_ply` takes: ``means`` [N,3], ``scales_log`` [N,3], ``quats`` [N,4] wxyz,
     ``opacities_logit`` [N], ``sh0`` [N,1,3], ``shN`` [N,K-1,3] (coefficient-major again), ``normals`` [N,3]
     (zeros if absent); all float32 (other stored types are converted). Raises JsgsError when a required
-    property is missing."""
+    property is missing, and for a model that cannot be rendered (:func:`jsgs.run_files.check_gaussians`: no
+    Gaussians, a value that is not finite, a centre beyond ±:data:`jsgs.limits.MAX_COORDINATE`, a zero
+    quaternion)."""
     v = read_ply_vertices(path)
     names = set(v.dtype.names or ())
     n_rest = sum(1 for k in names if re.fullmatch(r"f_rest_\d+", k))
@@ -207,7 +213,7 @@ def load_ply(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
 
     k1 = n_rest // 3
     rest = cols([f"f_rest_{i}" for i in range(n_rest)]).reshape(len(v), 3, k1).transpose(0, 2, 1)
-    return {
+    arrays = {
         "means": cols(["x", "y", "z"]),
         "normals": cols(["nx", "ny", "nz"]) if "nx" in names else np.zeros((len(v), 3), np.float32),
         "sh0": cols([f"f_dc_{i}" for i in range(3)])[:, None, :],
@@ -216,3 +222,5 @@ def load_ply(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
         "scales_log": cols([f"scale_{i}" for i in range(3)]),
         "quats": cols([f"rot_{i}" for i in range(4)]),
     }
+    check_gaussians(arrays, path)
+    return arrays

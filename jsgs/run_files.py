@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from jsgs.errors import JsgsError
+from jsgs.limits import MAX_COORDINATE
 
 #: the trainer's own export of the model in the scene's COLMAP frame
 COLMAP_PLY = "point_cloud_colmap.ply"
@@ -46,8 +47,9 @@ def refuse_run_files(run: str | os.PathLike[str], outputs: Iterable[Path], hint:
 def check_gaussians(arrays: Mapping[str, Any], source: str | os.PathLike[str]) -> int:
     """The number of Gaussians in ``arrays`` (``means`` [N, 3], ``quats`` [N, 4] and the other parameters,
     numpy arrays or torch tensors), or JsgsError (one line naming ``source``) when there are none, when any
-    has a non-finite parameter (NaN, ±inf) or a zero rotation quaternion: such a model renders black or
-    exports rows that viewers drop, so it is refused rather than written."""
+    has a non-finite parameter (NaN, ±inf), a centre beyond ±:data:`jsgs.limits.MAX_COORDINATE` or a zero
+    rotation quaternion: such a model renders black or exports rows that viewers drop, so it is refused
+    rather than written."""
     arr = {k: np.asarray(v.detach().cpu() if hasattr(v, "detach") else v) for k, v in arrays.items()}
     n = int(arr["means"].shape[0])
     if n == 0:
@@ -63,6 +65,12 @@ def check_gaussians(arrays: Mapping[str, Any], source: str | os.PathLike[str]) -
         raise JsgsError(
             f"{source}: {int(bad.sum())} of {n} Gaussians have non-finite values (in {', '.join(names)}); "
             "the model is damaged: train again, or resume from a checkpoint"
+        )
+    far = int((~(np.abs(arr["means"].reshape(n, 3)) <= MAX_COORDINATE).all(axis=1)).sum())
+    if far:
+        raise JsgsError(
+            f"{source}: {far} of {n} Gaussians lie beyond ±{MAX_COORDINATE:g} (world units); the model is "
+            "damaged: train again, or resume from a checkpoint"
         )
     zero = int((np.abs(arr["quats"].reshape(n, 4)).sum(axis=1) == 0).sum())
     if zero:

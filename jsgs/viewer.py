@@ -10,7 +10,6 @@ world).
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import threading
@@ -53,6 +52,7 @@ def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
     """Read ``RUN/config.json`` and ``RUN/point_cloud.ply`` and the run's manifest (its cameras).
 
     JsgsError (one line) when RUN is not a finished run or its manifest has moved."""
+    from jsgs.limits import read_json
     from jsgs.ply import load_ply
     from jsgs.train.data import load_scene
     from jsgs.train.model import splats_from_state
@@ -68,7 +68,7 @@ def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
         raise JsgsError(
             f"{run}: no point_cloud.ply (the run is not finished: jsgs train --resume continues it)"
         )
-    doc = json.loads((run / "config.json").read_text())
+    doc = read_json(run / "config.json", "a run's config.json")
     manifest = Path(str(doc.get("manifest", {}).get("path", "")))
     if not manifest.is_file():
         raise JsgsError(f"{run}: its manifest {manifest} is not there any more (the cameras come from it)")
@@ -114,17 +114,44 @@ def render_rgb(model: RunModel, viewmat: np.ndarray, K: np.ndarray, width: int, 
     return rgb.cpu().numpy()
 
 
+def check_camera(
+    position: Any, wxyz: Any, fov: Any, aspect: Any
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """A camera as the browser reports it, checked before anything is computed from it: ``position`` 3
+    finite coordinates within ±:data:`jsgs.limits.MAX_COORDINATE`, ``wxyz`` 4 finite numbers of norm at
+    least 1e-6 (returned normalised), ``fov`` in (0, π) radians, ``aspect`` in [1e-3, 1e3]. JsgsError (one
+    line) naming the value."""
+    from jsgs.limits import check_coordinates, check_number
+
+    try:
+        p = np.asarray(position, dtype=np.float64).reshape(3)
+        q = np.asarray(wxyz, dtype=np.float64).reshape(4)
+    except (TypeError, ValueError):
+        raise JsgsError(f"viewer camera: position {position!r} or orientation {wxyz!r} malformed") from None
+    check_coordinates(p, "viewer camera position")
+    norm = float(np.linalg.norm(q)) if np.isfinite(q).all() else math.nan
+    if not norm >= 1e-6:
+        raise JsgsError(f"viewer camera orientation: quaternion {q.tolist()} is no rotation (norm {norm:g})")
+    f = check_number(fov, "viewer camera field of view (radians)", 0.0, math.pi, lo_open=True)
+    if f >= math.pi:
+        raise JsgsError(f"viewer camera field of view (radians) must be below π (got {f!r})")
+    a = check_number(aspect, "viewer camera aspect (width / height)", 1e-3, 1e3)
+    return p, q / norm, f, a
+
+
 def save_camera(model: RunModel, position: np.ndarray, wxyz: np.ndarray, fov: float, aspect: float) -> Path:
-    """Append a camera to ``RUN/viewer_cameras.json`` (``jsgs/schemas/viewer_cameras.schema.json``, written
-    atomically); returns the path."""
+    """Append a camera (checked by :func:`check_camera`) to ``RUN/viewer_cameras.json``
+    (``jsgs/schemas/viewer_cameras.schema.json``, written atomically); returns the path."""
     import jsgs
     from jsgs.io import write_json_atomic
+    from jsgs.limits import read_json
     from jsgs.schemas import validate
 
+    position, wxyz, fov, aspect = check_camera(position, wxyz, fov, aspect)
     path = model.run / "viewer_cameras.json"
     doc: dict[str, Any]
     if path.is_file():
-        doc = json.loads(path.read_text())
+        doc = read_json(path, "a viewer cameras file")
         validate(doc, "viewer_cameras", str(path))
     else:
         doc = {"format": CAMERAS_FORMAT, "format_version": CAMERAS_VERSION, "jsgs_version": jsgs.__version__,
@@ -180,7 +207,11 @@ class Viewer:
         @button.on_click
         def _(_: Any) -> None:
             c = client.camera
-            path = save_camera(self.model, np.array(c.position), np.array(c.wxyz), c.fov, c.aspect)
+            try:
+                path = save_camera(self.model, c.position, c.wxyz, c.fov, c.aspect)
+            except JsgsError as e:  # a camera the browser reported broken: say so, save nothing
+                client.add_notification("Camera not saved", str(e), auto_close_seconds=5.0)
+                return
             client.add_notification("Camera saved", f"{path}", auto_close_seconds=3.0)
 
         @client.camera.on_update
@@ -193,8 +224,12 @@ class Viewer:
                     continue
                 changed.clear()
                 c = client.camera
-                w, h = image_size(float(c.aspect), self.max_size)
-                viewmat, K = camera_matrices(np.array(c.position), np.array(c.wxyz), float(c.fov), w, h)
+                try:
+                    position, wxyz, fov, aspect = check_camera(c.position, c.wxyz, c.fov, c.aspect)
+                except JsgsError:  # a broken camera from the browser: keep the last image
+                    continue
+                w, h = image_size(aspect, self.max_size)
+                viewmat, K = camera_matrices(position, wxyz, fov, w, h)
                 with self.lock:
                     img = render_rgb(self.model, viewmat, K, w, h)
                 try:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from jsgs.errors import JsgsError
+from jsgs.limits import MAX_COORDINATE, MAX_FOCAL_RATIO, MAX_IMAGE_SIDE, MIN_FOCAL_RATIO
 
 #: the largest |coefficient| of a radial or tangential distortion term taken as a real lens
 MAX_DISTORTION = 10.0
@@ -122,6 +123,8 @@ def check_camera(path: Path, cid: int, model: str, w: int, h: int, params: tuple
     where = f"{path}: camera {cid} ({model} {w}x{h})"
     if w < 1 or h < 1:
         raise JsgsError(f"{where}: the image size must be positive")
+    if max(w, h) > MAX_IMAGE_SIDE:
+        raise JsgsError(f"{where}: the image size exceeds {MAX_IMAGE_SIDE} pixels a side")
     if not all(math.isfinite(p) for p in params):
         raise JsgsError(f"{where}: a parameter is not finite ({list(params)})")
     info = {name: (fi, pi, ei) for name, _, fi, pi, ei in camera_models().values()}
@@ -131,6 +134,12 @@ def check_camera(path: Path, cid: int, model: str, w: int, h: int, params: tuple
     focal = [params[i] for i in fi]
     if any(f <= 0 for f in focal):
         raise JsgsError(f"{where}: focal length {focal} is not positive")
+    side = max(w, h)
+    if any(not MIN_FOCAL_RATIO * side <= f <= MAX_FOCAL_RATIO * side for f in focal):
+        raise JsgsError(
+            f"{where}: focal length {focal} px is outside [{MIN_FOCAL_RATIO:g}, {MAX_FOCAL_RATIO:g}] x the "
+            f"image's longer side"
+        )
     if len(pi) == 2:
         cx, cy = params[pi[0]], params[pi[1]]
         if not (0.0 <= cx <= w and 0.0 <= cy <= h):
@@ -159,7 +168,7 @@ def check_points_bin(path: Path) -> None:
     bad = 0
     for k in range(n):
         pid, x, y, z, *_rest = r.take("<Q3d3Bd", f"point record {k + 1} of {n}")
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        if not (abs(x) <= MAX_COORDINATE and abs(y) <= MAX_COORDINATE and abs(z) <= MAX_COORDINATE):
             bad += 1
             if bad == 1:
                 first = pid
@@ -167,7 +176,10 @@ def check_points_bin(path: Path) -> None:
         r.skip(8 * m, f"the {m}-long track of point {pid}")
     r.end("points")
     if bad:
-        raise JsgsError(f"{path}: {bad} point(s) with non-finite coordinates (the first: point {first})")
+        raise JsgsError(
+            f"{path}: {bad} point(s) with non-finite coordinates or beyond ±{MAX_COORDINATE:g} (the first: "
+            f"point {first})"
+        )
 
 
 def check_binary_model(model_dir: Path) -> None:
@@ -178,7 +190,9 @@ def check_binary_model(model_dir: Path) -> None:
 
 
 def check_points_finite(path: Path, xyz: np.ndarray) -> None:
-    """A text model's points: finite coordinates."""
-    bad = ~np.isfinite(xyz).all(axis=1)
+    """A text model's points: finite coordinates within ±MAX_COORDINATE."""
+    bad = ~(np.abs(xyz) <= MAX_COORDINATE).all(axis=1)
     if bad.any():
-        raise JsgsError(f"{path}: {int(bad.sum())} point(s) with non-finite coordinates")
+        raise JsgsError(
+            f"{path}: {int(bad.sum())} point(s) with non-finite coordinates or beyond ±{MAX_COORDINATE:g}"
+        )

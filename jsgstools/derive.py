@@ -26,6 +26,7 @@ from typing import Any
 from jsgs import __version__
 from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
+from jsgs.limits import parse_json
 
 from .compress import SUBSAMPLING, check_recompress, load_rgb, observed_jpeg, plan, schedule_settings
 from .scene import image_stem, prepare_output_dir, removes_partial_output
@@ -49,11 +50,10 @@ def read_base(base_manifest: str | Path) -> tuple[dict[str, Any], dict[str, str]
     from jsgs.io import read_regular_text
 
     try:
-        doc = json.loads(read_regular_text(path))
+        text = read_regular_text(path)
     except OSError as e:
         raise JsgsError(f"{path}: cannot read the base manifest ({e.strerror or e})") from None
-    except ValueError as e:
-        raise JsgsError(f"{path}: not a JSON file ({e})") from None
+    doc = parse_json(text, path, "a JSON file")
     validate_document(doc, str(path))
     schedule = doc["scene"]["schedule"]
     if schedule != "clean":

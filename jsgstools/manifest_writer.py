@@ -26,6 +26,7 @@ from typing import Any
 from jsgs import __version__
 from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
+from jsgs.limits import read_json
 from jsgs.schemas import validate as schema_validate
 
 from .scene import JPEG_FORMATS, ColmapScene, SceneView, image_stem, view_camera
@@ -59,10 +60,7 @@ def read_record(scene_dir: Path) -> dict[str, Any] | None:
     path = scene_dir / RECORD
     if not path.is_file():
         return None
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise JsgsError(f"{path}: cannot read the compress record: {e}") from None
+    doc = read_json(path, "a compress record")
     schema_validate(doc, "compress_record", str(path))
     return doc
 
@@ -253,7 +251,7 @@ def _is_manifest(path: Path) -> bool:
         if path.stat().st_size > 512 * 2**20:
             return False
         doc = json.loads(path.read_bytes())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return False
     return isinstance(doc, dict) and doc.get("format") == "jsgs-manifest"
 

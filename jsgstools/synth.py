@@ -26,6 +26,7 @@ import numpy as np
 
 from jsgs.errors import JsgsError
 from jsgs.io import write_bytes_atomic
+from jsgs.limits import MIN_VIEW_SIDE
 
 from .scene import prepare_output_dir, removes_partial_output, write_model_atomic
 
@@ -390,8 +391,11 @@ def parse_size(text: str) -> tuple[int, int]:
         w, h = (int(p) for p in text.lower().split("x"))
     except ValueError:
         raise JsgsError(f"--size {text!r}: expected WIDTHxHEIGHT, e.g. 160x120") from None
-    if not (8 <= w <= 4096 and 8 <= h <= 4096):
-        raise JsgsError(f"--size {text!r}: width and height must be within 8..4096")
+    if not (MIN_VIEW_SIDE <= w <= 4096 and MIN_VIEW_SIDE <= h <= 4096):
+        raise JsgsError(
+            f"--size {text!r}: width and height must be within {MIN_VIEW_SIDE}..4096 (the trainer's SSIM "
+            f"window is {MIN_VIEW_SIDE} pixels)"
+        )
     return w, h
 
 

@@ -9,7 +9,8 @@ Problems (each one line, naming the file; any problem means exit code 1):
   (see :func:`jsgstools.scene.detect_downscale`); a camera shared by images of different sizes;
 - a camera model other than the pinhole ones (SIMPLE_PINHOLE, PINHOLE) and the distorted ones ``compress`` can
   undistort (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV); non-finite or non-positive intrinsics;
-- a non-finite pose; an image name used twice; no registered image; no points3D, or non-finite points;
+- a non-finite pose or one beyond ``jsgs.limits.MAX_COORDINATE``; an image name used twice; no registered
+  image; no points3D, or points that are not finite or lie beyond that limit;
 - with ``decode`` (the ``validate`` command), an image that cannot be decoded (truncated, over the pixel
   limit: :mod:`jsgs.images`), as compress and the trainer would find it; an unreadable ``compress.json``.
 
@@ -17,7 +18,8 @@ Warnings (reported, exit code still 0): distorted cameras — ``compress`` undis
 encoding, ``manifest`` records the distortion as is, and the trainer renders SIMPLE_RADIAL, RADIAL and OPENCV
 views on the photos' own grid;
 images in the model without a pose (ignored by every tool); a camera that sees none of the points3D; image
-files the model does not use (photos SfM could not register); other models under ``sparse/``.
+files the model does not use (photos SfM could not register); other models under ``sparse/``; all cameras at
+one position (the trainer then needs ``scene.normalize_world`` false).
 """
 
 from __future__ import annotations
@@ -26,7 +28,10 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from jsgs.errors import JsgsError
+from jsgs.limits import COINCIDENT_CAMERAS, MAX_COORDINATE
 
 from .scene import (
     JPEG_FORMATS,
@@ -129,7 +134,7 @@ class ValidationReport:
                     f"{len(rec['views']) - n_train} test; schedule {st['schedule']}, seed "
                     f"{st['seed']}",
                 )
-            except (OSError, ValueError, KeyError, TypeError):
+            except (OSError, ValueError, KeyError, TypeError, RecursionError):
                 rows.append(("compress.json", "unreadable (listed as a problem)"))
         return rows
 
@@ -171,6 +176,11 @@ def orientation_warning(scene: ColmapScene) -> str | None:
     )
 
 
+def _in_range(t: np.ndarray) -> bool:
+    """A translation that is finite and within ±MAX_COORDINATE (a pose the checks below can compute with)."""
+    return bool((np.abs(t) <= MAX_COORDINATE).all())
+
+
 def _points_seen(scene: ColmapScene) -> list[tuple[object, int]]:
     """(view, number of points3D in front of its camera and inside its image), pinhole projection with the
     model's intrinsics (distortion ignored: a count, not a measurement)."""
@@ -180,7 +190,7 @@ def _points_seen(scene: ColmapScene) -> list[tuple[object, int]]:
         return out
     for v in scene.views:
         cam = scene.cameras.get(v.camera_id)
-        if cam is None or not (finite(v.R) and finite(v.t)):
+        if cam is None or not (finite(v.R) and _in_range(v.t)):
             continue
         pc = xyz @ v.R.T + v.t
         z = pc[:, 2]
@@ -276,6 +286,14 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
                     f"(R={v.R.tolist()}, t={v.t.tolist()})",
                 )
             )
+        elif not _in_range(v.t):
+            P.append(
+                Problem(
+                    "pose",
+                    f"{scene.rel(scene.model_dir)}: image {v.name!r}: its translation {v.t.tolist()} lies "
+                    f"beyond ±{MAX_COORDINATE:g}",
+                )
+            )
         if not have_images:
             continue
         if v.path is None:
@@ -332,7 +350,7 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
                 v["split"] not in ("train", "test") for v in rec["views"]
             ):
                 raise ValueError("settings.test_every or a view's split is not what compress writes")
-        except (OSError, ValueError, KeyError, TypeError) as e:
+        except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
             P.append(Problem("record", f"{scene.rel(record)}: unreadable ({type(e).__name__}: {e})"))
 
     if (w := orientation_warning(scene)) is not None:
@@ -352,6 +370,17 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
             f"{scene.rel(scene.root / other)}: another COLMAP model (every tool reads "
             f"{scene.rel(scene.model_dir)} only)"
         )
+
+    # Cameras at one position: the trainer's world normalisation has no extent to scale by.
+    centres = [-v.R.T @ v.t for v in scene.views if finite(v.R) and _in_range(v.t)]
+    if len(centres) > 1:
+        c = np.array(centres)
+        spread = float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())
+        if spread <= COINCIDENT_CAMERAS * max(1.0, float(np.abs(c).max())):
+            report.warnings.append(
+                f"{scene.rel(scene.model_dir)}: all {len(c)} cameras are at one position: jsgs train refuses "
+                "the scene unless scene.normalize_world is false"
+            )
 
     # Points.
     for v, n in _points_seen(scene):

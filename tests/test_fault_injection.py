@@ -341,3 +341,237 @@ def test_a_model_that_turns_non_finite_stops_with_one_line(tmp_path: Path) -> No
     if (run / "metrics.json").exists():
         m = json.loads((run / "metrics.json").read_text())
         assert m["status"] == "diverged" and "became non-finite" in m["error"], m
+
+
+# ---------------------------------------------------------------------------------------------------------
+# numbers that enter through a file or the command line: finite and in range where read, one line
+
+
+def _manifest_case(compressed_scene: Path, tmp_path: Path, edit: Callable[[dict], None] | str) -> Path:
+    """A copy of the compressed scene's manifest (beside its files) with ``edit`` applied, or replaced by the
+    text ``edit``."""
+    data = tmp_path / "data"
+    shutil.copytree(compressed_scene, data)
+    path = data / "manifest.json"
+    if isinstance(edit, str):
+        path.write_text(edit)
+    else:
+        doc = json.loads(path.read_text())
+        edit(doc)
+        path.write_text(json.dumps(doc))
+    return path
+
+
+def _coincident(doc: dict) -> None:
+    for v in doc["views"]:  # every camera centre at (1, 2, 3): t = -R c
+        v["t"] = (-np.asarray(v["R"]) @ np.array([1.0, 2.0, 3.0])).tolist()
+
+
+def _narrow(doc: dict) -> None:
+    doc["views"][0]["camera"].update(width=8, cx=4.0)
+
+
+def _set(path: str, value: object) -> Callable[[dict], None]:
+    def edit(doc: dict) -> None:
+        *keys, last = path.split("/")
+        node = doc
+        for k in keys:
+            node = node[int(k)] if isinstance(node, list) else node[k]
+        node[int(last) if isinstance(node, list) else last] = value
+
+    return edit
+
+
+DEEP = "[" * 100_000 + "]" * 100_000
+
+
+@pytest.mark.parametrize(
+    ("edit", "needle"),
+    [(_coincident, "one position"), (_set("points/xyz/0", [1e308, 0, 0]), "points/xyz/0"),
+     (_set("views/0/t", [1e308, 0, 0]), "views/0/t"), (_set("views/0/camera/fx", 1e308), "camera/fx"),
+     (_set("views/0/camera/fy", 1e-300), "camera/fy"), (_set("views/0/camera/width", 10**12), "width"),
+     (_set("scene/seed", 2**70), "64 bits"), (_narrow, "SSIM window"), (DEEP, "nested deeper"),
+     ('{"format": "jsgs-manifest", "format_version": NaN}', "not a finite number"),
+     ('{"format": ' + "1" * 5000 + "}", "4300 digits")],
+    ids=["coincident cameras", "point at 1e308", "pose at 1e308", "focal 1e308", "focal 1e-300",
+         "width 1e12", "seed beyond 64 bits", "narrower than SSIM", "nested 100000 deep", "NaN literal",
+         "5000-digit integer"],
+)  # fmt: skip
+def test_hostile_manifests_get_one_line(
+    compressed_scene: Path, tmp_path: Path, edit: Callable[[dict], None] | str, needle: str
+) -> None:
+    manifest = _manifest_case(compressed_scene, tmp_path, edit)
+    run = tmp_path / "run"
+    args = ["train", str(manifest), "--out", str(run), "--iterations", "2", "--device", "cpu", "--quiet"]
+    r = CliRunner().invoke(jsgs_main, args)
+    _check_one_line(r.output, r.exit_code)
+    assert needle in r.output and str(manifest) in r.output, r.output
+    assert not (run / "point_cloud.ply").exists() and not (run / "metrics.json").exists()
+
+
+def test_degenerate_geometry_is_handled_where_it_can_be(compressed_scene: Path, tmp_path: Path) -> None:
+    """A point absurdly far from the cameras is left out (with a note), and coincident cameras train in the
+    manifest's own units when the world is not normalised."""
+    def far_and_coincident(doc: dict) -> None:
+        doc["points"]["xyz"][0] = [1e9, 0.0, 0.0]
+        _coincident(doc)
+
+    manifest = _manifest_case(compressed_scene, tmp_path, far_and_coincident)
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps({"scene": {"normalize_world": False}}))
+    run = tmp_path / "run"
+    args = ["train", str(manifest), "--out", str(run), "--iterations", "1", "--eval-at", "", "--config",
+            str(cfg), "--device", "cpu", "--quiet"]  # fmt: skip
+    r = CliRunner().invoke(jsgs_main, args)
+    assert r.exit_code == 0, r.output
+    derived = json.loads((run / "config.json").read_text())["derived"]
+    n = len(json.loads(manifest.read_text())["points"]["xyz"])
+    assert derived["initial_gaussians"] == n - 1
+    notes = " ".join(derived["notes"])
+    assert "1 of" in notes and "left out" in notes and "one position" in notes, notes
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [('{"scene": {"global_scale": 1e300}}', "scene.global_scale"),
+     ('{"optim": {"means_lr": 1e300}}', "optim.means_lr"),
+     ('{"seed": 1180591620717411303424}', "64 bits"), ('{"seed": 9223372036854775808}', "seed"),
+     ('{"init": {"scale": NaN}}', "not a finite number"), ('{"loss": {"ssim_lambda": 1e400}}', "finite"),
+     (DEEP, "nested deeper"), ('{"method": "jsgs", "method_options": {"lambda_obs": 1e300}}', "lambda_obs")],
+)  # fmt: skip
+def test_hostile_settings_files_get_one_line(compressed_scene: Path, tmp_path: Path, text: str,
+                                             needle: str) -> None:  # fmt: skip
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(text)
+    run = tmp_path / "run"
+    args = ["train", str(compressed_scene / "manifest.json"), "--out", str(run), "--config", str(cfg),
+            "--device", "cpu", "--quiet"]  # fmt: skip
+    r = CliRunner().invoke(jsgs_main, args)
+    _check_one_line(r.output, r.exit_code)
+    assert needle in r.output and str(cfg) in r.output and not run.exists(), r.output
+
+
+@pytest.mark.parametrize(
+    ("main", "args", "needle"),
+    [("jsgs", ["train", "{data}", "--out", "{out}", "--seed", str(2**70)], "seed must be <="),
+     ("jsgs", ["train", "{data}", "--out", "{out}", "--iterations", str(10**30)], "iterations must be <="),
+     ("jsgs", ["train", "{data}", "--out", "{out}", "--viewer", "70000"], "--viewer"),
+     ("jsgs", ["render", "{out}", "--out", "{out}/v.mp4", "--fps", "nan"], "--fps"),
+     ("jsgs", ["render", "{out}", "--out", "{out}/v.mp4", "--fps", "inf"], "--fps"),
+     ("jsgs", ["view", "{out}", "--port", "70000"], "--port"),
+     ("jsgs", ["bench", "{data}", "--out", "{out}", "--time-limit", "inf"], "--time-limit"),
+     ("jsgs", ["bench", "{data}", "--out", "{out}", "--jobs-per-gpu", str(10**30)], "--jobs-per-gpu"),
+     ("tools", ["synth", "{out}", "--size", "8x2000"], "SSIM"),
+     ("tools", ["synth", "{out}", "--seed", "-1"], "--seed"),
+     ("tools", ["compress", "{scene}", "--out", "{out}", "--schedule", "uniform", "--seed", str(2**64)],
+      "--seed"),
+     ("tools", ["compress", "{scene}", "--out", "{out}", "--schedule", "uniform", "--jobs", str(10**30)],
+      "--jobs"),
+     ("tools", ["manifest", "{scene}", "--out", "{out}/m.json", "--test-every", str(2**64)], "--test-every"),
+     ("tools", ["sfm", "{scene}", "--out", "{out}", "--max-image-size", str(10**30)], "--max-image-size"),
+     ("tools", ["sfm", "{scene}", "--out", "{out}", "--seed", str(2**40)], "--seed")],
+)  # fmt: skip
+def test_command_line_numbers_are_checked_before_anything_runs(
+    synth_scene: Path, compressed_scene: Path, tmp_path: Path, main: str, args: list[str], needle: str
+) -> None:
+    out = tmp_path / "out"
+    argv = [a.format(data=compressed_scene, scene=synth_scene, out=out) for a in args]
+    r = CliRunner().invoke(jsgs_main if main == "jsgs" else tools_main, argv)
+    assert r.exit_code != 0 and "Traceback" not in r.output and needle in r.output, r.output
+    assert not out.exists() or not any(out.iterdir()), list(out.iterdir())
+
+
+def _bad_colmap_point(scene: Path) -> None:
+    import struct
+
+    path = scene / "sparse/0/points3D.bin"
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<3d", data, 16, 1e308, 0.0, 0.0)  # the first point's xyz, after the count and its id
+    path.write_bytes(bytes(data))
+
+
+def _colmap_poses(scene: Path, centre: Callable[[int, np.ndarray], object]) -> None:
+    """Move the camera of the k-th image (by id) from its centre c to ``centre(k, c)`` (rotation kept)."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(scene / "sparse/0"))
+    for k, iid in enumerate(sorted(rec.images)):
+        frame = rec.frames[rec.images[iid].frame_id]
+        pose = frame.rig_from_world
+        R = pose.rotation.matrix()
+        c = -R.T @ np.asarray(pose.translation)
+        frame.rig_from_world = pycolmap.Rigid3d(pose.rotation, -R @ np.asarray(centre(k, c), dtype=float))
+    rec.write_binary(str(scene / "sparse/0"))
+
+
+@pytest.mark.parametrize(
+    ("breaker", "needle"),
+    [(_bad_colmap_point, "beyond ±1e+12"),
+     (lambda s: _colmap_poses(s, lambda k, c: [1e308, 0, 0] if k == 0 else c), "beyond ±1e+12")],
+    ids=["point at 1e308", "camera at 1e308"],
+)  # fmt: skip
+def test_colmap_numbers_out_of_range_get_one_line(synth_scene: Path, tmp_path: Path, breaker: Breaker,
+                                                  needle: str) -> None:  # fmt: skip
+    scene = tmp_path / "scene"
+    shutil.copytree(synth_scene, scene)
+    breaker(scene)
+    for args in (["validate", str(scene)], ["manifest", str(scene), "--out", str(tmp_path / "m.json")]):
+        r = CliRunner().invoke(tools_main, args)
+        _check_one_line(r.output, r.exit_code)
+        assert needle in r.output, r.output
+    assert not (tmp_path / "m.json").exists()
+
+
+def test_coincident_colmap_cameras_are_named_by_validate(synth_scene: Path, tmp_path: Path) -> None:
+    scene = tmp_path / "scene"
+    shutil.copytree(synth_scene, scene)
+    _colmap_poses(scene, lambda k, c: [1.0, 2.0, 3.0])
+    r = CliRunner().invoke(tools_main, ["validate", str(scene)])
+    assert r.exit_code == 0 and "cameras are at one position" in r.output, r.output
+
+
+# PLY files: a model that cannot be rendered gets one line from every reader (export, render, view)
+
+
+def _fake_run(root: Path, table: np.ndarray | None = None, header: bytes | None = None) -> Path:
+    from jsgs.ply import ply_header
+
+    run = root / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"derived": {"normalization": np.eye(4).tolist()}}))
+    n = 0 if table is None else len(table)
+    body = b"" if table is None else table.astype("<f4").tobytes()
+    (run / "point_cloud.ply").write_bytes((header or ply_header(n, 0)) + body)
+    return run
+
+
+def _gaussians(n: int) -> np.ndarray:
+    t = np.random.default_rng(0).normal(size=(n, 17)).astype(np.float32)
+    t[:, 13:17] = [1.0, 0.0, 0.0, 0.0]  # rot_0..rot_3
+    return t
+
+
+def _with(row: int, col: int | slice, value: float) -> np.ndarray:
+    t = _gaussians(4)
+    t[row, col] = value
+    return t
+
+
+@pytest.mark.parametrize(
+    ("table", "header", "needle"),
+    [(_with(2, 0, np.nan), None, "non-finite values (in means"),
+     (_with(1, 9, np.inf), None, "non-finite values (in opacities_logit"),
+     (_with(3, slice(13, 17), 0.0), None, "zero rotation quaternion"), (_with(0, 1, 1e30), None, "beyond"),
+     (None, None, "no Gaussians"),
+     (_gaussians(2), b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\n"
+      b"property float x\nend_header\n", "unusable properties")],
+    ids=["NaN", "Inf", "zero quaternion", "centre at 1e30", "empty", "property named twice"],
+)  # fmt: skip
+def test_broken_models_get_one_line_on_export(tmp_path: Path, table: np.ndarray | None, header: bytes | None,
+                                              needle: str) -> None:  # fmt: skip
+    run = _fake_run(tmp_path, table, header)
+    out = tmp_path / "model.ply"
+    r = CliRunner().invoke(jsgs_main, ["export", str(run), "--out", str(out)])
+    _check_one_line(r.output, r.exit_code)
+    assert needle in r.output and "point_cloud.ply" in r.output, r.output
+    assert not out.exists()

@@ -10,6 +10,7 @@ from typing import Any, TypeVar
 import click
 
 from jsgs.errors import JsgsError, Terminated
+from jsgs.limits import MAX_INT_SETTING
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -17,6 +18,38 @@ F = TypeVar("F", bound=Callable[..., Any])
 CONTEXT: dict[str, Any] = {"help_option_names": ["-h", "--help"]}
 #: the end of every command's --help (``epilog=EXAMPLE.format(command line)``; \b: click keeps the lines)
 EXAMPLE = "\b\nExample:\n  {}"
+
+
+class FiniteFloat(click.ParamType):
+    """A command-line number that is finite (``nan``, ``inf`` and ``1e400`` refused) and, when given, in
+    [``lo``, ``hi``] (``lo_open``: greater than ``lo``)."""
+
+    name = "number"
+
+    def __init__(self, lo: float | None = None, hi: float | None = None, lo_open: bool = False) -> None:
+        self.lo, self.hi, self.lo_open = lo, hi, lo_open
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> float:
+        from jsgs.limits import check_number
+
+        try:
+            x = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        try:
+            return check_number(x, "it", self.lo, self.hi, lo_open=self.lo_open)
+        except JsgsError as e:
+            self.fail(str(e).replace("it must be", f"{value!r} is not", 1).split(" (got")[0], param, ctx)
+
+
+#: a finite command-line number without bounds of its own
+FINITE = FiniteFloat()
+#: a TCP port to serve on
+PORT = click.IntRange(1, 65_535)
+#: a seed of a random number generator (what numpy's and torch's take, and the manifest records)
+SEED = click.IntRange(0, MAX_INT_SETTING)
+#: a count of worker processes
+WORKERS = click.IntRange(1, 4096)
 
 
 def fail(message: str, code: int = 1) -> None:

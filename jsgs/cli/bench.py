@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, FINITE, WORKERS, invocation, user_errors
 
 
 @click.command(
@@ -81,7 +81,7 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
 @click.option(
     "--jobs-per-gpu",
     "jobs_per_gpu",
-    type=int,
+    type=WORKERS,
     default=1,
     show_default=True,
     help="Concurrent trainings per GPU (on the CPU: in all).",
@@ -104,7 +104,7 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
 @click.option(
     "--time-limit",
     "time_limit",
-    type=float,
+    type=FINITE,
     default=None,
     help="Seconds: start no run after this and stop those still going (a rerun resumes them).",
 )

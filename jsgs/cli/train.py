@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, PORT, invocation, user_errors
 from jsgs.errors import JsgsError
 
 
@@ -117,7 +117,7 @@ def _parse_steps(text: str) -> list[int]:
 @click.option(
     "--viewer",
     "viewer_port",
-    type=int,
+    type=PORT,
     default=None,
     is_flag=False,
     flag_value=8080,

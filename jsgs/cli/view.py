@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, PORT, user_errors
 
 
 @click.command(
@@ -17,7 +17,7 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, user_errors
 )
 @click.argument("run", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--host", default="127.0.0.1", show_default=True, help="Address to serve on (0.0.0.0: all).")
-@click.option("--port", type=int, default=8080, show_default=True, help="Port (the next free one if taken).")
+@click.option("--port", type=PORT, default=8080, show_default=True, help="Port (the next free one if taken).")
 @click.option(
     "--max-size",
     "max_size",

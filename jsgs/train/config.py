@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
 from jsgs.errors import JsgsError
+from jsgs.limits import MAX_INT_SETTING, MAX_SETTING, read_json
 
 RUN_CONFIG_FORMAT = "jsgs-run-config"
 RUN_CONFIG_VERSION = 1
@@ -47,7 +48,8 @@ def setting(default: Any = dataclasses.MISSING, help: str = "", **kw: Any) -> An
     """A dataclass field with a ``help`` text (used for the JSON Schema and the docs): every setting of a
     config section, the methods' option sections included (:func:`section_from_dict`). Numeric settings may
     carry bounds ``ge``, ``gt``, ``le``, ``lt``: checked when settings are read (a one-line error naming the
-    key) and written into the JSON Schema."""
+    key) and written into the JSON Schema. A side left open is bounded by :data:`jsgs.limits.MAX_SETTING`
+    (numbers) or :data:`jsgs.limits.MAX_INT_SETTING` (integers)."""
     meta: dict[str, Any] = {"help": help}
     for b in _BOUNDS:
         if b in kw:
@@ -68,18 +70,32 @@ def check_bounds(section: Any, where: str, prefix: str = "") -> None:
             _check_bounds(value, f, prefix + f.name, where)
 
 
+def _limits(f: dataclasses.Field[Any], is_int: bool) -> dict[str, Any]:
+    """The bounds of setting ``f``: its own, with :data:`jsgs.limits.MAX_INT_SETTING` (integers) or
+    :data:`jsgs.limits.MAX_SETTING` (numbers) on a side it leaves open."""
+    cap = MAX_INT_SETTING if is_int else MAX_SETTING
+    out = {b: f.metadata[b] for b in _BOUNDS if b in f.metadata}
+    if "ge" not in out and "gt" not in out:
+        out["ge"] = -cap
+    if "le" not in out and "lt" not in out:
+        out["le"] = cap
+    return out
+
+
 def _check_bounds(value: Any, f: dataclasses.Field[Any], key: str, where: str) -> None:
     values = value if isinstance(value, list) else [value]
     for v in values:
         if not isinstance(v, (int, float)) or isinstance(v, bool):
             continue
+        limits = _limits(f, isinstance(v, int))
         for b, words in _BOUND_WORDS.items():
-            if b not in f.metadata:
+            if b not in limits:
                 continue
-            bound = f.metadata[b]
+            bound = limits[b]
             ok = {"ge": v >= bound, "gt": v > bound, "le": v <= bound, "lt": v < bound}[b]
             if not ok:
-                raise JsgsError(f"{where}: {key} must be {words} {bound} (got {v!r})")
+                shown = f"{bound:g}" if abs(bound) >= 1e6 else bound
+                raise JsgsError(f"{where}: {key} must be {words} {shown} (got {v!r})")
 
 
 _f = setting
@@ -542,15 +558,10 @@ def is_run_config(doc: Any) -> bool:
 
 def read_config_document(path: str | Path) -> Any:
     """The parsed JSON of ``--config FILE``; JsgsError (one line) when it is missing or not JSON."""
-    from jsgs.io import read_regular_text
-
     path = Path(path)
-    try:
-        return json.loads(read_regular_text(path))
-    except FileNotFoundError:
-        raise JsgsError(f"{path}: no such config file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise JsgsError(f"{path}: not a JSON config file ({e})") from None
+    if not path.exists():
+        raise JsgsError(f"{path}: no such config file")
+    return read_json(path, "a JSON config file")
 
 
 def config_from_document(doc: Any, path: str | Path, base: TrainConfig | None = None) -> TrainConfig:
@@ -623,7 +634,11 @@ def _section_schema(cls: type) -> dict[str, Any]:
     props = {}
     for f in dataclasses.fields(cls):
         prop = _schema_of(hints[f.name], f.metadata.get("help", ""))
-        bounds = {kw: f.metadata[b] for b, kw in _BOUNDS.items() if b in f.metadata}
+        kind = (prop.get("items", {}) if prop.get("type") == "array" else prop).get("type")
+        kinds = kind if isinstance(kind, list) else [kind]
+        numeric = "integer" in kinds or "number" in kinds
+        limits = _limits(f, "number" not in kinds) if numeric else {}
+        bounds = {kw: limits[b] for b, kw in _BOUNDS.items() if b in limits}
         if bounds and prop.get("type") == "array":
             prop["items"] = {**prop["items"], **bounds}
         elif bounds:

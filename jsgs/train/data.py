@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from jsgs.errors import JsgsError
+from jsgs.limits import COINCIDENT_CAMERAS, MAX_POINT_DISTANCE, MIN_VIEW_SIDE
 from jsgs.manifest import JpegState, ManifestView
 from jsgs.train.config import TrainConfig
 from jsgs.train.normalize import camera_extent, normalize_world
@@ -188,13 +189,41 @@ def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
                     "scene.require_lossless_reference is set (without it the view is evaluated against "
                     "its JPEG)"
                 )
+    small = [m for m in metas if min(m["width"], m["height"]) < MIN_VIEW_SIDE]
+    if small:
+        m = small[0]
+        raise JsgsError(
+            f"{where}: view {m['name']!r} is {m['width']}x{m['height']} pixels: {len(small)} view(s) have a "
+            f"side below the SSIM window ({MIN_VIEW_SIDE} pixels), which the losses and the evaluation need"
+        )
+    c2w = np.stack(c2ws)
+    centres = c2w[:, :3, 3]
+    spread = camera_extent(c2w)
+    coincident = spread <= COINCIDENT_CAMERAS * max(1.0, float(np.abs(centres).max()))
+    if coincident and cfg.scene.normalize_world:
+        at = ", ".join(f"{x:g}" for x in centres[0])
+        raise JsgsError(
+            f"{where}: all {len(metas)} cameras are at one position ({at}): "
+            "the world's normalisation (scene.normalize_world) scales by the cameras' distances; set "
+            "scene.normalize_world to false to train in the manifest's own units"
+        )
+    if len(xyz):
+        # before any linear algebra on the points: those absurdly far from the cameras would dominate the
+        # principal axes and leave float32 once normalised
+        dist = np.linalg.norm(xyz - centres.mean(axis=0), axis=1)
+        far = dist > MAX_POINT_DISTANCE * (1.0 if coincident else spread)
+        if far.any():
+            notes.append(
+                f"{int(far.sum())} of {len(xyz)} points lie farther than {MAX_POINT_DISTANCE:g} x the "
+                f"cameras' extent from them (the farthest at {float(dist.max()):g}); left out"
+            )
+            xyz, rgb = xyz[~far], rgb[~far]
     if cfg.init.type == "sfm" and len(xyz) <= cfg.init.knn_neighbors:
         raise JsgsError(
             f"{where}: {len(xyz)} points: SfM initialisation needs more than {cfg.init.knn_neighbors} "
             "(set init.type to random to start without them)"
         )
 
-    c2w = np.stack(c2ws)
     if cfg.scene.normalize_world:
         c2w, xyz_n, transform = normalize_world(c2w, xyz)
         if not (np.isfinite(transform).all() and np.isfinite(c2w).all()):
@@ -205,7 +234,7 @@ def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
     else:
         xyz_n, transform = xyz, np.eye(4)
     extent = camera_extent(c2w)
-    if not extent > 1e-12:
+    if coincident or not extent > 1e-12:
         notes.append("all cameras at one position: camera extent 0 replaced by 1")
         extent = 1.0
     scene_scale = extent * cfg.scene.scene_scale_margin * cfg.scene.global_scale

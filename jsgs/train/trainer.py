@@ -254,7 +254,7 @@ def _check_out(paths: RunPaths, resume: bool, force: bool) -> None:
 def _is_run_config(path: Path) -> bool:
     try:
         return json.loads(path.read_text()).get("format") == RUN_CONFIG_FORMAT
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
         return False
 
 
@@ -410,12 +410,10 @@ def _device_name(device: torch.device) -> str:
 
 
 def json_load(path: Path) -> dict[str, Any]:
-    import json
+    from jsgs.limits import read_json
 
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise JsgsError(f"{path}: cannot read ({e})") from None
+    doc: dict[str, Any] = read_json(path)
+    return doc
 
 
 

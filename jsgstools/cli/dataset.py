@@ -9,8 +9,9 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, SEED, WORKERS, invocation, user_errors
 from jsgs.io import OutputLock
+from jsgs.limits import MAX_INT_SETTING
 
 SCHEDULE_HELP = (
     "uniform: the nine qualities 10..90 equally; gaussian: weights exp(-x^2/2) at x = -2..2 (q=10..90); "
@@ -27,7 +28,8 @@ SCHEDULE_HELP = (
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option("--views", default=32, show_default=True, help="Number of cameras on the ring (2..1000).")
 @click.option("--size", default="160x120", show_default=True, help="Image size WIDTHxHEIGHT in pixels.")
-@click.option("--seed", default=0, show_default=True, help="Seed of the textures and the camera jitter.")
+@click.option("--seed", type=SEED, default=0, show_default=True,
+              help="Seed of the textures and the camera jitter.")  # fmt: skip
 @click.option("--supersample", default=2, show_default=True, help="Rays per pixel side (2 = 2x2 per pixel).")
 @click.option(
     "--point-density",
@@ -97,9 +99,11 @@ def synth_cmd(
     help=SCHEDULE_HELP,
 )
 @click.option("--quality", type=int, default=None, help="The quality of --schedule fixed (1..100).")
-@click.option("--seed", default=0, show_default=True, help="Seed of the quality-to-view assignment.")
+@click.option("--seed", type=SEED, default=0, show_default=True,
+              help="Seed of the quality-to-view assignment.")  # fmt: skip
 @click.option(
     "--test-every",
+    type=click.IntRange(max=MAX_INT_SETTING),
     default=8,
     show_default=True,
     help="View i (sorted by image name) is a test view when i % N == 0; test views are never compressed.",
@@ -116,7 +120,7 @@ def synth_cmd(
     is_flag=True,
     help="Replace the outputs of an earlier compress in DIR (its .jsgstools.json); other files are kept.",
 )
-@click.option("--jobs", type=int, default=None, help="Worker processes [default: all cores].")
+@click.option("--jobs", type=WORKERS, default=None, help="Worker processes [default: all cores].")
 @click.option(
     "--recompress",
     type=int,
@@ -204,6 +208,7 @@ def compress_cmd(
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option(
     "--test-every",
+    type=click.IntRange(max=MAX_INT_SETTING),
     default=8,
     show_default=True,
     help="The split the summary describes (as manifest --test-every; 0: no test views).",
@@ -247,7 +252,7 @@ def validate_cmd(scene: Path, test_every: int, analyze: bool) -> None:
 )
 @click.option(
     "--test-every",
-    type=int,
+    type=click.IntRange(max=MAX_INT_SETTING),
     default=None,
     help="View i (sorted by image name) is a test view when i % N == 0; 0: every view trains, no test "
     "views [default: 8, or the value a compressed scene was made with].",

@@ -8,6 +8,10 @@ import click
 
 from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
 
+#: the ranges pycolmap takes (its options are C++ ints)
+_SIDE, _FEATURES = click.IntRange(16, 65_535), click.IntRange(1, 10_000_000)
+_THREADS, _SEED = click.IntRange(-1, 4096), click.IntRange(0, 2**31 - 1)
+
 
 @click.command(
     "sfm",
@@ -25,13 +29,14 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
               help="COLMAP camera model (the trainer renders each on the photos' own grid).")  # fmt: skip
 @click.option("--per-photo-camera", "per_photo", is_flag=True,
               help="One camera per photo [default: one shared camera for photos of one size].")  # fmt: skip
-@click.option("--max-image-size", "max_image_size", type=int, default=1600, show_default=True,
+@click.option("--max-image-size", "max_image_size", type=_SIDE, default=1600, show_default=True,
               help="Longest side the features are extracted at (the photos are never changed).")  # fmt: skip
-@click.option("--max-features", "max_features", type=int, default=1024, show_default=True,
+@click.option("--max-features", "max_features", type=_FEATURES, default=1024,
+              show_default=True,
               help="SIFT features per photo (more: slower matching, more robust).")  # fmt: skip
-@click.option("--threads", type=int, default=-1, help="CPU threads [default: all cores].")
+@click.option("--threads", type=_THREADS, default=-1, help="CPU threads [default: all cores].")
 @click.option("--link", is_flag=True, help="Hard-link the photos into SCENE/images instead of copying them.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the mapper.")
+@click.option("--seed", type=_SEED, default=0, show_default=True, help="Seed of the mapper.")
 @click.option("--force", is_flag=True, help="Replace an earlier sfm output in SCENE (its .jsgstools.json).")
 @user_errors
 def sfm_command(

@@ -183,3 +183,51 @@ def test_the_browser_shows_the_splat(finished_run: Path, tmp_path: Path) -> None
     with torch.no_grad():
         model.splats["opacities"].fill_(-30.0)
     assert contrast("blank.png", looks=1) < 10.0
+
+
+@pytest.mark.parametrize(
+    ("position", "wxyz", "fov", "aspect", "needle"),
+    [([math.nan, 0, 0], [1, 0, 0, 0], 0.8, 1.3, "position"),
+     ([1e308, 0, 0], [1, 0, 0, 0], 0.8, 1.3, "position"),
+     ([0, 0, 0], [0, 0, 0, 0], 0.8, 1.3, "quaternion"),
+     ([0, 0, 0], [math.nan, 0, 0, 1], 0.8, 1.3, "quaternion"),
+     ([0, 0, 0], [1, 0, 0, 0], 0.0, 1.3, "field of view"),
+     ([0, 0, 0], [1, 0, 0, 0], math.pi, 1.3, "field of view"),
+     ([0, 0, 0], [1, 0, 0, 0], 0.8, math.inf, "aspect"),
+     ([0, 0], [1, 0, 0, 0], 0.8, 1.3, "malformed")],
+)  # fmt: skip
+def test_broken_browser_cameras_are_never_saved(tmp_path: Path, position: list[float], wxyz: list[float],
+                                                fov: float, aspect: float, needle: str) -> None:  # fmt: skip
+    """What a browser reports is checked before anything is computed or written: one line, no file."""
+    from types import SimpleNamespace
+
+    from jsgs.errors import JsgsError
+    from jsgs.viewer import check_camera
+
+    with pytest.raises(JsgsError, match=needle):
+        check_camera(position, wxyz, fov, aspect)
+    with pytest.raises(JsgsError, match=needle):
+        save_camera(SimpleNamespace(run=tmp_path), np.array(position), np.array(wxyz), fov, aspect)  # type: ignore[arg-type]
+    assert not (tmp_path / "viewer_cameras.json").exists()
+    p, q, f, a = check_camera([1, 2, 3], [2, 0, 0, 0], 0.8, 1.5)
+    assert q.tolist() == [1, 0, 0, 0] and p.tolist() == [1, 2, 3] and (f, a) == (0.8, 1.5)
+
+
+def test_saved_cameras_with_broken_values_are_refused_by_render(tmp_path: Path) -> None:
+    """A viewer_cameras.json edited to hold a NaN position or a scaled rotation: one line from read_path."""
+    from jsgs.camera_path import read_path
+    from jsgs.errors import JsgsError
+
+    good = np.eye(4).tolist()
+    for (i, j, bad), needle in (((0, 3, math.nan), "not a finite number"), ((0, 3, 1e300), "beyond"),
+                                ((0, 0, 2.0), "not a camera pose")):  # fmt: skip
+        cams = np.eye(4)
+        cams[i, j] = bad
+        doc = {"format": "jsgs-viewer-cameras", "format_version": 1, "jsgs_version": "0", "frame": "training",
+               "cameras": [{"camtoworld": c, "fov_y_deg": 50.0, "aspect": 1.0, "saved": "now"}
+                           for c in (good, cams.tolist())]}  # fmt: skip
+        path = tmp_path / "viewer_cameras.json"
+        path.write_text(json.dumps(doc))
+        with pytest.raises(JsgsError, match=needle) as e:
+            read_path(path, 10, np.eye(3), 32, 24)
+        assert "\n" not in str(e.value) and str(path) in str(e.value)

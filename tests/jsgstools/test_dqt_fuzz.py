@@ -5,7 +5,8 @@ swapped segments, inserted markers and junk, cut files). When a mutant still par
 for internal consistency, against the JSON schemas, and against Pillow's own marker parser whenever Pillow
 accepts the mutant too.
 
-CI runs ``JSGS_FUZZ_EXAMPLES`` (default 300) hypothesis examples plus a deterministic sweep; a long run is
+CI runs ``JSGS_FUZZ_EXAMPLES`` (default 300) hypothesis examples (derandomized: the same ones every run)
+plus a deterministic sweep; a long run is
 ``JSGS_FUZZ_EXAMPLES=100000 .venv/bin/python -m pytest tests/jsgstools/test_dqt_fuzz.py -k hypothesis``.
 """
 
@@ -16,6 +17,7 @@ import os
 import warnings
 from collections import Counter
 from collections.abc import Callable, Iterator
+from datetime import timedelta
 
 import jsonschema
 import numpy as np
@@ -253,6 +255,7 @@ def compare_with_pillow(h: JpegHeader, data: bytes) -> bool:
 @settings(
     max_examples=EXAMPLES,
     deadline=None,
+    derandomize=True,
     database=None,
     print_blob=True,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
@@ -279,3 +282,33 @@ def test_sweep_every_cut_and_byte(seed: str) -> None:
         check_outcome(data, thorough=False, note=lambda key: seen.update([key]))
     # Both outcomes occur, and Pillow accepted some mutants we reported, so the comparison did run.
     assert seen["outcome: JsgsError"] and seen["outcome: report"] and seen["Pillow: same report"], seen
+
+
+@settings(
+    max_examples=min(EXAMPLES, 60),
+    deadline=timedelta(seconds=20),  # a hang fails the example
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+@given(mutants())
+def test_hypothesis_mutated_files_through_the_manifest_reader(
+    tmp_path_factory: pytest.TempPathFactory, data: bytes
+) -> None:
+    """The file reader the manifest writer uses (``jpeg_file_state``): the manifest's ``jpeg`` object, valid
+    against the manifest schema and finite, or one JsgsError line naming the file."""
+    import json
+
+    from jsgstools.manifest_writer import jpeg_file_state
+
+    path = tmp_path_factory.getbasetemp() / NAME
+    path.write_bytes(data)
+    try:
+        state = jpeg_file_state(path)
+    except JsgsError as e:
+        assert str(e).startswith(f"{path}: ") and "\n" not in str(e), str(e)
+        event("outcome: JsgsError")
+        return
+    event("outcome: state")
+    MANIFEST_JPEG_VALIDATOR.validate(state)
+    json.dumps(state, allow_nan=False)
