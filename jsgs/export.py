@@ -159,7 +159,7 @@ def export_run(run: str | Path, out: str | Path, fmt: str = "ply", frame: str = 
     try:
         doc = json.loads(read_regular_text(config))
         normalization = np.asarray(doc["derived"]["normalization"], dtype=np.float64)
-    except (OSError, ValueError, KeyError, TypeError) as e:
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
         raise JsgsError(f"{config}: no usable derived.normalization ({e})") from None
     arrays = load_ply(ply)
     n = check_gaussians(arrays, ply)

@@ -79,7 +79,7 @@ def read_base(base_manifest: str | Path) -> tuple[dict[str, Any], dict[str, str]
             rec = json.loads(rec_path.read_text())
             names = {r["name"]: r["source_name"] for r in rec["views"] if r["name"] in source_names}
             source_names.update(names)
-        except (OSError, ValueError, KeyError, TypeError) as e:
+        except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
             raise JsgsError(f"{rec_path}: unreadable compress record ({e})") from None
     return doc, source_names
 

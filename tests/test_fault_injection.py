@@ -456,6 +456,7 @@ def test_hostile_settings_files_get_one_line(compressed_scene: Path, tmp_path: P
     [("jsgs", ["train", "{data}", "--out", "{out}", "--seed", str(2**70)], "seed must be <="),
      ("jsgs", ["train", "{data}", "--out", "{out}", "--iterations", str(10**30)], "iterations must be <="),
      ("jsgs", ["train", "{data}", "--out", "{out}", "--viewer", "70000"], "--viewer"),
+     ("jsgs", ["train", "{data}", "--out", "{out}", "--processes", str(10**20)], "--processes"),
      ("jsgs", ["render", "{out}", "--out", "{out}/v.mp4", "--fps", "nan"], "--fps"),
      ("jsgs", ["render", "{out}", "--out", "{out}/v.mp4", "--fps", "inf"], "--fps"),
      ("jsgs", ["view", "{out}", "--port", "70000"], "--port"),
@@ -575,3 +576,15 @@ def test_broken_models_get_one_line_on_export(tmp_path: Path, table: np.ndarray 
     _check_one_line(r.output, r.exit_code)
     assert needle in r.output and "point_cloud.ply" in r.output, r.output
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["export", "render", "view"])
+def test_a_run_config_nested_deep_gets_one_line(tmp_path: Path, command: str) -> None:
+    run = _fake_run(tmp_path, _gaussians(3))
+    (run / "config.json").write_text(DEEP)
+    args = {"export": ["export", str(run), "--out", str(tmp_path / "m.ply")],
+            "render": ["render", str(run), "--out", str(tmp_path / "v.mp4")],
+            "view": ["view", str(run)]}[command]  # fmt: skip
+    r = CliRunner().invoke(jsgs_main, args)
+    _check_one_line(r.output, r.exit_code)
+    assert "config.json" in r.output and ("nested deeper" in r.output or "recursion" in r.output), r.output

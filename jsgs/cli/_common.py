@@ -48,8 +48,10 @@ FINITE = FiniteFloat()
 PORT = click.IntRange(1, 65_535)
 #: a seed of a random number generator (what numpy's and torch's take, and the manifest records)
 SEED = click.IntRange(0, MAX_INT_SETTING)
+#: the most worker processes a command starts
+MAX_PROCESSES = 4096
 #: a count of worker processes
-WORKERS = click.IntRange(1, 4096)
+WORKERS = click.IntRange(1, MAX_PROCESSES)
 
 
 def fail(message: str, code: int = 1) -> None:

@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, PORT, invocation, user_errors
+from jsgs.cli._common import CONTEXT, EXAMPLE, MAX_PROCESSES, PORT, invocation, user_errors
 from jsgs.errors import JsgsError
 
 
@@ -125,14 +125,14 @@ def _parse_steps(text: str) -> list[int]:
 )
 @click.option(
     "--gpus",
-    type=int,
+    type=click.IntRange(max=MAX_PROCESSES),
     default=None,
     help="Train on this many GPUs of this machine, one process each, every step's views split across "
     "them (starts the processes as torchrun would; on several machines use torchrun; docs/performance.md).",
 )
 @click.option(
     "--processes",
-    type=int,
+    type=click.IntRange(max=MAX_PROCESSES),
     default=None,
     help="As --gpus on whatever --device is (on the CPU: gloo and the reference rasterizer).",
 )
