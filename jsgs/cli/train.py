@@ -26,7 +26,7 @@ def _parse_steps(text: str) -> list[int]:
 @click.command(
     "train",
     context_settings=CONTEXT,
-    epilog=EXAMPLE.format("jsgs train flower_gaussian/manifest.json --out runs/jsgs --method jsgs"),
+    epilog=EXAMPLE.format("jsgs train flower_gaussian/manifest.json --out runs/jsgs"),
 )
 @click.argument("manifest", type=click.Path(path_type=Path))
 @click.option(
@@ -37,7 +37,9 @@ def _parse_steps(text: str) -> list[int]:
     help="Run folder (config.json, metrics.json, point_cloud.ply, renders/, checkpoints/).",
 )
 @click.option(
-    "--method", default=None, help="gsplat (baseline, default) or a registered method such as jsgs."
+    "--method",
+    default=None,
+    help="jsgs (JPEG state-guided supervision) or gsplat (the baseline: no JPEG terms) [default: jsgs].",
 )
 @click.option("--iterations", type=int, default=None, help="Training steps [default: 10000].")
 @click.option(
@@ -172,7 +174,7 @@ def train_command(
     stop_at: int | None,
 ) -> None:
     """Train Gaussians on the views of MANIFEST (a jsgs manifest, or the folder holding its manifest.json;
-    see `jsgstools manifest`)."""
+    see `jsgstools manifest`; for a folder of photos, `jsgstools sfm` first)."""
     from jsgs.train.config import command_settings
     from jsgs.train.trainer import load_run_settings, train
 

@@ -269,7 +269,7 @@ class EvalConfig:
 class TrainConfig:
     """All settings of a run. Nested sections mirror the JSON (``RUN/config.json`` ``settings``)."""
 
-    method: str = _f("gsplat", "Training method: gsplat (baseline) or a registered method (e.g. jsgs).")
+    method: str = _f("jsgs", "Training method: jsgs (the default) or gsplat (the baseline, no JPEG terms).")
     iterations: int = _f(10_000, "Training steps (one view each).", ge=1)
     eval_at: list[int] = _f(
         default_factory=lambda: [3000, 7000, 10_000],
