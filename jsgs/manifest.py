@@ -292,9 +292,14 @@ def manifest_file(path: str | Path) -> Path:
         return path
     if (path / MANIFEST_NAME).is_file():
         return path / MANIFEST_NAME
+    if (path / "sparse").is_dir():
+        raise JsgsError(
+            f"{path}: a folder without {MANIFEST_NAME}; write one with "
+            f"`jsgstools manifest {path} --out {path / MANIFEST_NAME}`"
+        )
     raise JsgsError(
-        f"{path}: a folder without {MANIFEST_NAME}; write one with "
-        f"`jsgstools manifest {path} --out {path / MANIFEST_NAME}`"
+        f"{path}: neither a manifest nor a COLMAP scene; for a folder of photos run "
+        f"`jsgstools sfm {path} --out SCENE`, then `jsgstools manifest SCENE --out SCENE/{MANIFEST_NAME}`"
     )
 
 

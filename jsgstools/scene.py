@@ -15,6 +15,7 @@ Conventions (the same as COLMAP's, and the manifest's):
 from __future__ import annotations
 
 import functools
+import shlex
 from collections.abc import Callable
 from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
@@ -178,8 +179,9 @@ def find_model_dir(root: Path) -> tuple[Path, str]:
             if all((d / f"{n}{ext}").is_file() for n in ("cameras", "images", "points3D")):
                 return d, fmt
     raise JsgsError(
-        f"{root}: no COLMAP model (looked for cameras, images and points3D .bin or .txt "
-        "in sparse/0/ and sparse/)"
+        f"{root}: no COLMAP model (looked for cameras, images and points3D .bin or .txt in sparse/0/ and "
+        f"sparse/); for a folder of photos, make one with "
+        f"`jsgstools sfm {shlex.quote(str(root))} --out SCENE`"
     )
 
 

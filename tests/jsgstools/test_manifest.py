@@ -181,6 +181,14 @@ def test_manifest_refuses_a_bad_scene(synth_scene: Path, tmp_path: Path) -> None
     assert not (tmp_path / "m.json").exists()
     r = CliRunner().invoke(main, ["manifest", str(tmp_path / "none"), "--out", str(tmp_path / "m.json")])
     assert r.exit_code == 1 and r.output.startswith("error: ") and "Traceback" not in r.output
+    # a folder of photos (no COLMAP model): the one line says which command makes one
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    shutil.copy(synth_scene / "images" / "view_000.png", photos)
+    for args in (["manifest", str(photos), "--out", str(tmp_path / "m.json")], ["validate", str(photos)]):
+        r = CliRunner().invoke(main, args)
+        assert r.exit_code == 1 and f"`jsgstools sfm {photos} --out SCENE`" in r.output, (args, r.output)
+    assert not (tmp_path / "m.json").exists()
 
 
 # ----------------------------------------------------------------------------------------------------

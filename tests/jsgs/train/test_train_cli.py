@@ -197,9 +197,16 @@ def test_cli_bad_manifests_fail_in_one_line(
 def test_cli_other_one_line_errors(scene: Path, tmp_path: Path) -> None:
     out = str(tmp_path / "run")
     one_line_error(run(str(tmp_path / "none.json"), "--out", out), "manifest not found")
-    (tmp_path / "empty").mkdir()
-    one_line_error(run(str(tmp_path / "empty"), "--out", out),
-                   r"empty: a folder without manifest.json; write one with `jsgstools manifest ")  # fmt: skip
+    (tmp_path / "photos").mkdir()
+    one_line_error(
+        run(str(tmp_path / "photos"), "--out", out),
+        r"photos: neither a manifest nor a COLMAP scene; for a folder of photos run `jsgstools sfm ",
+    )
+    (tmp_path / "colmap" / "sparse").mkdir(parents=True)
+    one_line_error(
+        run(str(tmp_path / "colmap"), "--out", out),
+        r"colmap: a folder without manifest.json; write one with `jsgstools manifest ",
+    )
     notjson = tmp_path / "m.json"
     notjson.write_text("{")
     one_line_error(run(str(notjson), "--out", out), "not JSON")
