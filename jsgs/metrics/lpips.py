@@ -19,9 +19,10 @@ Weights come from two files:
   downloaded once with ``torch.hub.load_state_dict_from_url`` (its SHA-256 checked against the prefix in its
   name, as torchvision does), of which only the convolution layers are kept in that cache file. A plain
   ``torch.save`` dict in torchvision's layout, ``features.{0,3,6,8,10}.{weight,bias}``; a full torchvision
-  AlexNet state dict works too (``classifier.*`` is ignored). With no file and no network (or
-  ``JSGS_LPIPS_DOWNLOAD=0``), :func:`load_lpips` and :func:`lpips` warn once and return ``None``: a missing
-  metric is reported as missing, never replaced by a made-up number.
+  AlexNet state dict works too (``classifier.*`` is ignored). The download is tried at most once per process.
+  With no file and no network (or ``JSGS_LPIPS_DOWNLOAD=0``), :func:`load_lpips` and :func:`lpips` return
+  ``None`` after one line on stderr saying how to get the weights (once per process; no Python warning, no
+  download progress): a missing metric is reported as missing, never replaced by a made-up number.
 - the linear heads: ``jsgs/metrics/weights/lpips_v0.1_alex.pth``, the ``lpips`` package's own file
   (BSD-2, see the README next to it), checked against its SHA-256 when loaded.
 
@@ -32,9 +33,11 @@ with ``2x - 1``, the reference's ``normalize=True``.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import os
-import warnings
+import sys
 from pathlib import Path
 
 import torch
@@ -74,9 +77,9 @@ _SCALE = (0.458, 0.448, 0.450)
 _EPS = 1e-10  # lpips.normalize_tensor's eps: added to the norm, not under the square root
 
 UNAVAILABLE_MESSAGE = (
-    "LPIPS unavailable: no AlexNet backbone weights (pass a path or set "
-    f"${ENV_VAR}, e.g. to ../shared/lpips/alexnet_features.pth; the download of {ALEXNET_URL} "
-    "was not possible); LPIPS is reported as null"
+    f"LPIPS is reported as null: no AlexNet backbone weights. To get them, set ${ENV_VAR} (or "
+    "eval.lpips_weights) to a copy such as ../shared/lpips/alexnet_features.pth, or run once with network "
+    f"access to download {ALEXNET_URL} into torch's hub cache"
 )
 
 
@@ -233,8 +236,10 @@ def cached_backbone_path() -> Path:
 def download_backbone(url: str | None = None) -> Path | None:
     """Download torchvision's AlexNet weights from ``url`` (hash checked by ``torch.hub`` against the hex
     prefix in the file name), keep only ``features.*`` in :func:`cached_backbone_path` (written atomically)
-    and delete the full download. Returns None when the file cannot be fetched (offline); raises JsgsError
-    when it was fetched but its hash or content is wrong."""
+    and delete the full download. Returns None when the file cannot be fetched (offline; the reason is kept in
+    :data:`_download_failure` and no later call tries again); raises JsgsError when it was fetched but its
+    hash or content is wrong. torch.hub's ``Downloading:`` line is not shown."""
+    global _download_failure
     import tempfile
     import urllib.error
 
@@ -243,11 +248,12 @@ def download_backbone(url: str | None = None) -> Path | None:
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=".jsgs-download-") as tmp:
         try:
-            state = torch.hub.load_state_dict_from_url(
-                url, model_dir=tmp, map_location="cpu", progress=False, check_hash=True, weights_only=True
-            )
+            with contextlib.redirect_stdout(io.StringIO()):  # torch.hub prints "Downloading: ..." to stdout
+                state = torch.hub.load_state_dict_from_url(
+                    url, model_dir=tmp, map_location="cpu", progress=False, check_hash=True, weights_only=True
+                )
         except (urllib.error.URLError, ConnectionError, TimeoutError) as e:
-            warn_once(f"LPIPS: could not download {url}: {one_line(e)}")
+            _download_failure = f"{url}: {one_line(e)}"
             return None
         except RuntimeError as e:  # torch.hub: "invalid hash value (expected ..., got ...)"
             raise JsgsError(f"{url}: download rejected: {one_line(e)}") from None
@@ -275,7 +281,7 @@ def resolve_weights(weights: str | os.PathLike[str] | None = None) -> Path | Non
         cached = cached_backbone_path()
         if cached.is_file():
             return cached
-        if os.environ.get(DOWNLOAD_ENV_VAR, "1") == "0":
+        if os.environ.get(DOWNLOAD_ENV_VAR, "1") == "0" or _download_failure is not None:
             return None
         return download_backbone()
     if not p.is_file():
@@ -285,13 +291,16 @@ def resolve_weights(weights: str | os.PathLike[str] | None = None) -> Path | Non
 
 _CACHE: dict[tuple[str, str], LpipsAlex] = {}
 _warned: set[str] = set()
+#: why the one download of this process failed (None: not tried, or it worked)
+_download_failure: str | None = None
 
 
 def warn_once(message: str) -> None:
-    """Emit ``message`` as a UserWarning the first time it is seen in this process."""
+    """Write ``message`` to stderr as one line (``note: ...``) the first time it is seen in this process: a
+    note for the person running the program, not a Python warning with a source location."""
     if message not in _warned:
         _warned.add(message)
-        warnings.warn(message, UserWarning, stacklevel=3)
+        print(f"note: {message}", file=sys.stderr, flush=True)
 
 
 def load_lpips(
@@ -299,12 +308,13 @@ def load_lpips(
 ) -> LpipsAlex | None:
     """The LPIPS-alex model on ``device`` (default CPU), built once per (weights file, device) and cached.
 
-    Returns None, with a one-time warning, when no backbone weights are named (argument or environment).
-    Raises JsgsError when named weights are missing or malformed.
+    Returns None, with one line on stderr (once per process; :func:`warn_once`) saying how to get the weights,
+    when none are available. Raises JsgsError when named weights are missing or malformed.
     """
     path = resolve_weights(weights)
     if path is None:
-        warn_once(UNAVAILABLE_MESSAGE)
+        reason = f" (the download failed: {_download_failure})" if _download_failure else ""
+        warn_once(UNAVAILABLE_MESSAGE + reason)
         return None
     dev = torch.device(device if device is not None else "cpu")
     key = (str(path.resolve()), str(dev))
@@ -317,7 +327,7 @@ def lpips(pred: Tensor, ref: Tensor, weights: str | os.PathLike[str] | None = No
     """LPIPS-alex v0.1 distances between images in **[0, 1]**.
 
     pred, ref: B x 3 x H x W or 3 x H x W, same shape, values in [0, 1] (mapped to [-1, 1] by ``2x - 1``),
-    sides >= 31 px. Returns a float32 tensor of B distances on the inputs' device, or None (warned once) when
+    sides >= 31 px. Returns a float32 tensor of B distances on the inputs' device, or None (noted once) when
     no backbone weights are available. Gradients flow to the inputs.
     """
     model = load_lpips(weights, device=pred.device)

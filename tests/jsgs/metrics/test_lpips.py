@@ -43,9 +43,10 @@ def round_sig(x: float, digits: int) -> float:
 
 @pytest.fixture(autouse=True)
 def _fresh_state(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Each test sees no environment variable and an empty warn-once memory."""
+    """Each test sees no environment variable, an empty note-once memory and no failed download."""
     monkeypatch.delenv(L.ENV_VAR, raising=False)
     monkeypatch.setattr(L, "_warned", set())
+    monkeypatch.setattr(L, "_download_failure", None)
 
 
 @pytest.fixture(scope="module")
@@ -115,16 +116,17 @@ def test_gradient_matches_finite_differences(model: L.LpipsAlex) -> None:
         assert abs(fd - float(x.grad[idx])) <= 1e-5 * max(1e-3, abs(fd)), (idx, fd, float(x.grad[idx]))
 
 
-def test_no_weights_warns_once_and_returns_none() -> None:
+def test_no_weights_notes_once_and_returns_none(capsys: pytest.CaptureFixture[str]) -> None:
     x = torch.rand(1, 3, 32, 32)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         assert L.lpips(x, x) is None
         assert L.lpips(x, x) is None
         assert L.load_lpips() is None
-    msgs = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
-    assert msgs == [L.UNAVAILABLE_MESSAGE]
-    assert L.ENV_VAR in msgs[0]
+    assert caught == []  # a note for the user, not a Python warning with a source location
+    out = capsys.readouterr()
+    assert out.out == "" and out.err == f"note: {L.UNAVAILABLE_MESSAGE}\n"
+    assert L.ENV_VAR in out.err and "alexnet_features.pth" in out.err
 
 
 def _hub_file(tmp_path: Path, state: dict[str, torch.Tensor], corrupt: bool = False) -> str:
@@ -169,13 +171,29 @@ def test_download_with_a_wrong_hash_is_refused(tmp_path: Path, monkeypatch: pyte
     assert not (tmp_path / "home" / "hub" / "checkpoints" / L.CACHE_NAME).exists()
 
 
-def test_download_offline_warns_and_gives_null(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_download_offline_is_tried_once_and_noted_in_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Offline: one failed download per process, no ``Downloading:`` line, no Python warning, and one line
+    saying how to get the weights, with the reason."""
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv(L.DOWNLOAD_ENV_VAR, "1")
     missing = (tmp_path / "nowhere" / "alexnet-owt-7be5be79.pth").as_uri()
+    monkeypatch.setattr(L, "ALEXNET_URL", missing)
+    real = L.download_backbone
+    calls: list[str | None] = []
+    monkeypatch.setattr(L, "download_backbone", lambda url=None: calls.append(url) or real(url))
+    x = torch.rand(1, 3, 32, 32)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        assert L.download_backbone(missing) is None
-    assert any("could not download" in str(w.message) for w in caught)
+        for _ in range(3):  # three evaluations of one run
+            assert L.lpips(x, x) is None
+    assert caught == [] and len(calls) == 1
+    out = capsys.readouterr()
+    assert out.out == ""  # torch.hub's "Downloading: ..." is not shown
+    lines = out.err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"note: {L.UNAVAILABLE_MESSAGE} (the download failed: ")
+    assert missing in lines[0]
 
 
 def test_download_off_gives_null(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

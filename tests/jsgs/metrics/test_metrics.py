@@ -23,6 +23,7 @@ HAVE_SSIM = importlib.util.find_spec("jsgs.ssim") is not None
 def _fresh_state(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(L.ENV_VAR, raising=False)
     monkeypatch.setattr(L, "_warned", set())
+    monkeypatch.setattr(L, "_download_failure", None)
 
 
 @pytest.fixture
@@ -53,7 +54,9 @@ def test_psnr_known_values() -> None:
         psnr(ref, ref[:1])
 
 
-def test_evaluate_plumbing_without_lpips_weights(stub_ssim: list[tuple[int, ...]]) -> None:
+def test_evaluate_plumbing_without_lpips_weights(
+    stub_ssim: list[tuple[int, ...]], capsys: pytest.CaptureFixture[str]
+) -> None:
     g = torch.Generator().manual_seed(0)
     ref = torch.rand(3, 3, 32, 40, generator=g)
     pred = (ref + 0.05 * torch.randn(3, 3, 32, 40, generator=g)).clamp(0, 1)
@@ -61,7 +64,8 @@ def test_evaluate_plumbing_without_lpips_weights(stub_ssim: list[tuple[int, ...]
         warnings.simplefilter("always")
         m = evaluate_images(pred, ref)
         m2 = evaluate_images(pred, ref)
-    assert [str(w.message) for w in caught] == [L.UNAVAILABLE_MESSAGE]  # once, not per call
+    assert caught == []
+    assert capsys.readouterr().err == f"note: {L.UNAVAILABLE_MESSAGE}\n"  # once, not per call
     assert isinstance(m, ImageMetrics) and m == m2
     assert m.lpips is None and m.lpips_note == L.UNAVAILABLE_MESSAGE
     assert len(m.per_view) == 3 and all(v["lpips"] is None for v in m.per_view)
@@ -94,7 +98,9 @@ def test_evaluate_input_errors(stub_ssim: list[tuple[int, ...]]) -> None:
 
 
 @pytest.mark.skipif(not SHARED_WEIGHTS.is_file(), reason=f"LPIPS weights not available ({SHARED_WEIGHTS})")
-def test_evaluate_with_lpips(stub_ssim: list[tuple[int, ...]], monkeypatch: pytest.MonkeyPatch) -> None:
+def test_evaluate_with_lpips(
+    stub_ssim: list[tuple[int, ...]], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     monkeypatch.setenv(L.ENV_VAR, str(SHARED_WEIGHTS))
     g = torch.Generator().manual_seed(1)
     ref = torch.rand(2, 3, 48, 64, generator=g)
@@ -105,11 +111,10 @@ def test_evaluate_with_lpips(stub_ssim: list[tuple[int, ...]], monkeypatch: pyte
     assert [v["lpips"] for v in m.per_view] == pytest.approx(direct.tolist(), abs=1e-6)
     assert m.lpips == pytest.approx(direct.mean().item(), abs=1e-6)
     # views too small for AlexNet: LPIPS is null with a reason, the other metrics are still there
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        small = evaluate_images(pred[..., :30, :30], ref[..., :30, :30])
+    capsys.readouterr()
+    small = evaluate_images(pred[..., :30, :30], ref[..., :30, :30])
     assert small.lpips is None and "31 px" in (small.lpips_note or "")
-    assert len(caught) == 1 and math.isfinite(small.psnr)
+    assert "31 px" in capsys.readouterr().err and math.isfinite(small.psnr)
 
 
 @pytest.mark.skipif(not HAVE_SSIM, reason="jsgs.ssim (owned by the JPEG/loss module) is not written yet")
