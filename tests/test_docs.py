@@ -1,5 +1,6 @@
 """The documentation as a user meets it: a README of at most 250 lines, links that resolve, no development
-history in the docs or in what the project ships, and a CLI reference that is the programs' own help."""
+history in the docs or in what the project ships, a CLI reference that is the programs' own help, and every
+Python name (jsgs.x.y) and command (`jsgs SUBCOMMAND --option`) the docs write down one that exists."""
 
 from __future__ import annotations
 
@@ -69,3 +70,99 @@ def test_every_command_help_ends_with_an_example() -> None:
             tail = out.rstrip().splitlines()[-2:]
             assert tail[0].strip() == "Example:", (name, tail)
             assert tail[1].strip().startswith(f"{prog} {name}"), (name, tail)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# names and commands in the docs resolve
+
+# a dotted name of this project's code: jsgs.x.y or jsgstools.x (not part of a path, a URL or a file name)
+DOTTED = re.compile(r"(?<![\w./$-])((?:jsgs|jsgstools)(?:\.[A-Za-z_]\w*)+)(?![\w/-]|\.\w)")
+# a command: the program, its subcommand, and the rest of that command (up to a pipe, a ; or &&)
+COMMAND = re.compile(r"(?<![\w./-])(?:\S*/)?(jsgs|jsgstools) ([a-z][a-z-]*)(?![\w-])([^|;&\n`]*)")
+FENCE = re.compile(r"^```([^\n]*)\n(.*?)^```", re.MULTILINE | re.DOTALL)
+SPAN = re.compile(r"`([^`\n]+(?:\n[^`\n]+)?)`")
+
+
+def _code(text: str) -> list[str]:
+    """The code of a Markdown page: its fenced blocks (continuation lines joined, shell comments dropped; a
+    ``text`` block, such as a command's help, is prose) and its inline code spans."""
+    code: list[str] = []
+    prose = FENCE.sub("", text)
+    for info, block in FENCE.findall(text):
+        if info.strip() == "text":
+            prose += "\n" + block
+            continue
+        block = block.replace("\\\n", " ")
+        code.append("\n".join(re.sub(r"(^|\s)#\s.*", "", line) for line in block.splitlines()))
+    return code + [s.replace("\n", " ") for s in SPAN.findall(prose)]
+
+
+def _resolves(name: str) -> bool:
+    import importlib
+
+    parts = name.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        for attr in parts[i:]:
+            if not hasattr(obj, attr):
+                return False
+            obj = getattr(obj, attr)
+        return True
+    return False
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_dotted_names_in_docs_resolve(page: Path) -> None:
+    """Every jsgs.x.y the page names (in its code) is a module, or an attribute of one."""
+    names = {n for code in _code(page.read_text()) for n in DOTTED.findall(code)}
+    bad = sorted(n for n in names if not _resolves(n))
+    assert not bad, f"{page.relative_to(ROOT)}: names that do not resolve: {bad}"
+
+
+def _commands() -> dict[str, dict[str, set[str]]]:
+    """program -> subcommand -> the options it takes."""
+    from jsgs.cli import main as jsgs_main
+    from jsgstools.cli import main as tools_main
+
+    out: dict[str, dict[str, set[str]]] = {}
+    for prog, group in (("jsgs", jsgs_main), ("jsgstools", tools_main)):
+        out[prog] = {
+            name: {o for p in cmd.params for o in (*p.opts, *p.secondary_opts)} | {"--help", "-h"}
+            for name, cmd in group.commands.items()
+        }
+    return out
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_commands_in_docs_exist(page: Path) -> None:
+    """Every `jsgs SUBCOMMAND ...` / `jsgstools SUBCOMMAND ...` in the page's code names a subcommand that
+    exists, and every --option written after it is one that subcommand takes."""
+    known = _commands()
+    bad = []
+    for code in _code(page.read_text()):
+        for prog, sub, rest in COMMAND.findall(code):
+            if sub not in known[prog]:
+                bad.append(f"{prog} {sub}")
+                continue
+            for opt in re.findall(r"(?<![\w-])(--[a-z][a-z0-9-]*)", rest):
+                if opt not in known[prog][sub]:
+                    bad.append(f"{prog} {sub} {opt}")
+    assert not bad, f"{page.relative_to(ROOT)}: commands that do not exist: {sorted(set(bad))}"
+
+
+def test_the_checks_see_bad_names_and_commands() -> None:
+    page = (
+        "Call `jsgs.train.train(m, out)` or `jsgs.train.trainer.train`.\n\n"
+        "```bash\njsgs train m.json --out r --methd jsgs  # jsgs fly --no\n"
+        ".venv/bin/jsgstools sfmm photos\n```\n"
+    )
+    names = {n for code in _code(page) for n in DOTTED.findall(code)}
+    assert names == {"jsgs.train.train", "jsgs.train.trainer.train"}
+    assert [_resolves(n) for n in sorted(names)] == [False, True]
+    cmds = [(p, s, re.findall(r"--[a-z-]+", r)) for code in _code(page) for p, s, r in COMMAND.findall(code)]
+    assert cmds == [("jsgs", "train", ["--out", "--methd"]), ("jsgstools", "sfmm", [])]
+    known = _commands()
+    assert "--methd" not in known["jsgs"]["train"] and "sfmm" not in known["jsgstools"]
