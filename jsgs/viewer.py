@@ -166,9 +166,59 @@ def save_camera(model: RunModel, position: np.ndarray, wxyz: np.ndarray, fov: fl
     return path
 
 
+def frustum_scale(positions: np.ndarray, extent: float) -> float:
+    """The size of the training cameras' frustums in the viewer: a quarter of the median distance from a
+    camera to its nearest neighbour, at most 2 % of the scene's camera extent, so that neighbouring frustums
+    do not overlap and none fills the view of a camera next to it (1 % of the extent for a single camera or
+    cameras at one place)."""
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    cap = 0.02 * (extent if extent > 0 else 1.0)
+    if len(p) < 2:
+        return 0.5 * cap
+    d = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    nearest = float(np.median(d.min(axis=1)))
+    return min(0.25 * nearest, cap) if nearest > 0 else 0.5 * cap
+
+
+def start_camera(camtoworld: np.ndarray, means: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where a browser starts: (position, look-at point, up direction) of a training camera (its pose
+    unchanged), the look-at point on its optical axis at the depth of the model's centre (the median of the
+    Gaussians' centres), so that the view orbits about the model; a centre behind the camera gives the
+    median distance of the Gaussians instead."""
+    c2w = np.asarray(camtoworld, dtype=np.float64)
+    position, axis = c2w[:3, 3], c2w[:3, 2]  # OpenCV: +Z forward, +Y down
+    m = np.asarray(means, dtype=np.float64).reshape(-1, 3)
+    m = m[np.isfinite(m).all(axis=1)]
+    depth = float(np.dot(np.median(m, axis=0) - position, axis)) if len(m) else 0.0
+    if depth <= 1e-6:
+        dist = np.linalg.norm(m - position, axis=1) if len(m) else np.ones(1)
+        depth = max(float(np.median(dist)), 1e-3)
+    return position, position + depth * axis, -c2w[:3, 1]
+
+
+def add_frustums(scene_api: Any, views: list[Any], scale: float, skip: int | None = None) -> list[Any]:
+    """Draw ``views``' cameras as wireframe frustums of size ``scale`` with thin lines of a fixed pixel width
+    on ``scene_api`` (a viser scene: the server's or one browser's), except the view of index ``skip`` (the
+    camera a browser starts at, which would be seen from inside); returns their handles."""
+    handles = []
+    for v in views:
+        if v.index == skip:
+            continue
+        fov = 2.0 * math.atan(0.5 * v.height / float(v.K[1, 1]))
+        handles.append(scene_api.add_camera_frustum(
+            f"/cameras/{v.index:04d}", fov=fov, aspect=v.width / v.height, scale=scale, thickness=1.5,
+            thickness_units="screen", color=(90, 90, 90),
+            wxyz=matrix_to_quat(v.camtoworld[:3, :3]), position=v.camtoworld[:3, 3],
+        ))  # fmt: skip
+    return handles
+
+
 class Viewer:
-    """A viser server showing ``model``: each connected browser gets renders of its camera (latest camera
-    wins; one render thread per browser), the training cameras as frustums, and a save-camera button."""
+    """A viser server showing ``model``: each connected browser starts at the first training camera looking
+    at the model (:func:`start_camera`) and gets renders of its camera (latest camera wins; one render thread
+    per browser), the other training cameras as small frustums (:func:`frustum_scale`) that a checkbox hides,
+    and a save-camera button."""
 
     def __init__(self, model: RunModel, host: str = "127.0.0.1", port: int = 8080, max_size: int = 512):
         import viser
@@ -179,27 +229,32 @@ class Viewer:
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.port = self.server.get_port()
         self._stop = threading.Event()
-        self._add_frustums()
+        views = model.scene.train_views
+        positions = np.array([v.camtoworld[:3, 3] for v in views]).reshape(-1, 3)
+        self.frustum_scale = frustum_scale(positions, float(model.scene.camera_extent or 1.0))
         self.server.on_client_connect(self._on_connect)
-
-    def _add_frustums(self) -> None:
-        scale = 0.05 * float(self.model.scene.camera_extent or 1.0)
-        for v in self.model.scene.train_views:
-            fov = 2.0 * math.atan(0.5 * v.height / float(v.K[1, 1]))
-            self.server.scene.add_camera_frustum(
-                f"/cameras/{v.index:04d}", fov=fov, aspect=v.width / v.height, scale=scale,
-                wxyz=matrix_to_quat(v.camtoworld[:3, :3]), position=v.camtoworld[:3, 3],
-            )  # fmt: skip
 
     def _on_connect(self, client: Any) -> None:
         views = self.model.scene.train_views
+        start = None
         if views:
             v = views[0]
-            up = -v.camtoworld[:3, 1]  # OpenCV: +Y is down
+            start = v.index
+            with self.lock:  # a live run's step holds it while it changes the Gaussians
+                means = self.model.splats["means"].detach().cpu().numpy()
+            position, look_at, up = start_camera(v.camtoworld, means)
             client.camera.up_direction = tuple(up)
-            client.camera.wxyz = tuple(matrix_to_quat(v.camtoworld[:3, :3]))
-            client.camera.position = tuple(v.camtoworld[:3, 3])
+            client.camera.position = tuple(position)
+            client.camera.look_at = tuple(look_at)
             client.camera.fov = 2.0 * math.atan(0.5 * v.height / float(v.K[1, 1]))
+        frustums = add_frustums(client.scene, views, self.frustum_scale, skip=start)
+        show = client.gui.add_checkbox("Training cameras", initial_value=True)
+
+        @show.on_update
+        def _(_: Any) -> None:
+            for h in frustums:
+                h.visible = show.value
+
         button = client.gui.add_button("Save camera")
         changed = threading.Event()
         changed.set()

@@ -20,7 +20,16 @@ from click.testing import CliRunner
 from PIL import Image
 
 from jsgs.rotations import matrix_to_quat, quat_to_matrix
-from jsgs.viewer import camera_matrices, image_size, load_run_model, render_rgb, save_camera
+from jsgs.viewer import (
+    add_frustums,
+    camera_matrices,
+    frustum_scale,
+    image_size,
+    load_run_model,
+    render_rgb,
+    save_camera,
+    start_camera,
+)
 
 
 def test_quaternions_against_opencv_rodrigues() -> None:
@@ -42,6 +51,57 @@ def test_quaternions_against_opencv_rodrigues() -> None:
 def test_image_size() -> None:
     assert image_size(4 / 3, 320) == (320, 240) and image_size(0.75, 320) == (240, 320)
     assert image_size(1.0, 17) == (17, 17) and image_size(1000.0, 16) == (16, 1)
+
+
+def test_frustums_are_small_beside_the_camera_spacing() -> None:
+    angles = np.linspace(0, 2 * math.pi, 24, endpoint=False)
+    ring = np.stack([np.cos(angles), np.sin(angles), np.zeros(24)], axis=1)
+    gap = float(np.linalg.norm(ring[1] - ring[0]))
+    s = frustum_scale(ring, extent=1.1)
+    assert s == pytest.approx(min(0.25 * gap, 0.022))  # a quarter of the spacing, at most 2 % of the extent
+    assert frustum_scale(ring * 100, extent=110.0) == pytest.approx(2.2)  # the cap scales with the scene
+    assert frustum_scale(ring[:1], extent=2.0) == frustum_scale(np.zeros((3, 3)), extent=2.0) == 0.02
+
+
+def test_the_browser_starts_at_a_training_camera_looking_at_the_model() -> None:
+    from _train_scene import look_at
+
+    centre = np.array([4.0, 0.0, 1.0])
+    R, t = look_at(centre, np.array([0.0, 0.5, 0.0]), np.array([0.0, 0.0, 1.0]))  # aimed beside the model
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = R.T, -R.T @ t
+    means = np.random.default_rng(0).normal(size=(500, 3)) * 0.2 + np.array([0.0, 0.0, 0.3])
+    position, target, up = start_camera(c2w, means)
+    np.testing.assert_allclose(position, centre, atol=1e-12)
+    axis = (target - position) / np.linalg.norm(target - position)
+    np.testing.assert_allclose(axis, c2w[:3, 2], atol=1e-12)  # the training camera's own orientation
+    np.testing.assert_allclose(up, -c2w[:3, 1], atol=1e-12)
+    depth = float(np.dot(np.median(means, axis=0) - centre, c2w[:3, 2]))
+    assert np.linalg.norm(target - position) == pytest.approx(depth)  # orbits about the model's depth
+    behind = np.array([[8.0, 0.0, 1.0]])  # a model behind the camera: the distance instead
+    assert np.linalg.norm(start_camera(c2w, behind)[1] - centre) == pytest.approx(4.0)
+
+
+def test_frustums_are_thin_and_skip_the_start_camera() -> None:
+    class Scene:
+        def __init__(self) -> None:
+            self.calls: list[dict] = []
+
+        def add_camera_frustum(self, name: str, **kw):  # noqa: ANN003, ANN202
+            self.calls.append({"name": name, **kw})
+            return name
+
+    class V:
+        def __init__(self, i: int) -> None:
+            self.index, self.width, self.height = i, 40, 30
+            self.K = np.array([[30.0, 0, 20], [0, 30.0, 15], [0, 0, 1]])
+            self.camtoworld = np.eye(4)
+
+    scene = Scene()
+    handles = add_frustums(scene, [V(0), V(3), V(5)], scale=0.01, skip=3)
+    assert handles == ["/cameras/0000", "/cameras/0005"]
+    assert all(c["scale"] == 0.01 and c["thickness_units"] == "screen" for c in scene.calls)
+    assert all(c["thickness"] <= 2 for c in scene.calls)  # pixels: thin at any distance
 
 
 @pytest.fixture(scope="module")
