@@ -607,11 +607,10 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
     assert run_config["derived"]["method"] == resolved
     assert "--jpeg-mode float" in json.loads((run / "config.json").read_text())["command"]
     # the switches are refused where they do not apply, and --no-jo alone is refused
-    r = CliRunner().invoke(main, ["train", str(manifest), "--out", str(tmp_path / "x"), "--no-gc"])
+    gsplat = ["train", str(manifest), "--out", str(tmp_path / "x"), "--method", "gsplat"]
+    r = CliRunner().invoke(main, [*gsplat, "--no-gc"])
     assert r.exit_code == 1 and "apply to --method jsgs" in r.output
-    r = CliRunner().invoke(
-        main, ["train", str(manifest), "--out", str(tmp_path / "x"), "--compile", "inductor"]
-    )
+    r = CliRunner().invoke(main, [*gsplat, "--compile", "inductor"])
     assert r.exit_code == 1 and "apply to --method jsgs" in r.output
     r = CliRunner().invoke(
         main,

@@ -3,6 +3,7 @@ CUDA ops, the Gaussian budget, the mcmc preset, resume, and the twins against fl
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -158,10 +159,16 @@ def test_mcmc_preset_is_gsplat_simple_trainer_mcmc() -> None:
 
 
 def test_a_new_run_starts_from_the_mcmc_preset(tmp_path: Path) -> None:
-    from jsgs.train.config import DEFAULT_PRESET, command_settings
+    from jsgs.train.config import DEFAULT_PRESET, PRESET_METHOD_OPTIONS, command_settings
 
     assert DEFAULT_PRESET == "mcmc"
-    assert command_settings() == preset("mcmc") and command_settings(preset_name="paper") == TrainConfig()
+    # a new run trains JSGS, with the preset's recipe for it
+    new = command_settings()
+    assert new.method == "jsgs" and new.method_options == PRESET_METHOD_OPTIONS["mcmc"]["jsgs"]
+    new.method_options = {}
+    assert new == preset("mcmc") and command_settings(preset_name="paper") == TrainConfig()
+    baseline = command_settings(overrides={"method": "gsplat"})
+    assert baseline == dataclasses.replace(preset("mcmc"), method="gsplat")
     part = tmp_path / "part.json"
     part.write_text('{"iterations": 50, "eval_at": [50]}')
     cfg = command_settings(config_file=part)
