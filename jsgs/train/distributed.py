@@ -41,12 +41,10 @@ import torch
 from torch import Tensor
 
 from jsgs.errors import JsgsError
+from jsgs.train.launch import PEER_PREFIX
 
 #: torchrun's variables this module reads
 ENV_VARS = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
-#: the first words of every message of a process that stopped because another one did (the launcher shows
-#: the other process's message instead)
-PEER_PREFIX = "another process of the run stopped"
 #: how long a collective waits for a process that neither answers nor exits (evaluation and checkpoints on
 #: rank 0 keep the others waiting that long at most)
 TIMEOUT = datetime.timedelta(minutes=30)
@@ -220,34 +218,43 @@ class StepFlags:
     """What every process learns from the others in the gradient all-reduce."""
 
     rendered: int  # processes whose view reached a Gaussian (gradients were summed over these)
-    stop: bool  # some process was asked to stop (SIGINT / SIGTERM)
+    stop: str | None  # a stop signal some process received ("SIGTERM to rank 1"), else None
 
 
 def average_gradients(
-    world: World, params: list[Tensor], rendered: bool, stop_requested: bool
+    world: World, params: list[Tensor], rendered: bool, signal_name: str | None
 ) -> StepFlags:
     """Sum every parameter's gradient over the processes and divide by ``world_size`` (a process whose view
-    was empty adds zeros), in one all-reduce with the two flags. When no process rendered anything the
-    gradients stay None, as on one process."""
+    was empty adds zeros), in one all-reduce with the flags (the view was empty; the stop signal this
+    process received, ``signal_name``, by rank). When no process rendered anything the gradients stay
+    None, as on one process."""
+    import signal
+
     if not world.enabled:
-        return StepFlags(int(rendered), stop_requested)
+        return StepFlags(int(rendered), signal_name)
     import torch.distributed as dist
 
     device = params[0].device
     flat = [
         (p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1).float() for p in params
     ]
-    flags = torch.tensor([float(rendered), float(stop_requested)], device=device)
+    flags = torch.zeros(1 + world.size, device=device)
+    flags[0] = float(rendered)
+    if signal_name is not None:
+        flags[1 + world.rank] = float(signal.Signals[signal_name].value)
     buf = torch.cat([*flat, flags])
     with collective("the gradient all-reduce"):
         dist.all_reduce(buf)
-    n_rendered = int(round(buf[-2].item()))
-    stop = buf[-1].item() > 0
+    tail = buf[-(1 + world.size) :].tolist()
+    n_rendered = int(round(tail[0]))
+    stop = next(
+        (f"{signal.Signals(int(v)).name} to rank {r}" for r, v in enumerate(tail[1:]) if v > 0), None
+    )
     if n_rendered == 0:
         for p in params:
             p.grad = None
         return StepFlags(0, stop)
-    buf = buf[:-2].div_(world.size)
+    buf = buf[: -(1 + world.size)].div_(world.size)
     offset = 0
     for p in params:
         n = p.numel()

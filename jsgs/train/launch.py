@@ -23,8 +23,10 @@ import time
 from collections import deque
 
 from jsgs.errors import JsgsError
-from jsgs.train.distributed import PEER_PREFIX
 
+#: the first words of the message of a process that stopped because another one did
+#: (:class:`jsgs.train.distributed.PeerStopped`): the launcher shows the other process's message instead
+PEER_PREFIX = "another process of the run stopped"
 GRACE_S = 10.0
 _KEEP_LINES = 200
 

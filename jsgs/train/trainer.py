@@ -473,7 +473,7 @@ class Trainer:
         self._clock = 0.0
         self.world = dd.World()  # one process unless started by torchrun / --gpus (setup joins the others)
         self._signal: str | None = None
-        self._stop_everywhere = False
+        self._stop_everywhere: str | None = None
 
     # -- events ---------------------------------------------------------------------------------------
     def fire(self, event: str, *args: Any) -> None:
@@ -834,7 +834,7 @@ class Trainer:
                 loss.backward()
         if self.world.enabled:
             params = [splats[n] for n in PARAM_NAMES if splats[n].requires_grad]
-            flags = dd.average_gradients(self.world, params, not empty, self._signal is not None)
+            flags = dd.average_gradients(self.world, params, not empty, self._signal)
             self._stop_everywhere = flags.stop
             empty = flags.rendered == 0
         # every logged value, each gradient's L1 norm and each parameter's L1 norm (NaN/Inf wherever a value
@@ -1064,11 +1064,11 @@ class Trainer:
         try:
             for step in range(self.start_step, self.end_step):
                 self.fire("on_step_begin", step)
-                self._stop_everywhere = False
+                self._stop_everywhere = None
                 result = self.step(step)
-                if self._stop_everywhere and self.interrupted is None:
+                if self._stop_everywhere is not None and self.interrupted is None:
                     # a signal reached some process: all of them stop after this same step
-                    self.interrupted = self._signal or "a signal to another process"
+                    self.interrupted = self._stop_everywhere
                 self.fire("on_step_end", result)
                 done = step + 1
                 if self.checkpoint_due(done) or self.interrupted is not None:

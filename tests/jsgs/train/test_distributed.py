@@ -101,16 +101,31 @@ def test_two_processes_write_one_run_and_match_one_process(scene: Path, tmp_path
 
 
 @pytest.mark.slow
-def test_resume_on_two_processes_is_exact_and_needs_as_many(scene: Path, tmp_path: Path) -> None:
-    """Stopped at step 8 and resumed, a two-process run ends bit for bit where an uninterrupted one does;
-    resuming it on one process is refused with one line."""
-    cfg = _settings(tmp_path, refine_start_iter=3, refine_every=4, grow_grad2d=0.0001)
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the processes through /proc")
+def test_sigterm_to_one_process_stops_all_and_resume_is_exact(scene: Path, tmp_path: Path) -> None:
+    """SIGTERM to rank 1 alone: every process stops after the same step with rank 0's checkpoint (one error
+    line); resumed, the run ends bit for bit where an uninterrupted one does (DefaultStrategy refining on
+    the shared statistics); resuming it on one process is refused with one line."""
+    cfg = _settings(tmp_path, refine_start_iter=3, refine_every=4, refine_stop_iter=13, grow_grad2d=0.0001)
     full, part = tmp_path / "full", tmp_path / "part"
-    common = ["--preset", "paper", "--config", str(cfg), "--iterations", "16", "--eval-at", ""]
+    common = ["--preset", "paper", "--config", str(cfg), "--iterations", "120", "--eval-at", ""]
     _ok(_train(scene, full, *common, processes=2))
-    _ok(_train(scene, part, *common, "--stop-at", "8", processes=2))
-    assert json.loads((part / "metrics.json").read_text())["status"] == "stopped"
-    line = _one_error(_train(scene, part, "--resume", "--quiet"))
+    cmd = [sys.executable, "-m", "jsgs.cli", "train", str(scene), "--out", str(part), "--quiet", *common,
+           "--processes", "2"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    try:
+        ranks = _ranks_once_set_up(proc, part)
+        time.sleep(0.2)  # past the signal handlers' installation
+        os.kill(ranks[1], signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    line = _one_error((proc.returncode, err))
+    assert "interrupted by SIGTERM to rank 1" in line, line
+    m = json.loads((part / "metrics.json").read_text())
+    assert m["status"] == "stopped" and 0 < m["step"] < 120, m["step"]
+    line = _one_error(_train(scene, part, "--resume"))
     assert "2 process(es)" in line and "now 1" in line
     _ok(_train(scene, part, "--resume", processes=2))
     assert (part / "point_cloud.ply").read_bytes() == (full / "point_cloud.ply").read_bytes()
@@ -162,6 +177,18 @@ def _rank_of(pid: int) -> int | None:
     return None
 
 
+def _ranks_once_set_up(proc: subprocess.Popen[str], out: Path) -> dict[int | None, int]:
+    """The launcher's processes by rank, once config.json shows that every one has set up."""
+    deadline = time.monotonic() + 120
+    while not (out / "config.json").exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    ranks = {_rank_of(c): c for c in _children(proc.pid)}
+    assert set(ranks) == {0, 1}, ranks
+    return ranks
+
+
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the processes through /proc")
 def test_a_failing_process_stops_every_process_with_one_line(scene: Path, tmp_path: Path) -> None:
     """Rank 1 killed in the middle of training: rank 0 stops too (its next collective fails), the launcher
@@ -172,14 +199,8 @@ def test_a_failing_process_stops_every_process_with_one_line(scene: Path, tmp_pa
            str(cfg), "--iterations", "100000", "--eval-at", "", "--processes", "2"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
     try:
-        deadline = time.monotonic() + 120
-        while not (out / "config.json").exists():  # written once both processes have set up
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline
-            time.sleep(0.1)
+        ranks = _ranks_once_set_up(proc, out)
         time.sleep(1.0)
-        ranks = {_rank_of(c): c for c in _children(proc.pid)}
-        assert set(ranks) == {0, 1}, ranks
         os.kill(ranks[1], signal.SIGKILL)
         _, err = proc.communicate(timeout=120)
     finally:
@@ -235,8 +256,8 @@ def _reductions_worker(rank: int, store: str) -> None:
     state = shared.initialize_state(scene_scale=1.0)
     one_view(shared, state, rank)
     params = [splats[n] for n in PARAM_NAMES]
-    flags = dd.average_gradients(world, params, True, rank == 1)
-    assert (flags.rendered, flags.stop) == (2, True)
+    flags = dd.average_gradients(world, params, True, "SIGINT" if rank == 1 else None)
+    assert (flags.rendered, flags.stop) == (2, "SIGINT to rank 1")
     averaged = [p.grad.clone() for p in params]
     if rank == 0:  # the same two views on one process
         alone = Densifier(cfg.strategy)
