@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import stat
 import tempfile
 from collections.abc import Callable, Iterator
@@ -54,6 +55,18 @@ def atomic_path(final: str | os.PathLike[str]) -> Iterator[Path]:
     finally:
         if os.path.lexists(tmp_path):
             tmp_path.unlink()
+
+
+def atomic_leftovers(folder: str | os.PathLike[str], final_name: str) -> list[Path]:
+    """The temporary files :func:`atomic_path` left in ``folder`` for final names matching the regular
+    expression ``final_name`` (a process killed mid-write leaves them; a writer that holds the folder's
+    :class:`OutputLock` may remove them). Regular files only, never a link."""
+    folder = Path(folder)
+    pattern = re.compile(rf"\.(?:{final_name})\.[A-Za-z0-9_]+\.part(?:\.[A-Za-z0-9]+)?")
+    if not folder.is_dir():
+        return []
+    found = (p for p in folder.iterdir() if pattern.fullmatch(p.name))
+    return sorted(p for p in found if p.is_file() and not p.is_symlink())
 
 
 def write_bytes_atomic(final: str | os.PathLike[str], data: bytes) -> None:
@@ -149,7 +162,8 @@ class OutputLock:
     """One writer per output folder: ``FOLDER/.jsgs.lock`` holds the writer's PID and what it is doing,
     created exclusively (``O_EXCL``) and removed by :meth:`release`. A second writer gets a one-line
     JsgsError naming the holder; a lock whose PID no longer runs on this machine (a killed writer) is taken
-    over."""
+    over, and so is one whose PID now belongs to another process (the lock records its writer's start time
+    where ``/proc`` gives it, so a PID reused after a crash does not keep the folder locked)."""
 
     def __init__(self, folder: str | os.PathLike[str], what: str) -> None:
         from jsgs.errors import JsgsError
@@ -160,13 +174,13 @@ class OutputLock:
         # a folder made only to hold the lock goes again with it when the writer wrote nothing
         self.created = not self.path.parent.exists()
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        record = json.dumps({"pid": os.getpid(), "what": what}) + "\n"
+        record = json.dumps({"pid": os.getpid(), "what": what, "start": _start_time(os.getpid())}) + "\n"
         for _ in range(2):
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
                 holder = _lock_holder(self.path)
-                if holder is not None and holder[0] != os.getpid() and _alive(holder[0]):
+                if holder is not None and holder[0] != os.getpid() and _alive(holder[0], holder[2]):
                     raise JsgsError(
                         f"{self.path.parent}: in use by {holder[1]} (PID {holder[0]}); wait for it to end or "
                         f"stop it (a lock left by a killed writer is taken over: {self.path})"
@@ -195,24 +209,40 @@ class OutputLock:
         self.release()
 
 
-def _lock_holder(path: Path) -> tuple[int, str] | None:
+def _lock_holder(path: Path) -> tuple[int, str, int | None] | None:
+    """(PID, what it does, its start time or None) of a lock file; None when unreadable (a writer killed
+    between creating and filling it)."""
     from jsgs.errors import JsgsError
 
     try:
         doc = json.loads(read_regular_text(path))
-        return int(doc["pid"]), str(doc.get("what", "another process"))
-    except (OSError, ValueError, KeyError, TypeError, JsgsError):
+        start = doc.get("start")
+        return int(doc["pid"]), str(doc.get("what", "another process")), start if type(start) is int else None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, JsgsError):
         return None
 
 
-def _alive(pid: int) -> bool:
+def _start_time(pid: int) -> int | None:
+    """When process ``pid`` started (clock ticks since boot, ``/proc/PID/stat`` field 22), or None where
+    that cannot be read."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+        # the command name (field 2) may hold spaces and parentheses: count the fields after the last ')'
+        return int(text.rpartition(")")[2].split()[19])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _alive(pid: int, start: int | None = None) -> bool:
+    """Whether ``pid`` runs, and is the process that started at ``start`` (when recorded and readable)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
-        return True
-    return True
+        pass
+    now = _start_time(pid) if start is not None else None
+    return now is None or now == start
 
 
 def die_with_parent() -> None:

@@ -25,8 +25,10 @@ TAIL_CHARS = 4000
 
 def run_state(run: Run) -> tuple[str, dict[str, Any] | None]:
     """``("complete", metrics)`` when RUN/metrics.json says complete at the requested final step with an
-    evaluation there; ``("resumable", metrics)`` when it stopped or was interrupted with a checkpoint;
-    else ``("todo", metrics or None)`` (also for a run without a folder yet: a budget not resolved)."""
+    evaluation there; ``("resumable", metrics)`` when it stopped, was interrupted or failed (an error such
+    as a full disk; resuming continues from the last checkpoint and writes what was missing) with a
+    checkpoint; else ``("todo", metrics or None)`` (also for a run without a folder yet: a budget not
+    resolved)."""
     if not run.out:
         return "todo", None
     path = Path(run.out) / "metrics.json"
@@ -46,7 +48,7 @@ def run_state(run: Run) -> tuple[str, dict[str, Any] | None]:
         return "complete", doc
     ckpts = Path(run.out) / "checkpoints"
     if (
-        doc.get("status") in ("running", "stopped")
+        doc.get("status") in ("running", "stopped", "failed")
         and doc.get("iterations") == run.iterations
         and ckpts.is_dir()
         and any(ckpts.glob("*.pt"))
@@ -150,8 +152,8 @@ def run_one(
             why = f"exit code 0 but metrics.json is not complete at step {run.iterations}"
         if timed_out:
             why = "stopped at the bench's --time-limit (rerun to resume it from its last checkpoint)"
-        if doc is not None and doc.get("status") == "diverged":
-            why = f"diverged: {doc.get('error')}"
+        if doc is not None and doc.get("status") in ("diverged", "failed"):
+            why = f"{doc['status']}: {doc.get('error')}"
         rec["error"] = why
         rec["stderr_tail"] = _tail(log)
     return rec

@@ -44,13 +44,17 @@ _BOUNDS = {"ge": "minimum", "gt": "exclusiveMinimum", "le": "maximum", "lt": "ex
 _BOUND_WORDS = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<"}
 
 
-def setting(default: Any = dataclasses.MISSING, help: str = "", **kw: Any) -> Any:
+def setting(default: Any = dataclasses.MISSING, help: str = "", *, required: bool = True, **kw: Any) -> Any:
     """A dataclass field with a ``help`` text (used for the JSON Schema and the docs): every setting of a
     config section, the methods' option sections included (:func:`section_from_dict`). Numeric settings may
     carry bounds ``ge``, ``gt``, ``le``, ``lt``: checked when settings are read (a one-line error naming the
     key) and written into the JSON Schema. A side left open is bounded by :data:`jsgs.limits.MAX_SETTING`
-    (numbers) or :data:`jsgs.limits.MAX_INT_SETTING` (integers)."""
+    (numbers) or :data:`jsgs.limits.MAX_INT_SETTING` (integers). ``required=False``: a top-level setting
+    that a ``RUN/config.json`` written before it existed lacks (it then takes its default) and that does not
+    change the trained model."""
     meta: dict[str, Any] = {"help": help}
+    if not required:
+        meta["required"] = False
     for b in _BOUNDS:
         if b in kw:
             meta[b] = kw.pop(b)
@@ -278,6 +282,13 @@ class TrainConfig:
     )
     checkpoint_every: int = _f(
         0, "Also checkpoint every this many steps (0: only at eval steps and the end).", ge=0
+    )
+    checkpoint_keep: int = _f(
+        3,
+        "Keep the newest this many checkpoints, deleting older ones as new ones are written (0: keep every "
+        "one). The default keeps the three of the default eval_at.",
+        ge=0,
+        required=False,
     )
     seed: int = _f(42, "Seed of every random number generator.", ge=0)
     device: Literal["auto", "cpu", "cuda"] = _f("auto", "auto: cuda when available, else cpu.")
@@ -775,7 +786,7 @@ def config_schema() -> dict[str, Any]:
 
 
 def _all_names() -> list[str]:
-    return [f.name for f in dataclasses.fields(TrainConfig)]
+    return [f.name for f in dataclasses.fields(TrainConfig) if f.metadata.get("required", True)]
 
 
 def main() -> None:  # pragma: no cover - a one-line generator

@@ -70,6 +70,8 @@ RUN_ENTRIES = (
     "config.json", "metrics.json", "point_cloud.ply", COLMAP_PLY, f"{COLMAP_PLY}.json", "renders",
     "checkpoints",
 )  # fmt: skip
+#: the files among them (written atomically: a killed run may leave their temporaries)
+RUN_FILES = tuple(n for n in RUN_ENTRIES if "." in n)
 
 
 class TrainingDiverged(JsgsError):
@@ -237,7 +239,8 @@ def _check_out(paths: RunPaths, resume: bool, force: bool) -> None:
         if not paths.config.exists():
             raise JsgsError(f"{root}: nothing to resume (no config.json); start the run without --resume")
         return
-    entries = [p for p in root.iterdir() if p.name != LOCK_NAME] if root.exists() else []
+    ignored = {root / LOCK_NAME, *_leftovers(paths)}  # a lock and half-written files a killed run left
+    entries = [p for p in root.iterdir() if p not in ignored] if root.exists() else []
     if entries and not force:
         raise JsgsError(
             f"{root}: folder is not empty; pass --resume to continue that run or --force to overwrite it"
@@ -256,6 +259,32 @@ def _is_run_config(path: Path) -> bool:
         return json.loads(path.read_text()).get("format") == RUN_CONFIG_FORMAT
     except (OSError, ValueError, AttributeError, RecursionError):
         return False
+
+
+def _leftovers(paths: RunPaths) -> list[Path]:
+    """The temporary files of RUN's atomic writes that a killed run left (its files, checkpoints and
+    renders: 0-byte or partial ``.NAME.XXXXXXXX.part*``)."""
+    import re
+
+    from jsgs.io import atomic_leftovers
+
+    found = atomic_leftovers(paths.root, "|".join(map(re.escape, RUN_FILES)))
+    found += atomic_leftovers(paths.checkpoints, r"step_\d+\.pt")
+    renders = paths.root / "renders"
+    if renders.is_dir() and not renders.is_symlink():
+        for d in sorted(renders.iterdir()):
+            if d.is_dir() and not d.is_symlink() and d.name.startswith("step_"):
+                found += atomic_leftovers(d, r"[^/]+")
+    return found
+
+
+def _remove_leftovers(paths: RunPaths, say: Callable[[str], None]) -> None:
+    """Remove what :func:`_leftovers` finds (the caller holds RUN's lock: no writer is at work there)."""
+    found = _leftovers(paths)
+    for p in found:
+        p.unlink(missing_ok=True)
+    if found:
+        say(f"note: removed {len(found)} half-written file(s) an interrupted run left in {paths.root}")
 
 
 def _clear_out(paths: RunPaths) -> None:
@@ -628,6 +657,8 @@ class Trainer:
             "method": self.hook.describe() if self.hook is not None else {},
             "world_size": self.world.size,
         }
+        if self.world.is_main:  # only now that the settings, manifest and checkpoint passed
+            _remove_leftovers(paths, self.say)
         if not self.resuming and self.world.is_main:
             _clear_out(paths)  # only now that the settings and the manifest have been checked
             run_config = {
@@ -668,11 +699,27 @@ class Trainer:
         }
 
     def save_checkpoint(self, step_done: int) -> str:
-        """Write ``checkpoints/step_XXXXXX.pt`` (:meth:`checkpoint_state`); returns its path."""
+        """Write ``checkpoints/step_XXXXXX.pt`` (:meth:`checkpoint_state`), then delete the checkpoints
+        older than the newest ``checkpoint_keep``; returns its path."""
         path = ckpt.checkpoint_path(self.paths.checkpoints, step_done)
         ckpt.save_checkpoint(path, self.checkpoint_state(step_done))
         self.last_checkpoint = str(path)
+        self.rotate_checkpoints()
         return str(path)
+
+    def rotate_checkpoints(self) -> None:
+        """Keep the newest ``checkpoint_keep`` checkpoints of RUN/checkpoints (0: all); a file that cannot
+        be removed is a note, not an error (the run goes on)."""
+        assert self.cfg is not None
+        keep = self.cfg.checkpoint_keep
+        if keep <= 0:
+            return
+        for _, old in ckpt.list_checkpoints(self.paths.checkpoints)[:-keep]:
+            if old.is_file() and not old.is_symlink():
+                try:
+                    old.unlink()
+                except OSError as e:
+                    self.say(f"note: {old}: could not remove an old checkpoint ({e.strerror or e})")
 
     def build_optimization(self) -> None:
         """The optimizers, the means' scheduler and the strategy's state, fresh, for ``self.splats``."""

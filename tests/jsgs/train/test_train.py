@@ -742,6 +742,25 @@ def test_one_writer_per_run_folder(scene: Path, tmp_path: Path) -> None:
     assert json.loads((run / "metrics.json").read_text())["status"] == "complete"
 
 
+@pytest.mark.skipif(not Path("/proc/self/stat").is_file(), reason="needs /proc for start times")
+def test_a_lock_whose_pid_was_reused_is_taken_over(scene: Path, tmp_path: Path) -> None:
+    """The lock records its writer's start time: a PID that runs but started at another time is another
+    process (the writer crashed and its PID was reused), so the lock is stale; the same start time holds."""
+    from jsgs.io import LOCK_NAME, _start_time
+
+    run = tmp_path / "run"
+    run.mkdir()
+    parent, start = os.getppid(), _start_time(os.getppid())
+    assert start is not None
+    (run / LOCK_NAME).write_text(json.dumps({"pid": parent, "what": "jsgs train (live)", "start": start}))
+    with pytest.raises(JsgsError, match=rf"in use by jsgs train \(live\) \(PID {parent}\)"):
+        train(scene, run, tiny_config(iterations=2), progress=False)
+    (run / LOCK_NAME).write_text(json.dumps({"pid": parent, "what": "a crashed run", "start": start + 1}))
+    train(scene, run, tiny_config(iterations=2), progress=False)
+    assert not (run / LOCK_NAME).exists()
+    assert json.loads((run / "metrics.json").read_text())["status"] == "complete"
+
+
 def test_force_refuses_a_folder_that_holds_no_run(scene: Path, tmp_path: Path) -> None:
     other = tmp_path / "photos"
     other.mkdir()

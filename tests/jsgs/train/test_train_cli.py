@@ -220,3 +220,73 @@ def test_cli_other_one_line_errors(scene: Path, tmp_path: Path) -> None:
     one_line_error(run(str(scene), "--out", out, "--method", "nope", "--iterations", "1", "--device", "cpu"),
                    "unknown method 'nope'")  # fmt: skip
     one_line_error(run(str(scene), "--out", str(tmp_path / "x"), "--resume"), "nothing to resume")
+
+
+def test_checkpoints_rotate_and_the_setting_is_recorded(scene: Path, tmp_path: Path) -> None:
+    """checkpoint_keep K keeps the newest K checkpoints (0: all), is recorded in config.json, and a
+    config.json written before the setting existed still resumes (with the default)."""
+    from jsgs.train import checkpoint as ckpt
+
+    for keep, expected in ((2, [8, 10]), (0, [2, 4, 6, 8, 10])):
+        cfg = tmp_path / f"keep{keep}.json"
+        cfg.write_text(json.dumps({**FAST, "checkpoint_every": 2, "checkpoint_keep": keep}))
+        out = tmp_path / f"run{keep}"
+        r = run(str(scene), "--out", str(out), "--device", "cpu", "--config", str(cfg), "--iterations", "10",
+                "--eval-at", "10", "--quiet")  # fmt: skip
+        assert r.exit_code == 0, r.output + r.stderr
+        assert [s for s, _ in ckpt.list_checkpoints(out / "checkpoints")] == expected
+        assert json.loads((out / "config.json").read_text())["settings"]["checkpoint_keep"] == keep
+    # a run stopped at 4 whose config.json and checkpoint predate checkpoint_keep
+    cfg = tmp_path / "old.json"
+    cfg.write_text(json.dumps({**FAST, "checkpoint_every": 2}))
+    out = tmp_path / "old"
+    r = run(str(scene), "--out", str(out), "--device", "cpu", "--config", str(cfg), "--iterations", "6",
+            "--eval-at", "6", "--stop-at", "4", "--quiet")  # fmt: skip
+    assert r.exit_code == 0, r.output + r.stderr
+    conf = json.loads((out / "config.json").read_text())
+    del conf["settings"]["checkpoint_keep"]
+    (out / "config.json").write_text(json.dumps(conf))
+    import torch
+
+    for _, p in ckpt.list_checkpoints(out / "checkpoints"):
+        doc = torch.load(p, weights_only=True)
+        del doc["settings"]["checkpoint_keep"]
+        torch.save(doc, p)
+    r = run(str(scene), "--out", str(out), "--resume", "--quiet")
+    assert r.exit_code == 0, r.output + r.stderr
+    assert "complete: 6/6" in r.output
+    assert [s for s, _ in ckpt.list_checkpoints(out / "checkpoints")] == [2, 4, 6]
+
+
+def test_what_a_killed_run_leaves_is_cleaned_up(scene: Path, tmp_path: Path, fast_config: Path) -> None:
+    """Half-written (0-byte) temporaries of checkpoints, metrics.json and renders and the lock of a writer
+    that no longer runs: --resume removes the temporaries and takes the lock over; a folder holding only such
+    leftovers counts as empty for a new run."""
+    from jsgs.io import LOCK_NAME
+
+    out = tmp_path / "run"
+    base = [str(scene), "--out", str(out), "--device", "cpu", "--config", str(fast_config), "--quiet"]
+    r = run(*base, "--iterations", "4", "--eval-at", "2,4", "--stop-at", "2")
+    assert r.exit_code == 0, r.output + r.stderr
+    dead = json.dumps({"pid": 2**22 + 4321, "what": "jsgs train (killed)"})
+    leftovers = [out / "checkpoints" / ".step_000003.pt.k1ll3d_x.part.pt",
+                 out / ".metrics.json.abc_1234.part.json",
+                 out / "renders" / "step_000002" / ".view_000.png.zz9_zz9z.part.png"]  # fmt: skip
+    for p in leftovers:
+        p.write_bytes(b"")
+    (out / LOCK_NAME).write_text(dead)
+    mine = out / "checkpoints" / "notes.txt"  # not ours: stays
+    mine.write_text("mine")
+    r = run(str(scene), "--out", str(out), "--resume", "--quiet")
+    assert r.exit_code == 0, r.output + r.stderr
+    assert "removed 3 half-written file(s)" in r.stderr and "complete: 4/4" in r.output
+    assert not any(p.exists() for p in leftovers) and not (out / LOCK_NAME).exists()
+    assert mine.read_text() == "mine"
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    (fresh / ".config.json.q1w2e3r4.part.json").write_bytes(b"")
+    (fresh / LOCK_NAME).write_text(dead)
+    r = run(str(scene), "--out", str(fresh), "--device", "cpu", "--config", str(fast_config), "--iterations",
+            "2", "--quiet")  # fmt: skip
+    assert r.exit_code == 0, r.output + r.stderr
+    assert not [p for p in fresh.iterdir() if ".part" in p.name or p.name == LOCK_NAME]
