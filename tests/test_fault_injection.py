@@ -205,7 +205,7 @@ def test_sigterm_is_one_line_and_leaves_nothing_running(synth_scene: Path, tmp_p
 # ---------------------------------------------------------------------------------------------------------
 # training state: checkpoints, resume, the JPEG files, a model that turns non-finite
 
-FAST_TRAIN = ["--device", "cpu", "--quiet", "--preset", "paper"]
+FAST_TRAIN = ["--device", "cpu", "--quiet", "--preset", "paper", "--method", "gsplat"]
 
 
 @pytest.fixture(scope="module")
@@ -218,7 +218,7 @@ def stopped_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 
     root = tmp_path_factory.mktemp("stopped")
     manifest = make_scene(root / "scene")
-    cfg = TrainConfig(iterations=4, eval_at=[4], device="cpu")
+    cfg = TrainConfig(method="gsplat", iterations=4, eval_at=[4], device="cpu")
     cfg.eval.fps_passes, cfg.eval.fps_warmup = 1, 0
     train(manifest, root / "run", cfg, stop_at=2, progress=False, log=lambda s: None)
     return manifest, root / "run"
