@@ -98,7 +98,7 @@ def _check_bounds(value: Any, f: dataclasses.Field[Any], key: str, where: str) -
             bound = limits[b]
             ok = {"ge": v >= bound, "gt": v > bound, "le": v <= bound, "lt": v < bound}[b]
             if not ok:
-                shown = f"{bound:g}" if abs(bound) >= 1e6 else bound
+                shown = f"{bound:g}" if isinstance(bound, float) and abs(bound) >= 1e6 else bound
                 raise JsgsError(f"{where}: {key} must be {words} {shown} (got {v!r})")
 
 
