@@ -29,8 +29,33 @@ T975 = (
     2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042,
 )  # fmt: skip
 
-Key = tuple[str, str, int]  # scene, schedule, budget
-StepKey = str | tuple[str, int]  # a scene, or (scene, budget)
+Budget = int | str  # a cap, or "auto" (the scene-sized budget: each run's own, see num_gaussians)
+Key = tuple[str, str, Budget]  # scene, schedule, budget
+StepKey = str | tuple[str, Budget]  # a scene, or (scene, budget)
+
+
+#: the scene-sized budget's label (jsgs.bench.plan.AUTO)
+AUTO = "auto"
+#: the auto rule's target: LPIPS within this of the best fixed budget's ...
+AUTO_LPIPS_SLACK = 0.005
+#: ... with at most this many times the Gaussians of the smallest fixed budget within the slack
+AUTO_SIZE_SLACK = 1.1
+
+
+def budget_of(r: dict[str, Any]) -> Budget:
+    """A row's budget: its cap, or ``auto``."""
+    b = r["budget"]
+    return b if isinstance(b, str) and not b.isdigit() else int(b)
+
+
+def label(b: Budget) -> str:
+    """``300,000``, or ``auto``."""
+    return f"{b:,}" if isinstance(b, int) else str(b)
+
+
+def order(b: Budget) -> tuple[int, int, str]:
+    """Sort key: caps by size, then auto."""
+    return (0, b, "") if isinstance(b, int) else (1, 0, b)
 
 
 def t975(df: int) -> float:
@@ -53,14 +78,14 @@ def budget_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return [r for r in rows if r.get("strategy") == "mcmc" and r.get("budget") is not None]
 
 
-def common_steps(rows: list[dict[str, Any]]) -> dict[tuple[str, int], int]:
+def common_steps(rows: list[dict[str, Any]]) -> dict[tuple[str, Budget], int]:
     """Per scene and budget, the last evaluation step every one of its equal-budget runs reached (the step to
     compare runs that stopped at different points): ``{(scene, budget): step}``."""
-    last: dict[tuple[str, str, str, int, int], int] = {}
+    last: dict[tuple[str, str, str, Budget, int], int] = {}
     for r in budget_rows(rows):
-        k = (r["scene"], r["schedule"], r["method"], int(r["budget"]), int(r["seed"]))
+        k = (r["scene"], r["schedule"], r["method"], budget_of(r), int(r["seed"]))
         last[k] = max(last.get(k, 0), int(r["step"]))
-    out: dict[tuple[str, int], int] = {}
+    out: dict[tuple[str, Budget], int] = {}
     for (scene, _, _, budget, _), st in last.items():
         out[(scene, budget)] = min(out.get((scene, budget), st), st)
     return out
@@ -101,27 +126,28 @@ class BudgetReport:
         #: compare steps per scene or (scene, budget) (empty: every scene at ``step``)
         self.scene_steps: dict[StepKey, int] = dict(step) if isinstance(step, Mapping) else {}
         self.step = last if step is None or isinstance(step, Mapping) else step
-        self.rows = [r for r in rows if int(r["step"]) <= self.step_at(r["scene"], int(r["budget"]))]
+        self.rows = [r for r in rows if int(r["step"]) <= self.step_at(r["scene"], budget_of(r))]
         # (scene, schedule, method, budget) -> {seed: final row}
-        self.final: dict[tuple[str, str, str, int], dict[int, dict[str, Any]]] = defaultdict(dict)
+        self.final: dict[tuple[str, str, str, Budget], dict[int, dict[str, Any]]] = defaultdict(dict)
         # (scene, schedule, method, budget, seed) -> [(step, row)]
-        self.curves: dict[tuple[str, str, str, int, int], list[tuple[int, dict[str, Any]]]]
+        self.curves: dict[tuple[str, str, str, Budget, int], list[tuple[int, dict[str, Any]]]]
         self.curves = defaultdict(list)
         for r in self.rows:
-            k = (r["scene"], r["schedule"], r["method"], int(r["budget"]))
+            k = (r["scene"], r["schedule"], r["method"], budget_of(r))
             self.curves[(*k, int(r["seed"]))].append((int(r["step"]), r))
-            if int(r["step"]) == self.step_at(r["scene"], int(r["budget"])):
+            if int(r["step"]) == self.step_at(r["scene"], budget_of(r)):
                 self.final[k][int(r["seed"])] = r
         for c in self.curves.values():
             c.sort(key=lambda x: x[0])
         self.keys: list[Key] = sorted(
-            {(sc, sch, b) for (sc, sch, m, b) in self.final if sch != "clean" and m == "gsplat"}
+            {(sc, sch, b) for (sc, sch, m, b) in self.final if sch != "clean" and m == "gsplat"},
+            key=lambda k: (k[0], k[1], order(k[2])),
         )
         #: the JSGS methods compared with gsplat: jsgs first, then its variants (jsgs_eff, ...)
         methods = {m for (_, _, m, _) in self.final if m != "gsplat"}
         self.variants = sorted(methods, key=lambda m: (m != "jsgs", m))
 
-    def step_at(self, scene: str, budget: int | None = None) -> int:
+    def step_at(self, scene: str, budget: Budget | None = None) -> int:
         """The evaluation step the tables compare for ``scene`` (at ``budget``)."""
         if budget is not None and (scene, budget) in self.scene_steps:
             return self.scene_steps[(scene, budget)]
@@ -138,13 +164,13 @@ class BudgetReport:
     def scene_step_label(self, scene: str) -> str:
         """The step ``scene`` is compared at (``10000``), or one per budget where they differ (``9000
         (300,000), 10000 (100,000)``)."""
-        budgets = sorted({int(r["budget"]) for r in self.rows if r["scene"] == scene})
+        budgets = sorted({budget_of(r) for r in self.rows if r["scene"] == scene}, key=order)
         steps = {b: self.step_at(scene, b) for b in budgets}
         if len(set(steps.values())) <= 1:
             return str(self.step_at(scene, budgets[0] if budgets else None))
-        return ", ".join(f"{st} ({b:,})" for b, st in steps.items())
+        return ", ".join(f"{st} ({label(b)})" for b, st in steps.items())
 
-    def values(self, scene: str, schedule: str, method: str, budget: int, metric: str) -> dict[int, float]:
+    def values(self, scene: str, schedule: str, method: str, budget: Budget, metric: str) -> dict[int, float]:
         """seed -> the metric at the final step."""
         rows = self.final.get((scene, schedule, method, budget), {})
         return {s: float(r[metric]) for s, r in rows.items() if r.get(metric) is not None}
@@ -193,7 +219,7 @@ class BudgetReport:
             lp, ps = self.paired(key, "lpips", method=v), self.paired(key, "psnr", method=v)
             if not lp:
                 continue
-            cells = [sc, sch, f"{b:,}", v, str(len(lp))]
+            cells = [sc, sch, label(b), v, str(len(lp))]
             worse = []
             for metric, digits in (("lpips", 4), ("psnr", 2)):
                 g = agg(list(self.values(sc, sch, "gsplat", b, metric).values()))
@@ -216,7 +242,7 @@ class BudgetReport:
 
     def targets(self) -> list[str]:
         """Per budget: the issue's targets over every scene × schedule × seed pair, met or not."""
-        budgets = sorted({b for _, _, b in self.keys})
+        budgets = sorted({b for _, _, b in self.keys}, key=order)
         header = [
             "Budget", "pairs", "LPIPS lower (target ≥ 90 %)", "mean ΔLPIPS % (target ≤ −25 %)",
             "clean's mean ΔLPIPS % (the ceiling)", "worse beyond spread (target: none)",
@@ -240,7 +266,7 @@ class BudgetReport:
             ok = [won is not None and won >= 90, mlp is not None and mlp <= -25, not worse,
                   mps is not None and mps >= 0]  # fmt: skip
             body.append([
-                f"{b:,}", str(len(lp)), number(won, 0) + " %", number(mlp, 1, True), number(ceiling, 1, True),
+                label(b), str(len(lp)), number(won, 0) + " %", number(mlp, 1, True), number(ceiling, 1, True),
                 ", ".join(worse) or "none", number(mps, 3, True), "met" if all(ok) else "**not met**",
             ])  # fmt: skip
         return _table(header, body) if body else ["No pairs."]
@@ -257,23 +283,58 @@ class BudgetReport:
             med = fr[len(fr) // 2]
             per_seed = ", ".join("not reached" if s is None else str(s) for s in steps)
             body.append([
-                key[0], key[1], f"{key[2]:,}", v, per_seed,
+                key[0], key[1], label(key[2]), v, per_seed,
                 "not reached" if math.isinf(med) else f"{med:.2f}", "met" if med <= 0.70 else "**not met**",
             ])  # fmt: skip
         return _table(header, body, 4) if body else ["No JSGS run with gsplat at the same budget."]
+
+    def auto_rule(self, method: str = "jsgs") -> list[str]:
+        """The scene-sized budget against fixed ones, per scene and schedule where ``method`` trained at
+        ``auto`` and at least one fixed budget, on the seeds every one of those runs has: LPIPS at each
+        budget, the best fixed one, the smallest fixed budget within :data:`AUTO_LPIPS_SLACK` of it, and
+        whether auto meets the target (LPIPS within the slack of the best, at most
+        :data:`AUTO_SIZE_SLACK` × the Gaussians of that smallest budget)."""
+        cells = sorted({(sc, sch) for (sc, sch, m, b) in self.final if m == method and b == AUTO})
+        body = []
+        for sc, sch in cells:
+            fixed = sorted(b for (s, h, m, b) in self.final if (s, h, m) == (sc, sch, method) and b != AUTO)
+            runs = {b: self.final[(sc, sch, method, b)] for b in [*fixed, AUTO]}
+            seeds = sorted(set.intersection(*(set(v) for v in runs.values())))
+            if not fixed or not seeds:
+                continue
+
+            def mean(b: Budget, k: str, runs: dict[Budget, Any] = runs, seeds: list[int] = seeds) -> float:
+                return statistics.fmean(float(runs[b][s][k]) for s in seeds)
+
+            lp = {b: mean(b, "lpips") for b in runs}
+            best = min(fixed, key=lambda b: lp[b])
+            enough = min(b for b in fixed if lp[b] <= lp[best] + AUTO_LPIPS_SLACK)
+            size = mean(AUTO, "num_gaussians")
+            close, small = lp[AUTO] <= lp[best] + AUTO_LPIPS_SLACK, size <= AUTO_SIZE_SLACK * int(enough)
+            body.append([
+                sc, sch, ", ".join(map(str, seeds)),
+                "; ".join(f"{label(b)}: {lp[b]:.4f}" for b in fixed), label(best), label(enough),
+                number(size, 0), f"{lp[AUTO]:.4f}", f"{lp[AUTO] - lp[best]:+.4f}",
+                f"{size / int(enough):.2f}", "met" if close and small else "**not met**",
+            ])  # fmt: skip
+        header = ["Scene", "Schedule", "seeds", "LPIPS at the fixed budgets", "best",
+                  "smallest within 0.005", "auto #Gaussians", "auto LPIPS", "auto − best",
+                  "auto / smallest (≤ 1.1)", "target"]  # fmt: skip
+        return _table(header, body) if body else []
 
     def size_time(self) -> list[str]:
         header = ["Scene", "Schedule", "Budget", "Method", "seeds", "#Gaussians", "train s", "time / it ms",
                   "render FPS"]  # fmt: skip
         body = []
-        for (sc, sch, m, b), seeds in sorted(self.final.items()):
+        items = sorted(self.final.items(), key=lambda kv: (*kv[0][:3], order(kv[0][3])))
+        for (sc, sch, m, b), seeds in items:
             rs = list(seeds.values())
 
             def mean(k: str, rs: list[dict[str, Any]] = rs) -> float | None:
                 return agg([r.get(k) for r in rs]).mean
 
             tpi = mean("time_per_iteration_s")
-            body.append([sc, sch, f"{b:,}", m, str(len(rs)), number(mean("num_gaussians"), 0),
+            body.append([sc, sch, label(b), m, str(len(rs)), number(mean("num_gaussians"), 0),
                          number(mean("train_seconds"), 1), number(tpi * 1000 if tpi else None, 2),
                          number(mean("fps"), 0)])  # fmt: skip
         return _table(header, body) if body else ["No runs."]
@@ -293,6 +354,12 @@ class BudgetReport:
         md += ["### Targets at each budget (jsgs; every scene × schedule × seed pair)", ""]
         md += [*self.targets(), ""]
         md += ["### Time to quality", "", *self.quality_time(), ""]
+        rule = self.auto_rule()
+        if rule:
+            md += ["### The scene-sized budget (auto) against fixed budgets (JSGS)", "",
+                   "Target: auto's LPIPS within 0.005 of the best fixed budget's, with at most 1.1 × the "
+                   "Gaussians of the smallest fixed budget that comes within 0.005 of the best (means over "
+                   "the seeds every budget has).", "", *rule, ""]  # fmt: skip
         md += [
             "### Model size and time",
             "",
@@ -329,7 +396,7 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
         sizes: set[float] = set()  # the mean #Gaussians of every point drawn
         for sch, m in series:
             pts = []
-            for b in sorted({k[3] for k in rep.final if k[:3] == (sc, sch, m)}):
+            for b in sorted({k[3] for k in rep.final if k[:3] == (sc, sch, m)}, key=order):
                 rs = list(rep.final[(sc, sch, m, b)].values())
                 pts.append(tuple(agg([r.get(k) for r in rs]).mean
                                  for k in ("num_gaussians", "train_seconds", "lpips", "psnr")))  # fmt: skip

@@ -170,10 +170,9 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 def _run_record(r: Run, device: str, config: str | None) -> dict[str, Any]:
     """A run's bench.json entry before it runs (no command while its budget is unresolved)."""
-    unresolved = r.strategy == "mcmc" and r.cap is None
     return {
         **r.to_json(),
-        "command": None if unresolved else " ".join(train_argv(r, device, config, False)),
+        "command": None if r.unresolved else " ".join(train_argv(r, device, config, False)),
         "status": "pending",
     }
 
@@ -216,7 +215,7 @@ def _bench(
     methods: list[str],
     ablation: str | None,
     seeds: list[int],
-    iterations: int,
+    iterations: int | None = None,
     eval_at: list[int] | None = None,
     jobs_per_gpu: int = 1,
     device: str | None = None,
@@ -231,6 +230,7 @@ def _bench(
     strategy: str = "default",
     budgets: list[Budget] | None = None,
     jsgs_config: str | Path | None = None,
+    gsplat_steps: float = 1.0,
 ) -> dict[str, Any]:
     """Run the whole bench into ``out``; returns the final bench.json document. ``time_limit`` (seconds
     from the call): no run starts after it (nor one that runs like it took longer than what is left) and runs
@@ -238,7 +238,11 @@ def _bench(
     ``report_only``: train nothing, only collect the runs already in ``out`` (copied back from GPU machines,
     say) into results.csv and report.md; runs without results are listed as not run. ``strategy`` mcmc:
     every run once per budget of ``budgets`` (budgets given as multiples are resolved from the clean
-    DefaultStrategy runs, trained first). ``jsgs_config``: settings over ``config`` for the JSGS runs only."""
+    DefaultStrategy runs, trained first). ``jsgs_config``: settings over ``config`` for the JSGS runs only.
+    ``iterations`` None: the length of the strategy's preset (mcmc: 30,000 steps; default: the paper's
+    10,000).
+    ``gsplat_steps``: the gsplat runs on JPEG datasets train that many times longer, evaluated past
+    ``iterations`` (:func:`jsgs.bench.plan.build_plan`), for the report's equal-time table."""
     import time
 
     deadline = None if time_limit is None else time.time() + time_limit
@@ -266,13 +270,18 @@ def _bench(
 
         if not torch.cuda.is_available():
             raise JsgsError("--device cuda: no CUDA device is available")
+    if iterations is None:
+        from jsgs.train.config import preset_iterations
+
+        iterations = preset_iterations("mcmc" if strategy == "mcmc" else "paper")
     eval_at = eval_at or default_eval_at(iterations)
     config_path = str(Path(config).resolve()) if config is not None else None
     config_doc = _read_config(config)
     jsgs_doc = _read_config(jsgs_config)
     plan = build_plan(
-        scenes, out, schedules, fixed, methods, ablation, seeds, iterations, eval_at, strategy, budgets
-    )
+        scenes, out, schedules, fixed, methods, ablation, seeds, iterations, eval_at, strategy, budgets,
+        gsplat_steps,
+    )  # fmt: skip
     if compile_backend != "off":
         for r in plan.runs:
             if r.train_method == "jsgs":
@@ -285,8 +294,20 @@ def _bench(
         for r in plan.runs:
             if r.train_method == "jsgs":
                 r.config = str(merged.resolve())
+    longer = {r.schedule_steps for r in plan.runs if r.schedule_steps is not None}
+    for n in longer:  # gsplat past the recipe's length: its schedules laid out over the recipe's steps
+        path = out / "configs" / f"gsplat_recipe{n}.json"
+        path.parent.mkdir(exist_ok=True)
+        write_json_atomic(path, _merge(config_doc or {}, {"optim": {"means_lr_decay_steps": n}}))
+        for r in plan.runs:
+            if r.schedule_steps == n:
+                r.config = str(path.resolve())
     lpips_weights = lpips_weights or _default_lpips_weights()
     env_extra = {"JSGS_LPIPS_WEIGHTS": str(Path(lpips_weights).resolve())} if lpips_weights else {}
+    # every training records how many shared its device (metrics.json runs_per_device)
+    from jsgs.train.trainer import RUNS_PER_DEVICE_ENV
+
+    env_extra[RUNS_PER_DEVICE_ENV] = str(jobs_per_gpu)
     slots = [None] if report_only else pool_mod.detect_slots(device, jobs_per_gpu)
     if not slots:
         raise JsgsError("--device cuda: torch.cuda.device_count() found no GPU")
@@ -317,6 +338,7 @@ def _bench(
             "jsgs_config_content": jsgs_doc,
             "strategy": strategy,
             "budgets": [b.label for b in budgets or []],
+            "gsplat_steps": gsplat_steps,
             "lpips_weights": lpips_weights,
         },  # fmt: skip
         "environment": environment(device),
@@ -393,6 +415,7 @@ def _bench(
         rj.update(rec)
 
     rows = results_mod.collect(plan.runs)
+    shared = sorted({int(r["runs_per_device"]) for r in rows if r.get("runs_per_device") is not None})
     header = results_mod.write_csv(rows, out / "results.csv")
     failures = [records[r.id] | {"id": r.id} for r in plan.runs if records[r.id]["status"] == "failed"]
     counts = {
@@ -405,6 +428,11 @@ def _bench(
         where = f"collected (--report-only) from runs trained elsewhere, on: {', '.join(devices)}"
     else:
         where = f"device {device}, GPUs: {gpu_txt}"
+    sharing = (
+        "unstated"
+        if not shared
+        else "; ".join("one run per device" if n == 1 else f"{n} runs per device" for n in shared)
+    )
     head = [
         f"Generated {_now()} by jsgs {env['jsgs']} (git {env['git_commit'] or 'unknown'}"
         f"{', uncommitted changes' if env['git_dirty'] else ''}); torch {env['torch']}, "
@@ -413,7 +441,11 @@ def _bench(
         f"Command: `{command}`" if command else "Command: (library call)",
         "",
         f"{iterations} iterations, evaluations at {','.join(map(str, eval_at))}; seeds {seeds}; "
-        f"{len(slots)} concurrent workers ({jobs_per_gpu} per GPU on cuda). Runs: {len(plan.runs)} "
+        f"{len(slots)} concurrent workers ({jobs_per_gpu} per GPU on cuda); device sharing of the runs "
+        f"reported (their metrics.json): {sharing}."
+        + (f" gsplat's runs on JPEG views train {gsplat_steps:g}x as long (evaluated past {iterations})."
+           if gsplat_steps > 1 else "")
+        + f" Runs: {len(plan.runs)} "
         f"({counts['complete']} trained now, {counts['skipped']} already complete, "
         f"{counts['failed']} failed). "
         "Metrics are on the test views against their uncompressed references; settings and versions in "

@@ -1,7 +1,8 @@
 """``RESULTS/report.md`` from the rows of ``results.csv``: the paper's Tables 1-4 layout, the damage
 recovered, per-scene tables and the loss terms, at the bench's final evaluation step (and again at the last
-step every run reached, when some stopped early). The numbers and their rules (seed means, spread, "within
-noise") are :mod:`jsgs.bench.stats`'s; the figures are :mod:`jsgs.bench.plots`'s."""
+step every run reached, when some stopped early), and the equal-time comparison
+(:mod:`jsgs.bench.equal_time`). The numbers and their rules (seed means, spread, "within noise") are
+:mod:`jsgs.bench.stats`'s; the figures are :mod:`jsgs.bench.plots`'s."""
 
 from __future__ import annotations
 
@@ -10,9 +11,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from jsgs.bench import equal_time
 from jsgs.bench.budget import BudgetReport, StepKey, write_budget_plots
 from jsgs.bench.plan import ABLATION_ALIAS, ABLATION_PARTS, ABLATION_SCHEDULE, MIXED_SCHEDULES
 from jsgs.bench.plots import write_plots
+from jsgs.bench.results import within_recipe
 from jsgs.bench.stats import (
     DIGITS,
     HIGHER_BETTER,
@@ -330,9 +333,12 @@ def write_report(
     """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path. The runs of
     ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`; at ``budget_step``, one step
     or one per scene or per scene and budget, default the last evaluation); the DefaultStrategy runs the
-    paper's tables."""
+    paper's tables; both compare each run up to its recipe's length (:func:`within_recipe`). Then the
+    equal-time section (:mod:`jsgs.bench.equal_time`) reads every evaluation."""
     results_dir = Path(results_dir)
     md: list[str] = ["# jsgs bench report", "", *header_lines, ""]
+    timed = rows  # every evaluation, gsplat's past its recipe included: the equal-time comparison
+    rows = within_recipe(rows)  # the equal-step tables: each run up to its recipe's length
     brep = BudgetReport(rows, budget_step)
     if brep.rows:
         bpngs = write_budget_plots(brep, results_dir / "plots") if plots else []
@@ -352,6 +358,8 @@ def write_report(
                "references that budgets given as multiples are taken from).", ""]  # fmt: skip
     if rows or not brep.rows:
         md += _paper_sections(rows, results_dir, plots)
+    time_plots = equal_time.write_plots(timed, results_dir / "plots") if plots else []
+    md += ["", *equal_time.markdown(timed, time_plots)]
     md += ["", "## Failed runs", ""]
     # runs that never started (collected with --report-only, or stopped by --time-limit before they began)
     # are listed in one line each, without the empty log excerpt of a real failure

@@ -14,8 +14,9 @@ manifest records the compression analysis); ``method`` is gsplat / jsgs, a JSGS 
 effective tables of views compressed twice) or an ablation name (jo, jo_ds, jo_gc). Every method of one
 scene x schedule x seed trains on the same files.
 
-With ``--strategy mcmc`` every method and the clean ceiling train once per budget (a Gaussian count, or a
-multiple of the scene's clean DefaultStrategy run's final count: those reference runs train first).
+With ``--strategy mcmc`` every method and the clean ceiling train once per budget (a Gaussian count, a
+multiple of the scene's clean DefaultStrategy run's final count: those reference runs train first, or
+``auto``: each run sizes it to its scene, in ``runs/.../mcmc-auto/``).
 """
 
 from __future__ import annotations
@@ -97,7 +98,20 @@ class Run:
     budget: str | None = None  # mcmc: the budget as given (300000, 0.5x)
     cap: int | None = None  # mcmc: strategy.cap_max (None until a multiple is resolved)
     config: str | None = None  # its own --config (the bench's --config with --jsgs-config over it)
+    # --gsplat-steps: the recipe's length when the run trains past it (its schedules laid out over this many
+    # steps, optim.means_lr_decay_steps); None: iterations
+    schedule_steps: int | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def auto(self) -> bool:
+        """mcmc with the budget chosen from the scene by the run itself (``--cap-max auto``)."""
+        return self.strategy == "mcmc" and self.budget == AUTO
+
+    @property
+    def unresolved(self) -> bool:
+        """mcmc with a budget given as a multiple whose cap is not known yet."""
+        return self.strategy == "mcmc" and self.cap is None and not self.auto
 
     @property
     def folder(self) -> str:
@@ -125,19 +139,24 @@ class BenchPlan:
 
     def references(self) -> list[Run]:
         """The clean DefaultStrategy runs that budgets given as multiples are resolved from."""
-        if not any(r.cap is None and r.strategy == "mcmc" for r in self.runs):
+        if not any(r.unresolved for r in self.runs):
             return []
         return [r for r in self.runs if r.strategy == "default" and r.schedule == "clean"]
 
 
 @dataclass(frozen=True)
 class Budget:
-    """A Gaussian budget: a count (``300k`` -> 300000) or a multiple of the scene's clean DefaultStrategy
-    run's final count (``0.5x``)."""
+    """A Gaussian budget: a count (``300k`` -> 300000), a multiple of the scene's clean DefaultStrategy
+    run's final count (``0.5x``), or ``auto``: each run chooses it from its scene (``jsgs train --cap-max
+    auto``; results.csv's budget column reads ``auto``)."""
 
     label: str
     count: int | None = None
     multiple: float | None = None
+
+    @property
+    def auto(self) -> bool:
+        return self.label == AUTO
 
     def cap(self, reference_count: float | None) -> int:
         """The cap for a scene whose clean DefaultStrategy run ended with ``reference_count`` Gaussians."""
@@ -148,16 +167,20 @@ class Budget:
 
 
 _SUFFIX = {"": 1, "k": 1_000, "m": 1_000_000}
+#: the scene-sized budget (jsgs.train.budget)
+AUTO = "auto"
 
 
 def parse_budgets(text: str | None) -> list[Budget]:
-    """``"300k,0.5x,1x,250000"`` -> budgets (JsgsError, one line, on anything else)."""
+    """``"300k,0.5x,1x,250000,auto"`` -> budgets (JsgsError, one line, on anything else)."""
     out: list[Budget] = []
     for part in parse_list(text, "--budgets"):
         p = part.lower()
         m = re.fullmatch(r"(\d+(?:\.\d+)?)([km]?)", p)
         x = re.fullmatch(r"(\d+(?:\.\d+)?)x", p)
-        if m:
+        if p == AUTO:
+            b = Budget(AUTO)
+        elif m:
             n = float(m.group(1)) * _SUFFIX[m.group(2)]
             if n < 1 or n != math.floor(n):
                 raise JsgsError(f"--budgets: {part!r} is not a whole number of Gaussians (at least 1)")
@@ -166,8 +189,8 @@ def parse_budgets(text: str | None) -> list[Budget]:
             b = Budget(part, multiple=float(x.group(1)))
         else:
             raise JsgsError(
-                f"--budgets: {part!r} is neither a count (300000, 300k, 1.5m) nor a positive multiple of the "
-                "clean DefaultStrategy count (0.5x)"
+                f"--budgets: {part!r} is neither a count (300000, 300k, 1.5m), a positive multiple of the "
+                "clean DefaultStrategy count (0.5x) nor auto"
             )
         if b in out:
             raise JsgsError(f"--budgets: {part!r} is given twice")
@@ -191,9 +214,31 @@ def parse_list(text: str | None, what: str, kind: type = str) -> list[Any]:
     return out
 
 
+#: the spacing of the bench's default evaluations past step 10,000
+EVAL_SPACING = 5_000
+
+
 def default_eval_at(iterations: int) -> list[int]:
-    """``jsgs train``'s rule: 3000,7000,10000 cut at N, and N."""
-    return [s for s in (3000, 7000, 10000) if s < iterations] + [iterations]
+    """The bench's evaluation steps: 3000,7000,10000 cut at N, then every :data:`EVAL_SPACING` steps, and N
+    (30,000 steps: 3000, 7000, 10000, 15000, 20000, 25000, 30000; enough points to read quality against
+    training time)."""
+    return (
+        [s for s in (3000, 7000) if s < iterations]
+        + list(range(10_000, iterations, EVAL_SPACING))
+        + [iterations]
+    )
+
+
+def longer_run(eval_at: list[int], iterations: int, factor: float) -> tuple[int, list[int]]:
+    """A run ``factor`` times as long as ``iterations`` steps (rounded up), and its evaluation steps:
+    ``eval_at``, then on at the spacing of its last two steps (``iterations`` when it has only one), and the
+    end."""
+    total = math.ceil(factor * iterations)
+    if total <= iterations:
+        return iterations, list(eval_at)
+    gap = eval_at[-1] - eval_at[-2] if len(eval_at) > 1 else iterations
+    extra = list(range(iterations + gap, total, gap))
+    return total, [*eval_at, *extra, total]
 
 
 def build_plan(
@@ -208,11 +253,16 @@ def build_plan(
     eval_at: list[int],
     strategy: str = "default",
     budgets: list[Budget] | None = None,
+    gsplat_steps: float = 1.0,
 ) -> BenchPlan:
     """Every dataset and run of the bench, in the order they are queued (longest-lived first is not
     attempted: runs of one scene and schedule stay together so partial results are usable early). Under
     ``strategy`` mcmc, one run per budget; a budget given as a multiple leaves its runs' ``cap`` None (see
-    :func:`resolve_caps`) and adds the clean DefaultStrategy gsplat run of each scene and seed."""
+    :func:`resolve_caps`) and adds the clean DefaultStrategy gsplat run of each scene and seed.
+    ``gsplat_steps`` > 1: the gsplat runs on JPEG datasets train that many times ``iterations`` steps, their
+    recipe laid out over ``iterations`` (``schedule_steps``; their evaluations up to it are those of a run
+    of that length) and evaluated on past it (:func:`longer_run`), so that quality against training time
+    can be read at JSGS's end without extrapolating."""
     out = Path(out)
     budgets = list(budgets or [])
     if strategy not in STRATEGIES:
@@ -240,6 +290,8 @@ def build_plan(
             raise JsgsError(f"--fixed: quality {q} is not in 1..100")
     if not seeds:
         raise JsgsError("--seeds: at least one seed is needed")
+    if not (math.isfinite(gsplat_steps) and gsplat_steps >= 1.0):
+        raise JsgsError(f"--gsplat-steps {gsplat_steps:g}: must be a factor of at least 1")
     if iterations < 1:
         raise JsgsError(f"--iterations {iterations}: must be at least 1")
     if not eval_at or eval_at[-1] != iterations or sorted(set(eval_at)) != eval_at or eval_at[0] < 1:
@@ -288,17 +340,21 @@ def build_plan(
             train_method, flags = VARIANTS[method]
         else:
             train_method, flags = method, []
+        steps, evals, recipe = iterations, list(eval_at), None
+        if method == "gsplat" and label != "clean" and gsplat_steps > 1.0:
+            steps, evals = longer_run(eval_at, iterations, gsplat_steps)
+            recipe = iterations if steps > iterations else None
         r = Run(
-            scene, label, method, seed, train_method, list(flags), d.key, d.manifest, "", "", iterations,
-            list(eval_at), strategy="default" if budget is None else "mcmc",
-            budget=None if budget is None else budget.label, cap=None if budget is None else budget.count,
+            scene, label, method, seed, train_method, list(flags), d.key, d.manifest, "", "", steps, evals,
+            strategy="default" if budget is None else "mcmc", budget=None if budget is None else budget.label,
+            cap=None if budget is None else budget.count, schedule_steps=recipe,
         )  # fmt: skip
-        if r.cap is not None or r.strategy == "default":
+        if not r.unresolved:
             set_paths(r, out)
         if r.id not in {x.id for x in runs}:
             runs.append(r)
 
-    multiples = any(b.count is None for b in budgets)
+    multiples = any(b.multiple is not None for b in budgets)
     for scene in names:
         if multiples:  # the reference counts come first
             for seed in seeds:
@@ -332,7 +388,7 @@ def resolve_caps(plan: BenchPlan, out: str | Path, counts: dict[str, float | Non
     budgets: dict[str, Budget] = {}
     missing = []
     for r in plan.runs:
-        if r.strategy != "mcmc" or r.cap is not None or r.budget is None:
+        if not r.unresolved or r.budget is None:
             continue
         b = budgets.setdefault(r.budget, parse_budgets(r.budget)[0])
         count = counts.get(r.scene)
@@ -355,7 +411,7 @@ def train_argv(run: Run, device: str, config: str | None, resume: bool) -> list[
         "--seed", str(run.seed), "--device", device, "--quiet",
     ]  # fmt: skip
     if run.strategy == "mcmc":
-        argv += ["--preset", "mcmc", "--cap-max", str(run.cap)]
+        argv += ["--preset", "mcmc", "--cap-max", AUTO if run.auto else str(run.cap)]
     else:
         argv += ["--preset", "paper"]
     config = run.config if run.config is not None else config

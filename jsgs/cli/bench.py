@@ -55,8 +55,9 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, FINITE, WORKERS, invocation, user
 @click.option(
     "--budgets",
     default=None,
-    help="--strategy mcmc: Gaussian budgets, counts (300k, 1.5m, 250000) or multiples of each scene's clean "
-    "DefaultStrategy run's final count (0.5x, 1x; those runs train first).",
+    help="--strategy mcmc: Gaussian budgets, counts (300k, 1.5m, 250000), multiples of each scene's clean "
+    "DefaultStrategy run's final count (0.5x, 1x; those runs train first), or auto (each run sizes it to its "
+    "scene: jsgs train --cap-max auto).",
 )
 @click.option(
     "--jsgs-config",
@@ -65,12 +66,30 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, FINITE, WORKERS, invocation, user
     default=None,
     help="JSON settings over --config for the JSGS runs only (a recipe: method_options, loss weights).",
 )
-@click.option("--iterations", type=int, default=10_000, show_default=True, help="Training steps per run.")
+@click.option(
+    "--iterations",
+    type=int,
+    default=None,
+    help="Training steps per run [default: the strategy's preset: 10000 with --strategy default (the paper's "
+    "protocol), 30000 with mcmc (gsplat simple_trainer's length)].",
+)
 @click.option(
     "--eval-at",
     "eval_at",
     default=None,
-    help="Evaluation steps [default: 3000,7000,10000 cut at --iterations, and --iterations].",
+    help="Evaluation steps [default: 3000,7000 and from 10000 every 5000, cut at --iterations, and "
+    "--iterations].",
+)
+@click.option(
+    "--gsplat-steps",
+    "gsplat_steps",
+    type=float,
+    default=1.0,
+    show_default=True,
+    help="gsplat's runs on the JPEG schedules train this many times --iterations steps: the recipe laid out "
+    "over --iterations (its evaluations up to there are those of a run of that length), then on, evaluated "
+    "past it at the same spacing, so that the report's equal-time table reads gsplat at JSGS's end without "
+    "extrapolating (a JSGS step costs about 1.5 gsplat steps: 2 leaves room).",
 )
 @click.option(
     "--seeds",
@@ -133,8 +152,9 @@ from jsgs.cli._common import CONTEXT, EXAMPLE, FINITE, WORKERS, invocation, user
 @user_errors
 def bench_command(
     scenes: tuple[Path, ...], out: Path, schedules: str, fixed: str | None, methods: str,
-    ablation: str | None, strategy: str, budgets: str | None, jsgs_config: Path | None, iterations: int,
-    eval_at: str | None, seeds: str, jobs_per_gpu: int, device: str, config: Path | None,
+    ablation: str | None, strategy: str, budgets: str | None, jsgs_config: Path | None,
+    iterations: int | None, eval_at: str | None, gsplat_steps: float, seeds: str, jobs_per_gpu: int,
+    device: str, config: Path | None,
     lpips_weights: str | None, time_limit: float | None, prepare_only: bool, compile_backend: str,
     report_only: bool, quiet: bool,
 ) -> None:  # fmt: skip
@@ -158,7 +178,7 @@ def bench_command(
         jobs_per_gpu=jobs_per_gpu, device=device, config=config, lpips_weights=lpips_weights,
         progress=not quiet, time_limit=time_limit, command=invocation(click.get_current_context(), "jsgs"),
         prepare_only=prepare_only, compile_backend=compile_backend, report_only=report_only,
-        strategy=strategy, budgets=parse_budgets(budgets), jsgs_config=jsgs_config,
+        strategy=strategy, budgets=parse_budgets(budgets), jsgs_config=jsgs_config, gsplat_steps=gsplat_steps,
     )  # fmt: skip
     if prepare_only:
         n = len(doc["datasets"])

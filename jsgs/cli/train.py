@@ -41,13 +41,19 @@ def _parse_steps(text: str) -> list[int]:
     default=None,
     help="jsgs (JPEG state-guided supervision) or gsplat (the baseline: no JPEG terms) [default: jsgs].",
 )
-@click.option("--iterations", type=int, default=None, help="Training steps [default: 10000].")
+@click.option(
+    "--iterations",
+    type=int,
+    default=None,
+    help="Training steps [default: the preset's: 30000 for mcmc (gsplat simple_trainer's length), 10000 for "
+    "paper].",
+)
 @click.option(
     "--eval-at",
     "eval_at",
     default=None,
-    help="Comma-separated steps to evaluate and checkpoint at [default: 3000,7000,10000; with "
-    "--iterations N: those below N, and N]. '' for none.",
+    help="Comma-separated steps to evaluate and checkpoint at [default: the preset's: 7000,30000 for mcmc, "
+    "3000,7000,10000 for paper; with --iterations N: those below N, and N]. '' for none.",
 )
 @click.option(
     "--config",
@@ -61,18 +67,20 @@ def _parse_steps(text: str) -> list[int]:
     type=click.Choice(["mcmc", "paper"]),
     default=None,
     help="Starting settings under --config and the options. mcmc: gsplat simple_trainer's mcmc recipe "
-    "(MCMCStrategy with a budget of strategy.cap_max = 300000 Gaussians, init.opacity 0.5, init.scale 0.1, "
+    "(30000 steps, evaluations at 7000 and 30000, MCMCStrategy refining until step 25000 with a budget of "
+    "strategy.cap_max = 300000 Gaussians, init.opacity 0.5, init.scale 0.1, "
     "loss.opacity_reg 0.01, loss.scale_reg 0.01; for --method jsgs, λ_obs 1 and λ_base per JPEG view: "
     "method_options lambda_obs 1, base_by_view, base_noise pixels, base_noise_ref 2, base_noise_exponent 2); "
     "paper: the paper's protocol (gsplat's DefaultStrategy and default recipe, JSGS at the paper's "
-    "weights) [default: mcmc].",
+    "weights, 10000 steps) [default: mcmc].",
 )
 @click.option(
     "--cap-max",
     "cap_max",
-    type=int,
     default=None,
-    help="The Gaussian budget of strategy.type mcmc (strategy.cap_max) [default: 300000].",
+    help="The Gaussian budget of strategy.type mcmc (strategy.cap_max), or auto: chosen from the scene's SfM "
+    "points and training pixels when the run starts (strategy.cap_max_auto; the choice and its inputs in "
+    "config.json derived.budget) [default: 300000].",
 )
 @click.option(
     "--device",
@@ -155,7 +163,7 @@ def train_command(
     eval_at: str | None,
     config_file: Path | None,
     preset: str | None,
-    cap_max: int | None,
+    cap_max: str | None,
     device: str | None,
     jpeg_mode: str | None,
     tables: str | None,
@@ -175,7 +183,7 @@ def train_command(
 ) -> None:
     """Train Gaussians on the views of MANIFEST (a jsgs manifest, or the folder holding its manifest.json;
     see `jsgstools manifest`; for a folder of photos, `jsgstools sfm` first)."""
-    from jsgs.train.config import command_settings
+    from jsgs.train.config import cap_max_settings, command_settings
     from jsgs.train.trainer import load_run_settings, train
 
     if resume and force:
@@ -193,7 +201,7 @@ def train_command(
     if eval_at is not None:
         overrides["eval_at"] = _parse_steps(eval_at)
     if cap_max is not None:
-        overrides["strategy"] = {"cap_max": cap_max}
+        overrides["strategy"] = cap_max_settings(cap_max)
     method_flags: dict[str, Any] = {}
     if jpeg_mode is not None:
         method_flags["jpeg_mode"] = jpeg_mode

@@ -62,11 +62,22 @@ def eval_line(e: dict[str, Any]) -> str:
     )
 
 
+def duration(seconds: float) -> str:
+    """``seconds`` as ``h:mm:ss`` (``1:02:03``), or ``m:ss`` under an hour (``2:05``)."""
+    s = max(0, round(seconds))
+    h, rest = divmod(s, 3600)
+    m, sec = divmod(rest, 60)
+    return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"
+
+
 class ProgressBar(Callback):
     """Progress: on a terminal a tqdm bar with the loss, the number of Gaussians and the terms (every
     ``log_every`` steps); elsewhere (a log file, a pipe) one plain line every twentieth of the run, so logs
-    hold no carriage-return redraws. Evaluation lines go to the bar or the trainer's log; ``enabled`` false:
-    only those."""
+    hold no carriage-return redraws. Both give the time per step over the last interval and the projected
+    training time to the end at that pace (``ETA``), on the trainer's training clock (evaluations and
+    checkpoints do not count): a MCMC model grows and its steps get slower, so the recent pace projects
+    better than the mean since the start. Evaluation lines go to the bar or the trainer's log; ``enabled``
+    false: only those."""
 
     def __init__(self, enabled: bool = True, terminal: bool | None = None) -> None:
         import sys
@@ -74,8 +85,18 @@ class ProgressBar(Callback):
         self.enabled = enabled
         self.terminal = sys.stderr.isatty() if terminal is None else terminal
         self.bar: Any = None
-        self._t0 = 0.0
-        self._step0 = 0
+        self._mark: tuple[float, int] = (0.0, 0)  # (training seconds, steps done) at the last report
+
+    def _pace(self, trainer: Trainer, done: int) -> str:
+        """``12.3 ms/step, ETA 5:07`` over the steps since the last report; moves the mark."""
+        now = trainer.training_seconds()
+        t_mark, s_mark = self._mark
+        self._mark = (now, done)
+        if done <= s_mark or now <= t_mark:
+            return ""
+        per_step = (now - t_mark) / (done - s_mark)
+        left = max(trainer.end_step - done, 0)
+        return f"{1000 * per_step:.1f} ms/step, ETA {duration(per_step * left)}"
 
     def on_setup(self, trainer: Trainer) -> None:
         cfg = trainer.cfg
@@ -88,9 +109,7 @@ class ProgressBar(Callback):
             self.bar = tqdm(
                 total=cfg.iterations, initial=trainer.start_step, dynamic_ncols=True, unit="it", desc="train"
             )
-        import time
-
-        self._t0, self._step0 = time.perf_counter(), trainer.start_step
+        self._mark = (trainer.training_seconds(), trainer.start_step)
 
     def _summary(self, trainer: Trainer, result: StepResult) -> str:
         parts = [f"loss={result.loss:.4f}", f"#G={trainer.splats['means'].shape[0]}"]
@@ -107,15 +126,16 @@ class ProgressBar(Callback):
         if self.bar is not None:
             self.bar.update(1)
             if done % cfg.log_every == 0 or done == trainer.end_step:
-                self.bar.set_postfix_str(self._summary(trainer, result), refresh=False)
+                pace = self._pace(trainer, done)
+                summary = self._summary(trainer, result)
+                self.bar.set_postfix_str(f"{pace} {summary}" if pace else summary, refresh=False)
             return
         every = max(cfg.log_every, cfg.iterations // 20)
         if done % every == 0 or done == trainer.end_step:
-            import time
-
-            rate = (done - self._step0) / max(time.perf_counter() - self._t0, 1e-9)
+            pace = self._pace(trainer, done)
             trainer.say(
-                f"train: step {done}/{cfg.iterations} ({100 * done // cfg.iterations}%), {rate:.1f} it/s, "
+                f"train: step {done}/{cfg.iterations} ({100 * done // cfg.iterations}%), "
+                + (f"{pace}, " if pace else "")
                 + self._summary(trainer, result)
             )
 

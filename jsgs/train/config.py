@@ -139,6 +139,13 @@ class OptimConfig:
         "The means' learning rate decays exponentially to this fraction of its start over the run.",
         gt=0.0,
     )
+    means_lr_decay_steps: int = _f(
+        0,
+        "The step at which the means' learning rate reaches means_lr_final_factor x its start (0: "
+        "iterations, the end of the run); a run longer than this keeps decaying at the same rate past it, "
+        "so its steps up to here are those of a run of this length (jsgs bench --gsplat-steps).",
+        ge=0,
+    )
     scales_lr: float = _f(5e-3, "Log-scales learning rate.", ge=0.0)
     quats_lr: float = _f(1e-3, "Quaternions learning rate.", ge=0.0)
     opacities_lr: float = _f(5e-2, "Opacity-logits learning rate.", ge=0.0)
@@ -160,6 +167,12 @@ class StrategyConfig:
         "MCMCStrategy, at most cap_max Gaussians (equal model sizes for comparisons; --preset mcmc).",
     )
     cap_max: int = _f(1_000_000, "mcmc: the budget, the largest number of Gaussians.", ge=1)
+    cap_max_auto: bool = _f(
+        False,
+        "mcmc: choose cap_max from the scene when the run starts (jsgs.train.budget: 24 Gaussians per SfM "
+        "point, at most one per 10 training pixels; --cap-max auto); cap_max then holds the choice and "
+        "config.json derived.budget its inputs.",
+    )
     noise_lr: float = _f(
         5e5,
         "mcmc: position noise scale, times the means' learning rate (gsplat MCMCStrategy noise_lr).",
@@ -470,17 +483,23 @@ def from_dict(doc: dict[str, Any], where: str = "config", base: TrainConfig | No
     return cfg
 
 
+#: The mcmc preset's Gaussian budget (``strategy.cap_max``).
+MCMC_CAP_MAX = 300_000
 #: Named starting points for the settings (``jsgs train --preset NAME``); a config file and the command line
 #: apply over them. ``paper``: the settings' own defaults (gsplat simple_trainer's default recipe with
-#: DefaultStrategy, the paper's protocol). ``mcmc``: simple_trainer's ``mcmc`` recipe (its MCMCStrategy
-#: defaults) with a budget of 300,000 Gaussians, measured better than DefaultStrategy for gsplat on all four
-#: shared scenes (docs/results/budget); ``jsgs train`` starts from it unless told otherwise.
+#: DefaultStrategy, trained 10,000 steps: the paper's protocol). ``mcmc``: simple_trainer's ``mcmc`` recipe
+#: at its full length (``max_steps`` 30,000, evaluations at 7,000 and 30,000, the means' learning rate
+#: decaying over the 30,000 steps, MCMCStrategy refining until 25,000) with a budget of
+#: :data:`MCMC_CAP_MAX` Gaussians, measured better than DefaultStrategy for gsplat on all four shared scenes
+#: (docs/results/budget); ``jsgs train`` starts from it unless told otherwise.
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
     "mcmc": {
+        "iterations": 30_000,
+        "eval_at": [7_000, 30_000],
         "init": {"opacity": 0.5, "scale": 0.1},
         "loss": {"opacity_reg": 0.01, "scale_reg": 0.01},
-        "strategy": {"type": "mcmc", "refine_stop_iter": 25_000, "cap_max": 300_000},
+        "strategy": {"type": "mcmc", "refine_stop_iter": 25_000, "cap_max": MCMC_CAP_MAX},
     },
 }
 #: the preset of a new ``jsgs train`` run given none
@@ -509,6 +528,27 @@ def preset(name: str) -> TrainConfig:
     return from_dict(PRESETS[name], f"preset {name}")
 
 
+def cap_max_settings(text: str) -> dict[str, Any]:
+    """``--cap-max N`` or ``--cap-max auto`` as strategy settings; JsgsError (one line) on anything else."""
+    if text.strip().lower() == "auto":
+        return {"cap_max_auto": True}
+    try:
+        n = int(text)
+    except ValueError:
+        raise JsgsError(f"--cap-max: expected a number of Gaussians or auto (got {text!r})") from None
+    return {"cap_max": n, "cap_max_auto": False}
+
+
+def preset_iterations(name: str) -> int:
+    """The training length of preset ``name`` (``jsgs bench`` follows it unless given --iterations)."""
+    return preset(name).iterations
+
+
+def cut_eval_at(eval_at: list[int], iterations: int) -> list[int]:
+    """The evaluation steps of a run shortened or lengthened to ``iterations``: those below it, and it."""
+    return [s for s in eval_at if s < iterations] + [iterations]
+
+
 def command_settings(
     *,
     preset_name: str | None = None,
@@ -523,9 +563,10 @@ def command_settings(
     settings), the command line's ``overrides`` (dotted-free top-level keys), then the preset's
     :data:`PRESET_METHOD_OPTIONS` for the method so chosen under ``method_options`` (not with an earlier
     run's config.json, whose settings are complete), then ``method_flags`` merged over ``method_options``
-    (the JSGS switches; ``speed`` merged one level deeper). With ``iterations`` overridden and no ``eval_at``
-    given, the evaluation steps are cut at the new length, which is always evaluated. JsgsError (one line) on
-    conflicting choices."""
+    (the JSGS switches; ``speed`` merged one level deeper). With ``iterations`` changed (on the command
+    line, or by a config file over the preset) and the preset's ``eval_at`` kept, the evaluation steps are
+    cut at the new length, which is always evaluated (a longer run: the same steps, and its end).
+    JsgsError (one line) on conflicting choices."""
     overrides = dict(overrides or {})
     if resume_settings is not None and preset_name is not None:
         raise JsgsError("--preset applies to a new run; --resume takes the run's own settings")
@@ -536,6 +577,10 @@ def command_settings(
     if config_file is not None:
         doc = read_config_document(config_file)
         whole = is_run_config(doc)
+        if isinstance(doc, dict) and not whole and isinstance(doc.get("iterations"), int):
+            # partial settings of another length that keep the preset's evaluation steps: cut them
+            if "eval_at" not in doc and "iterations" not in overrides:
+                doc = {**doc, "eval_at": cut_eval_at(start.eval_at, doc["iterations"])}
         base = config_from_document(doc, config_file, base=start)
     elif resume_settings is not None:
         base = resume_settings
@@ -556,8 +601,8 @@ def command_settings(
             speed = cfg.method_options.get("speed", {})
             flags["speed"] = {**(speed if isinstance(speed, dict) else {}), **flags["speed"]}
         cfg.method_options = {**cfg.method_options, **flags}
-    if "iterations" in overrides and not eval_at_given and any(s > cfg.iterations for s in cfg.eval_at):
-        cfg.eval_at = [s for s in cfg.eval_at if s < cfg.iterations] + [cfg.iterations]
+    if "iterations" in overrides and not eval_at_given and cfg.eval_at and cfg.eval_at[-1] != cfg.iterations:
+        cfg.eval_at = cut_eval_at(cfg.eval_at, cfg.iterations)
     return cfg
 
 
@@ -771,6 +816,24 @@ def config_schema() -> dict[str, Any]:
                         "enum": ["torch", "cuda"],
                         "description": "The SSIM implementation that speed.ssim_kernel resolved to on this "
                         "device (cuda: the fused kernel, built before training starts).",
+                    },
+                    "budget": {
+                        "type": "object",
+                        "description": "strategy.cap_max_auto: the budget chosen from the scene and its "
+                        "inputs (jsgs.train.budget.AutoBudget).",
+                        "required": ["cap_max", "sfm_points", "train_views", "train_pixels", "by_points",
+                                     "by_pixels", "gaussians_per_point", "pixels_per_gaussian", "rule"],
+                        "properties": {
+                            "cap_max": {"type": "integer", "minimum": 1},
+                            "sfm_points": {"type": "integer", "minimum": 0},
+                            "train_views": {"type": "integer", "minimum": 0},
+                            "train_pixels": {"type": "integer", "minimum": 0},
+                            "by_points": {"type": "integer", "minimum": 0},
+                            "by_pixels": {"type": "integer", "minimum": 0},
+                            "gaussians_per_point": {"type": "integer", "minimum": 1},
+                            "pixels_per_gaussian": {"type": "integer", "minimum": 1},
+                            "rule": {"type": "string"},
+                        },
                     },
                     "method": {
                         "type": "object",

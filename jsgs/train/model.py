@@ -135,8 +135,10 @@ def make_optimizers(
 def make_means_scheduler(
     optimizer: torch.optim.Optimizer, cfg: TrainConfig
 ) -> torch.optim.lr_scheduler.ExponentialLR:
-    """The means' exponential decay to ``means_lr_final_factor`` x over ``iterations`` steps."""
-    gamma = cfg.optim.means_lr_final_factor ** (1.0 / cfg.iterations)
+    """The means' exponential decay to ``means_lr_final_factor`` x over ``optim.means_lr_decay_steps`` steps
+    (0: ``iterations``), at the same rate past them."""
+    steps = cfg.optim.means_lr_decay_steps or cfg.iterations
+    gamma = cfg.optim.means_lr_final_factor ** (1.0 / steps)
     return torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=gamma)
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 import random
 import shutil
@@ -438,6 +439,17 @@ def _device_name(device: torch.device) -> str:
     return platform.processor() or platform.machine() or "cpu"
 
 
+#: set by ``jsgs bench`` for its trainings: how many share each device (metrics.json ``runs_per_device``)
+RUNS_PER_DEVICE_ENV = "JSGS_RUNS_PER_DEVICE"
+
+
+def runs_per_device() -> int | None:
+    """The device sharing a bench stated for this run ($JSGS_RUNS_PER_DEVICE), None when unstated or not
+    a positive whole number."""
+    text = os.environ.get(RUNS_PER_DEVICE_ENV, "").strip()
+    return int(text) if text.isdigit() and int(text) >= 1 else None
+
+
 def json_load(path: Path) -> dict[str, Any]:
     from jsgs.limits import read_json
 
@@ -604,6 +616,18 @@ class Trainer:
         hook_notes = self.hook.notes() if self.hook is not None else []
         for note in hook_notes:
             self.say(f"note: {note}")
+        budget = None
+        if cfg.strategy.type == "mcmc" and cfg.strategy.cap_max_auto and not self.resuming:
+            # a resumed run keeps the budget its config.json records
+            from jsgs.train.budget import scene_budget
+
+            budget = scene_budget(scene)
+            cfg.strategy.cap_max = budget.cap_max
+            self.say(
+                f"note: budget from the scene: strategy.cap_max = {budget.cap_max} (the smaller of "
+                f"{budget.gaussians_per_point} x {budget.sfm_points} SfM points = {budget.by_points} and "
+                f"{budget.train_pixels} training pixels / {budget.pixels_per_gaussian} = {budget.by_pixels})"
+            )
         self.strategy = Densifier(cfg.strategy)
         dd.share_strategy_statistics(self.strategy, self.world)
         self.sampler = ViewSampler(len(self.train_views), cfg.seed)
@@ -659,6 +683,8 @@ class Trainer:
         }
         if self.world.is_main:  # only now that the settings, manifest and checkpoint passed
             _remove_leftovers(paths, self.say)
+        if budget is not None:
+            derived["budget"] = budget.to_json()
         if not self.resuming and self.world.is_main:
             _clear_out(paths)  # only now that the settings and the manifest have been checked
             run_config = {
@@ -953,6 +979,11 @@ class Trainer:
             self.acc.add(result.loss, result.terms, result.stats, view.name)
         return result
 
+    def training_seconds(self) -> float:
+        """Seconds spent training so far, the step in progress included (evaluations and checkpoints do not
+        count: the clock that metrics.json's ``train_time_s`` reads)."""
+        return self.train_time + (time.perf_counter() - self._clock if self._clock else 0.0)
+
     # -- evaluation -----------------------------------------------------------------------------------
     def evaluate(self, step_done: int) -> dict[str, Any]:
         """Evaluate on the test views after ``step_done`` steps (an entry of metrics.json ``evals``, with the
@@ -1039,6 +1070,7 @@ class Trainer:
             "train_time_s": self.train_time,
             "setup_time_s": self.setup_time,
             "time_per_iteration_s": self.train_time / max(step, 1) if step else None,
+            "runs_per_device": runs_per_device(),
             "profile_ms_per_step": self.profiler.summary(),
             "evals": self.evals,
         }

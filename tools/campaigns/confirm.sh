@@ -15,6 +15,7 @@ for s in ${SCENES:-llff_flower llff_fern}; do [ -d $B/data/$s ] || cp -r ${GPU_D
 J=""
 if [ -n "${RECIPE:-}" ]; then printf '%s\n' "$RECIPE" > $B/recipe.json; J="--jsgs-config $B/recipe.json"; fi
 python3 -m jsgs.cli bench ${SCENES:-llff_flower llff_fern} --out $B --strategy mcmc --budgets "${BUDGETS:-300k}" \
+    --iterations 10000 \
     --schedules "${SCHEDULES:-uniform,gaussian,descending,clean}" --methods "${METHODS:-gsplat,jsgs}" --seeds 0,1,2 \
     --eval-at 1000,2000,3000,4000,5000,6000,7000,8000,9000,10000 --jobs-per-gpu "${JOBS:-11}" \
     $J --time-limit "${TL:-540}" --quiet 2>&1 | tail -25

@@ -9,7 +9,7 @@ B=.res/double
 mkdir -p $B/data
 for s in llff_flower llff_fern; do [ -d $B/data/$s ] || cp -r .gpu/bench/data/$s $B/data/; done
 echo '{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise": "tables", "base_noise_ref": 4.0}}' > .res/recipe.json
-python3 -m jsgs.cli bench llff_flower llff_fern --out $B --strategy mcmc --budgets 300k \
+python3 -m jsgs.cli bench llff_flower llff_fern --out $B --strategy mcmc --budgets 300k --iterations 10000 \
     --schedules gaussian+r90 --methods gsplat,jsgs,jsgs_eff --seeds "${SEEDS:-0,1}" \
     --jobs-per-gpu "${JOBS:-6}" --jsgs-config .res/recipe.json --time-limit "${TL:-430}" --quiet 2>&1 | tail -12
 cd $B && tar czf $OUT/double.tgz results.csv report.md bench.json \

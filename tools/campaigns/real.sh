@@ -23,7 +23,8 @@ for e in ${RUNS:-jpeg_cup:gsplat:0 jpeg_cup:jsgs:1}; do
         extra+=(--config $R/PAPER.json)
     fi
     CUDA_VISIBLE_DEVICES=$gpu timeout "${TL:-500}" python3 -m jsgs.cli train .gpu3/$scene/manifest.json --out $R/$scene/$method \
-        --method "$m" "${extra[@]}" --iterations "${ITERS:-10000}" --seed 0 --quiet $again \
+        --method "$m" "${extra[@]}" --iterations "${ITERS:-10000}" --eval-at "${EVAL_AT:-3000,7000,10000}" \
+        --seed 0 --quiet $again \
         >>$R/$scene/$method.log 2>&1 &
     pids+=($!)
 done

@@ -204,7 +204,7 @@ def test_bench_at_equal_budget_end_to_end(synth_scene: Path, tmp_path: Path) -> 
         "bench", str(synth_scene), "--out", str(out), "--schedules", "gaussian,clean", "--methods",
         "gsplat,jsgs", "--strategy", "mcmc", "--budgets", "0.5x", "--seeds", "0", "--iterations", "4",
         "--eval-at", "2,4", "--jobs-per-gpu", "2", "--device", "cpu", "--config", str(cfg), "--jsgs-config",
-        str(jcfg), "--quiet",
+        str(jcfg), "--gsplat-steps", "1.5", "--quiet",
     ]  # fmt: skip
     r = CliRunner().invoke(main, args, catch_exceptions=False)
     assert r.exit_code == 0, r.output
@@ -228,13 +228,24 @@ def test_bench_at_equal_budget_end_to_end(synth_scene: Path, tmp_path: Path) -> 
         # JSGS gets the mcmc preset's recipe, with --jsgs-config over it; gsplat takes no options
         recipe = {**PRESET_METHOD_OPTIONS["mcmc"]["jsgs"], "base_noise_ref": 3.0} if m == "jsgs" else {}
         assert settings["method_options"] == recipe
-        assert json.loads((run / "metrics.json").read_text())["num_gaussians"] <= cap
+        metrics = json.loads((run / "metrics.json").read_text())
+        assert metrics["num_gaussians"] <= cap and metrics["runs_per_device"] == 2
+        # --gsplat-steps 1.5: gsplat on the JPEG views trains 6 steps on the 4-step recipe, evaluated past it
+        longer = (s, m) == ("gaussian", "gsplat")
+        assert metrics["iterations"] == (6 if longer else 4)
+        assert [e["step"] for e in metrics["evals"]] == ([2, 4, 6] if longer else [2, 4])
+        assert settings["optim"]["means_lr_decay_steps"] == (4 if longer else 0)
     with open(out / "results.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert {(x["strategy"], x["budget"]) for x in rows} == {("default", ""), ("mcmc", str(cap))}
     assert list(rows[0])[3:6] == ["seed", "strategy", "budget"]
+    past = [(x["method"], x["step"]) for x in rows if int(x["step"]) > int(x["schedule_steps"])]
+    assert past == [("gsplat", "6")] and {x["runs_per_device"] for x in rows} == {"2"}
     report = (out / "report.md").read_text()
     assert "## Equal Gaussian budget" in report and f"| {cap:,} |" in report
+    assert "step 4" in report.split("## Equal Gaussian budget")[1].splitlines()[0]
+    assert "## Equal training time" in report and "runs per device: 2" in report
+    assert (out / "plots" / f"{name}_time.png").is_file()
 
 
 def test_budget_report_at_an_earlier_step() -> None:

@@ -158,6 +158,60 @@ def test_mcmc_preset_is_gsplat_simple_trainer_mcmc() -> None:
     assert preset("paper") == TrainConfig() and set(PRESETS) == {"paper", "mcmc"}
 
 
+def test_the_mcmc_preset_trains_simple_trainers_length() -> None:
+    """simple_trainer's Config: max_steps 30,000, eval_steps [7,000, 30,000]; the means' learning rate decays
+    over the whole run (its ExponentialLR with gamma 0.01 ** (1 / max_steps)); MCMC refines until 25,000.
+    The paper's preset keeps the paper's 10,000 steps."""
+    from jsgs.train.config import command_settings, preset_iterations
+
+    cfg = command_settings()
+    assert (cfg.iterations, cfg.eval_at) == (30_000, [7_000, 30_000])
+    assert cfg.strategy.refine_stop_iter == 25_000 and cfg.optim.means_lr_decay_steps == 0
+    paper = command_settings(preset_name="paper")
+    assert (paper.iterations, paper.eval_at) == (10_000, [3000, 7000, 10_000])
+    assert (preset_iterations("mcmc"), preset_iterations("paper")) == (30_000, 10_000)
+    # --iterations N without --eval-at: the preset's steps below N, and N
+    assert command_settings(overrides={"iterations": 12_000}).eval_at == [7000, 12_000]
+    assert command_settings(overrides={"iterations": 40_000}).eval_at == [7000, 30_000, 40_000]
+    assert command_settings(overrides={"iterations": 500}, preset_name="paper").eval_at == [500]
+    given = command_settings(overrides={"iterations": 12_000, "eval_at": [100]}, eval_at_given=True)
+    assert given.eval_at == [100]
+
+
+def test_a_config_file_that_shortens_the_run_cuts_the_presets_evaluations(tmp_path: Path) -> None:
+    from jsgs.train.config import command_settings
+
+    part = tmp_path / "part.json"
+    part.write_text('{"iterations": 1500}')
+    cfg = command_settings(config_file=part)
+    assert (cfg.iterations, cfg.eval_at) == (1500, [1500])
+    cfg.check()
+    part.write_text('{"iterations": 1500, "eval_at": [700, 1500]}')
+    assert command_settings(config_file=part).eval_at == [700, 1500]
+
+
+def test_the_means_decay_reaches_its_floor_at_the_recipes_length_and_goes_on() -> None:
+    """means_lr_decay_steps = N: a run of 2N steps follows a run of N steps' learning rates exactly up to N
+    (where it reaches the final factor), then decays on at the same rate."""
+    from jsgs.train.model import make_means_scheduler
+
+    def lrs(iterations: int, decay: int) -> list[float]:
+        cfg = TrainConfig(iterations=iterations)
+        cfg.optim.means_lr_decay_steps = decay
+        opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=1.0)
+        sched = make_means_scheduler(opt, cfg)
+        out = []
+        for _ in range(iterations):
+            opt.step()
+            sched.step()
+            out.append(sched.get_last_lr()[0])
+        return out
+
+    short, long = lrs(50, 0), lrs(100, 50)
+    assert long[:50] == short and short[-1] == pytest.approx(0.01)
+    assert long[-1] == pytest.approx(1e-4) and lrs(100, 0)[:50] != short
+
+
 def test_a_new_run_starts_from_the_mcmc_preset(tmp_path: Path) -> None:
     from jsgs.train.config import DEFAULT_PRESET, PRESET_METHOD_OPTIONS, command_settings
 
@@ -260,7 +314,9 @@ class Counts(Callback):
 
 
 def mcmc_config(**kw: Any) -> TrainConfig:
-    cfg = from_dict(PRESETS["mcmc"], "preset", base=tiny_config(**kw))
+    # the preset's recipe at the tiny run's length
+    recipe = {k: v for k, v in PRESETS["mcmc"].items() if k not in ("iterations", "eval_at")}
+    cfg = from_dict(recipe, "preset", base=tiny_config(**kw))
     cfg.strategy.refine_start_iter = 1
     cfg.strategy.refine_every = 2
     return cfg

@@ -335,6 +335,22 @@ def test_resume_is_bit_exact(scene: Path, tmp_path: Path) -> None:
         }
 
 
+def test_a_run_written_before_the_recipes_length_setting_resumes(scene: Path, tmp_path: Path) -> None:
+    """A config.json without optim.means_lr_decay_steps (written before it existed) is valid and resumes at
+    the length it records, with the means' decay over that length."""
+    run = tmp_path / "run"
+    train(scene, run, tiny_config(iterations=8, eval_at=[4, 8]), stop_at=4, progress=False)
+    doc = json.loads((run / "config.json").read_text())
+    del doc["settings"]["optim"]["means_lr_decay_steps"]
+    (run / "config.json").write_text(json.dumps(doc))
+    done = train(scene, run, None, resume=True, progress=False)
+    assert (done["status"], done["iterations"], [e["step"] for e in done["evals"]]) == ("complete", 8, [4, 8])
+    last = ckpt.load_checkpoint(run / "checkpoints" / "step_000008.pt")
+    assert last["optimizers"]["means"]["param_groups"][0]["lr"] == pytest.approx(
+        1.6e-4 * json.loads((run / "config.json").read_text())["derived"]["scene_scale"] * 0.01
+    )
+
+
 def test_resume_refuses_changed_settings(scene: Path, tmp_path: Path) -> None:
     run = tmp_path / "run"
     train(scene, run, tiny_config(iterations=6, eval_at=[3, 6]), stop_at=3, progress=False)
@@ -774,13 +790,26 @@ def test_force_refuses_a_folder_that_holds_no_run(scene: Path, tmp_path: Path) -
 
 def test_progress_without_a_terminal_is_plain_lines(scene: Path, tmp_path: Path) -> None:
     """Where stderr is not a terminal (a log file), progress is one plain line every twentieth of the run:
-    no carriage returns, the step, the rate and the loss."""
+    no carriage returns, the step, the time per step, the projected time to the end and the loss."""
+    import re
+
     lines: list[str] = []
     train(scene, tmp_path / "run", tiny_config(iterations=40), progress=True, log=lines.append)
     steps = [s for s in lines if s.startswith("train: step ")]
     # every max(log_every, iterations // 20) = max(5, 2) steps
     assert [s.split()[2] for s in steps] == [f"{k}/40" for k in range(5, 41, 5)]
-    assert all("\r" not in s and "it/s" in s and "loss=" in s and "#G=" in s for s in steps)
+    assert all("\r" not in s and "loss=" in s and "#G=" in s for s in steps)
+    pace = [re.search(r"([0-9.]+) ms/step, ETA (\d+):(\d\d)\b", s) for s in steps]
+    assert all(p is not None and float(p[1]) > 0 for p in pace), steps
+    # the last line has no step left: nothing to project
+    assert pace[-1] is not None and pace[-1].groups()[1:] == ("0", "00")
+
+
+def test_duration_reads_hours_minutes_seconds() -> None:
+    from jsgs.train.callbacks import duration
+
+    assert [duration(x) for x in (0, 59.6, 61, 3600, 3723, -5)] == ["0:00", "1:00", "1:01", "1:00:00",
+                                                                     "1:02:03", "0:00"]  # fmt: skip
 
 
 def test_a_write_that_fails_names_the_file_asked_for(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -1,0 +1,82 @@
+"""A Gaussian budget sized to the scene (``jsgs train --cap-max auto``, setting ``strategy.cap_max_auto``).
+
+The budget is read from what the scene's manifest says, before training:
+
+- **its SfM model**: the number of SfM points ``P``. A point is a surface feature matched across views, so
+  ``P`` counts the distinct, resolvable texture the captures hold: a richer scene has more. The budget is
+  :data:`GAUSSIANS_PER_POINT` Gaussians per point;
+- **its images**: a Gaussian is fitted to the pixels it covers, so the training views resolve at most
+  about one Gaussian per :data:`PIXELS_PER_GAUSSIAN` training pixels. That bound decides on small captures
+  (the demo's 64×48 views: a few thousand).
+
+``cap_max = min(GAUSSIANS_PER_POINT × P, training pixels / PIXELS_PER_GAUSSIAN)``, rounded to three
+significant digits (at least :data:`MIN_BUDGET`).
+
+Calibration (docs/training.md, "A budget sized to the scene"): on the four shared scenes, JSGS's default
+recipe at 100,000 and 300,000 Gaussians after 10,000 steps (docs/results/budget/default/, three seeds, three
+schedules) says what each scene needs: the smallest budget whose LPIPS lies within 0.005 of the better one
+(log-linear between the two budgets). Flower (P = 23,477), fern (10,091) and the cup (9,262) need at least
+223k, 238k and 212k; the mouse (4,443), whose 300k run is worse than its 100k run, at most 110k (1.1 × 100k).
+Gaussians per point in [23.5, 24.8] meets all four: 24 is taken. Fern's 238k Gaussians on 3.24 M training
+pixels bound the pixels per Gaussian to at most 13.6, and the demo's scene (64.5 k training pixels) gets a
+budget in the thousands from 6.5 up: 10 is taken. Four scenes and two budgets at 10,000 steps are a thin
+calibration: the rule is not the mcmc preset's default until it is measured at the preset's 30,000 steps
+(docs/results/operating_point/).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from jsgs.train.data import Scene
+
+#: Gaussians per SfM point (calibrated on the shared scenes; module docstring)
+GAUSSIANS_PER_POINT = 24
+#: training pixels per Gaussian the views can resolve (calibrated; module docstring)
+PIXELS_PER_GAUSSIAN = 10
+#: the smallest budget the rule gives
+MIN_BUDGET = 100
+
+
+def three_digits(n: float) -> int:
+    """``n`` rounded to three significant digits (106,632 -> 107,000; 3,278.6 -> 3,280)."""
+    if n < 1000:
+        return round(n)
+    step = 10 ** (int(math.floor(math.log10(n))) - 2)
+    return int(round(n / step) * step)
+
+
+@dataclass(frozen=True)
+class AutoBudget:
+    """The scene-sized budget and what it was read from (config.json ``derived.budget``)."""
+
+    cap_max: int
+    sfm_points: int
+    train_views: int
+    train_pixels: int
+    by_points: int  # GAUSSIANS_PER_POINT × sfm_points
+    by_pixels: int  # train_pixels / PIXELS_PER_GAUSSIAN
+    gaussians_per_point: int = GAUSSIANS_PER_POINT
+    pixels_per_gaussian: int = PIXELS_PER_GAUSSIAN
+    rule: str = "min(gaussians_per_point x sfm_points, train_pixels / pixels_per_gaussian)"
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def auto_budget(sfm_points: int, view_sizes: list[tuple[int, int]]) -> AutoBudget:
+    """The budget of a scene with ``sfm_points`` SfM points and training views of ``view_sizes`` (width,
+    height) pixels (module docstring)."""
+    pixels = sum(w * h for w, h in view_sizes)
+    by_points = GAUSSIANS_PER_POINT * sfm_points
+    by_pixels = pixels // PIXELS_PER_GAUSSIAN
+    cap = max(MIN_BUDGET, three_digits(min(by_points, by_pixels)))
+    return AutoBudget(cap, sfm_points, len(view_sizes), pixels, by_points, by_pixels)
+
+
+def scene_budget(scene: Scene) -> AutoBudget:
+    """The budget of a loaded scene: its SfM points and its training views' sizes."""
+    return auto_budget(len(scene.points), [(v.width, v.height) for v in scene.train_views])
