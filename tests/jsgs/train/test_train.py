@@ -93,6 +93,8 @@ def test_defaults_are_gsplat_simple_trainer() -> None:
     for f in dataclasses.fields(cfg.strategy):
         if f.name in ("cap_max", "noise_lr", "min_opacity"):
             assert getattr(cfg.strategy, f.name) == getattr(mcmc, f.name), f.name
+        elif f.name == "cap_max_auto":  # ours: the budget sized to the scene (off unless asked)
+            assert cfg.strategy.cap_max_auto is False
         elif f.name != "type":
             assert getattr(cfg.strategy, f.name) == getattr(ref, f.name), f.name
 
@@ -343,6 +345,10 @@ def test_a_run_written_before_the_recipes_length_setting_resumes(scene: Path, tm
     doc = json.loads((run / "config.json").read_text())
     del doc["settings"]["optim"]["means_lr_decay_steps"]
     (run / "config.json").write_text(json.dumps(doc))
+    path = run / "checkpoints" / "step_000004.pt"
+    state = ckpt.load_checkpoint(path)
+    del state["settings"]["optim"]["means_lr_decay_steps"]
+    ckpt.save_checkpoint(path, state)
     done = train(scene, run, None, resume=True, progress=False)
     assert (done["status"], done["iterations"], [e["step"] for e in done["evals"]]) == ("complete", 8, [4, 8])
     last = ckpt.load_checkpoint(run / "checkpoints" / "step_000008.pt")
