@@ -78,9 +78,9 @@ def test_a_run_records_its_budget_and_resumes_with_it(compressed_scene: Path, tm
     cfg = tmp_path / "tiny.json"
     cfg.write_text(json.dumps({"eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False}}))
     run = tmp_path / "run"
-    args = ["train", str(compressed_scene / "manifest.json"), "--out", str(run), "--cap-max", "auto",
-            "--config", str(cfg), "--iterations", "4", "--eval-at", "2,4", "--device", "cpu", "--quiet",
-            "--stop-at", "2"]  # fmt: skip
+    args = ["train", str(compressed_scene / "manifest.json"), "--out", str(run), "--method", "gsplat",
+            "--cap-max", "auto", "--config", str(cfg), "--iterations", "4", "--eval-at", "2,4",
+            "--device", "cpu", "--quiet", "--stop-at", "2"]  # fmt: skip
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
     doc = json.loads((run / "config.json").read_text())
