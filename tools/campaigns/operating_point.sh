@@ -1,7 +1,7 @@
 # The operating point: gsplat's MCMC recipe at simple_trainer's length (30,000 steps) with the scene-sized
 # budget (--budgets auto), on the four shared scenes, in two benches (PART):
 #   time  gsplat, JSGS (the default recipe) and the clean ceiling, gaussian schedule (SCHEDULES), seeds 0,1
-#         (SEEDS), one run per GPU (the training seconds are compared), gsplat trained GSPLAT_STEPS (2) times
+#         (SEEDS), JOBS (1) runs per GPU (the training seconds are compared), gsplat trained GSPLAT_STEPS (2) times
 #         as long on its 30,000-step recipe so that its evaluations pass JSGS's end (the equal-time table);
 #   rule  JSGS seed 0 at the fixed budgets 100k, 300k and 1M (RULE_BUDGETS), gaussian schedule, JOBS (2) per
 #         GPU, to set beside PART=time's auto runs (the auto rule's target).
@@ -25,7 +25,7 @@ mkdir -p "$B/data"
 for s in $SCENES; do [ -d "$B/data/$s" ] || cp -r "${GPU_DIR:-.gpu}/bench/data/$s" "$B/data/"; done
 case $P in
   time) ARGS=(--budgets auto --schedules "${SCHEDULES:-gaussian,clean}" --methods gsplat,jsgs
-              --seeds "${SEEDS:-0,1}" --gsplat-steps "${GSPLAT_STEPS:-2}" --jobs-per-gpu 1) ;;
+              --seeds "${SEEDS:-0,1}" --gsplat-steps "${GSPLAT_STEPS:-2}" --jobs-per-gpu "${JOBS:-1}") ;;
   rule) ARGS=(--budgets "${RULE_BUDGETS:-100k,300k,1m}" --schedules gaussian --methods jsgs --seeds 0
               --jobs-per-gpu "${JOBS:-2}") ;;
   *) echo "error: PART=$P: choose time or rule" >&2; exit 2 ;;
