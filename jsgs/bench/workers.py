@@ -79,10 +79,16 @@ def detect_slots(device: str, jobs_per_gpu: int) -> list[str | None]:
     return [None] * jobs_per_gpu
 
 
+def like_runs(run: Run) -> str:
+    """The runs whose wall times foretell ``run``'s: the same scene, ``--method`` and length (a gsplat run
+    trained past its recipe, ``--gsplat-steps``, is not timed by the recipe-length ones)."""
+    return f"{run.scene}/{run.train_method}/{run.iterations}"
+
+
 def expected_seconds(run: Run, finished: dict[str, list[float]]) -> float | None:
-    """The median wall time of the runs finished so far with the same scene and ``--method`` (None: none
-    finished yet), used to start no run that the --time-limit would cut short."""
-    times = sorted(finished.get(f"{run.scene}/{run.train_method}", []))
+    """The median wall time of the like runs (:func:`like_runs`) finished so far (None: none finished yet),
+    used to start no run that the --time-limit would cut short."""
+    times = sorted(finished.get(like_runs(run), []))
     return times[len(times) // 2] if times else None
 
 
@@ -216,7 +222,7 @@ def run_pool(
         with lock:
             records[run.id] = rec
             if rec["status"] == "complete" and not rec.get("resumed"):
-                finished.setdefault(f"{run.scene}/{run.train_method}", []).append(rec["seconds"])
+                finished.setdefault(like_runs(run), []).append(rec["seconds"])
             counts["failed" if rec["status"] == "failed" else "done"] += 1
             bar.set_postfix(counts, refresh=False)
             bar.update(1)

@@ -297,15 +297,18 @@ def test_no_run_starts_that_the_time_limit_would_cut(tmp_path: Path, monkeypatch
 
     monkeypatch.setattr(pool, "run_one", fake_run_one)
 
-    def mk(scene: str, method: str, seed: int) -> plan_mod.Run:
-        d = tmp_path / scene / method / str(seed)
-        return plan_mod.Run(scene, "gaussian", method, seed, method, [], "k", "m", str(d), str(d) + ".log",
-                            10, [10])  # fmt: skip
+    def mk(scene: str, method: str, seed: int, steps: int = 10, schedule: str = "gaussian") -> plan_mod.Run:
+        d = tmp_path / scene / schedule / method / str(seed)
+        return plan_mod.Run(scene, schedule, method, seed, method, [], "k", "m", str(d), str(d) + ".log",
+                            steps, [steps])  # fmt: skip
 
-    runs = [mk("a", "gsplat", 0), mk("a", "gsplat", 1), mk("a", "jsgs", 0), mk("b", "gsplat", 0)]
+    runs = [mk("a", "gsplat", 0), mk("a", "gsplat", 1), mk("a", "jsgs", 0), mk("b", "gsplat", 0),
+            mk("a", "gsplat", 0, 20, "uniform")]  # fmt: skip
     recs = pool.run_pool(runs, [None], "cpu", None, progress=False, deadline=time.time() + 500)
-    # jsgs first; then a/gsplat s0 (nothing known yet), not a/gsplat s1 (like runs took 1000 s > 500 s left)
-    assert started == ["a/gaussian/jsgs/s0", "a/gaussian/gsplat/s0", "b/gaussian/gsplat/s0"]
+    # jsgs first; then a/gsplat s0 (nothing known yet), not a/gsplat s1 (like runs took 1000 s > 500 s left);
+    # a gsplat run of another length is not judged by them
+    assert started == ["a/gaussian/jsgs/s0", "a/gaussian/gsplat/s0", "b/gaussian/gsplat/s0",
+                       "a/uniform/gsplat/s0"]  # fmt: skip
     assert recs["a/gaussian/gsplat/s1"]["status"] == "failed"
     assert "more than the --time-limit leaves" in str(recs["a/gaussian/gsplat/s1"]["error"])
 
