@@ -17,7 +17,7 @@
 # On the CPU: extract each op_<PART>.tgz into .res/op_<PART> and gather them with
 #   .venv/bin/python tools/results/build_report.py docs/results/operating_point .res/op_time .res/op_rule
 set -u
-cd "$(dirname "$0")/../../.."
+cd "$(dirname "$0")/../.."
 P=${PART:?set PART=time or PART=rule}
 B=${OUT_DIR:-.res/op_$P}
 SCENES=${SCENES:-llff_flower llff_fern custom_kwrous_cup custom_myhan_mouse}
