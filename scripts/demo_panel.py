@@ -1,6 +1,9 @@
 """One test view side by side: the uncompressed reference saved as a JPEG at the dataset's lowest training
-quality (what the worst training views look like), the gsplat render, the JSGS render and the reference, each
-with its PSNR against the reference, enlarged with nearest-neighbour sampling so the blocks stay visible.
+quality (what the worst training views look like), the gsplat render, the JSGS render and the reference,
+each with its PSNR against the reference, enlarged with nearest-neighbour sampling so the blocks stay
+visible; below them the same four cropped to where that JPEG damages the view most (the window, a third of
+the view a side, with the largest squared error of the JPEG against the reference; outlined above), zoomed
+further.
 
     python scripts/demo_panel.py DATA RUN_GSPLAT RUN_JSGS --out panel.png [--view NAME] [--scale 3]
 
@@ -13,7 +16,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,19 @@ from PIL import Image, ImageDraw
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
     return float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse)
+
+
+def damage_window(jpeg: np.ndarray, ref: np.ndarray) -> tuple[int, int, int, int]:
+    """(x, y, w, h) of the window a third of the view a side where ``jpeg`` differs most from ``ref`` (sum of
+    squared errors over the window; the first such window in row-major order)."""
+    err = ((jpeg.astype(np.float64) - ref.astype(np.float64)) ** 2).sum(axis=2)
+    h, w = err.shape
+    ch, cw = max(1, h // 3), max(1, w // 3)
+    c = np.zeros((h + 1, w + 1))
+    c[1:, 1:] = err.cumsum(0).cumsum(1)
+    sums = c[ch:, cw:] - c[:-ch, cw:] - c[ch:, :-cw] + c[:-ch, :-cw]
+    y, x = np.unravel_index(int(np.argmax(sums)), sums.shape)
+    return int(x), int(y), cw, ch
 
 
 def last_render(run: Path, view: str) -> Path:
@@ -66,16 +81,26 @@ def main() -> None:
     h, w = ref.shape[:2]
     s = args.scale
     label_h = 16
-    canvas = Image.new("RGB", (len(panels) * (w * s + 4) - 4, h * s + label_h), (255, 255, 255))
+    cx, cy, cw, ch = damage_window(jpeg, ref)
+    z = max(1, (w * s) // cw)  # the crop as wide as a panel
+    canvas = Image.new("RGB", (len(panels) * (w * s + 4) - 4, h * s + 2 * label_h + ch * z), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
     for i, (name, img) in enumerate(panels):
         x = i * (w * s + 4)
         canvas.paste(Image.fromarray(img).resize((w * s, h * s), Image.NEAREST), (x, label_h))
         text = name if name == "reference" else f"{name}  {psnr(img, ref):.1f} dB"
         draw.text((x + 2, 2), text, fill=(0, 0, 0))
+        box = (x + cx * s, label_h + cy * s, x + (cx + cw) * s - 1, label_h + (cy + ch) * s - 1)
+        draw.rectangle(box, outline=(255, 0, 0))
+        crop = img[cy : cy + ch, cx : cx + cw]
+        canvas.paste(Image.fromarray(crop).resize((cw * z, ch * z), Image.NEAREST), (x, h * s + 2 * label_h))
+        part = ref[cy : cy + ch, cx : cx + cw]
+        text = f"{name}, crop" if name == "reference" else f"{name}, crop  {psnr(crop, part):.1f} dB"
+        draw.text((x + 2, h * s + label_h + 2), text, fill=(0, 0, 0))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     canvas.save(args.out)
-    print(f"wrote {args.out} (test view {view['name']}: {', '.join(n for n, _ in panels)})", file=sys.stderr)
+    names = ", ".join(n for n, _ in panels)
+    print(f"wrote {args.out} (test view {view['name']}: {names}; below, {cw}x{ch} px at ({cx}, {cy}) x{z})")
 
 
 if __name__ == "__main__":

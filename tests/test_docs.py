@@ -166,3 +166,21 @@ def test_the_checks_see_bad_names_and_commands() -> None:
     assert cmds == [("jsgs", "train", ["--out", "--methd"]), ("jsgstools", "sfmm", [])]
     known = _commands()
     assert "--methd" not in known["jsgs"]["train"] and "sfmm" not in known["jsgstools"]
+
+
+def test_the_demo_writes_its_block_of_the_readme() -> None:
+    """README.md has one fenced demo-output block, and scripts/demo_readme.py (which scripts/demo.sh runs)
+    replaces exactly that block with what the demo printed, long lines shortened."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import demo_readme
+    finally:
+        sys.path.pop(0)
+    readme = (ROOT / "README.md").read_text()
+    block = re.escape(demo_readme.BEGIN) + r"\n```\n(.*?)\n```\n" + re.escape(demo_readme.END)
+    assert len(re.findall(block, readme, re.DOTALL)) == 1, "README.md: one demo-output block, fenced"
+    assert "demo_readme.py" in (ROOT / "scripts" / "demo.sh").read_text()
+    new = demo_readme.replace(readme, "== 1. x\n" + "y" * 200 + "\n")
+    assert re.findall(block, new, re.DOTALL) == ["== 1. x\n" + "y" * 109 + "…"]
+    assert new.split(demo_readme.BEGIN)[0] == readme.split(demo_readme.BEGIN)[0]
+    assert new.split(demo_readme.END)[1] == readme.split(demo_readme.END)[1]
