@@ -91,7 +91,7 @@ def render_run(
     from tqdm import tqdm
 
     from jsgs.camera_path import KINDS, CameraPath, build_path, read_path, scaled_K
-    from jsgs.run_files import check_gaussians, refuse_run_files
+    from jsgs.run_files import refuse_run_files
     from jsgs.schemas import validate
     from jsgs.train.data import load_image
     from jsgs.viewer import load_run_model, render_rgb
@@ -114,8 +114,7 @@ def render_run(
     if not video and out.is_dir() and any(out.iterdir()) and not force:
         raise JsgsError(f"{out}: folder is not empty (use --force to replace its frames)")
 
-    model = load_run_model(run, device)
-    check_gaussians(model.splats, Path(run) / "point_cloud.ply")
+    model = load_run_model(run, device)  # refuses a model that would draw nothing
     views = sorted(model.scene.train_views, key=lambda v: v.name)
     if not views:
         raise JsgsError(f"{run}: its manifest has no training views")
