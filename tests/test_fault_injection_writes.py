@@ -168,7 +168,7 @@ def test_broken_models_are_refused_in_one_line(run: Path, tmp_path: Path, change
         ["export", str(broken), "--out", str(tmp_path / "x.ply")],
         ["export", str(broken), "--out", str(tmp_path / "x.splat"), "--format", "splat"],
         ["render", str(broken), "--out", str(tmp_path / "x.mp4"), "--frames", "2", "--device", "cpu"],
-        ["view", str(broken), "--device", "cpu", "--port", "0"],  # refused before any server starts
+        ["view", str(broken), "--device", "cpu", "--port", "18089"],  # refused before any server starts
     ):
         r = CliRunner().invoke(jsgs_main, args)
         line = _one_line(r.output, r.exit_code)
