@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import stat
 from typing import BinaryIO
 
 from jsgs.errors import JsgsError
@@ -87,22 +86,16 @@ def _walk(f: BinaryIO, size: int, name: str) -> str:
 
 def header_digest(path: str | os.PathLike[str]) -> str:
     """The SHA-256 (hex) of the decoding segments of the JPEG file ``path`` (module docstring). JsgsError
-    naming the file when it cannot be read, is not a regular file or has no valid header up to its first
-    scan."""
+    naming the file when it cannot be read, is not a regular file (refused at once, a FIFO included:
+    :func:`jsgs.io.open_regular`) or has no valid header up to its first scan."""
+    from jsgs.io import open_regular
+
     name = str(path)
     try:
-        # O_NONBLOCK: a FIFO named like a photo is refused at once instead of blocking the open
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with open_regular(path) as f:
+            return _walk(f, os.fstat(f.fileno()).st_size, name)
     except OSError as e:
-        raise JsgsError(f"{name}: cannot open: {e.strerror or e}") from None
-    with os.fdopen(fd, "rb") as f:
-        try:
-            st = os.fstat(fd)
-            if not stat.S_ISREG(st.st_mode):
-                raise JsgsError(f"{name}: not a regular file")
-            return _walk(f, st.st_size, name)
-        except OSError as e:
-            raise JsgsError(f"{name}: read error: {e.strerror or e}") from None
+        raise JsgsError(f"{name}: cannot read: {e.strerror or e}") from None
 
 
 def header_digest_bytes(data: bytes, name: str = "<bytes>") -> str:
