@@ -184,6 +184,7 @@ def train_command(
     """Train Gaussians on the views of MANIFEST (a jsgs manifest, or the folder holding its manifest.json;
     see `jsgstools manifest`; for a folder of photos, `jsgstools sfm` first)."""
     from jsgs.train.config import cap_max_settings, command_settings
+    from jsgs.train.distributed import is_main_process
     from jsgs.train.trainer import load_run_settings, train
 
     if resume and force:
@@ -230,6 +231,8 @@ def train_command(
         manifest, out, cfg, resume=resume, force=force, stop_at=stop_at, progress=not quiet, profile=profile,
         command=invocation(ctx, "jsgs"), callbacks=callbacks,
     )  # fmt: skip
+    if not is_main_process():  # under torchrun: rank 0 reports
+        return
     last = doc["evals"][-1] if doc["evals"] else None
     summary = f"{doc['status']}: {doc['step']}/{doc['iterations']} steps, {doc['num_gaussians']} Gaussians"
     if last is not None:

@@ -100,6 +100,11 @@ def world_from_environment() -> World:
     return World(rank, size, local)
 
 
+def is_main_process() -> bool:
+    """Whether this process is rank 0 of its run (or alone)."""
+    return world_from_environment().is_main
+
+
 def start(world: World, use_cuda: bool) -> None:
     """Join the process group (NCCL with one GPU per process, ``cuda:LOCAL_RANK``; gloo on the CPU)."""
     import torch.distributed as dist

@@ -532,6 +532,8 @@ class Trainer:
         processes (:mod:`jsgs.train.distributed`) every process sets up, rank 0 alone touches RUN, and an
         error on any of them stops all of them."""
         self.world = dd.world_from_environment()
+        if not self.world.is_main:  # rank 0 says it once (the notes are the same on every process)
+            self.say = lambda message: None
         use_cuda = torch.cuda.is_available() and (self.cfg is None or self.cfg.device != "cpu")
         dd.start(self.world, use_cuda)
         error: JsgsError | None = None

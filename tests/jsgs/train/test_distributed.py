@@ -283,3 +283,35 @@ def test_gradients_and_strategy_statistics_reduce_as_one_process(tmp_path: Path)
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
     mp.spawn(_reductions_worker, args=(str(tmp_path / "store"),), nprocs=2, join=True)
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["--gpus", "2", "--processes", "2"], "exclude each other"),
+        (["--gpus", "2", "--device", "cpu"], "use --processes"),
+        (["--processes", "0"], "at least 1"),
+    ],
+)
+def test_launch_options_refused_in_one_line(tmp_path: Path, args: list[str], expected: str) -> None:
+    from click.testing import CliRunner
+
+    from jsgs.cli import main
+
+    r = CliRunner().invoke(main, ["train", str(tmp_path / "m.json"), "--out", str(tmp_path / "run"), *args])
+    line = _one_error((r.exit_code, r.output))
+    assert expected in line, line
+    assert not (tmp_path / "run").exists()
+
+
+def test_gpus_without_gpus_is_one_line(tmp_path: Path) -> None:
+    import torch
+    from click.testing import CliRunner
+
+    from jsgs.cli import main
+
+    if torch.cuda.device_count() >= 64:
+        pytest.skip("a machine with 64 GPUs")
+    args = ["train", str(tmp_path / "m.json"), "--out", str(tmp_path / "r"), "--gpus", "64"]
+    r = CliRunner().invoke(main, args)
+    assert "GPU(s)" in _one_error((r.exit_code, r.output))
