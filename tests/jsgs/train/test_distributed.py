@@ -44,6 +44,8 @@ def _settings(tmp: Path, **strategy: Any) -> Path:
 
 def _train(manifest: Path, out: Path, *args: str, processes: int = 1) -> subprocess.CompletedProcess[str]:
     cmd = [sys.executable, "-m", "jsgs.cli", "train", str(manifest), "--out", str(out), "--quiet", *args]
+    if "--method" not in args and "--resume" not in args:
+        cmd += ["--method", "gsplat"]
     if processes > 1:
         cmd += ["--processes", str(processes)]
     return subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=300)
@@ -111,7 +113,7 @@ def test_sigterm_to_one_process_stops_all_and_resume_is_exact(scene: Path, tmp_p
     common = ["--preset", "paper", "--config", str(cfg), "--iterations", "120", "--eval-at", ""]
     _ok(_train(scene, full, *common, processes=2))
     cmd = [sys.executable, "-m", "jsgs.cli", "train", str(scene), "--out", str(part), "--quiet", *common,
-           "--processes", "2"]  # fmt: skip
+           "--method", "gsplat", "--processes", "2"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
     try:
         ranks = _ranks_once_set_up(proc, part)
@@ -196,7 +198,8 @@ def test_a_failing_process_stops_every_process_with_one_line(scene: Path, tmp_pa
     cfg = _settings(tmp_path)
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "jsgs.cli", "train", str(scene), "--out", str(out), "--quiet", "--config",
-           str(cfg), "--iterations", "100000", "--eval-at", "", "--processes", "2"]  # fmt: skip
+           str(cfg), "--method", "gsplat", "--iterations", "100000", "--eval-at", "",
+           "--processes", "2"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
     try:
         ranks = _ranks_once_set_up(proc, out)
