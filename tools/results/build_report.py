@@ -122,6 +122,12 @@ if __name__ == "__main__":
             if not (base / "results.csv").is_file():
                 sys.exit(f"build_report.py: --baseline {base}: no results.csv there")
         args = args[2:]
-    if not args:
+    if args[:1] in (["-h"], ["--help"]):
+        print(__doc__)
+        sys.exit(0)
+    if not args or any(a.startswith("-") for a in args):
         sys.exit("usage: build_report.py [--step N|auto] [--baseline FOLDER] TARGET [BENCH_FOLDER ...]")
+    missing = [a for a in args[1:] if not (Path(a) / "results.csv").is_file()]
+    if missing:
+        sys.exit(f"build_report.py: {missing[0]}: not a bench folder (no results.csv there)")
     main(Path(args[0]), [Path(a) for a in args[1:]], at, base)
