@@ -64,7 +64,7 @@ def _parse_steps(text: str) -> list[int]:
 )
 @click.option(
     "--preset",
-    type=click.Choice(["mcmc", "paper"]),
+    type=click.Choice(["mcmc", "paper", "preview"]),
     default=None,
     help="Starting settings under --config and the options. mcmc: gsplat simple_trainer's mcmc recipe "
     "(30000 steps, evaluations at 7000 and 30000, MCMCStrategy refining until step 25000 with a budget of "
@@ -72,7 +72,8 @@ def _parse_steps(text: str) -> list[int]:
     "loss.opacity_reg 0.01, loss.scale_reg 0.01; for --method jsgs, λ_obs 1 and λ_base per JPEG view: "
     "method_options lambda_obs 1, base_by_view, base_noise pixels, base_noise_ref 2, base_noise_exponent 2); "
     "paper: the paper's protocol (gsplat's DefaultStrategy and default recipe, JSGS at the paper's "
-    "weights, 10000 steps) [default: mcmc].",
+    "weights, 10000 steps); preview: a quick CPU look at photos downscaled by 2 (the baseline, --method "
+    "gsplat, with DefaultStrategy, 1000 steps, one evaluation at the end; docs/training.md) [default: mcmc].",
 )
 @click.option(
     "--cap-max",
@@ -221,7 +222,9 @@ def train_command(
     )
     if cap_max is not None and cfg.strategy.type != "mcmc":
         kind = cfg.strategy.type
-        raise JsgsError(f"--cap-max applies to strategy.type mcmc (not --preset paper); it is {kind!r}")
+        raise JsgsError(
+            f"--cap-max applies to strategy.type mcmc (not --preset paper or preview); it is {kind!r}"
+        )
     callbacks = []
     if viewer_port is not None:
         from jsgs.viewer import LiveViewer

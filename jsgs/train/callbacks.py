@@ -76,8 +76,12 @@ class ProgressBar(Callback):
     hold no carriage-return redraws. Both give the time per step over the last interval and the projected
     training time to the end at that pace (``ETA``), on the trainer's training clock (evaluations and
     checkpoints do not count): a MCMC model grows and its steps get slower, so the recent pace projects
-    better than the mean since the start. Evaluation lines go to the bar or the trainer's log; ``enabled``
-    false: only those."""
+    better than the mean since the start. After the run's first :attr:`ESTIMATE_AFTER` steps, one line
+    estimates the whole training time at that pace (a lower bound when the model grows). Evaluation lines go
+    to the bar or the trainer's log; ``enabled`` false: only those."""
+
+    #: the steps after which the start estimate is printed
+    ESTIMATE_AFTER = 10
 
     def __init__(self, enabled: bool = True, terminal: bool | None = None) -> None:
         import sys
@@ -86,6 +90,7 @@ class ProgressBar(Callback):
         self.terminal = sys.stderr.isatty() if terminal is None else terminal
         self.bar: Any = None
         self._mark: tuple[float, int] = (0.0, 0)  # (training seconds, steps done) at the last report
+        self._start: tuple[float, int] = (0.0, 0)  # (training seconds, steps done) when this process began
 
     def _pace(self, trainer: Trainer, done: int) -> str:
         """``12.3 ms/step, ETA 5:07`` over the steps since the last report; moves the mark."""
@@ -110,6 +115,20 @@ class ProgressBar(Callback):
                 total=cfg.iterations, initial=trainer.start_step, dynamic_ncols=True, unit="it", desc="train"
             )
         self._mark = (trainer.training_seconds(), trainer.start_step)
+        self._start = self._mark
+
+    def _estimate(self, trainer: Trainer, done: int) -> str | None:
+        """The start estimate line once ``ESTIMATE_AFTER`` steps of this process are done (None otherwise)."""
+        t0, s0 = self._start
+        if done - s0 != self.ESTIMATE_AFTER or done >= trainer.end_step:
+            return None
+        per_step = (trainer.training_seconds() - t0) / (done - s0)
+        left = trainer.end_step - done
+        return (
+            f"train: estimate after {done - s0} steps: {1000 * per_step:.1f} ms/step, about "
+            f"{duration(per_step * left)} for the remaining {left} steps (more if the model grows), "
+            "plus evaluations"
+        )
 
     def _summary(self, trainer: Trainer, result: StepResult) -> str:
         parts = [f"loss={result.loss:.4f}", f"#G={trainer.splats['means'].shape[0]}"]
@@ -123,6 +142,12 @@ class ProgressBar(Callback):
         if not self.enabled:
             return
         done = result.step + 1
+        estimate = self._estimate(trainer, done)
+        if estimate is not None:
+            if self.bar is not None:
+                self.bar.write(estimate)
+            else:
+                trainer.say(estimate)
         if self.bar is not None:
             self.bar.update(1)
             if done % cfg.log_every == 0 or done == trainer.end_step:

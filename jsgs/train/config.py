@@ -485,13 +485,19 @@ def from_dict(doc: dict[str, Any], where: str = "config", base: TrainConfig | No
 
 #: The mcmc preset's Gaussian budget (``strategy.cap_max``).
 MCMC_CAP_MAX = 300_000
+#: The preview preset's training length (steps).
+PREVIEW_ITERATIONS = 1_000
 #: Named starting points for the settings (``jsgs train --preset NAME``); a config file and the command line
 #: apply over them. ``paper``: the settings' own defaults (gsplat simple_trainer's default recipe with
 #: DefaultStrategy, trained 10,000 steps: the paper's protocol). ``mcmc``: simple_trainer's ``mcmc`` recipe
 #: at its full length (``max_steps`` 30,000, evaluations at 7,000 and 30,000, the means' learning rate
 #: decaying over the 30,000 steps, MCMCStrategy refining until 25,000) with a budget of
 #: :data:`MCMC_CAP_MAX` Gaussians, measured better than DefaultStrategy for gsplat on all four shared scenes
-#: (docs/results/budget); ``jsgs train`` starts from it unless told otherwise.
+#: (docs/results/budget); ``jsgs train`` starts from it unless told otherwise. ``preview``: a quick look at a
+#: capture on a CPU (docs/training.md, "A preview on a CPU"): the baseline (``method`` gsplat) with the
+#: defaults' DefaultStrategy, :data:`PREVIEW_ITERATIONS` steps and one evaluation at the end, meant for a copy
+#: of the photos downscaled by 2, whose pixels no longer carry the files' 8×8 JPEG grid (so JSGS's terms
+#: have nothing to read).
 PRESETS: dict[str, dict[str, Any]] = {
     "paper": {},
     "mcmc": {
@@ -501,6 +507,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "loss": {"opacity_reg": 0.01, "scale_reg": 0.01},
         "strategy": {"type": "mcmc", "refine_stop_iter": 25_000, "cap_max": MCMC_CAP_MAX},
     },
+    "preview": {"method": "gsplat", "iterations": PREVIEW_ITERATIONS, "eval_at": [PREVIEW_ITERATIONS]},
 }
 #: the preset of a new ``jsgs train`` run given none
 DEFAULT_PRESET = "mcmc"
