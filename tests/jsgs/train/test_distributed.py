@@ -276,6 +276,8 @@ def _reductions_worker(rank: int, store: str) -> None:
         assert ref["count"].sum() > 0 and ref["grad2d"].sum() > 0
         for key in ("grad2d", "count", "radii"):
             assert torch.allclose(state[key], ref[key], rtol=1e-5, atol=1e-9), key
+    # both processes leave together: a rank that tears gloo down while its peer still works aborts
+    dist.barrier()
     dist.destroy_process_group()
 
 

@@ -155,7 +155,7 @@ def test_mcmc_preset_is_gsplat_simple_trainer_mcmc() -> None:
     assert (s.refine_start_iter, s.refine_stop_iter, s.refine_every) == (
         ref.refine_start_iter, ref.refine_stop_iter, ref.refine_every,
     )  # fmt: skip
-    assert preset("paper") == TrainConfig() and set(PRESETS) == {"paper", "mcmc"}
+    assert preset("paper") == TrainConfig() and set(PRESETS) == {"paper", "mcmc", "preview"}
 
 
 def test_the_mcmc_preset_trains_simple_trainers_length() -> None:
