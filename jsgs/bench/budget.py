@@ -20,6 +20,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from jsgs.bench.plots import METHOD_COLORS, SCHEDULE_STYLES
 from jsgs.bench.stats import HIGHER_BETTER, agg, damage_recovered, mean_of, worse_beyond_spread
 from jsgs.bench.tables import count_label, md_table, number
 
@@ -387,8 +388,7 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
     from jsgs.io import write_with_atomic
 
     outdir.mkdir(parents=True, exist_ok=True)
-    colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
-    styles = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
+    colors, styles = METHOD_COLORS, SCHEDULE_STYLES
     written = []
     for sc in sorted({k[0] for k in rep.final}):
         fig, axes = plt.subplots(2, 2, figsize=(11, 8))

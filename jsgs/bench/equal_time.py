@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from jsgs.bench.plots import METHOD_COLORS, SCHEDULE_STYLES
 from jsgs.bench.stats import agg, mean_of
 from jsgs.bench.tables import md_table, number
 
@@ -236,8 +237,7 @@ def write_plots(rows: list[dict[str, Any]], outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     outdir.mkdir(parents=True, exist_ok=True)
-    colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
-    styles = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
+    colors, styles = METHOD_COLORS, SCHEDULE_STYLES
     written = []
     for sc in sorted({p.scene for p in ps}):
         lines: dict[tuple[str, str, str], dict[int, list[dict[str, Any]]]]

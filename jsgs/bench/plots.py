@@ -12,6 +12,10 @@ from jsgs.bench.tables import count_label
 if TYPE_CHECKING:
     from jsgs.bench.markdown import Report
 
+#: each method's colour and each schedule's line style, in every bench figure
+METHOD_COLORS = {"gsplat": "tab:blue", "jsgs": "tab:red"}
+SCHEDULE_STYLES = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
+
 
 def write_plots(rep: Report, outdir: Path) -> list[Path]:
     """One figure per scene (LPIPS and PSNR against training time and against the number of Gaussians, per
@@ -26,8 +30,7 @@ def write_plots(rep: Report, outdir: Path) -> list[Path]:
 
     outdir.mkdir(parents=True, exist_ok=True)
     written = []
-    colors = {"gsplat": "tab:blue", "jsgs": "tab:red"}
-    styles = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
+    colors, styles = METHOD_COLORS, SCHEDULE_STYLES
     for sc in rep.scenes:
         fig, axes = plt.subplots(2, 2, figsize=(11, 8))
         any_line = False
