@@ -37,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jsgs.errors import JsgsError, reports_user_errors  # noqa: E402
+from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
 
 MIXED = ("uniform", "gaussian", "descending")
 LOW_QUALITY = 30
@@ -278,7 +278,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     command = shlex.join(["python", "benchmarks/view_damage.py", *(sys.argv[1:] if argv is None else argv)])
     try:
-        from jsgs.io import write_json_atomic
+        from jsgs.base.io import write_json_atomic
         from jsgs.schemas import validate
 
         doc = analyse(

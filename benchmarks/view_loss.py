@@ -25,15 +25,15 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jsgs.errors import JsgsError, reports_user_errors  # noqa: E402
+from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
 
 TERMS = ("photometric", "obs", "low", "mid", "fro")
 
 
 def view_qualities(manifest: str | Path) -> dict[str, int | None]:
     """Training view name -> JPEG quality (None: a lossless view). The manifest is read and validated by
-    :func:`jsgs.manifest.load_manifest` (its images need not be here)."""
-    from jsgs.manifest import load_manifest
+    :func:`jsgs.base.manifest.load_manifest` (its images need not be here)."""
+    from jsgs.base.manifest import load_manifest
 
     m = load_manifest(manifest, check_files=False)
     return {v.name: None if v.jpeg is None else v.jpeg.quality for v in m.views if v.split == "train"}

@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from jsgs.errors import JsgsError
-from jsgs.limits import read_json
-from jsgs.rotations import matrix_to_quat, quat_to_matrix
+from jsgs.base.errors import JsgsError
+from jsgs.base.limits import read_json
+from jsgs.base.rotations import matrix_to_quat, quat_to_matrix
 
 KINDS = ("interpolate", "spiral", "ellipse", "test")
 PATH_FORMAT = "jsgs-camera-path"
@@ -158,9 +158,9 @@ def scaled_K(K: np.ndarray, width: int, height: int, new_width: int, new_height:
 
 def _poses(values: Any, where: str) -> np.ndarray:
     """(N, 4, 4) camera-to-world matrices read from a file: finite, positions within
-    ±:data:`jsgs.limits.MAX_COORDINATE`, rotations that are rotations; JsgsError naming the first that is
+    ±:data:`jsgs.base.limits.MAX_COORDINATE`, rotations that are rotations; JsgsError naming the first that is
     not."""
-    from jsgs.limits import check_coordinates
+    from jsgs.base.limits import check_coordinates
 
     c2w = np.asarray(values, dtype=np.float64).reshape(-1, 4, 4)
     check_coordinates(c2w, where, by_row=True)

@@ -61,7 +61,7 @@ def use_kernels(choice: str, device: torch.device, setting: str) -> bool:
     """Whether a setting ``choice`` ("auto", "torch" or "cuda"; named ``setting`` in messages) runs the CUDA
     kernels on ``device``: builds them now if it does (so neither the build nor its failure lands inside
     timed training steps); JsgsError (one line) for "cuda" where they cannot run."""
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
 
     if choice == "torch":
         return False

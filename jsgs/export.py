@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from jsgs.errors import JsgsError
-from jsgs.rotations import matrix_to_quat
+from jsgs.base.errors import JsgsError
+from jsgs.base.rotations import matrix_to_quat
 
 FORMATS = ("ply", "splat", "ply-compressed")
 FRAMES = ("colmap", "training")
@@ -87,7 +87,8 @@ def sh_band_rotations(R: np.ndarray, degree: int) -> list[np.ndarray]:
 
 
 def to_colmap_frame(p: dict[str, np.ndarray], normalization: np.ndarray) -> dict[str, np.ndarray]:
-    """The arrays of :func:`jsgs.ply.load_ply` (training frame) -> the same Gaussians in COLMAP's frame."""
+    """The arrays of :func:`jsgs.base.ply.load_ply` (training frame) -> the same Gaussians in COLMAP's
+    frame."""
     s, R, t = split_similarity(normalization)
     q = p["quats"].astype(np.float64)
     q = q / np.linalg.norm(q, axis=1, keepdims=True).clip(min=1e-12)
@@ -126,14 +127,14 @@ def export_run(run: str | Path, out: str | Path, fmt: str = "ply", frame: str = 
     """Write ``out`` (and ``out`` + ``.json``, its record: ``jsgs/schemas/export.schema.json``) from
     ``RUN/point_cloud.ply``; returns the record. The run's own files are never replaced (``run_owned``: the
     trainer's own export, which is one of them). A model without Gaussians, with a non-finite value or a zero
-    rotation is refused (:func:`jsgs.run_files.check_gaussians`); ``gaussians`` in the record is what the
+    rotation is refused (:func:`jsgs.base.run_files.check_gaussians`); ``gaussians`` in the record is what the
     file holds (``ply-compressed`` leaves out the nearly transparent ones: ``dropped``)."""
     import os
 
     import jsgs
-    from jsgs.io import atomic_path, read_regular_text, write_json_atomic
-    from jsgs.ply import load_ply
-    from jsgs.run_files import check_gaussians, refuse_run_files
+    from jsgs.base.io import atomic_path, read_regular_text, write_json_atomic
+    from jsgs.base.ply import load_ply
+    from jsgs.base.run_files import check_gaussians, refuse_run_files
     from jsgs.schemas import validate
 
     run, out = Path(run), Path(out)

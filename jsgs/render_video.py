@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi")
 #: the largest width or height rendered (an 8K frame): one frame is held at a time, but the rasterizer's
@@ -85,13 +85,13 @@ def render_run(
 
     Frames are rendered one at a time and streamed to the encoder (or to their PNG files), so memory holds
     one frame whatever the path's length. The video goes through a temporary file of an unpredictable name
-    in its folder (:func:`jsgs.io.atomic_path`); a failure leaves neither it nor any frame of this call. The
-    run's own files are never written (:func:`jsgs.run_files.refuse_run_files`), and a model that would
-    draw nothing (no Gaussians, a non-finite value, a zero rotation) is refused."""
+    in its folder (:func:`jsgs.base.io.atomic_path`); a failure leaves neither it nor any frame of this call.
+    The run's own files are never written (:func:`jsgs.base.run_files.refuse_run_files`), and a model that
+    would draw nothing (no Gaussians, a non-finite value, a zero rotation) is refused."""
     from tqdm import tqdm
 
+    from jsgs.base.run_files import refuse_run_files
     from jsgs.camera_path import KINDS, CameraPath, build_path, read_path, scaled_K
-    from jsgs.run_files import refuse_run_files
     from jsgs.schemas import validate
     from jsgs.train.data import load_image
     from jsgs.viewer import load_run_model, render_rgb
@@ -164,8 +164,8 @@ def _write_video(
     ``cameras``, then rename the video onto ``out``."""
     import imageio.v2 as iio
 
-    from jsgs.errors import one_line
-    from jsgs.io import atomic_path, write_json_atomic
+    from jsgs.base.errors import one_line
+    from jsgs.base.io import atomic_path, write_json_atomic
 
     count, shape = 0, (0, 0)
     with atomic_path(out) as tmp:
@@ -190,7 +190,7 @@ def _write_frames(
     the frames written by this call (and ``out`` when this call made it)."""
     from PIL import Image
 
-    from jsgs.io import write_json_atomic, write_with_atomic
+    from jsgs.base.io import write_json_atomic, write_with_atomic
 
     made = not out.exists()
     out.mkdir(parents=True, exist_ok=True)

@@ -23,8 +23,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from jsgs.base.precision import ieee_fp32
 from jsgs.cuda_ext import KERNEL_CHOICES, build_error, extension
-from jsgs.precision import ieee_fp32
 
 C1 = 0.01**2
 C2 = 0.03**2

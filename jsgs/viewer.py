@@ -23,8 +23,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from jsgs.errors import JsgsError
-from jsgs.rotations import matrix_to_quat, pose_matrix
+from jsgs.base.errors import JsgsError
+from jsgs.base.rotations import matrix_to_quat, pose_matrix
 from jsgs.train.callbacks import Callback
 from jsgs.train.config import TrainConfig
 from jsgs.train.data import Scene
@@ -52,8 +52,8 @@ def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
     """Read ``RUN/config.json`` and ``RUN/point_cloud.ply`` and the run's manifest (its cameras).
 
     JsgsError (one line) when RUN is not a finished run or its manifest has moved."""
-    from jsgs.limits import read_json
-    from jsgs.ply import load_ply
+    from jsgs.base.limits import read_json
+    from jsgs.base.ply import load_ply
     from jsgs.train.data import load_scene
     from jsgs.train.model import splats_from_state
     from jsgs.train.render_view import resolve_backend, resolve_device
@@ -118,10 +118,10 @@ def check_camera(
     position: Any, wxyz: Any, fov: Any, aspect: Any
 ) -> tuple[np.ndarray, np.ndarray, float, float]:
     """A camera as the browser reports it, checked before anything is computed from it: ``position`` 3
-    finite coordinates within ±:data:`jsgs.limits.MAX_COORDINATE`, ``wxyz`` 4 finite numbers of norm at
+    finite coordinates within ±:data:`jsgs.base.limits.MAX_COORDINATE`, ``wxyz`` 4 finite numbers of norm at
     least 1e-6 (returned normalised), ``fov`` in (0, π) radians, ``aspect`` in [1e-3, 1e3]. JsgsError (one
     line) naming the value."""
-    from jsgs.limits import check_coordinates, check_number
+    from jsgs.base.limits import check_coordinates, check_number
 
     try:
         p = np.asarray(position, dtype=np.float64).reshape(3)
@@ -143,8 +143,8 @@ def save_camera(model: RunModel, position: np.ndarray, wxyz: np.ndarray, fov: fl
     """Append a camera (checked by :func:`check_camera`) to ``RUN/viewer_cameras.json``
     (``jsgs/schemas/viewer_cameras.schema.json``, written atomically); returns the path."""
     import jsgs
-    from jsgs.io import write_json_atomic
-    from jsgs.limits import read_json
+    from jsgs.base.io import write_json_atomic
+    from jsgs.base.limits import read_json
     from jsgs.schemas import validate
 
     position, wxyz, fov, aspect = check_camera(position, wxyz, fov, aspect)

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jsgs.errors import JsgsError
-from jsgs.limits import MAX_COORDINATE, MAX_FOCAL_RATIO, MAX_IMAGE_SIDE, MIN_FOCAL_RATIO
+from jsgs.base.errors import JsgsError
+from jsgs.base.limits import MAX_COORDINATE, MAX_FOCAL_RATIO, MAX_IMAGE_SIDE, MIN_FOCAL_RATIO
 
 #: the largest |coefficient| of a radial or tangential distortion term taken as a real lens
 MAX_DISTORTION = 10.0
@@ -54,7 +54,7 @@ def camera_models() -> dict[int, tuple[str, int, list[int], list[int], list[int]
 
 class _Reader:
     def __init__(self, path: Path):
-        from jsgs.io import read_regular_bytes
+        from jsgs.base.io import read_regular_bytes
 
         self.path = path
         self.data = read_regular_bytes(path)

@@ -46,8 +46,8 @@ from typing import Any
 import numpy as np
 
 from jsgs import __version__
-from jsgs.errors import JsgsError
-from jsgs.io import write_bytes_atomic
+from jsgs.base.errors import JsgsError
+from jsgs.base.io import write_bytes_atomic
 from jsgs.jpeg.tables import CHROMA_SAMPLINGS
 from jsgs.schemas import validate as schema_validate
 
@@ -234,9 +234,9 @@ def observed_jpeg(arr: np.ndarray, quality: int, subsampling: int, recompress: i
 
 
 def load_rgb(path: str | Path) -> np.ndarray:
-    """(H, W, 3) uint8 (:func:`jsgs.images.read_rgb8`: grey and palette expanded, 16-bit by value, alpha
+    """(H, W, 3) uint8 (:func:`jsgs.base.images.read_rgb8`: grey and palette expanded, 16-bit by value, alpha
     dropped; a file that cannot be decoded is a one-line JsgsError)."""
-    from jsgs.images import read_rgb8
+    from jsgs.base.images import read_rgb8
 
     return read_rgb8(path)
 
@@ -280,7 +280,7 @@ def _run_all(tasks: list[Task], jobs: int, progress: bool) -> list[dict[str, Any
 
         # spawn: workers start clean (no inherited OpenCV thread pools or pycolmap state from the parent).
         ctx = multiprocessing.get_context("spawn")
-        from jsgs.io import die_with_parent
+        from jsgs.base.io import die_with_parent
 
         with ProcessPoolExecutor(
             max_workers=min(jobs, len(tasks)), mp_context=ctx, initializer=die_with_parent

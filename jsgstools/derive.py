@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from jsgs import __version__
-from jsgs.errors import JsgsError
-from jsgs.io import write_bytes_atomic
-from jsgs.limits import parse_json
+from jsgs.base.errors import JsgsError
+from jsgs.base.io import write_bytes_atomic
+from jsgs.base.limits import parse_json
 
 from .compress import SUBSAMPLING, check_recompress, load_rgb, observed_jpeg, plan, schedule_settings
 from .scene import image_stem, prepare_output_dir, removes_partial_output
@@ -42,12 +42,12 @@ def _rel(path: Path, base: Path) -> str:
 def read_base(base_manifest: str | Path) -> tuple[dict[str, Any], dict[str, str]]:
     """The base manifest (validated; a clean, pinhole dataset whose every view has its reference file) and
     view name -> source image name (from ``compress.json`` beside it when present, else the view name)."""
-    from jsgs.manifest import validate_document
+    from jsgs.base.manifest import validate_document
 
     path = Path(base_manifest)
     if path.is_dir():
         path = path / "manifest.json"
-    from jsgs.io import read_regular_text
+    from jsgs.base.io import read_regular_text
 
     try:
         text = read_regular_text(path)

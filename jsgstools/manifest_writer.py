@@ -24,9 +24,9 @@ from pathlib import Path
 from typing import Any
 
 from jsgs import __version__
-from jsgs.errors import JsgsError
-from jsgs.io import write_bytes_atomic
-from jsgs.limits import read_json
+from jsgs.base.errors import JsgsError
+from jsgs.base.io import write_bytes_atomic
+from jsgs.base.limits import read_json
 from jsgs.schemas import validate as schema_validate
 
 from .scene import JPEG_FORMATS, ColmapScene, SceneView, image_stem, view_camera
@@ -237,9 +237,9 @@ def build_manifest(
 
 
 def write_manifest(doc: dict[str, Any], out: str | Path) -> None:
-    """Validate ``doc`` (the schema and the checks of :func:`jsgs.manifest.validate_document`), then write it
-    atomically."""
-    from jsgs.manifest import validate_document
+    """Validate ``doc`` (the schema and the checks of :func:`jsgs.base.manifest.validate_document`), then
+    write it atomically."""
+    from jsgs.base.manifest import validate_document
 
     validate_document(doc, str(out))
     write_bytes_atomic(out, dumps(doc).encode())

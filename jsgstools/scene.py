@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 if TYPE_CHECKING:  # pragma: no cover
     import pycolmap
@@ -188,7 +188,7 @@ def find_model_dir(root: Path) -> tuple[Path, str]:
 def read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
     import pycolmap
 
-    from jsgs.io import refuse_non_regular
+    from jsgs.base.io import refuse_non_regular
 
     for name in ("cameras", "images", "points3D", "rigs", "frames"):
         for ext in (".bin", ".txt"):
@@ -234,8 +234,8 @@ def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | 
     decoded."""
     from PIL import Image, UnidentifiedImageError
 
-    from jsgs.images import ENV_MAX_PIXELS, apply_pixel_limit
-    from jsgs.io import open_regular
+    from jsgs.base.images import ENV_MAX_PIXELS, apply_pixel_limit
+    from jsgs.base.io import open_regular
 
     apply_pixel_limit()
     try:
@@ -637,7 +637,7 @@ def prepare_output_dir(
     import shutil
 
     import jsgs
-    from jsgs.io import LOCK_NAME, write_json_atomic
+    from jsgs.base.io import LOCK_NAME, write_json_atomic
 
     if out.exists() and not out.is_dir():
         raise JsgsError(f"{out}: exists and is not a folder")

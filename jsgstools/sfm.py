@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 from .scene import IMAGE_EXTENSIONS, prepare_output_dir, removes_partial_output, write_model_atomic
 
@@ -43,7 +43,7 @@ def _sizes(photos: list[Path]) -> set[tuple[int, int]]:
     from PIL import Image
 
     out = set()
-    from jsgs.io import open_regular
+    from jsgs.base.io import open_regular
 
     for p in photos:
         try:
@@ -75,7 +75,7 @@ def sfm(
     import pycolmap
 
     import jsgs
-    from jsgs.io import OutputLock, write_json_atomic
+    from jsgs.base.io import OutputLock, write_json_atomic
     from jsgs.schemas import validate
 
     say = say or (lambda s: print(s, file=sys.stderr, flush=True))

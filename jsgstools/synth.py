@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jsgs.errors import JsgsError
-from jsgs.io import write_bytes_atomic
-from jsgs.limits import MIN_VIEW_SIDE
+from jsgs.base.errors import JsgsError
+from jsgs.base.io import write_bytes_atomic
+from jsgs.base.limits import MIN_VIEW_SIDE
 
 from .scene import prepare_output_dir, removes_partial_output, write_model_atomic
 

@@ -9,10 +9,10 @@ Problems (each one line, naming the file; any problem means exit code 1):
   (see :func:`jsgstools.scene.detect_downscale`); a camera shared by images of different sizes;
 - a camera model other than the pinhole ones (SIMPLE_PINHOLE, PINHOLE) and the distorted ones ``compress`` can
   undistort (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV); non-finite or non-positive intrinsics;
-- a non-finite pose or one beyond ``jsgs.limits.MAX_COORDINATE``; an image name used twice; no registered
+- a non-finite pose or one beyond ``jsgs.base.limits.MAX_COORDINATE``; an image name used twice; no registered
   image; no points3D, or points that are not finite or lie beyond that limit;
 - with ``decode`` (the ``validate`` command), an image that cannot be decoded (truncated, over the pixel
-  limit: :mod:`jsgs.images`), as compress and the trainer would find it; an unreadable ``compress.json``.
+  limit: :mod:`jsgs.base.images`), as compress and the trainer would find it; an unreadable ``compress.json``.
 
 Warnings (reported, exit code still 0): distorted cameras — ``compress`` undistorts a clean scene before
 encoding, ``manifest`` records the distortion as is, and the trainer renders SIMPLE_RADIAL, RADIAL and OPENCV
@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jsgs.errors import JsgsError
-from jsgs.limits import COINCIDENT_CAMERAS, MAX_COORDINATE
+from jsgs.base.errors import JsgsError
+from jsgs.base.limits import COINCIDENT_CAMERAS, MAX_COORDINATE
 
 from .scene import (
     JPEG_FORMATS,
@@ -205,7 +205,7 @@ def _points_seen(scene: ColmapScene) -> list[tuple[object, int]]:
 
 def _decode_error(path: Path) -> str | None:
     """The one-line message of an image that cannot be decoded, else None."""
-    from jsgs.images import read_rgb8
+    from jsgs.base.images import read_rgb8
 
     try:
         read_rgb8(path)
@@ -216,7 +216,7 @@ def _decode_error(path: Path) -> str | None:
 
 def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False) -> ValidationReport:
     """Load ``root`` and check everything listed in the module docstring. Never raises for a bad scene.
-    ``decode``: also decode every registered image (:func:`jsgs.images.read_rgb8`, what ``compress`` and
+    ``decode``: also decode every registered image (:func:`jsgs.base.images.read_rgb8`, what ``compress`` and
     the trainer do), so a truncated file or one over the pixel limit is reported here first. ``analyze``:
     warn about JPEG views compressed twice (:mod:`jsgstools.dqt.analysis`)."""
     root = Path(root)

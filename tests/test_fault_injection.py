@@ -535,7 +535,7 @@ def test_coincident_colmap_cameras_are_named_by_validate(synth_scene: Path, tmp_
 
 
 def _fake_run(root: Path, table: np.ndarray | None = None, header: bytes | None = None) -> Path:
-    from jsgs.ply import ply_header
+    from jsgs.base.ply import ply_header
 
     run = root / "run"
     run.mkdir()

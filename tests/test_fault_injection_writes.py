@@ -56,7 +56,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _rewrite_ply(run: Path, change: str) -> None:
     """Rewrite RUN/point_cloud.ply byte for byte in the 3DGS layout with one defect (save_ply would refuse
     to write it)."""
-    from jsgs.ply import ply_header, read_ply_vertices
+    from jsgs.base.ply import ply_header, read_ply_vertices
 
     path = run / "point_cloud.ply"
     v = read_ply_vertices(path)
@@ -110,9 +110,9 @@ def test_render_never_writes_through_a_planted_link(run: Path, tmp_path: Path) -
 
 
 def test_atomic_writes_replace_links_and_leave_nothing_on_failure(tmp_path: Path) -> None:
+    from jsgs.base.errors import JsgsError
+    from jsgs.base.io import open_log, write_bytes_atomic, write_with_atomic
     from jsgs.bench.results import write_csv
-    from jsgs.errors import JsgsError
-    from jsgs.io import open_log, write_bytes_atomic, write_with_atomic
 
     victim = tmp_path / "victim"
     victim.write_bytes(b"keep")
@@ -178,7 +178,7 @@ def test_broken_models_are_refused_in_one_line(run: Path, tmp_path: Path, change
 
 
 def test_export_records_the_rows_it_writes(run: Path, tmp_path: Path) -> None:
-    from jsgs.ply import read_ply_vertices
+    from jsgs.base.ply import read_ply_vertices
 
     faint = tmp_path / "run"
     shutil.copytree(run, faint)
@@ -368,8 +368,8 @@ def test_a_fifo_among_a_scenes_images_is_named(synth_scene: Path, tmp_path: Path
 
 
 def test_every_entry_the_trainer_writes_is_protected() -> None:
-    from jsgs.io import LOCK_NAME
-    from jsgs.run_files import RUN_OWNED
+    from jsgs.base.io import LOCK_NAME
+    from jsgs.base.run_files import RUN_OWNED
     from jsgs.train.trainer import RUN_ENTRIES
 
     assert set(RUN_ENTRIES) | {LOCK_NAME, "viewer_cameras.json"} <= set(RUN_OWNED)

@@ -24,7 +24,7 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 EXAMPLES = int(os.environ.get("JSGS_PROPERTY_EXAMPLES", "50"))
 PROPERTY = settings(
@@ -266,11 +266,11 @@ def test_settings_any_json_and_byte_mutations(tmp_path_factory: pytest.TempPathF
 
 
 # ---------------------------------------------------------------------------------------------------------
-# PLY models (jsgs export / render / view read them with jsgs.ply.load_ply)
+# PLY models (jsgs export / render / view read them with jsgs.base.ply.load_ply)
 
 
 def _ply_bytes() -> bytes:
-    from jsgs.ply import ply_header
+    from jsgs.base.ply import ply_header
 
     t = np.random.default_rng(0).normal(size=(3, 6 + 3 + 9 + 1 + 3 + 4)).astype("<f4")
     return ply_header(3, 3) + t.tobytes()
@@ -310,7 +310,7 @@ def ply_mutants(draw: st.DrawFn) -> bytes:
 @PROPERTY
 @given(data=ply_mutants())
 def test_ply_mutations(tmp_path_factory: pytest.TempPathFactory, data: bytes) -> None:
-    from jsgs.ply import load_ply
+    from jsgs.base.ply import load_ply
 
     path = tmp_path_factory.getbasetemp() / "model.ply"
     path.write_bytes(data)

@@ -385,7 +385,7 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter, MaxNLocator
 
-    from jsgs.io import write_with_atomic
+    from jsgs.base.io import write_with_atomic
 
     outdir.mkdir(parents=True, exist_ok=True)
     colors, styles = METHOD_COLORS, SCHEDULE_STYLES

@@ -14,12 +14,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from jsgs.base.errors import JsgsError
+from jsgs.base.io import write_json_atomic
 from jsgs.bench import markdown as report_mod
 from jsgs.bench import results as results_mod
 from jsgs.bench import workers as pool_mod
 from jsgs.bench.plan import BenchPlan, Budget, Dataset, Run, build_plan, resolve_caps, train_argv
-from jsgs.errors import JsgsError
-from jsgs.io import write_json_atomic
 
 BENCH_FORMAT = "jsgs-bench"
 BENCH_VERSION = 1
@@ -463,7 +463,7 @@ def _bench(
 def bench(scenes: list[str | Path], out: str | Path, *args: Any, **kwargs: Any) -> dict[str, Any]:
     """:func:`_bench` holding the results folder's output lock (one bench per folder; a second is refused
     naming the first's PID)."""
-    from jsgs.io import OutputLock
+    from jsgs.base.io import OutputLock
 
     with OutputLock(Path(out), f"jsgs bench (into {out})"):
         return _bench(scenes, out, *args, **kwargs)

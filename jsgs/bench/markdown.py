@@ -373,7 +373,7 @@ def write_report(
         md += [f"- `{f['id']}`: {f.get('error')}" for f in not_run]
     if not failures:
         md += ["None."]
-    from jsgs.io import write_bytes_atomic
+    from jsgs.base.io import write_bytes_atomic
 
     path = results_dir / "report.md"
     write_bytes_atomic(path, ("\n".join(md) + "\n").encode())

@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 MIXED_SCHEDULES = ("uniform", "gaussian", "descending")
 SCHEDULES = (*MIXED_SCHEDULES, "clean")

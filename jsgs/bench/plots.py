@@ -26,7 +26,7 @@ def write_plots(rep: Report, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter
 
-    from jsgs.io import write_with_atomic
+    from jsgs.base.io import write_with_atomic
 
     outdir.mkdir(parents=True, exist_ok=True)
     written = []

@@ -81,7 +81,7 @@ def write_csv(rows: list[dict[str, Any]], path: str | Path) -> list[str]:
     header = COLUMNS + EXTRA + dynamic
     import io
 
-    from jsgs.io import write_bytes_atomic
+    from jsgs.base.io import write_bytes_atomic
 
     buf = io.StringIO(newline="")
     w = csv.writer(buf)

@@ -16,9 +16,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from jsgs.base.io import die_with_parent, open_log
 from jsgs.bench import plan as plan_mod
 from jsgs.bench.plan import Run
-from jsgs.io import die_with_parent, open_log
 
 TAIL_CHARS = 4000
 

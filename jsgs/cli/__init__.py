@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from jsgs import __version__
-from jsgs.cli._common import CONTEXT
+from jsgs.base.commands import CONTEXT
 
 
 @click.group(context_settings=CONTEXT)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, FINITE, WORKERS, invocation, user_errors
+from jsgs.base.commands import CONTEXT, EXAMPLE, FINITE, WORKERS, invocation, user_errors
 
 
 @click.command(

@@ -7,8 +7,8 @@ from typing import Any
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, MAX_PROCESSES, PORT, invocation, user_errors
-from jsgs.errors import JsgsError
+from jsgs.base.commands import CONTEXT, EXAMPLE, MAX_PROCESSES, PORT, invocation, user_errors
+from jsgs.base.errors import JsgsError
 
 
 def _parse_steps(text: str) -> list[int]:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, PORT, user_errors
+from jsgs.base.commands import CONTEXT, EXAMPLE, PORT, user_errors
 
 
 @click.command(

@@ -21,7 +21,7 @@ import hashlib
 import os
 from typing import BinaryIO
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 SOS = 0xDA
 #: segments left out of the digest: APP1..APP13, APP15 and COM (metadata; no effect on decoding)
@@ -87,8 +87,8 @@ def _walk(f: BinaryIO, size: int, name: str) -> str:
 def header_digest(path: str | os.PathLike[str]) -> str:
     """The SHA-256 (hex) of the decoding segments of the JPEG file ``path`` (module docstring). JsgsError
     naming the file when it cannot be read, is not a regular file (refused at once, a FIFO included:
-    :func:`jsgs.io.open_regular`) or has no valid header up to its first scan."""
-    from jsgs.io import open_regular
+    :func:`jsgs.base.io.open_regular`) or has no valid header up to its first scan."""
+    from jsgs.base.io import open_regular
 
     name = str(path)
     try:

@@ -12,8 +12,8 @@ The chain itself is :func:`jsgs.method.image_terms.jpeg_terms` (the eager hook r
 form is :func:`~jsgs.method.image_terms.image_terms`, and what is recorded is
 :func:`~jsgs.method.image_terms.terms_with_gradient`: the image terms *and* the gradient
 of their weighted sum with respect to the render, in one graph, so the forward call is the only replay and
-the trainer's backward merely scales the stored gradient (``jsgs.known_grad``). The inputs are the render and
-target of one view and its tables (so every view replays the same graph with its own); the JO mode,
+the trainer's backward merely scales the stored gradient (``jsgs.base.known_grad``). The inputs are the render
+and target of one view and its tables (so every view replays the same graph with its own); the JO mode,
 sampling, weights and epsilons are fixed per graph. One graph per (image shape, dtype, sampling); the scenes
 we train have one image size. Graphs need static shapes and no host synchronisation, which the JPEG code
 guarantees (see ``jsgs.jpeg.observe``); they are CUDA-only. Should a recording fail all the same
@@ -30,8 +30,8 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from jsgs.errors import one_line
-from jsgs.known_grad import with_known_gradient
+from jsgs.base.errors import one_line
+from jsgs.base.known_grad import with_known_gradient
 from jsgs.method.image_terms import terms_with_gradient
 
 
@@ -100,8 +100,8 @@ class GraphedImageTerms:
     """:func:`terms_with_gradient` replayed as one CUDA graph per (shape, dtype, sampling, needs-grad),
     recorded on first use: the forward of JO, L_obs and DS *and* the gradient of their weighted sum with
     respect to the render, in one launch. The trainer's backward then multiplies that stored gradient by its
-    upstream scalar (:func:`jsgs.known_grad.with_known_gradient`): no second replay and no per-term output
-    gradients to copy in.
+    upstream scalar (:func:`jsgs.base.known_grad.with_known_gradient`): no second replay and no per-term
+    output gradients to copy in.
 
     This is exact for the loss the trainer forms, Σ_k λ_k·term_k + the rest, because the weights are fixed
     for the run and the weighted sum enters the loss as one term (``HookOutput.folded_loss``). Each call

@@ -48,8 +48,8 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
+from jsgs.base.errors import JsgsError
 from jsgs.cuda_ext import use_kernels
-from jsgs.errors import JsgsError
 from jsgs.method.controller import (
     controller_matrix,
     fro_from_probe_grad,

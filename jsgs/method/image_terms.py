@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from jsgs.errors import JsgsError, one_line
+from jsgs.base.errors import JsgsError, one_line
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import DctSupervision, dct_supervision
@@ -270,7 +270,7 @@ def _from_files(
     from concurrent.futures import ThreadPoolExecutor
     from os import cpu_count
 
-    from jsgs.images import read_ycbcr8
+    from jsgs.base.images import read_ycbcr8
     from jsgs.jpeg.noise import blockiness, jpeg_noise_variance
 
     estimates = sum(q is not None for _, q, _ in todo)

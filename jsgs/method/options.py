@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 import torch
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.method.controller import EPS_PROJ, TAU_S
 from jsgs.train.config import check_bounds, parse_method_options, setting
 

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from jsgs.known_grad import with_known_gradient
+from jsgs.base.known_grad import with_known_gradient
 from jsgs.render.reference import Projected, TileBins, bin_tiles, project_gaussians
 from jsgs.render.reference.composite import (
     CHUNK_PAIRS,
@@ -134,7 +134,7 @@ def probe_objective(info: dict, r: Tensor) -> Tensor:
 
     The gradient with respect to the probe channels is the upstream map ``(r, 1)`` itself and the value is
     exactly 0 (the channels render zero colours over a zero background), so the objective is one node with
-    that known gradient rather than a product and a sum (``jsgs.known_grad``).
+    that known gradient rather than a product and a sum (``jsgs.base.known_grad``).
     """
     up = _upstream(info, r)
     return with_known_gradient(info["extra"], up.new_zeros(()), up)

@@ -44,8 +44,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from jsgs.errors import JsgsError, one_line
-from jsgs.precision import ieee_fp32
+from jsgs.base.errors import JsgsError, one_line
+from jsgs.base.precision import ieee_fp32
 
 ENV_VAR = "JSGS_LPIPS_WEIGHTS"
 # "0" turns the download off (tests, air-gapped machines); anything else, or unset, allows it.
@@ -163,7 +163,7 @@ def _as_batch(x: Tensor) -> Tensor:
 
 
 def _torch_load(path: Path, what: str) -> dict[str, Tensor]:
-    from jsgs.io import open_regular
+    from jsgs.base.io import open_regular
 
     try:
         # weights_only: a weights file must not be able to run code when loaded

@@ -8,7 +8,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 SCHEMA_DIR = Path(__file__).resolve().parent
 

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 if TYPE_CHECKING:
     from jsgs.train.config import StrategyConfig

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from jsgs.io import write_json_atomic
+from jsgs.base.io import write_json_atomic
 
 if TYPE_CHECKING:
     from jsgs.train.trainer import StepResult, Trainer

@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from jsgs.errors import JsgsError
-from jsgs.io import atomic_path
+from jsgs.base.errors import JsgsError
+from jsgs.base.io import atomic_path
 
 CHECKPOINT_FORMAT = "jsgs-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -91,7 +91,7 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
-    from jsgs.io import open_regular
+    from jsgs.base.io import open_regular
 
     try:
         with open_regular(path) as f:  # a FIFO named like a checkpoint is refused, not waited on
@@ -99,7 +99,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     except JsgsError:
         raise
     except Exception as e:  # torch raises a variety of types for a damaged file, with multi-line messages
-        from jsgs.errors import one_line
+        from jsgs.base.errors import one_line
 
         why = one_line(e)
         why = why if len(why) <= 200 else why[:197] + "..."
@@ -204,7 +204,7 @@ def _one_line(path: Path, e: Exception) -> JsgsError:
 
 def unusable(path: Path, e: Exception) -> JsgsError:
     """The one-line error for a checkpoint that passed the checks but could not be applied (``e``)."""
-    from jsgs.errors import one_line
+    from jsgs.base.errors import one_line
 
     return _one_line(path, Exception(f"it does not fit the run: {one_line(e)}"))
 

@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TypeVar, get_args, get_origin
 
-from jsgs.errors import JsgsError
-from jsgs.limits import MAX_INT_SETTING, MAX_SETTING, read_json
+from jsgs.base.errors import JsgsError
+from jsgs.base.limits import MAX_INT_SETTING, MAX_SETTING, read_json
 
 RUN_CONFIG_FORMAT = "jsgs-run-config"
 RUN_CONFIG_VERSION = 1
@@ -48,8 +48,8 @@ def setting(default: Any = dataclasses.MISSING, help: str = "", *, required: boo
     """A dataclass field with a ``help`` text (used for the JSON Schema and the docs): every setting of a
     config section, the methods' option sections included (:func:`section_from_dict`). Numeric settings may
     carry bounds ``ge``, ``gt``, ``le``, ``lt``: checked when settings are read (a one-line error naming the
-    key) and written into the JSON Schema. A side left open is bounded by :data:`jsgs.limits.MAX_SETTING`
-    (numbers) or :data:`jsgs.limits.MAX_INT_SETTING` (integers). ``required=False``: a top-level setting
+    key) and written into the JSON Schema. A side left open is bounded by :data:`jsgs.base.limits.MAX_SETTING`
+    (numbers) or :data:`jsgs.base.limits.MAX_INT_SETTING` (integers). ``required=False``: a top-level setting
     that a ``RUN/config.json`` written before it existed lacks (it then takes its default) and that does not
     change the trained model."""
     meta: dict[str, Any] = {"help": help}
@@ -75,8 +75,8 @@ def check_bounds(section: Any, where: str, prefix: str = "") -> None:
 
 
 def _limits(f: dataclasses.Field[Any], is_int: bool) -> dict[str, Any]:
-    """The bounds of setting ``f``: its own, with :data:`jsgs.limits.MAX_INT_SETTING` (integers) or
-    :data:`jsgs.limits.MAX_SETTING` (numbers) on a side it leaves open."""
+    """The bounds of setting ``f``: its own, with :data:`jsgs.base.limits.MAX_INT_SETTING` (integers) or
+    :data:`jsgs.base.limits.MAX_SETTING` (numbers) on a side it leaves open."""
     cap = MAX_INT_SETTING if is_int else MAX_SETTING
     out = {b: f.metadata[b] for b in _BOUNDS if b in f.metadata}
     if "ge" not in out and "gt" not in out:

@@ -1,8 +1,9 @@
 """Manifest -> training scene: cameras in the normalised world, images as tensors, the initial point cloud.
 
-Only the manifest is read (through :func:`jsgs.manifest.load_manifest`, which validates it); images are the
-files it names, decoded with Pillow and never resampled: an image whose size differs from its camera's is an
-error, and so is a camera with lens distortion (undistorting would resample a JPEG and move its 8x8 blocks).
+Only the manifest is read (through :func:`jsgs.base.manifest.load_manifest`, which validates it); images are
+the files it names, decoded with Pillow and never resampled: an image whose size differs from its camera's is
+an error, and so is a camera with lens distortion (undistorting would resample a JPEG and move its 8x8
+blocks).
 """
 
 from __future__ import annotations
@@ -17,9 +18,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from jsgs.errors import JsgsError
-from jsgs.limits import COINCIDENT_CAMERAS, MAX_POINT_DISTANCE, MIN_VIEW_SIDE
-from jsgs.manifest import JpegState, ManifestView
+from jsgs.base.errors import JsgsError
+from jsgs.base.limits import COINCIDENT_CAMERAS, MAX_POINT_DISTANCE, MIN_VIEW_SIDE
+from jsgs.base.manifest import JpegState, ManifestView
 from jsgs.train.config import TrainConfig
 from jsgs.train.normalize import camera_extent, normalize_world
 
@@ -34,7 +35,7 @@ class View:
     ``K`` 3x3 pinhole intrinsics in pixels (COLMAP convention: pixel centres at integer + 0.5);
     ``camtoworld`` 4x4 in the *training* (normalised) world, OpenCV axes; ``viewmat`` its inverse
     (world-to-camera, what the rasterizer takes). ``jpeg``: the manifest's JPEG state
-    (:class:`jsgs.manifest.JpegState`: luma_table, chroma_table 8x8 natural order, sampling, quality,
+    (:class:`jsgs.base.manifest.JpegState`: luma_table, chroma_table 8x8 natural order, sampling, quality,
     quality_exact, precision, frame) or None for a lossless image.
     ``image``: the observed/training image; ``reference``: the lossless reference or None."""
 
@@ -127,12 +128,12 @@ class Scene:
 def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
     """Read and check the manifest, normalise the world (gsplat's Parser), and compute the scene scale.
 
-    :func:`jsgs.manifest.load_manifest` validates the document (schema, rotations, unique names, point
+    :func:`jsgs.base.manifest.load_manifest` validates the document (schema, rotations, unique names, point
     counts, files present). Raises JsgsError (one line, naming the manifest and the view) on what the
     trainer additionally refuses: distorted cameras, no training views, evaluation steps with no test
     views, test views without a lossless image (when ``scene.require_lossless_reference``), too few points
     for SfM initialisation."""
-    from jsgs.manifest import load_manifest, manifest_file
+    from jsgs.base.manifest import load_manifest, manifest_file
 
     manifest_path = manifest_file(manifest_path)
     where = str(manifest_path)
@@ -285,9 +286,10 @@ def _check_jpeg_headers(views: Sequence[ManifestView], where: str) -> list[str]:
 
 
 def load_image(path: Path, width: int, height: int, what: str) -> Tensor:
-    """Decode an image to [H, W, 3] uint8 (:func:`jsgs.images.read_rgb8`: RGB, greyscale replicated, 16-bit
-    by value, alpha dropped). Raises JsgsError if it is missing, unreadable or not ``width`` x ``height``."""
-    from jsgs.images import read_rgb8
+    """Decode an image to [H, W, 3] uint8 (:func:`jsgs.base.images.read_rgb8`: RGB, greyscale replicated,
+    16-bit by value, alpha dropped). Raises JsgsError if it is missing, unreadable or not ``width`` x
+    ``height``."""
+    from jsgs.base.images import read_rgb8
 
     arr = read_rgb8(path, what)
     if (arr.shape[1], arr.shape[0]) != (width, height):

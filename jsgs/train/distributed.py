@@ -40,7 +40,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.train.launch import PEER_PREFIX
 
 #: torchrun's variables this module reads

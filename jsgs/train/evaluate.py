@@ -110,7 +110,7 @@ def save_png(path: Path, image: Tensor) -> None:
     """[H, W, 3] float in [0, 1] -> 8-bit PNG (rounded), written atomically."""
     from PIL import Image
 
-    from jsgs.io import write_with_atomic
+    from jsgs.base.io import write_with_atomic
 
     arr = (image.detach().float().cpu().numpy() * 255.0 + 0.5).clip(0, 255).astype(np.uint8)
     write_with_atomic(path, lambda p: Image.fromarray(arr).save(p, format="PNG"))

@@ -22,7 +22,7 @@ import threading
 import time
 from collections import deque
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 #: the first words of the message of a process that stopped because another one did
 #: (:class:`jsgs.train.distributed.PeerStopped`): the launcher shows the other process's message instead

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.train.config import TrainConfig
 
 SH_C0 = 0.28209479177387814

@@ -24,7 +24,7 @@ class RenderOut:
 
 def resolve_device(name: str) -> torch.device:
     """auto -> cuda when available, else cpu. Raises JsgsError for cuda without CUDA."""
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
 
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -35,7 +35,7 @@ def resolve_device(name: str) -> torch.device:
 
 def resolve_backend(cfg: TrainConfig, device: torch.device) -> str:
     """render.backend auto -> gsplat on CUDA, torch (reference rasterizer) elsewhere."""
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
 
     b = cfg.render.backend
     if b == "gsplat" and device.type != "cuda":

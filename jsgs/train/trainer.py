@@ -38,9 +38,9 @@ import torch
 from torch import Tensor
 
 import jsgs
+from jsgs.base.errors import JsgsError
+from jsgs.base.io import LOCK_NAME, OutputLock, write_json_atomic
 from jsgs.cuda_ext import use_kernels
-from jsgs.errors import JsgsError
-from jsgs.io import LOCK_NAME, OutputLock, write_json_atomic
 from jsgs.strategy import Densifier, initial_subset
 from jsgs.train import checkpoint as ckpt
 from jsgs.train import distributed as dd
@@ -267,7 +267,7 @@ def _leftovers(paths: RunPaths) -> list[Path]:
     renders: 0-byte or partial ``.NAME.XXXXXXXX.part*``)."""
     import re
 
-    from jsgs.io import atomic_leftovers
+    from jsgs.base.io import atomic_leftovers
 
     found = atomic_leftovers(paths.root, "|".join(map(re.escape, RUN_FILES)))
     found += atomic_leftovers(paths.checkpoints, r"step_\d+\.pt")
@@ -451,7 +451,7 @@ def runs_per_device() -> int | None:
 
 
 def json_load(path: Path) -> dict[str, Any]:
-    from jsgs.limits import read_json
+    from jsgs.base.limits import read_json
 
     doc: dict[str, Any] = read_json(path)
     return doc
@@ -595,8 +595,8 @@ class Trainer:
                 )
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
-            # IEEE float32 convolutions for the whole run (SSIM in the losses and metrics; jsgs.precision),
-            # also where torch.compile'd code cannot enter jsgs.precision's context
+            # IEEE float32 convolutions for the whole run (SSIM in the losses and metrics;
+            # jsgs.base.precision), also where torch.compile'd code cannot enter jsgs.base.precision's context
             torch.backends.cudnn.allow_tf32 = False
         self.train_views = scene.train_views
         self.train_images = load_train_images(scene, device)
@@ -1081,8 +1081,8 @@ class Trainer:
         """Write ``point_cloud.ply`` (3DGS layout, normalised training world: what resume, the viewer and the
         tests read) and ``point_cloud_colmap.ply`` (the same in the scene's COLMAP frame, for other tools;
         :func:`jsgs.export.export_run`)."""
+        from jsgs.base.ply import save_ply
         from jsgs.export import export_run
-        from jsgs.ply import save_ply
 
         s = self.splats
         save_ply(self.paths.ply, s["means"], s["scales"], s["quats"], s["opacities"], s["sh0"], s["shN"])
@@ -1109,7 +1109,7 @@ class Trainer:
             if self.world.is_main:  # one writer
                 self.export_ply()
         except Exception as e:
-            from jsgs.errors import one_line
+            from jsgs.base.errors import one_line
 
             why = str(e) if isinstance(e, JsgsError) else one_line(e)
             message = f"{self.paths.ply}: the model could not be written ({why}); the run is not complete"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from jsgs import __version__
-from jsgs.cli._common import CONTEXT
+from jsgs.base.commands import CONTEXT
 
 #: the commands that use pycolmap (its import installs a native SIGTERM handler that prints a stack dump)
 COLMAP_COMMANDS = frozenset({"synth", "compress", "validate", "manifest", "sfm"})
@@ -20,7 +20,7 @@ def main(ctx: click.Context) -> None:
     if ctx.invoked_subcommand in COLMAP_COMMANDS:
         import pycolmap  # noqa: F401 - imported first so that our SIGTERM handler replaces its own
 
-        from jsgs.cli._common import terminate_on_sigterm
+        from jsgs.base.commands import terminate_on_sigterm
 
         terminate_on_sigterm()
 

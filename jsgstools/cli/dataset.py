@@ -9,9 +9,9 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, SEED, WORKERS, invocation, user_errors
-from jsgs.io import OutputLock
-from jsgs.limits import MAX_INT_SETTING
+from jsgs.base.commands import CONTEXT, EXAMPLE, SEED, WORKERS, invocation, user_errors
+from jsgs.base.io import OutputLock
+from jsgs.base.limits import MAX_INT_SETTING
 
 SCHEDULE_HELP = (
     "uniform: the nine qualities 10..90 equally; gaussian: weights exp(-x^2/2) at x = -2..2 (q=10..90); "

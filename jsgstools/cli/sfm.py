@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from jsgs.cli._common import CONTEXT, EXAMPLE, invocation, user_errors
+from jsgs.base.commands import CONTEXT, EXAMPLE, invocation, user_errors
 
 #: the ranges pycolmap takes (its options are C++ ints)
 _SIDE, _FEATURES = click.IntRange(16, 65_535), click.IntRange(1, 10_000_000)

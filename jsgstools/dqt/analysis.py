@@ -44,8 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from jsgs.errors import JsgsError, one_line
-from jsgs.io import read_regular_bytes
+from jsgs.base.errors import JsgsError, one_line
+from jsgs.base.io import read_regular_bytes
 from jsgs.jpeg.noise import blockiness, jpeg_noise_variance, plane_noise_variance
 from jsgs.jpeg.noise import plane_dct as block_dct
 from jsgs.jpeg.tables import BASE_CHROMA, BASE_LUMA, SAMPLING_FACTORS, ijg_table

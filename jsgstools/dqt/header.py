@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.jpeg.tables import CHROMA_SAMPLINGS, QualityEstimate, estimate_quality, ijg_tables
 from jsgstools.dqt.cache import _CACHE_MAX, _ESTIMATE_CACHE
 

@@ -12,7 +12,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.jpeg.tables import QualityEstimate, zigzag_to_natural
 from jsgstools.dqt.cache import _CACHE_MAX, _TABLE_CACHE
 from jsgstools.dqt.header import (
@@ -515,7 +515,7 @@ def read_header_from(f: BinaryIO, name: str, size: int | None = None) -> JpegHea
 
 def read_header(path: str | os.PathLike[str]) -> JpegHeader:
     """Parse the header of the JPEG file at ``path`` (reads only the header bytes; see module docstring)."""
-    from jsgs.io import open_regular
+    from jsgs.base.io import open_regular
 
     name = str(path)
     try:

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from jsgs import __version__
-from jsgs.errors import JsgsError
-from jsgs.io import read_regular_bytes
+from jsgs.base.errors import JsgsError
+from jsgs.base.io import read_regular_bytes
 from jsgstools.dqt.analysis import Analysis, analyze_bytes
 from jsgstools.dqt.header import JpegHeader
 from jsgstools.dqt.markers import TABLE_ORDER_NOTE

@@ -81,7 +81,7 @@ def _render(p: dict[str, np.ndarray], viewmat: np.ndarray, K: np.ndarray, w: int
 
 
 def test_colmap_frame_renders_what_was_trained(run: Path) -> None:
-    from jsgs.ply import load_ply
+    from jsgs.base.ply import load_ply
     from jsgs.viewer import load_run_model
 
     model = load_run_model(run, "cpu")
@@ -110,8 +110,8 @@ def test_colmap_frame_renders_what_was_trained(run: Path) -> None:
 
 
 def test_cli_export_formats_and_record(run: Path, tmp_path: Path) -> None:
+    from jsgs.base.ply import load_ply, property_names, read_ply_vertices
     from jsgs.cli import main
-    from jsgs.ply import load_ply, property_names, read_ply_vertices
     from jsgs.schemas import validate
 
     out = tmp_path / "scene.ply"

@@ -1,7 +1,7 @@
 """``jsgs export --frame colmap`` checked against the scene's own cameras, independently of the exporter's
 arithmetic: the COLMAP world of the tiny scene is moved by a known similarity (scale 7, a rotation, a shift)
 so that the trainer's normalisation is far from the identity; the exported centres, projected with the
-manifest's cameras as :func:`jsgs.manifest.load_manifest` reads them, must land on the pixels where the
+manifest's cameras as :func:`jsgs.base.manifest.load_manifest` reads them, must land on the pixels where the
 training-frame centres land through the training cameras, and sit among the scene's SfM points. Also: the
 file ``jsgs train`` writes at the end of a run is that export, and ``jsgs render`` / ``jsgs export`` refuse a
 folder that is not a run in one line."""
@@ -62,8 +62,8 @@ def _project(x: np.ndarray, world_to_camera: np.ndarray, K: np.ndarray) -> np.nd
 def test_exported_centres_project_with_the_colmap_cameras(
     moved_run: tuple[Path, Path], tmp_path: Path
 ) -> None:
-    from jsgs.manifest import load_manifest
-    from jsgs.ply import load_ply
+    from jsgs.base.manifest import load_manifest
+    from jsgs.base.ply import load_ply
     from jsgs.train.config import load_config_file
     from jsgs.train.data import load_scene
 
@@ -93,7 +93,7 @@ def test_exported_centres_project_with_the_colmap_cameras(
 
 
 def test_the_run_holds_the_colmap_frame_export(moved_run: tuple[Path, Path], tmp_path: Path) -> None:
-    from jsgs.ply import load_ply
+    from jsgs.base.ply import load_ply
 
     _, run = moved_run
     out = tmp_path / "again.ply"

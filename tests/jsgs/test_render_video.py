@@ -101,8 +101,8 @@ def test_video_frames_and_path_round_trip(run: Path, tmp_path: Path) -> None:
 
 
 def test_test_views_beside_references_and_viewer_cameras(run: Path, tmp_path: Path) -> None:
+    from jsgs.base.rotations import matrix_to_quat
     from jsgs.cli import main
-    from jsgs.rotations import matrix_to_quat
     from jsgs.viewer import load_run_model, save_camera
 
     r = CliRunner().invoke(main, ["render", str(run), "--out", str(tmp_path / "t"), "--path", "test",

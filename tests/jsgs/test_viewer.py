@@ -19,7 +19,7 @@ from _train_scene import make_scene
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.rotations import matrix_to_quat, quat_to_matrix
+from jsgs.base.rotations import matrix_to_quat, quat_to_matrix
 from jsgs.viewer import (
     add_frustums,
     camera_matrices,
@@ -261,7 +261,7 @@ def test_broken_browser_cameras_are_never_saved(tmp_path: Path, position: list[f
     """What a browser reports is checked before anything is computed or written: one line, no file."""
     from types import SimpleNamespace
 
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
     from jsgs.viewer import check_camera
 
     with pytest.raises(JsgsError, match=needle):
@@ -275,8 +275,8 @@ def test_broken_browser_cameras_are_never_saved(tmp_path: Path, position: list[f
 
 def test_saved_cameras_with_broken_values_are_refused_by_render(tmp_path: Path) -> None:
     """A viewer_cameras.json edited to hold a NaN position or a scaled rotation: one line from read_path."""
+    from jsgs.base.errors import JsgsError
     from jsgs.camera_path import read_path
-    from jsgs.errors import JsgsError
 
     good = np.eye(4).tolist()
     for (i, j, bad), needle in (((0, 3, math.nan), "not a finite number"), ((0, 3, 1e300), "beyond"),

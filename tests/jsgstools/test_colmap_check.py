@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 from conftest import SHARED
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgstools.cli import main
 from jsgstools.colmap_check import check_binary_model, check_cameras_bin, check_images_bin, check_points_bin
 

@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from conftest import shared_scene
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgstools import compress as C
 from jsgstools.cli import main
 from jsgstools.compress import QUALITIES, compress, largest_remainder, plan, schedule_weights
@@ -591,7 +591,7 @@ def test_a_second_writer_is_refused(synth_scene: Path, tmp_path: Path) -> None:
     import json
     import os
 
-    from jsgs.io import LOCK_NAME
+    from jsgs.base.io import LOCK_NAME
 
     out = tmp_path / "data"
     out.mkdir()

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -67,7 +67,7 @@ def test_derive_matches_compress(
 
 
 def test_derived_manifest_loads(clean_base: Path, tmp_path: Path) -> None:
-    from jsgs.manifest import load_manifest
+    from jsgs.base.manifest import load_manifest
     from jsgstools.derive import derive
 
     derive(clean_base, tmp_path / "d", "gaussian", seed=1)

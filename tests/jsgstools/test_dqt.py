@@ -18,7 +18,7 @@ from click.testing import CliRunner
 from jpeg_builders import exif_app1, insert_after_soi
 from PIL import ExifTags, Image, JpegImagePlugin
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.jpeg.tables import BASE_LUMA, ZIGZAG, estimate_quality, ijg_tables
 from jsgs.schemas import load_schema
 from jsgstools.cli.inspect_dqt import inspect_dqt

@@ -15,7 +15,7 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.jpeg.tables import ijg_tables
 from jsgs.schemas import load_schema
 from jsgstools.cli.inspect_dqt import inspect_dqt
@@ -165,7 +165,7 @@ def test_cli_json_analysis_validates(files: tuple[Path, Path]) -> None:
         assert 0.4 * truth < a["noise_variance"] < 1.5 * truth, (f.name, a["noise_variance"], truth)
     assert double["noise_variance"] > single["noise_variance"]
     # the blockiness is the decoded luma's (jsgs.jpeg.noise.blockiness), as the trainer would measure it
-    from jsgs.images import read_ycbcr8
+    from jsgs.base.images import read_ycbcr8
     from jsgs.jpeg.noise import blockiness
 
     for f, a in zip(files, (single, double), strict=True):

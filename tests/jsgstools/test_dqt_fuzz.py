@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 from jpeg_builders import exif_app1, insert_after_soi
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.jpeg.tables import ZIGZAG, ijg_tables
 from jsgs.schemas import load_schema
 from jsgstools.dqt import SAMPLING_NAMES, JpegHeader, parse_header

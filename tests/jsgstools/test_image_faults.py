@@ -1,6 +1,6 @@
-"""Images every tool decodes the same way (``jsgs.images.read_rgb8``): 16-bit greyscale by value, truncated
-files and images over the pixel limit as one line naming the file in validate, compress and train; an
-unreadable compress.json and a camera that sees no point reported by validate."""
+"""Images every tool decodes the same way (``jsgs.base.images.read_rgb8``): 16-bit greyscale by value,
+truncated files and images over the pixel limit as one line naming the file in validate, compress and train;
+an unreadable compress.json and a camera that sees no point reported by validate."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.errors import JsgsError
-from jsgs.images import read_rgb8
+from jsgs.base.errors import JsgsError
+from jsgs.base.images import read_rgb8
 from jsgstools.cli import main as tools
 
 

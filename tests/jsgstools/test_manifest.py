@@ -1,5 +1,5 @@
 """Manifests: writing (``jsgstools manifest``, and by ``compress``), reading
-(``jsgs.manifest.load_manifest``),
+(``jsgs.base.manifest.load_manifest``),
 the round trip, relative paths, distortion recorded for a user's JPEG collection, and every bad manifest."""
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
+from jsgs.base.manifest import load_manifest, validate_document
 from jsgs.jpeg.header_digest import header_digest
-from jsgs.manifest import load_manifest, validate_document
 from jsgstools.cli import main
 from jsgstools.manifest_writer import build_manifest, manifest, write_manifest
 
@@ -89,7 +89,7 @@ def test_manifest_command_reproduces_compress(compressed_scene: Path, tmp_path: 
 
 def test_reader_imports_no_dataset_libraries(compressed_scene: Path) -> None:
     code = (
-        "import sys, jsgs.manifest as m; m.load_manifest(sys.argv[1]); "
+        "import sys, jsgs.base.manifest as m; m.load_manifest(sys.argv[1]); "
         "bad = [k for k in ('pycolmap', 'cv2', 'PIL') if k in sys.modules]; assert not bad, bad"
     )
     r = subprocess.run(

@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from conftest import SHARED
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgstools.cli import main as tools
 
 CUP = SHARED / "scenes" / "custom_kwrous_cup" / "images"

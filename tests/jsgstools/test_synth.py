@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgstools.cli import main
 from jsgstools.synth import SynthCamera, cast, default_scene, look_at, parse_size, pixel_rays, synth
 

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from conftest import shared_scene
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgstools.cli import main
 from jsgstools.scene import resolve_image
 from jsgstools.validate import require_valid, validate_scene

@@ -14,8 +14,8 @@ import torch
 from _lpips_backbone import random_backbone
 from conftest import load_benchmark
 
-from jsgs.images import read_rgb8
-from jsgs.manifest import load_manifest
+from jsgs.base.images import read_rgb8
+from jsgs.base.manifest import load_manifest
 
 dc = load_benchmark("damage_channels", "tools/diagnostics")
 

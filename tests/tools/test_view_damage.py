@@ -85,7 +85,7 @@ def test_lower_quality_lower_psnr(synth_doc: tuple[dict[str, Any], Path]) -> Non
 
 
 def test_json_validates_and_markdown(synth_doc: tuple[dict[str, Any], Path]) -> None:
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
     from jsgs.schemas import validate
 
     doc, _ = synth_doc

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 from conftest import load_benchmark
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 vl = load_benchmark("view_loss")
 

@@ -210,7 +210,7 @@ def main() -> None:
             )
     if args.out:
         import jsgs
-        from jsgs.io import write_json_atomic
+        from jsgs.base.io import write_json_atomic
         from jsgs.schemas import validate
 
         doc = {

@@ -43,12 +43,12 @@ import numpy as np
 import torch
 from PIL import Image
 
-from jsgs.images import read_rgb8, read_ycbcr8
+from jsgs.base.images import read_rgb8, read_ycbcr8
+from jsgs.base.manifest import load_manifest
 from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb
 from jsgs.jpeg.noise import block_steps, blockiness, jpeg_noise_variance, plane_dct
 from jsgs.jpeg.rounding import round_half_away
 from jsgs.jpeg.tables import CHROMA_SAMPLINGS
-from jsgs.manifest import load_manifest
 from jsgs.metrics.lpips import lpips
 from jsgs.metrics.psnr import psnr
 

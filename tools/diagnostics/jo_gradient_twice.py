@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from jsgs.images import read_rgb8
+from jsgs.base.images import read_rgb8
+from jsgs.base.manifest import load_manifest
 from jsgs.jpeg.observe import jpeg_observe
-from jsgs.manifest import load_manifest
 
 
 def _image(path: Path) -> torch.Tensor:

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from jsgs.images import read_rgb8, read_ycbcr8
+from jsgs.base.images import read_rgb8, read_ycbcr8
+from jsgs.base.manifest import load_manifest
 from jsgs.jpeg.color import rgb_to_ycbcr
 from jsgs.jpeg.noise import jpeg_noise_variance
-from jsgs.manifest import load_manifest
 from jsgs.method.image_terms import quantization_noise_variance
 
 

@@ -90,9 +90,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_train_overhead import build_scene, variant_config  # noqa: E402
 
 import jsgs  # noqa: E402
+from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
+from jsgs.base.io import write_json_atomic  # noqa: E402
 from jsgs.bench.stats import median_interval  # noqa: E402
-from jsgs.errors import JsgsError, reports_user_errors  # noqa: E402
-from jsgs.io import write_json_atomic  # noqa: E402
 from jsgs.opcount import FREE_OPS  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
 from jsgs.train.config import TrainConfig, load_config_file  # noqa: E402

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 
-from jsgs.errors import JsgsError, reports_user_errors
+from jsgs.base.errors import JsgsError, reports_user_errors
 from jsgs.method.image_terms import ViewJpeg, base_weight, view_tables
 from jsgs.method.options import JsgsOptions, parse_options
 from jsgs.train.config import PRESET_METHOD_OPTIONS, TrainConfig

@@ -167,8 +167,8 @@ def test_plan_layout_and_ablation(tmp_path: Path, synth_scene: Path) -> None:
 
 def test_prepare_only_then_plan_without_the_source(synth_scene: Path, tmp_path: Path) -> None:
     """The CPU half of a GPU session compresses; the GPU machine (no ../shared) plans on the prepared data."""
+    from jsgs.base.errors import JsgsError
     from jsgs.cli import main
-    from jsgs.errors import JsgsError
 
     out = tmp_path / "results"
     args = [
@@ -196,9 +196,9 @@ def test_prepare_derives_from_the_clean_base(
     import shutil
 
     import jsgstools.compress
+    from jsgs.base.manifest import load_manifest
     from jsgs.bench.harness import prepare_datasets
     from jsgs.cli import main
-    from jsgs.manifest import load_manifest
 
     out = tmp_path / "results"
     args = [
@@ -383,8 +383,8 @@ def test_weight_sweep_configs_and_summary(tmp_path: Path) -> None:
 
 
 def test_time_limit_must_be_positive(tmp_path: Path) -> None:
+    from jsgs.base.errors import JsgsError
     from jsgs.bench.harness import bench
-    from jsgs.errors import JsgsError
 
     with pytest.raises(JsgsError, match="--time-limit -1: must be a positive number of seconds"):
         bench(

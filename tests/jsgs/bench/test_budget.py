@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from jsgs.base.errors import JsgsError
 from jsgs.bench import plan as plan_mod
 from jsgs.bench.budget import BudgetReport, mean_ci, t975
 from jsgs.bench.tables import count_label
-from jsgs.errors import JsgsError
 
 
 def test_parse_budgets() -> None:

@@ -9,9 +9,9 @@ from typing import Any
 
 import pytest
 
+from jsgs.base.errors import JsgsError
 from jsgs.bench import plan as plan_mod
 from jsgs.bench.equal_time import interpolate, pairs, summary, table
-from jsgs.errors import JsgsError
 
 
 def test_interpolation_never_extrapolates() -> None:

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from jpeg_builders import exif_app1, insert_after_soi
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.jpeg.header_digest import header_digest, header_digest_bytes
 from jsgstools.dqt import parse_header
 

@@ -13,7 +13,7 @@ import torch
 from conftest import SHARED
 from PIL import Image
 
-from jsgs.images import read_ycbcr8
+from jsgs.base.images import read_ycbcr8
 from jsgs.jpeg.color import rgb_to_ycbcr
 from jsgs.jpeg.dct import dct_matrix
 from jsgs.jpeg.noise import blockiness, jpeg_noise_variance, laplacian_quantization_error, plane_dct
@@ -134,7 +134,7 @@ def test_white_noise_texture_is_the_estimates_hard_case(tmp_path: Path) -> None:
 
 
 def test_read_ycbcr8_refuses_other_files(tmp_path: Path) -> None:
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
 
     Image.new("RGB", (8, 8)).save(tmp_path / "a.png")
     with pytest.raises(JsgsError, match="a.png: image is not a YCbCr colour JPEG"):

@@ -11,8 +11,8 @@ import pytest
 import torch
 from PIL import Image
 
-from jsgs.errors import JsgsError
-from jsgs.manifest import JpegState
+from jsgs.base.errors import JsgsError
+from jsgs.base.manifest import JpegState
 from jsgs.method.image_terms import view_tables
 from jsgstools.dqt import parse_header
 

@@ -21,7 +21,7 @@ import torch
 from test_graphed import assert_same_training, train_jsgs_variants
 from test_jsgs_method import jsgs_options, make_view, new_hook
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.method.controller import fro_from_probe_grad, fro_from_probe_grad_fused, packed_fro_stats
 from jsgs.method.hook import JsgsHook
 from jsgs.method.options import parse_options

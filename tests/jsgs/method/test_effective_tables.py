@@ -14,8 +14,8 @@ import torch
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.errors import JsgsError
-from jsgs.manifest import JpegState
+from jsgs.base.errors import JsgsError
+from jsgs.base.manifest import JpegState
 from jsgs.method.image_terms import jpeg_terms, view_tables
 
 

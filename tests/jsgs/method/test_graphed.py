@@ -12,7 +12,7 @@ import pytest
 import torch
 from test_jsgs_method import jsgs_options, make_splats, make_view, new_hook, train_step
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision

@@ -23,10 +23,10 @@ import torch
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
+from jsgs.base.manifest import JpegState
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.tables import ijg_tables
-from jsgs.manifest import JpegState
 from jsgs.method.hook import JsgsHook, make_jsgs_hook
 from jsgs.method.image_terms import view_tables
 from jsgs.method.options import parse_options
@@ -852,7 +852,7 @@ def test_base_by_view_scales_the_photometric_weight(
     of the view's decoded luma."""
     from _train_scene import make_scene
 
-    from jsgs.images import read_ycbcr8
+    from jsgs.base.images import read_ycbcr8
     from jsgs.jpeg.noise import blockiness, jpeg_noise_variance
     from jsgs.method.image_terms import quantization_noise_variance
     from jsgs.train.callbacks import Callback
@@ -926,7 +926,7 @@ def test_base_ramp_steps_lowers_each_views_weight_from_one(tmp_path: Path) -> No
     refused in one line."""
     from _train_scene import make_scene
 
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
     from jsgs.method.options import parse_options
     from jsgs.train.callbacks import Callback
     from jsgs.train.config import TrainConfig
@@ -995,7 +995,7 @@ def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
                                         np.array(jpeg_views[1]["jpeg"]["chroma_table"]))  # fmt: skip
     assert 0 < px[other].noise_variance < bound == tb[other].noise_variance
     # blockiness likewise: the recorded value, else measured from the file; 1 when not asked for
-    from jsgs.images import read_ycbcr8
+    from jsgs.base.images import read_ycbcr8
     from jsgs.jpeg.noise import blockiness
 
     bk = view_tables(views, cpu, "m", noise="pixels", blocks=True)
@@ -1013,7 +1013,7 @@ def test_many_estimates_are_announced_and_match_one_by_one(
     from _train_scene import make_scene
 
     import jsgs.method.image_terms as it
-    from jsgs.images import read_ycbcr8
+    from jsgs.base.images import read_ycbcr8
     from jsgs.jpeg.noise import jpeg_noise_variance
     from jsgs.train.config import TrainConfig
     from jsgs.train.data import load_scene

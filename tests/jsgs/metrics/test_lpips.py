@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from _lpips_backbone import random_backbone
 from PIL import Image
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.metrics import lpips as L
 
 SHARED = Path(__file__).resolve().parents[4] / "shared" / "lpips"

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from jsgs.errors import JsgsError
-from jsgs.ply import load_ply, ply_header, property_names, read_ply_vertices, save_ply
+from jsgs.base.errors import JsgsError
+from jsgs.base.ply import load_ply, ply_header, property_names, read_ply_vertices, save_ply
 
 # The header the original 3DGS (GaussianModel.save_ply via plyfile) writes for SH degree 3, spelled out.
 EXPECTED_HEADER_DEG3 = (

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.train.budget import GAUSSIANS_PER_POINT, auto_budget, scene_budget, three_digits
 from jsgs.train.config import TrainConfig, cap_max_settings, command_settings
 

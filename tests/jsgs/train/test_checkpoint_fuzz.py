@@ -18,7 +18,7 @@ from _train_scene import make_scene
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.config import TrainConfig
 from jsgs.train.trainer import Trainer, train

@@ -15,7 +15,7 @@ from _lpips_backbone import random_backbone
 from _train_scene import make_scene
 from test_train import tiny_config
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.strategy import Densifier, initial_subset
 from jsgs.strategy.relocation import compute_relocation, cpu_twins, quat_scale_to_covar
 from jsgs.train import checkpoint as ckpt

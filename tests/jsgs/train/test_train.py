@@ -18,7 +18,7 @@ import pytest
 import torch
 from _train_scene import make_scene
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.config import TrainConfig, config_schema, from_dict, load_config_file, to_dict
 from jsgs.train.method import HookOutput, LossHook, StepContext
@@ -223,7 +223,7 @@ class Recorder(LossHook):
 
 
 def test_end_to_end_loss_decreases_and_outputs(scene: Path, tmp_path: Path) -> None:
-    from jsgs.ply import load_ply
+    from jsgs.base.ply import load_ply
     from jsgs.schemas import validate
 
     rec = Recorder()
@@ -748,7 +748,7 @@ def test_a_signal_stops_after_the_step_with_a_checkpoint(scene: Path, tmp_path: 
 def test_one_writer_per_run_folder(scene: Path, tmp_path: Path) -> None:
     """A run folder is locked while a run writes it: a second writer is refused naming the holder; a lock
     left by a writer that no longer runs is taken over; the lock is gone when the run ends."""
-    from jsgs.io import LOCK_NAME
+    from jsgs.base.io import LOCK_NAME
 
     run = tmp_path / "run"
     run.mkdir()
@@ -768,7 +768,7 @@ def test_one_writer_per_run_folder(scene: Path, tmp_path: Path) -> None:
 def test_a_lock_whose_pid_was_reused_is_taken_over(scene: Path, tmp_path: Path) -> None:
     """The lock records its writer's start time: a PID that runs but started at another time is another
     process (the writer crashed and its PID was reused), so the lock is stale; the same start time holds."""
-    from jsgs.io import LOCK_NAME, _start_time
+    from jsgs.base.io import LOCK_NAME, _start_time
 
     run = tmp_path / "run"
     run.mkdir()
@@ -823,7 +823,7 @@ def test_a_write_that_fails_names_the_file_asked_for(tmp_path: Path, monkeypatch
     names the file asked for, in one line, and leaves no temporary file behind."""
     import errno
 
-    from jsgs.io import write_json_atomic
+    from jsgs.base.io import write_json_atomic
 
     real_replace = os.replace
 
@@ -849,7 +849,7 @@ def test_children_die_with_their_parent(tmp_path: Path) -> None:
     parent = "\n".join(
         [
             "import os, signal, subprocess, sys",
-            "from jsgs.io import die_with_parent",
+            "from jsgs.base.io import die_with_parent",
             "argv = [sys.executable, '-c', 'import time; time.sleep(60)']",
             "c = subprocess.Popen(argv, preexec_fn=die_with_parent)",
             f"open({str(pid_file)!r}, 'w').write(str(c.pid))",

@@ -262,7 +262,7 @@ def test_what_a_killed_run_leaves_is_cleaned_up(scene: Path, tmp_path: Path, fas
     """Half-written (0-byte) temporaries of checkpoints, metrics.json and renders and the lock of a writer
     that no longer runs: --resume removes the temporaries and takes the lock over; a folder holding only such
     leftovers counts as empty for a new run."""
-    from jsgs.io import LOCK_NAME
+    from jsgs.base.io import LOCK_NAME
 
     out = tmp_path / "run"
     base = [str(scene), "--out", str(out), "--device", "cpu", "--config", str(fast_config), "--quiet"]

@@ -32,7 +32,7 @@ def _umask() -> int:
 @contextmanager
 def atomic_path(final: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path in the same folder as ``final``; rename it onto ``final`` only on success."""
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
 
     final = Path(final)
     try:
@@ -87,7 +87,7 @@ def write_with_atomic(final: str | os.PathLike[str], writer: Callable[[Path], No
 def open_log(path: str | os.PathLike[str]) -> BinaryIO:
     """A log file opened for writing from its start (a child process may write into it as it runs), created
     if absent; a link at ``path`` is refused (``O_NOFOLLOW``) rather than written through."""
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
 
     path = Path(path)
     flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
@@ -115,7 +115,7 @@ def open_regular(path: str | os.PathLike[str], buffering: int = -1) -> BinaryIO:
     regular file: the open does not wait for a FIFO's writer (``O_NONBLOCK``), and the check is made on the
     opened file (``fstat``), so nothing can be swapped in between. A missing or unreadable file raises the
     usual OSError (FileNotFoundError, PermissionError), which callers already turn into their own line."""
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
 
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     try:
@@ -145,7 +145,7 @@ def read_regular_text(path: str | os.PathLike[str], encoding: str = "utf-8") -> 
 def refuse_non_regular(path: str | os.PathLike[str]) -> None:
     """JsgsError when ``path`` exists and is not a regular file (for readers that take a path and open it
     themselves, such as pycolmap); a missing file is left to the reader."""
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
 
     try:
         st = os.stat(path)
@@ -166,7 +166,7 @@ class OutputLock:
     where ``/proc`` gives it, so a PID reused after a crash does not keep the folder locked)."""
 
     def __init__(self, folder: str | os.PathLike[str], what: str) -> None:
-        from jsgs.errors import JsgsError
+        from jsgs.base.errors import JsgsError
 
         self.path = Path(folder) / LOCK_NAME
         if self.path.parent.exists() and not self.path.parent.is_dir():
@@ -212,7 +212,7 @@ class OutputLock:
 def _lock_holder(path: Path) -> tuple[int, str, int | None] | None:
     """(PID, what it does, its start time or None) of a lock file; None when unreadable (a writer killed
     between creating and filling it)."""
-    from jsgs.errors import JsgsError
+    from jsgs.base.errors import JsgsError
 
     try:
         doc = json.loads(read_regular_text(path))

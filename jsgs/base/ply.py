@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from jsgs.errors import JsgsError
-from jsgs.io import atomic_path
-from jsgs.run_files import check_gaussians
+from jsgs.base.errors import JsgsError
+from jsgs.base.io import atomic_path
+from jsgs.base.run_files import check_gaussians
 
 ArrayLike = Any  # numpy array or torch tensor (any device, any float dtype)
 
@@ -142,7 +142,7 @@ def read_ply_vertices(path: str | os.PathLike[str]) -> np.ndarray:
     scalar property, in file order). Raises JsgsError for anything else (ASCII or big-endian files, list
     properties in or before ``vertex``, a truncated body). Elements declared before ``vertex`` are skipped.
     """
-    from jsgs.io import read_regular_bytes
+    from jsgs.base.io import read_regular_bytes
 
     path = Path(path)
     data = read_regular_bytes(path)
@@ -194,9 +194,9 @@ def load_ply(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
     :func:`save_ply` takes: ``means`` [N,3], ``scales_log`` [N,3], ``quats`` [N,4] wxyz,
     ``opacities_logit`` [N], ``sh0`` [N,1,3], ``shN`` [N,K-1,3] (coefficient-major again), ``normals`` [N,3]
     (zeros if absent); all float32 (other stored types are converted). Raises JsgsError when a required
-    property is missing, and for a model that cannot be rendered (:func:`jsgs.run_files.check_gaussians`: no
-    Gaussians, a value that is not finite, a centre beyond ±:data:`jsgs.limits.MAX_COORDINATE`, a zero
-    quaternion)."""
+    property is missing, and for a model that cannot be rendered
+    (:func:`jsgs.base.run_files.check_gaussians`: no Gaussians, a value that is not finite, a centre beyond
+    ±:data:`jsgs.base.limits.MAX_COORDINATE`, a zero quaternion)."""
     v = read_ply_vertices(path)
     names = set(v.dtype.names or ())
     n_rest = sum(1 for k in names if re.fullmatch(r"f_rest_\d+", k))

@@ -9,8 +9,8 @@ from typing import Any, TypeVar
 
 import click
 
-from jsgs.errors import JsgsError, Terminated
-from jsgs.limits import MAX_INT_SETTING
+from jsgs.base.errors import JsgsError, Terminated
+from jsgs.base.limits import MAX_INT_SETTING
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -30,7 +30,7 @@ class FiniteFloat(click.ParamType):
         self.lo, self.hi, self.lo_open = lo, hi, lo_open
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> float:
-        from jsgs.limits import check_number
+        from jsgs.base.limits import check_number
 
         try:
             x = float(value)
@@ -99,7 +99,7 @@ def invocation(ctx: click.Context, program: str) -> str:
 
 
 def terminate_on_sigterm() -> None:
-    """SIGTERM raises :class:`~jsgs.errors.Terminated` in the main thread (one line, exit 143, the usual
+    """SIGTERM raises :class:`~jsgs.base.errors.Terminated` in the main thread (one line, exit 143, the usual
     cleanup of atomic writes and locks) instead of a native handler's stack dump: pycolmap installs glog's
     failure handler, which prints one on SIGTERM, when it is imported, so call this after importing it."""
     import signal

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 ENV_MAX_PIXELS = "JSGS_MAX_IMAGE_PIXELS"
 
@@ -61,7 +61,7 @@ def _decode(path: str | Path, what: str, read: Any) -> np.ndarray:
     truncated, not an image, or over the pixel limit."""
     from PIL import Image, UnidentifiedImageError
 
-    from jsgs.io import open_regular
+    from jsgs.base.io import open_regular
 
     apply_pixel_limit()
     try:

@@ -1,8 +1,8 @@
 """What the readers accept: the documented limits (``docs/robustness.md``) and the small checks every reader
-shares, each raising one :class:`jsgs.errors.JsgsError` line that names the file or setting.
+shares, each raising one :class:`jsgs.base.errors.JsgsError` line that names the file or setting.
 
-Imports only the standard library, numpy, :mod:`jsgs.errors` and (to read files) :mod:`jsgs.io`, so any reader
-of either program may use it.
+Imports only the standard library, numpy, :mod:`jsgs.base.errors` and (to read files) :mod:`jsgs.base.io`, so
+any reader of either program may use it.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from jsgs.errors import JsgsError
+from jsgs.base.errors import JsgsError
 
 #: deepest nesting of arrays and objects in a JSON file the tools read (none of the project's is deeper
 #: than 6; Python's parser and the schema validator recurse once per level)
@@ -129,7 +129,7 @@ def parse_json(text: str | bytes, where: str | Path, what: str = "JSON", finite:
 def read_json(path: str | Path, what: str = "JSON", finite: bool = True) -> Any:
     """The regular file at ``path`` parsed by :func:`parse_json`; JsgsError (one line) when it is missing,
     unreadable or not a regular file."""
-    from jsgs.io import read_regular_bytes
+    from jsgs.base.io import read_regular_bytes
 
     path = Path(path)
     try:

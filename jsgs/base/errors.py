@@ -23,11 +23,11 @@ class JsgsError(Exception):
 
 
 class Terminated(Exception):  # noqa: N818 - named for the signal, like KeyboardInterrupt
-    """SIGTERM reached a command that installed :func:`jsgs.cli._common.terminate_on_sigterm` (exit 143)."""
+    """SIGTERM reached a command that installed :func:`jsgs.base.commands.terminate_on_sigterm` (exit 143)."""
 
 
 def reports_user_errors(main: Callable[P, int]) -> Callable[P, int]:
-    """For the ``main`` of an argparse tool (the click commands have ``jsgs.cli._common.user_errors``): a
+    """For the ``main`` of an argparse tool (the click commands have ``jsgs.base.commands.user_errors``): a
     JsgsError it raises becomes ``error: <message>`` on stderr and exit code 1, without a traceback."""
 
     @functools.wraps(main)

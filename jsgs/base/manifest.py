@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from jsgs.errors import JsgsError
-from jsgs.limits import MAX_COORDINATE, MAX_FOCAL_RATIO, MIN_FOCAL_RATIO, check_coordinates, parse_json
+from jsgs.base.errors import JsgsError
+from jsgs.base.limits import MAX_COORDINATE, MAX_FOCAL_RATIO, MIN_FOCAL_RATIO, check_coordinates, parse_json
 
 
 @dataclass(frozen=True)
@@ -176,7 +176,7 @@ def _finite(x: Any) -> bool:
 
 def _check_camera(cam: dict[str, Any], loc: str) -> None:
     """Focal lengths within [MIN_FOCAL_RATIO, MAX_FOCAL_RATIO] x the longer side, the principal point within
-    MAX_FOCAL_RATIO x the longer side of the origin, finite distortion (jsgs.limits)."""
+    MAX_FOCAL_RATIO x the longer side of the origin, finite distortion (jsgs.base.limits)."""
     side = max(cam["width"], cam["height"])
     for key in ("fx", "fy"):
         f = cam[key]
@@ -198,8 +198,8 @@ def _check_camera(cam: dict[str, Any], loc: str) -> None:
 
 def validate_document(doc: Any, where: str) -> None:
     """Raise JsgsError (one line naming ``where``) unless ``doc`` is a valid manifest: the schema, plus what a
-    schema cannot say — finite numbers within the limits of :mod:`jsgs.limits` (coordinates, focal lengths,
-    principal points), matching point counts, unique view names, rotations that are rotations."""
+    schema cannot say — finite numbers within the limits of :mod:`jsgs.base.limits` (coordinates, focal
+    lengths, principal points), matching point counts, unique view names, rotations that are rotations."""
     from jsgs.schemas import validate
 
     if isinstance(doc, dict) and isinstance(doc.get("points"), dict):
@@ -307,7 +307,7 @@ def load_manifest(path: str | Path, check_files: bool = True) -> Manifest:
     """Read, validate and type ``path`` (a manifest, or a folder holding ``manifest.json``). Image and
     reference paths are resolved against the manifest's folder (absolute paths are taken as they are); with
     ``check_files`` each must exist. Any defect raises one JsgsError naming the file."""
-    from jsgs.io import read_regular_text
+    from jsgs.base.io import read_regular_text
 
     path = manifest_file(path)
     try:

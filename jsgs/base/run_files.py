@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from jsgs.errors import JsgsError
-from jsgs.limits import MAX_COORDINATE
+from jsgs.base.errors import JsgsError
+from jsgs.base.limits import MAX_COORDINATE
 
 #: the trainer's own export of the model in the scene's COLMAP frame
 COLMAP_PLY = "point_cloud_colmap.ply"
@@ -47,7 +47,7 @@ def refuse_run_files(run: str | os.PathLike[str], outputs: Iterable[Path], hint:
 def check_gaussians(arrays: Mapping[str, Any], source: str | os.PathLike[str]) -> int:
     """The number of Gaussians in ``arrays`` (``means`` [N, 3], ``quats`` [N, 4] and the other parameters,
     numpy arrays or torch tensors), or JsgsError (one line naming ``source``) when there are none, when any
-    has a non-finite parameter (NaN, ±inf), a centre beyond ±:data:`jsgs.limits.MAX_COORDINATE` or a zero
+    has a non-finite parameter (NaN, ±inf), a centre beyond ±:data:`jsgs.base.limits.MAX_COORDINATE` or a zero
     rotation quaternion: such a model renders black or exports rows that viewers drop, so it is refused
     rather than written."""
     arr = {k: np.asarray(v.detach().cpu() if hasattr(v, "detach") else v) for k, v in arrays.items()}
