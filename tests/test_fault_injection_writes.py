@@ -220,7 +220,7 @@ def test_render_refuses_sizes_and_rates_up_front(tmp_path: Path, option: list[st
 def test_render_refuses_camera_path_files_beyond_the_limits(
     run: Path, tmp_path: Path, cameras: int, size: tuple[int, int], needle: str
 ) -> None:
-    from jsgs.camera_path import CameraPath
+    from jsgs.apps.camera_path import CameraPath
 
     K = np.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
     doc = CameraPath(np.repeat(np.eye(4)[None], 2, 0), K, *size, "interpolate").to_json(30.0)
@@ -239,10 +239,10 @@ def test_render_streams_frames_to_the_encoder(
 ) -> None:
     import imageio.v2 as iio
 
-    import jsgs.viewer
+    import jsgs.apps.viewer
 
     events: list[str] = []
-    render_rgb, get_writer = jsgs.viewer.render_rgb, iio.get_writer
+    render_rgb, get_writer = jsgs.apps.viewer.render_rgb, iio.get_writer
 
     def rendering(*a: object, **k: object) -> np.ndarray:
         events.append("render")
@@ -259,7 +259,7 @@ def test_render_streams_frames_to_the_encoder(
         w.append_data = appending
         return w
 
-    monkeypatch.setattr(jsgs.viewer, "render_rgb", rendering)
+    monkeypatch.setattr(jsgs.apps.viewer, "render_rgb", rendering)
     monkeypatch.setattr(iio, "get_writer", writer)
     args = ["render", str(run), "--out", str(tmp_path / "v.mp4"), "--frames", "5", "--device", "cpu"]
     r = CliRunner().invoke(jsgs_main, args)

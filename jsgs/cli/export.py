@@ -1,4 +1,4 @@
-"""``jsgs export RUN --out FILE``: a thin wrapper over :func:`jsgs.export.export_run`."""
+"""``jsgs export RUN --out FILE``: a thin wrapper over :func:`jsgs.train.export.export_run`."""
 
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ from jsgs.base.commands import CONTEXT, EXAMPLE, user_errors
 def export_command(run: Path, out: Path, fmt: str, frame: str, force: bool) -> None:
     """Write a finished RUN's Gaussians to FILE (and FILE.json, what it holds), in the scene's COLMAP frame by
     default, for other 3DGS viewers and tools."""
-    from jsgs.export import export_run
+    from jsgs.train.export import export_run
 
     rec = export_run(run, out, fmt, frame, force=force)
     what = f"{rec['gaussians']} Gaussians, {fmt}, {frame} frame, {rec['bytes']} bytes"

@@ -1,4 +1,4 @@
-"""``jsgs render RUN --out FILE``: a thin wrapper over :func:`jsgs.render_video.render_run`."""
+"""``jsgs render RUN --out FILE``: a thin wrapper over :func:`jsgs.apps.render_video.render_run`."""
 
 from __future__ import annotations
 
@@ -54,7 +54,7 @@ def render_command(
 ) -> None:
     """Render a finished RUN along a camera path to a video or PNG frames (the run's own rasterizer: gsplat
     on CUDA, the torch reference on the CPU, where small sizes are advisable)."""
-    from jsgs.render_video import parse_size, render_run
+    from jsgs.apps.render_video import parse_size, render_run
 
     res = render_run(run, out, path, frames, fps, parse_size(size), device, sys.stderr.isatty(), force)
     what = f"{res['frames']} frames of {res['width']}x{res['height']}"

@@ -227,7 +227,7 @@ def train_command(
         )
     callbacks = []
     if viewer_port is not None:
-        from jsgs.viewer import LiveViewer
+        from jsgs.apps.viewer import LiveViewer
 
         callbacks.append(LiveViewer(port=viewer_port))
     doc = train(

@@ -1,4 +1,4 @@
-"""``jsgs view RUN``: a thin wrapper over :class:`jsgs.viewer.Viewer`."""
+"""``jsgs view RUN``: a thin wrapper over :class:`jsgs.apps.viewer.Viewer`."""
 
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ def view_command(run: Path, host: str, port: int, max_size: int | None, device: 
     """Look at a trained RUN in the browser: the model rendered on this machine for the browser's camera,
     the training cameras as frustums, and a button that saves the current camera to RUN/viewer_cameras.json.
     Ctrl-C stops the server."""
-    from jsgs.viewer import Viewer, load_run_model
+    from jsgs.apps.viewer import Viewer, load_run_model
 
     model = load_run_model(run, device)
     size = max_size or (1024 if model.device.type == "cuda" else 320)

@@ -1080,9 +1080,9 @@ class Trainer:
     def export_ply(self) -> None:
         """Write ``point_cloud.ply`` (3DGS layout, normalised training world: what resume, the viewer and the
         tests read) and ``point_cloud_colmap.ply`` (the same in the scene's COLMAP frame, for other tools;
-        :func:`jsgs.export.export_run`)."""
+        :func:`jsgs.train.export.export_run`)."""
         from jsgs.base.ply import save_ply
-        from jsgs.export import export_run
+        from jsgs.train.export import export_run
 
         s = self.splats
         save_ply(self.paths.ply, s["means"], s["scales"], s["quats"], s["opacities"], s["sh0"], s["shN"])

@@ -14,7 +14,7 @@ import torch
 from _train_scene import make_scene
 from click.testing import CliRunner
 
-from jsgs.export import quat_multiply, sh_band_rotations, split_similarity, to_colmap_frame
+from jsgs.train.export import quat_multiply, sh_band_rotations, split_similarity, to_colmap_frame
 
 
 def _random_rotation(seed: int) -> np.ndarray:
@@ -81,8 +81,8 @@ def _render(p: dict[str, np.ndarray], viewmat: np.ndarray, K: np.ndarray, w: int
 
 
 def test_colmap_frame_renders_what_was_trained(run: Path) -> None:
+    from jsgs.apps.viewer import load_run_model
     from jsgs.base.ply import load_ply
-    from jsgs.viewer import load_run_model
 
     model = load_run_model(run, "cpu")
     T = np.asarray(json.loads((run / "config.json").read_text())["derived"]["normalization"])

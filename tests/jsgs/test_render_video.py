@@ -14,7 +14,7 @@ from _train_scene import make_scene
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.camera_path import focus_point, interpolate, look_at, orbit, scaled_K
+from jsgs.apps.camera_path import focus_point, interpolate, look_at, orbit, scaled_K
 
 
 def _ring(n: int) -> np.ndarray:
@@ -101,9 +101,9 @@ def test_video_frames_and_path_round_trip(run: Path, tmp_path: Path) -> None:
 
 
 def test_test_views_beside_references_and_viewer_cameras(run: Path, tmp_path: Path) -> None:
+    from jsgs.apps.viewer import load_run_model, save_camera
     from jsgs.base.rotations import matrix_to_quat
     from jsgs.cli import main
-    from jsgs.viewer import load_run_model, save_camera
 
     r = CliRunner().invoke(main, ["render", str(run), "--out", str(tmp_path / "t"), "--path", "test",
                                   "--device", "cpu"])  # fmt: skip

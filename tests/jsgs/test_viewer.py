@@ -1,4 +1,4 @@
-"""``jsgs view`` (jsgs.viewer): the camera conversions against OpenCV and the trainer's own cameras, a
+"""``jsgs view`` (jsgs.apps.viewer): the camera conversions against OpenCV and the trainer's own cameras, a
 finished CPU run rendered by the viewer equal to the trainer's saved evaluation render, the server answering
 HTTP on a free port, saved cameras (schema), and one-line errors."""
 
@@ -19,8 +19,7 @@ from _train_scene import make_scene
 from click.testing import CliRunner
 from PIL import Image
 
-from jsgs.base.rotations import matrix_to_quat, quat_to_matrix
-from jsgs.viewer import (
+from jsgs.apps.viewer import (
     add_frustums,
     camera_matrices,
     frustum_scale,
@@ -30,6 +29,7 @@ from jsgs.viewer import (
     save_camera,
     start_camera,
 )
+from jsgs.base.rotations import matrix_to_quat, quat_to_matrix
 
 
 def test_quaternions_against_opencv_rodrigues() -> None:
@@ -143,8 +143,8 @@ def _free_port() -> int:
 
 
 def test_server_answers_and_cameras_are_saved(finished_run: Path) -> None:
+    from jsgs.apps.viewer import Viewer
     from jsgs.schemas import validate
-    from jsgs.viewer import Viewer
 
     model = load_run_model(finished_run, "cpu")
     viewer = Viewer(model, port=_free_port(), max_size=64)
@@ -175,10 +175,10 @@ def test_view_errors_are_one_line(tmp_path: Path, finished_run: Path) -> None:
 
 
 def test_live_viewer_serves_the_model_while_it_trains(tmp_path: Path) -> None:
+    from jsgs.apps.viewer import LiveViewer
     from jsgs.train.callbacks import Callback
     from jsgs.train.config import TrainConfig
     from jsgs.train.trainer import train
-    from jsgs.viewer import LiveViewer
 
     manifest = make_scene(tmp_path / "scene", width=32, height=24)
     live = LiveViewer(port=_free_port(), max_size=32, announce=lambda s: None)
@@ -207,7 +207,7 @@ def test_the_browser_shows_the_splat(finished_run: Path, tmp_path: Path) -> None
     zero opacity is a blank canvas (so the check can fail)."""
     import torch
 
-    from jsgs.viewer import Viewer
+    from jsgs.apps.viewer import Viewer
 
     model = load_run_model(finished_run, "cpu")
 
@@ -261,8 +261,8 @@ def test_broken_browser_cameras_are_never_saved(tmp_path: Path, position: list[f
     """What a browser reports is checked before anything is computed or written: one line, no file."""
     from types import SimpleNamespace
 
+    from jsgs.apps.viewer import check_camera
     from jsgs.base.errors import JsgsError
-    from jsgs.viewer import check_camera
 
     with pytest.raises(JsgsError, match=needle):
         check_camera(position, wxyz, fov, aspect)
@@ -275,8 +275,8 @@ def test_broken_browser_cameras_are_never_saved(tmp_path: Path, position: list[f
 
 def test_saved_cameras_with_broken_values_are_refused_by_render(tmp_path: Path) -> None:
     """A viewer_cameras.json edited to hold a NaN position or a scaled rotation: one line from read_path."""
+    from jsgs.apps.camera_path import read_path
     from jsgs.base.errors import JsgsError
-    from jsgs.camera_path import read_path
 
     good = np.eye(4).tolist()
     for (i, j, bad), needle in (((0, 3, math.nan), "not a finite number"), ((0, 3, 1e300), "beyond"),

@@ -12,7 +12,7 @@ Per phase, for one view (``B = 1``): JO forward (``jpeg_observe``), L_obs's phot
 (``dct_supervision``), the backward through all three (λ-weighted as in training), and the deferred GC's
 closed-form work inside the backward (r̄ from the pooled sums, ``controller_matrix``,
 ``fro_loss_and_grads``) for ``--gaussians`` Gaussians. Columns: kernels (aten ops that are not views,
-counted by ``jsgs.opcount.KernelCounter``) and the host time per call at the given size (median of
+counted by ``jsgs.apps.opcount.KernelCounter``) and the host time per call at the given size (median of
 ``--repeats``; at the default tiny size this is almost all dispatch, the part that a GPU cannot hide;
 ``--repeats 0``: not timed).
 
@@ -38,7 +38,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from jsgs.opcount import KernelCounter, count_phases_detail, jsgs_step  # noqa: E402
+from jsgs.apps.opcount import KernelCounter, count_phases_detail, jsgs_step  # noqa: E402
 
 PHASES = ("JO", "L_obs", "DS", "backward", "GC (in backward)")
 

@@ -40,7 +40,7 @@ Columns (per training step, averaged over the window):
 - kernel launches/step: on CUDA, host calls of ``cudaLaunchKernel`` / ``cudaLaunchKernelExC`` /
   ``cuLaunchKernel`` (Triton) and the like; on the CPU, the aten ops that produce data (views, aliases and
   allocations are free; an op that only dispatches to others, e.g. ``aten::linear``, counts as the ops it
-  runs: the rule of ``jsgs.opcount.KernelCounter``);
+  runs: the rule of ``jsgs.apps.opcount.KernelCounter``);
 - graph launches/step: ``cudaGraphLaunch`` calls (each replays many kernels for one launch);
 - device kernel ms/step: the summed duration of everything the GPU ran (kernels, copies, fills), CUDA only;
 - device busy %: device kernel ms / unprofiled wall ms. Well below 100 % with many launches per step means
@@ -90,10 +90,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_train_overhead import build_scene, variant_config  # noqa: E402
 
 import jsgs  # noqa: E402
+from jsgs.apps.opcount import FREE_OPS  # noqa: E402
 from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
 from jsgs.base.io import write_json_atomic  # noqa: E402
 from jsgs.bench.stats import median_interval  # noqa: E402
-from jsgs.opcount import FREE_OPS  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
 from jsgs.train.config import TrainConfig, load_config_file  # noqa: E402
 from jsgs.train.evaluate import synchronize  # noqa: E402
@@ -132,8 +132,8 @@ SYNC_CALLS = frozenset(
         "cuMemcpy",
     }
 )
-#: aten ops that launch nothing although their schema is not a view's (jsgs.opcount's, plus allocations and
-#: the conjugate/negative-bit resolvers, which return their input unless a bit is set).
+#: aten ops that launch nothing although their schema is not a view's (jsgs.apps.opcount's, plus allocations
+#: and the conjugate/negative-bit resolvers, which return their input unless a bit is set).
 FREE_ATEN = frozenset(n.replace("aten.", "aten::") for n in FREE_OPS) | {
     "aten::empty",
     "aten::empty_strided",

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import torch
 
-from jsgs.opcount import KernelCounter, count_phases, jsgs_step
+from jsgs.apps.opcount import KernelCounter, count_phases, jsgs_step
 from jsgs.render.reference import quat_to_rotmat
 
 

@@ -1,7 +1,7 @@
-"""``jsgs render RUN --out FILE``: a finished run rendered along a camera path (:mod:`jsgs.camera_path`) to a
-video (imageio with imageio-ffmpeg, whose ffmpeg ships inside its wheel) or to numbered PNG frames, with the
-path written beside it as JSON so it can be edited and rendered again. ``--path test`` shows each test view
-beside its reference. Rendering is the run's own rasterizer (gsplat on CUDA, the torch reference on the
+"""``jsgs render RUN --out FILE``: a finished run rendered along a camera path (:mod:`jsgs.apps.camera_path`)
+to a video (imageio with imageio-ffmpeg, whose ffmpeg ships inside its wheel) or to numbered PNG frames, with
+the path written beside it as JSON so it can be edited and rendered again. ``--path test`` shows each test
+view beside its reference. Rendering is the run's own rasterizer (gsplat on CUDA, the torch reference on the
 CPU)."""
 
 from __future__ import annotations
@@ -90,11 +90,11 @@ def render_run(
     would draw nothing (no Gaussians, a non-finite value, a zero rotation) is refused."""
     from tqdm import tqdm
 
+    from jsgs.apps.camera_path import KINDS, CameraPath, build_path, read_path, scaled_K
+    from jsgs.apps.viewer import load_run_model, render_rgb
     from jsgs.base.run_files import refuse_run_files
-    from jsgs.camera_path import KINDS, CameraPath, build_path, read_path, scaled_K
     from jsgs.schemas import validate
     from jsgs.train.data import load_image
-    from jsgs.viewer import load_run_model, render_rgb
 
     out = Path(out)
     check_fps(fps)
