@@ -1,7 +1,7 @@
-"""SSIM's forward + backward: the fused CUDA kernel (``jsgs/csrc/ssim.cu``) against the torch twin (two
-grouped 1-D convolutions, ``jsgs.ssim``), timed eagerly and as a CUDA-graph replay, with each one's error
-against the twin in float64. This is the loss term that both the baseline's ℓ_ph and JSGS's L_obs pay once
-per step, so its cost moves the per-iteration time of both methods.
+"""SSIM's forward + backward: the fused CUDA kernel (``jsgs/kernels/csrc/ssim.cu``) against the torch twin
+(two grouped 1-D convolutions, ``jsgs.kernels``), timed eagerly and as a CUDA-graph replay, with each one's
+error against the twin in float64. This is the loss term that both the baseline's ℓ_ph and JSGS's L_obs pay
+once per step, so its cost moves the per-iteration time of both methods.
 
     python3 benchmarks/bench_ssim.py [--sizes 504x378,1297x840] [--repeats 200] [--padding valid]
 
@@ -23,7 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from jsgs.ssim import ssim  # noqa: E402
+from jsgs.kernels import ssim  # noqa: E402
 
 
 def _time_ms(fn: Callable[[], object], repeats: int) -> float:

@@ -23,5 +23,5 @@ fi
 # side on an empty build folder would each try to build them, and all but one fail.
 mkdir -p "$TORCH_EXTENSIONS_DIR"
 flock "$TORCH_EXTENSIONS_DIR/.build.lock" python3 -c \
-    "from gsplat.cuda._backend import _C; from jsgs.cuda_ext import extension; extension()" >/dev/null
+    "from gsplat.cuda._backend import _C; from jsgs.kernels import extension; extension()" >/dev/null
 exec "$@"

@@ -20,7 +20,7 @@ step "built $(basename "$WHEEL"); package data in it:"
 "$PY" - "$WHEEL" <<'PY'
 import sys, zipfile
 names = zipfile.ZipFile(sys.argv[1]).namelist()
-for pattern in ("jsgs/schemas/manifest.schema.json", "jsgs/csrc/ssim.cu", "jsgs/metrics/weights/lpips_v0.1_alex.pth"):
+for pattern in ("jsgs/schemas/manifest.schema.json", "jsgs/kernels/csrc/ssim.cu", "jsgs/metrics/weights/lpips_v0.1_alex.pth"):
     if pattern not in names:
         sys.exit(f"wheel smoke: {pattern} is missing from the wheel")
 if any(n.startswith("cli/") for n in names):

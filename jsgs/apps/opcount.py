@@ -86,7 +86,7 @@ def jsgs_step(
     from jsgs.jpeg.losses import photometric_loss
     from jsgs.jpeg.observe import jpeg_observe
     from jsgs.jpeg.supervision import dct_supervision
-    from jsgs.method.controller import fro_from_probe_grad
+    from jsgs.kernels import fro_from_probe_grad
 
     w, h = size
     g = torch.Generator().manual_seed(0)

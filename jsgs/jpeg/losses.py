@@ -8,7 +8,7 @@ from typing import NamedTuple
 import numpy as np
 from torch import Tensor
 
-from ..ssim import ssim
+from ..kernels import ssim
 from .observe import jpeg_observe
 
 LAMBDA_SSIM = 0.2
@@ -42,7 +42,7 @@ def photometric_terms(
             since views share H, W); "none" -> ``(B,)``.
         padding: SSIM borders, "same" (zero-padded, the original 3DGS; :data:`SSIM_PADDING`) or "valid"
             (gsplat's training loss, the trainer's default ``loss.ssim_padding``).
-        ssim_kernel: the SSIM implementation, "auto", "torch" or "cuda" (:mod:`jsgs.ssim`; same value).
+        ssim_kernel: the SSIM implementation, "auto", "torch" or "cuda" (:mod:`jsgs.kernels`; same value).
         channels_last: x and y are ``(B, H, W, 3)``.
     Returns:
         The loss and its parts (unitless).

@@ -145,7 +145,7 @@ class GraphedImageTerms:
 
 
 class GraphedController:
-    """The deferred Gaussian Controller (:func:`jsgs.method.controller.fro_from_probe_grad`) replayed as a
+    """The deferred Gaussian Controller (:func:`jsgs.kernels.fro_from_probe_grad`) replayed as a
     CUDA graph: one launch instead of about sixty small kernels inside every backward.
 
     Unlike the image terms, its size changes during training: N changes at densification, when the
@@ -155,7 +155,7 @@ class GraphedController:
     probe's gradient and the camera are copied into the graph's own buffers before each replay. The outputs
     live in the graph's memory, valid until the next call: ``(grad_logit [N], grad_log_scale [N, 3],
     stats [4])`` with ``stats`` = (L_fro, |V_i|, mean r̄, #damped), see
-    :func:`jsgs.method.controller.packed_fro_stats`.
+    :func:`jsgs.kernels.packed_fro_stats`.
 
     Recording happens inside the trainer's backward (from the probe's post-accumulate-grad hook), on a side
     stream, with no host synchronisation beyond what recording itself needs.
@@ -172,7 +172,7 @@ class GraphedController:
     def _run(
         self, probe_grad: Tensor, viewmat: Tensor, K: Tensor, params: tuple[Tensor, ...], w: int, h: int
     ) -> tuple[Tensor, Tensor, Tensor]:
-        from jsgs.method.controller import fro_from_probe_grad, packed_fro_stats
+        from jsgs.kernels import fro_from_probe_grad, packed_fro_stats
 
         logits, log_scales, means, quats = params
         out = fro_from_probe_grad(

@@ -25,12 +25,12 @@ values and gradients (tested), chosen by ``gc_pooling``:
 
 * ``"deferred"`` (default): ``probe_objective`` (value exactly 0) rides in the ``fro`` term, so the main
   backward itself pools ``(o·S_r, ν)`` into the probe's gradient; a post-accumulate hook on the probe then
-  computes r̄, V_i, L_fro and L_fro's closed-form gradient and adds ``λ_fro ∂L_fro/∂θ`` to the
-  opacity-logit and log-scale gradients (``jsgs.method.controller.fro_from_probe_grad``; on CUDA the three
-  fused kernels of ``jsgs/csrc/controller.cu``, ``method_options.speed.gc_kernel``, or that function replayed
-  as one graph, ``jsgs.method.graphed.GraphedController``). No extra rasteriser pass of any kind. The ``fro``
-  term's value (and the GC statistics) are written in place during that backward: they are correct wherever
-  the trainer reads them after ``loss.backward()`` (progress bar, metrics.json), but the total ``loss`` the
+  computes r̄, V_i, L_fro and L_fro's closed-form gradient and adds ``λ_fro ∂L_fro/∂θ`` to the opacity-logit
+  and log-scale gradients (``jsgs.kernels.fro_from_probe_grad``; on CUDA the three fused kernels of
+  ``jsgs/kernels/csrc/controller.cu``, ``method_options.speed.gc_kernel``, or that function replayed as one
+  graph, ``jsgs.method.graphed.GraphedController``). No extra rasteriser pass of any kind. The ``fro`` term's
+  value (and the GC statistics) are written in place during that backward: they are correct wherever the
+  trainer reads them after ``loss.backward()`` (progress bar, metrics.json), but the total ``loss`` the
   trainer sums *before* the backward does not include ``λ_fro L_fro`` (its logged value; the gradient is
   complete).
 * ``"now"``: ``pool_now`` runs one extra rasteriser backward before the loss is formed; L_fro is an ordinary
@@ -49,13 +49,13 @@ import torch
 from torch import Tensor
 
 from jsgs.base.errors import JsgsError
-from jsgs.cuda_ext import use_kernels
-from jsgs.method.controller import (
+from jsgs.kernels import (
     controller_matrix,
     fro_from_probe_grad,
     fro_from_probe_grad_fused,
     fro_loss,
     packed_fro_stats,
+    use_kernels,
 )
 from jsgs.method.graphed import GraphCaptureFailed, GraphedController, GraphedImageTerms
 from jsgs.method.image_terms import (
@@ -128,7 +128,7 @@ class JsgsHook(LossHook):
             "supervise": maybe_compile(dct_supervision, options.speed.compile),
         }
         self._graphed = None
-        # what fixes the deferred GC (jsgs.method.controller.fro_from_probe_grad), eager or graphed
+        # what fixes the deferred GC (jsgs.kernels.fro_from_probe_grad), eager or graphed
         self._gc_settings: dict[str, float] = dict(
             weight=options.lambda_fro, near_plane=near_plane, eps_proj=options.eps_proj, tau_s=options.tau_s
         )

@@ -14,7 +14,7 @@ from typing import Any, Literal
 import torch
 
 from jsgs.base.errors import JsgsError
-from jsgs.method.controller import EPS_PROJ, TAU_S
+from jsgs.kernels import EPS_PROJ, TAU_S
 from jsgs.train.config import check_bounds, parse_method_options, setting
 
 #: ``method_options.speed.compile`` (``jsgs train --compile``, ``jsgs bench --compile``)
@@ -43,8 +43,8 @@ class JsgsSpeed:
     )
     gc_kernel: Literal["auto", "torch", "cuda"] = setting(
         "auto",
-        "The deferred Gaussian Controller's implementation: cuda (jsgs/csrc/controller.cu, three fused "
-        "kernels, no graph), torch (its twin jsgs.method.controller.fro_from_probe_grad, graphed per "
+        "The deferred Gaussian Controller's implementation: cuda (jsgs/kernels/csrc/controller.cu, three "
+        "fused kernels, no graph), torch (its twin jsgs.kernels.fro_from_probe_grad, graphed per "
         "cuda_graph_gc) or auto (cuda on a GPU where the kernels build, torch elsewhere).",
     )
 

@@ -39,12 +39,11 @@ must be divided out of the gradient.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import torch
 from torch import Tensor
 
 from jsgs.base.known_grad import with_known_gradient
+from jsgs.kernels import PooledSums, sums_from_probe_grad
 from jsgs.render.reference import Projected, TileBins, bin_tiles, project_gaussians
 from jsgs.render.reference.composite import (
     CHUNK_PAIRS,
@@ -54,42 +53,6 @@ from jsgs.render.reference.composite import (
     tile_blocks,
     tile_origins,
 )
-
-EPS_PROJ = 1e-6  # the paper's ε_proj
-
-
-@dataclass
-class PooledSums:
-    """Pooled sums per (camera, Gaussian), each [C, N] (see the module docstring)."""
-
-    s_r: Tensor  # Σ_p t·a·r
-    s_1: Tensor  # Σ_p t·a
-    nu: Tensor  # Σ_p t·α (contribution mass)
-
-    def rbar(self, eps: float = EPS_PROJ) -> Tensor:
-        """r̄ = S_r / (S_1 + ε_proj), [C, N] (0 where the Gaussian does not contribute)."""
-        return self.s_r / (self.s_1 + eps)
-
-    @property
-    def contributors(self) -> Tensor:
-        """[C, N] bool: V_i = {j : ν_ij > 0}."""
-        return self.nu > 0
-
-
-def sums_from_probe_grad(grad: Tensor, opacities: Tensor, weight: float = 1.0) -> PooledSums:
-    """Pooled sums from the probe's gradient ``grad`` [C, N, 2] = weight·(o·S_r, ν) (``probe_objective``
-    entered the loss with the factor ``weight``), ``opacities`` [N] or [C, N] the activated o the pass
-    rendered with.
-
-    Contributors have o >= 1/255 (others are culled); ν == 0 ⇔ no contribution, and the sums are 0 there."""
-    g = grad.detach()
-    if weight != 1.0:
-        g = g / weight
-    nu = g[..., 1]
-    o = opacities.detach().to(g.dtype)
-    o = (o[None, :] if o.dim() == 1 else o).expand_as(nu)
-    o_safe = torch.where(nu > 0, o, 1.0)
-    return PooledSums(s_r=g[..., 0] / o_safe, s_1=nu / o_safe, nu=nu)
 
 
 def new_probe(n_gaussians: int, like: Tensor, n_cameras: int | None = None) -> Tensor:

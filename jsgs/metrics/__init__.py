@@ -2,7 +2,7 @@
 
 ``evaluate_images(pred, ref)`` is what the trainer calls at each evaluation step. Per-image metrics:
 ``jsgs.metrics.psnr.psnr`` and ``jsgs.metrics.lpips.lpips`` (see their modules for conventions; SSIM is
-``jsgs.ssim.ssim``). The package does not re-export the function ``lpips``: that name is the submodule's.
+``jsgs.kernels.ssim``). The package does not re-export the function ``lpips``: that name is the submodule's.
 """
 
 from __future__ import annotations
@@ -68,12 +68,12 @@ def evaluate_images(
     rasterizer) must be permuted by the caller. ``pred`` is clamped to [0, 1] first, as gsplat's
     simple_trainer does before its metrics; ``ref`` must already lie in [0, 1].
 
-    SSIM is ``jsgs.ssim.ssim`` (11x11 Gaussian window, sigma 1.5) per view. LPIPS uses the backbone named by
-    ``lpips_weights`` or ``$JSGS_LPIPS_WEIGHTS`` on pred's device; when none is available, or a view is
+    SSIM is ``jsgs.kernels.ssim`` (11x11 Gaussian window, sigma 1.5) per view. LPIPS uses the backbone named
+    by ``lpips_weights`` or ``$JSGS_LPIPS_WEIGHTS`` on pred's device; when none is available, or a view is
     smaller than 31 px, ``lpips`` is None and a warning says why (once per process). ``with_lpips=False``
     skips it silently. No gradients are recorded.
     """
-    from jsgs.ssim import ssim  # owned by the JPEG/loss module; imported here so psnr() works without it
+    from jsgs.kernels import ssim
 
     preds, refs = _views(pred, "pred"), _views(ref, "ref")
     if len(preds) != len(refs) or not preds:

@@ -11,7 +11,7 @@ Two of gsplat 1.5.3's strategies, chosen by ``strategy.type`` in the run's setti
   Runs with equal caps have equal model sizes, which is what a fair comparison of losses needs.
 
 :class:`Densifier` is the one interface the trainer calls for either. gsplat's MCMC ops call two CUDA
-kernels; on the CPU their torch twins in :mod:`jsgs.strategy.relocation` run instead.
+kernels; on the CPU their torch twins in :mod:`jsgs.kernels` run instead.
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ class Densifier:
         if self.type == "default":
             self.gsplat.step_post_backward(params, optimizers, state, step, info, packed=packed)
             return
-        from jsgs.strategy.relocation import cpu_twins
+        from jsgs.kernels import cpu_twins
 
         with cpu_twins():
             self.gsplat.step_post_backward(params, optimizers, state, step, info, lr=lr)

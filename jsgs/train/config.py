@@ -262,9 +262,9 @@ class SpeedConfig:
 
     ssim_kernel: Literal["auto", "torch", "cuda"] = _f(
         "auto",
-        "SSIM implementation for l_ph and L_obs (same value): auto (the fused CUDA kernel jsgs/csrc/ssim.cu "
-        "on a GPU, as gsplat's simple_trainer uses fused-ssim; the torch twin elsewhere), torch (separable "
-        "convolutions everywhere) or cuda (the kernel, or an error).",
+        "SSIM implementation for l_ph and L_obs (same value): auto (the fused CUDA kernel "
+        "jsgs/kernels/csrc/ssim.cu on a GPU, as gsplat's simple_trainer uses fused-ssim; the torch twin "
+        "elsewhere), torch (separable convolutions everywhere) or cuda (the kernel, or an error).",
     )
 
 

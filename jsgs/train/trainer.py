@@ -40,7 +40,7 @@ from torch import Tensor
 import jsgs
 from jsgs.base.errors import JsgsError
 from jsgs.base.io import LOCK_NAME, OutputLock, write_json_atomic
-from jsgs.cuda_ext import use_kernels
+from jsgs.kernels import use_kernels
 from jsgs.strategy import Densifier, initial_subset
 from jsgs.train import checkpoint as ckpt
 from jsgs.train import distributed as dd

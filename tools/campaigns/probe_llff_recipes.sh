@@ -9,7 +9,7 @@ for s in llff_flower llff_fern; do
   python3 -c "from jsgstools.derive import derive; derive('.gpu/bench/data/$s/clean_s0/manifest.json', '$R/data_$s', 'gaussian', seed=0)" >/dev/null
 done
 python3 -c "from gsplat.cuda._backend import _C; print('gsplat ready', flush=True)" 2>&1 | tail -1
-python3 -c "from jsgs.cuda_ext import extension; extension(); print('jsgs kernels ready')" 2>&1 | tail -1
+python3 -c "from jsgs.kernels import extension; extension(); print('jsgs kernels ready')" 2>&1 | tail -1
 echo "build done at $(( $(date +%s) - T0 )) s"
 run() { # gpu scene name method manifest settings-json
   echo "$6" > $R/cfg_$2_$3.json

@@ -12,7 +12,7 @@ for s in llff_fern custom_kwrous_cup custom_myhan_mouse; do
   done
 done
 python3 -c "from gsplat.cuda._backend import _C; print('gsplat ready', flush=True)" 2>&1 | tail -1
-python3 -c "from jsgs.cuda_ext import extension; extension(); print('jsgs kernels ready')" 2>&1 | tail -1
+python3 -c "from jsgs.kernels import extension; extension(); print('jsgs kernels ready')" 2>&1 | tail -1
 echo "build done at $(( $(date +%s) - T0 )) s"
 EV=1000,2000,3000,4000,5000,6000,7000,8000,9000,10000
 run() { # gpu scene sched tag method seed settings-json

@@ -123,14 +123,14 @@ def main(argv: list[str] | None = None) -> int:
     print("")
     print(f"Of L_obs and the backward, SSIM forward + backward on {device.type} ({s[1]}): "
           f"{s[0] / 1e6:.1f} MB, {s[0] / (w * h):,.0f} bytes / pixel (on a GPU the fused kernel of "
-          "jsgs/csrc/ssim.cu runs instead).")  # fmt: skip
+          "jsgs/kernels/csrc/ssim.cu runs instead).")  # fmt: skip
     return 0
 
 
 def ssim_traffic(size: tuple[int, int], device: torch.device) -> tuple[int, str]:
     """Bytes moved by one SSIM forward and backward of a ``size`` (W, H) RGB pair on ``device``, and the
     implementation that ran."""
-    from jsgs.ssim import ssim
+    from jsgs.kernels import ssim
 
     w, h = size
     x = torch.rand(1, 3, h, w, device=device, requires_grad=True)

@@ -1,5 +1,5 @@
-"""The fused Gaussian Controller (``jsgs/csrc/controller.cu``) against its torch twin
-(``jsgs.method.controller.fro_from_probe_grad``), and ``method_options.speed.gc_kernel``.
+"""The fused Gaussian Controller (``jsgs/kernels/csrc/controller.cu``) against its torch twin
+(``jsgs.kernels.fro_from_probe_grad``), and ``method_options.speed.gc_kernel``.
 
 On CPU: the option's resolution and refusals. On CUDA: gradients and statistics equal to the twin's in
 float64 (tight) and float32, with hard cases (Gaussians behind the near plane and far outside the image,
@@ -22,7 +22,7 @@ from test_graphed import assert_same_training, train_jsgs_variants
 from test_jsgs_method import jsgs_options, make_view, new_hook
 
 from jsgs.base.errors import JsgsError
-from jsgs.method.controller import fro_from_probe_grad, fro_from_probe_grad_fused, packed_fro_stats
+from jsgs.kernels import fro_from_probe_grad, fro_from_probe_grad_fused, packed_fro_stats
 from jsgs.method.hook import JsgsHook
 from jsgs.method.options import parse_options
 
@@ -45,7 +45,7 @@ def test_gc_kernel_option_on_cpu() -> None:
 
 def test_fused_controller_refusal_words() -> None:
     """The words of a refusal (the C++ side answers only yes or no): each check, on the CPU."""
-    from jsgs.method.controller import _fused_arguments_error
+    from jsgs.kernels._wrapper import _fused_arguments_error
 
     n = 10
     good = (torch.zeros(1, n, 2), torch.zeros(n), torch.zeros(n, 3), torch.zeros(n, 3), torch.zeros(n, 4),
@@ -135,7 +135,7 @@ def test_fused_controller_empty_view(n: int) -> None:
 
 _REFUSALS = """
 import torch
-from jsgs.method.controller import fro_from_probe_grad_fused
+from jsgs.kernels import fro_from_probe_grad_fused
 
 n = 100
 good = [torch.zeros(1, n, 2), torch.zeros(n), torch.zeros(n, 3), torch.zeros(n, 3), torch.zeros(n, 4),
@@ -162,10 +162,10 @@ print("alive")
 @cuda
 @pytest.mark.gpu
 def test_fused_controller_refuses_bad_input() -> None:
-    """Bad arguments raise a ValueError naming the tensor (checked in C++, jsgs/csrc/bindings.cpp, which
-    refuses with an empty result; the words are Python's). Run in a child process: an exception or a message
-    built in the extension crashed the process on the GPU machine, and a crash must fail this test, not end
-    the test session."""
+    """Bad arguments raise a ValueError naming the tensor (checked in C++, jsgs/kernels/csrc/bindings.cpp,
+    which refuses with an empty result; the words are Python's). Run in a child process: an exception or a
+    message built in the extension crashed the process on the GPU machine, and a crash must fail this test,
+    not end the test session."""
     repo = Path(__file__).resolve().parents[3]
     path = os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")])
     r = subprocess.run(

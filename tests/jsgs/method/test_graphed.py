@@ -16,7 +16,7 @@ from jsgs.base.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision
-from jsgs.method.controller import fro_from_probe_grad, packed_fro_stats
+from jsgs.kernels import fro_from_probe_grad, packed_fro_stats
 from jsgs.method.graphed import GraphedController, GraphedImageTerms, _Recording
 from jsgs.method.hook import JsgsHook
 from jsgs.method.image_terms import image_terms, terms_with_gradient

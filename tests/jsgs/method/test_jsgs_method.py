@@ -1,5 +1,5 @@
 """``--method jsgs`` (jsgs.method): every term against a float64 evaluation of its equation written
-here from the paper (independent of jsgs.jpeg / jsgs.render / jsgs.method.controller), r̄ from the training
+here from the paper (independent of jsgs.jpeg / jsgs.render / jsgs.kernels), r̄ from the training
 path against the brute-force rasteriser, L_fro's gradients, the ablation switches, the options, and a short
 ``jsgs train --method jsgs`` run on the compressed synthetic scene.
 
@@ -348,7 +348,7 @@ def test_terms_equal_float64_evaluation_of_the_equations(route: str) -> None:
     assert fro_ref > 1e-4  # the scene exercises the term
     assert math.isclose(res["terms"]["fro"], fro_ref, rel_tol=1e-9)
     np.testing.assert_allclose(last["fro"].sbar.numpy()[vis], sbar[vis], rtol=1e-12)
-    # statistics (definitions in jsgs.method.controller.ControllerStats)
+    # statistics (definitions in jsgs.kernels.ControllerStats)
     assert res["stats"]["gc_visible"] == vis.sum()
     assert math.isclose(res["stats"]["gc_rbar"], rbar[vis].mean(), rel_tol=1e-9)
     assert res["stats"]["gc_damped"] == ((rbar > 0) & vis & (sbar <= 1.0)).sum()

@@ -16,8 +16,8 @@ from _train_scene import make_scene
 from test_train import tiny_config
 
 from jsgs.base.errors import JsgsError
+from jsgs.kernels import compute_relocation, cpu_twins, quat_scale_to_covar
 from jsgs.strategy import Densifier, initial_subset
-from jsgs.strategy.relocation import compute_relocation, cpu_twins, quat_scale_to_covar
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.callbacks import Callback
 from jsgs.train.config import PRESETS, TrainConfig, from_dict, preset

@@ -1,4 +1,4 @@
-// The deferred Gaussian Controller of one view (jsgs.method.controller.fro_from_probe_grad, its torch twin
+// The deferred Gaussian Controller of one view (jsgs.kernels._torch_impl.fro_from_probe_grad, its torch twin
 // and reference) as three kernels instead of about seventy: from the probe's gradient and the parameters to
 // the weighted gradients of L_fro and the view's statistics. Per Gaussian j (paper eqs. gaussian_risk,
 // controller_scale, fro; the twin's docstrings give the derivation):

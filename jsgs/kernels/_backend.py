@@ -1,7 +1,7 @@
-"""jsgs's own CUDA kernels (``jsgs/csrc``): the fused SSIM and the fused Gaussian Controller, one Python
-module built on first use with ``torch.utils.cpp_extension`` (nvcc; about a minute, then cached by torch in
-``$TORCH_EXTENSIONS_DIR``). Each kernel has a torch twin that runs anywhere and is its reference in the
-tests (``jsgs.ssim`` kernel="torch"; ``jsgs.method.controller.fro_from_probe_grad``).
+"""The loader of jsgs's own CUDA kernels (``jsgs/kernels/csrc``): the fused SSIM and the fused Gaussian
+Controller, one Python module built on first use with ``torch.utils.cpp_extension`` (nvcc; about a minute,
+then cached by torch in ``$TORCH_EXTENSIONS_DIR``). Each kernel has a torch twin in
+:mod:`jsgs.kernels._torch_impl` that runs anywhere and is its reference in the tests.
 
 Where the module cannot be built (no nvcc, a CPU-only torch) the callers use the twins, after one line on
 stderr.

@@ -1,7 +1,7 @@
-// Fused SSIM (11x11 Gaussian window) for jsgs.ssim: one kernel for the forward, one for the
+// Fused SSIM (11x11 Gaussian window) for jsgs.kernels.ssim: one kernel for the forward, one for the
 // backward, instead of the separable-convolution twin's cuDNN depthwise convolutions, layout transposes and
-// about twenty elementwise kernels each way. The twin (jsgs/ssim.py) is the reference these are tested
-// against (tests/jsgs/jpeg/test_ssim_cuda.py).
+// about twenty elementwise kernels each way. The twin (jsgs/kernels/_torch_impl.py) is the reference these
+// are tested against (tests/jsgs/kernels/test_ssim_cuda.py).
 //
 // Forward, per output pixel p of one plane (image x channel): the five windowed moments
 //   mu_x, mu_y, E[x^2], E[y^2], E[xy]  (window w(a) w(b), zero outside the image),
@@ -15,7 +15,8 @@
 // Both kernels work on 32 x 8 tiles of one plane: the tile and its 10-pixel halo are read once into shared
 // memory, then the separable window is applied along rows and then along columns. The backward is the same
 // correlation (the window is symmetric) applied to the three weighted derivative maps, with the tile shifted
-// by the halo. Only the 11-tap window exists here (what SSIM uses); jsgs.ssim sends other sizes to the twin.
+// by the halo. Only the 11-tap window exists here (what SSIM uses); jsgs.kernels.ssim sends other sizes to
+// the twin.
 #include <ATen/ATen.h>
 #include <ATen/Dispatch.h>
 #include <c10/cuda/CUDAException.h>

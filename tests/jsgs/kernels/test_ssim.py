@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from jsgs.jpeg.losses import photometric_loss
-from jsgs.ssim import ssim, ssim_map
+from jsgs.kernels import ssim, ssim_map
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -1,4 +1,17 @@
-"""The Gaussian Controller's math (paper eqs. gaussian_risk, controller_scale, fro), for one view.
+"""The torch twins of jsgs's kernels: each runs anywhere, on any dtype, and is the reference its CUDA op
+(:mod:`jsgs.kernels._wrapper`) is tested against (gsplat's ``_torch_impl`` / ``_wrapper`` pattern).
+
+SSIM as 3D Gaussian Splatting computes it (:func:`ssim_map_torch`, twin of ``csrc/ssim.cu``)
+==========================================================================================
+
+11x11 Gaussian window, sigma 1.5, C1 = 0.01^2, C2 = 0.03^2, data range 1, zero padding of 5 ("same" output
+size) or none ("valid"). The separable window runs as two 1-D grouped convolutions (same value as the 2-D
+one).
+
+The Gaussian Controller (:func:`fro_from_probe_grad`, twin of ``csrc/controller.cu``)
+====================================================================================
+
+The paper's eqs. gaussian_risk, controller_scale and fro, for one view.
 
 For view i and Gaussian j (all per-Gaussian tensors are [N], one camera):
 
@@ -20,25 +33,124 @@ For view i and Gaussian j (all per-Gaussian tensors are [N], one camera):
 Units: scales are world units (activated, ``exp`` of the stored log-scales), s̄ and τ_s pixels, r̄ and
 L_fro unitless. Everything is vectorised over all N Gaussians with a contributor mask — no host
 synchronisation, no data-dependent shapes.
+
+MCMC relocation (:func:`compute_relocation`, :func:`quat_scale_to_covar`, twins of gsplat's CUDA ops)
+==================================================================================================
+
+- :func:`compute_relocation` is gsplat's ``relocation`` kernel (``gsplat/cuda/csrc/RelocationCUDA.cu``):
+  Equation (9) of Kheradmand et al. 2024, "3D Gaussian Splatting as Markov Chain Monte Carlo". A Gaussian
+  of opacity o and scales s that is split into n copies gives each copy
+
+      o' = 1 - (1 - o)^(1/n)
+      s' = o / (sum_{i=1..n} sum_{k=0..i-1} C(i-1, k) (-1)^k / sqrt(k+1) (o')^(k+1)) * s
+
+  so that the copies, composited, keep the original's opacity profile.
+- :func:`quat_scale_to_covar` is ``gsplat.quat_scale_to_covar_preci(..., compute_covar=True,
+  compute_preci=False, triu=False)``: Σ = R diag(s)² Rᵀ (the reference rasterizer's ``covariance_3d``).
 """
 
 from __future__ import annotations
 
-from functools import cache
+import functools
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
-from jsgs.method.pooling import PooledSums, sums_from_probe_grad
-from jsgs.render.reference import quat_to_rotmat
+from jsgs.base.precision import ieee_fp32
+from jsgs.render.reference import covariance_3d, quat_to_rotmat
 
+# --- SSIM -------------------------------------------------------------------------------------------------
+
+C1 = 0.01**2
+C2 = 0.03**2
+
+
+@functools.cache
+def _window_cached(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    x = torch.arange(size, dtype=torch.float64) - size // 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    return (g / g.sum()).to(dtype=dtype, device=device)
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5, dtype: torch.dtype = torch.float32,
+                    device: torch.device | str | None = None) -> Tensor:
+    """Normalised 1-D Gaussian ``(size,)``, centred (3DGS's ``gaussian(window_size, sigma)``)."""
+    return _window_cached(size, sigma, dtype, torch.device(device if device is not None else "cpu"))
+
+
+def _blur(x: Tensor, window: Tensor, padding: str) -> Tensor:
+    """Separable Gaussian blur of ``(B, C, H, W)`` per channel; zero padding for "same", none for "valid"."""
+    c = x.shape[1]
+    k = window.numel()
+    pad = k // 2 if padding == "same" else 0
+    wv = window.view(1, 1, k, 1).expand(c, 1, k, 1)
+    wh = window.view(1, 1, 1, k).expand(c, 1, 1, k)
+    # without TF32: SSIM subtracts nearly equal blurred moments (E[x²] − μ²), which TF32 would swamp
+    with ieee_fp32(x.device):
+        x = F.conv2d(x, wv, padding=(pad, 0), groups=c)
+        return F.conv2d(x, wh, padding=(0, pad), groups=c)
+
+
+def ssim_map_torch(x: Tensor, y: Tensor, window: Tensor, padding: str) -> Tensor:
+    """The SSIM map ``(B, C, H', W')`` of ``x``, ``y`` (``(B, C, H, W)``) with the 1-D window ``window``
+    (:func:`gaussian_window`), "same" or "valid" ``padding``: the twin of the fused kernel
+    (``csrc/ssim.cu``), one grouped convolution for the five local moments."""
+    c = x.shape[1]
+    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), window, padding)
+    mu_x, mu_y, xx, yy, xy = stats.split(c, dim=1)
+    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    s_xx, s_yy, s_xy = xx - mu_xx, yy - mu_yy, xy - mu_xy
+    num = (2 * mu_xy + C1) * (2 * s_xy + C2)
+    den = (mu_xx + mu_yy + C1) * (s_xx + s_yy + C2)
+    return num / den
+
+
+# --- The Gaussian Controller --------------------------------------------------------------------------------
+
+EPS_PROJ = 1e-6  # the paper's ε_proj
 TAU_S = 1.0  # τ_s, pixels at the training resolution
-EPS_PROJ = 1e-6  # ε_proj
 FOV_MARGIN = 0.3  # gsplat's widening of the FOV used to clamp x/z and y/z in J
 
 
-@cache
+@dataclass
+class PooledSums:
+    """Pooled sums per (camera, Gaussian), each [C, N] (``jsgs.method.pooling`` says how the rasteriser gives
+    them)."""
+
+    s_r: Tensor  # Σ_p t·a·r
+    s_1: Tensor  # Σ_p t·a
+    nu: Tensor  # Σ_p t·α (contribution mass)
+
+    def rbar(self, eps: float = EPS_PROJ) -> Tensor:
+        """r̄ = S_r / (S_1 + ε_proj), [C, N] (0 where the Gaussian does not contribute)."""
+        return self.s_r / (self.s_1 + eps)
+
+    @property
+    def contributors(self) -> Tensor:
+        """[C, N] bool: V_i = {j : ν_ij > 0}."""
+        return self.nu > 0
+
+
+def sums_from_probe_grad(grad: Tensor, opacities: Tensor, weight: float = 1.0) -> PooledSums:
+    """Pooled sums from the probe's gradient ``grad`` [C, N, 2] = weight·(o·S_r, ν) (``probe_objective``
+    entered the loss with the factor ``weight``), ``opacities`` [N] or [C, N] the activated o the pass
+    rendered with.
+
+    Contributors have o >= 1/255 (others are culled); ν == 0 ⇔ no contribution, and the sums are 0 there."""
+    g = grad.detach()
+    if weight != 1.0:
+        g = g / weight
+    nu = g[..., 1]
+    o = opacities.detach().to(g.dtype)
+    o = (o[None, :] if o.dim() == 1 else o).expand_as(nu)
+    o_safe = torch.where(nu > 0, o, 1.0)
+    return PooledSums(s_r=g[..., 0] / o_safe, s_1=nu / o_safe, nu=nu)
+
+
+@functools.cache
 def _image_size(width: int, height: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     # once per image size and device: a host-to-device copy inside the backward would stall the GPU queue
     return torch.tensor([width, height], dtype=dtype, device=device)
@@ -232,70 +344,46 @@ def fro_from_probe_grad(
     return DeferredFro(ft, weight * g_logit, weight * g_ls, sums, rbar, vis, A)
 
 
-@torch.no_grad()
-def fro_from_probe_grad_fused(
-    probe_grad: Tensor,
-    opacity_logits: Tensor,
-    log_scales: Tensor,
-    means: Tensor,
-    quats: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
-    *,
-    weight: float,
-    near_plane: float = 0.01,
-    eps_proj: float = EPS_PROJ,
-    tau_s: float = TAU_S,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`fro_from_probe_grad` and :func:`packed_fro_stats` as the three kernels of
-    ``jsgs/csrc/controller.cu`` (CUDA, float32 or float64; same arguments, all tensors of one dtype and
-    device): ``(grad_logit [N], grad_log_scale [N, 3], stats [4])``, equal to the twin's
-    ``(out.grad_logit, out.grad_log_scale, packed_fro_stats(out.terms))`` up to rounding."""
-    from jsgs.cuda_ext import build_error, extension
-
-    tensors = (probe_grad, opacity_logits, log_scales, means, quats, viewmat, K)
-    # checked in C++ (jsgs/csrc/bindings.cpp), not here: this runs inside every step's backward. A refusal is
-    # an empty result, worded here (an exception or message built in the extension crashed the process)
-    ext = extension(warn=False)
-    if ext is None:
-        raise RuntimeError(f"the fused Gaussian Controller cannot be built: {build_error()}")
-    out = ext.controller_forward(
-        *(t.detach().contiguous() for t in tensors), int(width), int(height), float(weight),
-        float(near_plane), float(eps_proj), float(tau_s),
-    )  # fmt: skip
-    if not out:
-        raise ValueError(_fused_arguments_error(tensors, weight))
-    g_logit, g_ls, stats = out
-    return g_logit, g_ls, stats
-
-
-def _fused_arguments_error(tensors: tuple[Tensor, ...], weight: float) -> str:
-    """Why the fused controller refused ``(probe_grad, opacity_logits, log_scales, means, quats, viewmat,
-    K)`` and ``weight`` (the checks of ``jsgs/csrc/bindings.cpp``, in words)."""
-    logits = tensors[1]
-    if logits.dim() != 1:
-        return f"the fused controller: opacity_logits must be [N], got shape {tuple(logits.shape)}"
-    if logits.dtype not in (torch.float32, torch.float64):
-        return f"the fused controller needs float32 or float64, got {logits.dtype}"
-    if not weight > 0:
-        return f"the fused controller: weight must be > 0, got {weight}"
-    n = logits.shape[0]
-    shapes = ((1, n, 2), (n,), (n, 3), (n, 3), (n, 4), (4, 4), (3, 3))
-    names = ("probe_grad", "opacity_logits", "log_scales", "means", "quats", "viewmat", "K")
-    for t, shape, name in zip(tensors, shapes, names, strict=True):
-        if t.dtype != logits.dtype or t.device != logits.device or t.device.type != "cuda":
-            return (
-                f"the fused controller: {name} is {t.dtype} on {t.device}; every tensor must be "
-                f"{logits.dtype} on one CUDA device"
-            )
-        if tuple(t.shape) != shape:
-            return f"the fused controller: {name} has shape {tuple(t.shape)}, expected {shape}"
-    return "the fused controller refused its arguments"
-
-
 def packed_fro_stats(terms: FroTerms) -> Tensor:
     """[4]: L_fro, |V_i|, mean r̄ over V_i, #damped (one tensor, so a caller copies them in one kernel)."""
     s = terms.stats
     return torch.stack([terms.loss, s.visible, s.rbar_mean, s.damped])
+
+
+# --- MCMC relocation ------------------------------------------------------------------------------------
+
+
+def compute_relocation(
+    opacities: Tensor, scales: Tensor, ratios: Tensor, binoms: Tensor
+) -> tuple[Tensor, Tensor]:
+    """New opacities [N] and scales [N, 3] of Gaussians split ``ratios`` [N] ways (int, clamped to
+    [1, n_max] in place as gsplat does), from opacities [N] in (0, 1), activated scales [N, 3] and the
+    binomial table ``binoms`` [n_max, n_max] (``binoms[n, k] = C(n, k)``). Sums are accumulated in float64
+    and the results returned in the inputs' dtype."""
+    n_max = binoms.shape[0]
+    if scales.shape != (opacities.shape[0], 3) or ratios.shape != opacities.shape:
+        raise ValueError(
+            f"compute_relocation: opacities {tuple(opacities.shape)}, scales {tuple(scales.shape)}, "
+            f"ratios {tuple(ratios.shape)} (expected [N], [N, 3], [N])"
+        )
+    ratios.clamp_(min=1, max=n_max)
+    n = ratios.to(torch.int64)
+    o = opacities.to(torch.float64)
+    new_o = 1.0 - torch.pow(1.0 - o, 1.0 / n.to(torch.float64))
+    # sum over i <= n of C(i-1, k) = C(n, k+1) (the hockey-stick identity), computed from the table as the
+    # kernel does: column sums of binoms over rows 0..n-1
+    cum = torch.cumsum(binoms.to(torch.float64), dim=0)  # cum[r, k] = sum_{i<=r} C(i, k)
+    weight = cum[n - 1]  # [N, n_max]: sum_{i=1..n} C(i-1, k)
+    k = torch.arange(n_max, dtype=torch.float64, device=o.device)
+    sign = torch.where(k.remainder(2) == 0, 1.0, -1.0) / torch.sqrt(k + 1.0)
+    powers = new_o[:, None] ** (k[None, :] + 1.0)
+    denom = (weight * sign[None, :] * powers).sum(dim=1)
+    coeff = o / denom
+    new_scales = coeff[:, None] * scales.to(torch.float64)
+    return new_o.to(opacities.dtype), new_scales.to(scales.dtype)
+
+
+def quat_scale_to_covar(quats: Tensor, scales: Tensor) -> Tensor:
+    """World covariances [N, 3, 3] from (unnormalised) quaternions [N, 4] (w, x, y, z) and activated scales
+    [N, 3]."""
+    return covariance_3d(quats, scales)

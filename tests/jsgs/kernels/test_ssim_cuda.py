@@ -1,4 +1,5 @@
-"""The fused SSIM kernel (``jsgs/csrc/ssim.cu``) against its torch twin (``jsgs.ssim``, kernel="torch").
+"""The fused SSIM kernel (``jsgs/kernels/csrc/ssim.cu``) against its torch twin (``jsgs.kernels.ssim``,
+kernel="torch").
 
 On CPU: how ``kernel`` is chosen and refused. On CUDA (the kernel is built on first use, ~30 s): values and
 gradients equal the twin's in float64 (tight) and float32, for both paddings, odd sizes, batches, a
@@ -10,7 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from jsgs.ssim import ssim, ssim_map
+from jsgs.kernels import ssim, ssim_map
 
 cuda = pytest.mark.skipif(
     not torch.cuda.is_available(), reason="needs CUDA (the fused SSIM kernel is CUDA-only)"

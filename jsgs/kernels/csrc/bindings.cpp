@@ -1,4 +1,4 @@
-// The Python module of jsgs's CUDA kernels (built on first use by jsgs.cuda_ext): the fused SSIM
+// The Python module of jsgs's CUDA kernels (built on first use by jsgs.kernels._backend): the fused SSIM
 // (ssim.cu) and the fused Gaussian Controller (controller.cu). Each has a torch twin that is its reference.
 #include <torch/extension.h>
 
@@ -49,8 +49,8 @@ std::vector<at::Tensor> controller_forward_checked(at::Tensor probe_grad, at::Te
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("ssim_forward", &ssim_forward, "SSIM map and its partial derivatives (jsgs/csrc/ssim.cu)");
-  m.def("ssim_backward", &ssim_backward, "gradient of a weighted SSIM map sum w.r.t. x (jsgs/csrc/ssim.cu)");
+  m.def("ssim_forward", &ssim_forward, "SSIM map and its partial derivatives (ssim.cu)");
+  m.def("ssim_backward", &ssim_backward, "gradient of a weighted SSIM map sum w.r.t. x (ssim.cu)");
   m.def("controller_forward", &controller_forward_checked,
         "deferred Gaussian Controller of one view: weighted L_fro gradients and stats (controller.cu); "
         "an empty list for bad arguments");

@@ -1,4 +1,4 @@
-"""The Gaussian Controller's math (jsgs.method.controller): A = J W R(q) and s̄ against an independent float64
+"""The Gaussian Controller's math (jsgs.kernels): A = J W R(q) and s̄ against an independent float64
 evaluation and against the rasteriser's own projected covariance, L_fro's closed-form gradient against
 autograd, the empty contributor set, the statistics. CPU, float64, well under a second."""
 
@@ -9,7 +9,7 @@ import math
 import numpy as np
 import torch
 
-from jsgs.method.controller import (
+from jsgs.kernels import (
     controller_matrix,
     fro_loss,
     fro_loss_and_grads,
