@@ -30,7 +30,8 @@ from jsgs.train.config import TrainConfig
 from jsgs.train.data import Scene
 
 if TYPE_CHECKING:
-    from jsgs.train.trainer import StepResult, Trainer
+    from jsgs.train.callbacks import StepResult
+    from jsgs.train.trainer import Trainer
 
 CAMERAS_FORMAT = "jsgs-viewer-cameras"
 CAMERAS_VERSION = 1

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,33 @@ RUN_OWNED = (
     "config.json", "metrics.json", "point_cloud.ply", COLMAP_PLY, f"{COLMAP_PLY}.json", "renders",
     "checkpoints", "viewer_cameras.json", ".jsgs.lock",
 )  # fmt: skip
+
+
+@dataclass
+class RunPaths:
+    """The places of a run folder's own files (``root`` the folder)."""
+
+    root: Path
+
+    @property
+    def config(self) -> Path:
+        return self.root / "config.json"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def ply(self) -> Path:
+        return self.root / "point_cloud.ply"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / "checkpoints"
+
+    def renders(self, step: int) -> Path:
+        return self.root / "renders" / f"step_{step:06d}"
+
 
 
 def _resolved(path: Path) -> Path:

@@ -292,7 +292,7 @@ def _paper_sections(rows: list[dict[str, Any]], results_dir: Path, plots: bool) 
     results, loss terms, runs that stopped early, plots."""
     md: list[str] = []
     rep = Report(rows)
-    pngs = write_plots(rep, results_dir / "plots") if plots and rows else []
+    pngs = write_plots(rep.rows, rep.seeds, results_dir / "plots") if plots and rows else []
     md += ["## Table 1: mixed-quality schedules (means over scenes, last step)", "", *rep.table1(), ""]
     md += ["## Damage recovered and relative LPIPS reduction", "",
            "R_LPIPS = (gsplat − JSGS) / (gsplat − clean), R_PSNR = (JSGS − gsplat) / (clean − gsplat), on "

@@ -4,22 +4,22 @@ from __future__ import annotations
 
 from collections import defaultdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from jsgs.bench.stats import agg
 from jsgs.bench.tables import count_label
-
-if TYPE_CHECKING:
-    from jsgs.bench.markdown import Report
 
 #: each method's colour and each schedule's line style, in every bench figure
 METHOD_COLORS = {"gsplat": "tab:blue", "jsgs": "tab:red"}
 SCHEDULE_STYLES = {"uniform": "-", "gaussian": "--", "descending": ":", "clean": "-."}
 
 
-def write_plots(rep: Report, outdir: Path) -> list[Path]:
-    """One figure per scene (LPIPS and PSNR against training time and against the number of Gaussians, per
-    method and schedule, means over seeds) in ``outdir``; returns the files written."""
+def write_plots(
+    rows: list[dict[str, Any]], seeds: dict[tuple[str, str, str], list[dict[str, Any]]], outdir: Path
+) -> list[Path]:
+    """One figure per scene of ``rows`` (LPIPS and PSNR against training time and against the number of
+    Gaussians, per method and schedule, means over seeds) in ``outdir``, a line for each (scene, schedule,
+    method) of ``seeds`` (:func:`jsgs.bench.stats.by_seed`); returns the files written."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -31,14 +31,14 @@ def write_plots(rep: Report, outdir: Path) -> list[Path]:
     outdir.mkdir(parents=True, exist_ok=True)
     written = []
     colors, styles = METHOD_COLORS, SCHEDULE_STYLES
-    for sc in rep.scenes:
+    for sc in sorted({r["scene"] for r in rows}):
         fig, axes = plt.subplots(2, 2, figsize=(11, 8))
         any_line = False
-        for (s, sch, m), _ in sorted(rep.seeds.items()):
+        for (s, sch, m), _ in sorted(seeds.items()):
             if s != sc or m not in colors:
                 continue
             steps: dict[int, list[dict[str, Any]]] = defaultdict(list)
-            for r in rep.rows:
+            for r in rows:
                 if r["scene"] == sc and r["schedule"] == sch and r["method"] == m:
                     steps[r["step"]].append(r)
             pts = sorted(steps)

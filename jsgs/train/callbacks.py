@@ -6,7 +6,7 @@ order:
 
 - ``on_setup(trainer)``: after :meth:`Trainer.setup` (settings checked, scene and Gaussians ready, resumed);
 - ``on_step_begin(trainer, step)``: before step ``step`` (0-based);
-- ``on_step_end(trainer, result)``: after it (:class:`~jsgs.train.trainer.StepResult`);
+- ``on_step_end(trainer, result)``: after it (:class:`StepResult`);
 - ``on_eval(trainer, entry)``: after an evaluation (an entry of metrics.json ``evals``);
 - ``on_checkpoint(trainer, step)``: at a checkpoint point after ``step`` steps (evaluation steps, the end,
   ``checkpoint_every``), after the evaluation of that step;
@@ -15,37 +15,78 @@ order:
 
 The standard ones: :class:`ProgressBar`, :class:`StepProfiler`, :class:`CheckpointSaver`,
 :class:`MetricsWriter` (:func:`jsgs.train.trainer.train` installs them in that order).
+
+``trainer`` is the :class:`~jsgs.train.trainer.Trainer`; what the standard callbacks read of it is
+:class:`TrainerView`, so this module does not import the trainer, which imports it.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
 
 from jsgs.base.io import write_json_atomic
 
 if TYPE_CHECKING:
-    from jsgs.train.trainer import StepResult, Trainer
+    import torch
+
+    from jsgs.base.run_files import RunPaths
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.profiler import Profiler
+
+
+@dataclass
+class StepResult:
+    """What one training step logged: ``step`` (0-based), the view's name, the total loss, the terms and
+    statistics (host floats, read after the backward)."""
+
+    step: int
+    view: str
+    loss: float
+    terms: dict[str, float]
+    stats: dict[str, float]
+
+
+class TrainerView(Protocol):
+    """What the standard callbacks read of the :class:`~jsgs.train.trainer.Trainer` that calls them."""
+
+    cfg: TrainConfig | None
+    paths: RunPaths
+    start_step: int
+    end_step: int
+    splats: torch.nn.ParameterDict
+    profiler: Profiler
+    say: Callable[[str], None]
+
+    def training_seconds(self) -> float: ...
+
+    def save_checkpoint(self, step_done: int) -> str: ...
+
+    def status_at(self, step_done: int) -> str: ...
+
+    def metrics_doc(self, status: str, step: int, error: str | None = None) -> dict[str, Any]: ...
 
 
 class Callback:
     """Base class: every event is a no-op."""
 
-    def on_setup(self, trainer: Trainer) -> None:
+    def on_setup(self, trainer: TrainerView) -> None:
         pass
 
-    def on_step_begin(self, trainer: Trainer, step: int) -> None:
+    def on_step_begin(self, trainer: TrainerView, step: int) -> None:
         pass
 
-    def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
+    def on_step_end(self, trainer: TrainerView, result: StepResult) -> None:
         pass
 
-    def on_eval(self, trainer: Trainer, entry: dict[str, Any]) -> None:
+    def on_eval(self, trainer: TrainerView, entry: dict[str, Any]) -> None:
         pass
 
-    def on_checkpoint(self, trainer: Trainer, step: int) -> None:
+    def on_checkpoint(self, trainer: TrainerView, step: int) -> None:
         pass
 
-    def on_end(self, trainer: Trainer, doc: dict[str, Any] | None) -> None:
+    def on_end(self, trainer: TrainerView, doc: dict[str, Any] | None) -> None:
         pass
 
 
@@ -92,7 +133,7 @@ class ProgressBar(Callback):
         self._mark: tuple[float, int] = (0.0, 0)  # (training seconds, steps done) at the last report
         self._start: tuple[float, int] = (0.0, 0)  # (training seconds, steps done) when this process began
 
-    def _pace(self, trainer: Trainer, done: int) -> str:
+    def _pace(self, trainer: TrainerView, done: int) -> str:
         """``12.3 ms/step, ETA 5:07`` over the steps since the last report; moves the mark."""
         now = trainer.training_seconds()
         t_mark, s_mark = self._mark
@@ -103,7 +144,7 @@ class ProgressBar(Callback):
         left = max(trainer.end_step - done, 0)
         return f"{1000 * per_step:.1f} ms/step, ETA {duration(per_step * left)}"
 
-    def on_setup(self, trainer: Trainer) -> None:
+    def on_setup(self, trainer: TrainerView) -> None:
         cfg = trainer.cfg
         assert cfg is not None
         if not (self.enabled and trainer.start_step < cfg.iterations):
@@ -117,7 +158,7 @@ class ProgressBar(Callback):
         self._mark = (trainer.training_seconds(), trainer.start_step)
         self._start = self._mark
 
-    def _estimate(self, trainer: Trainer, done: int) -> str | None:
+    def _estimate(self, trainer: TrainerView, done: int) -> str | None:
         """The start estimate line once ``ESTIMATE_AFTER`` steps of this process are done (None otherwise)."""
         t0, s0 = self._start
         if done - s0 != self.ESTIMATE_AFTER or done >= trainer.end_step:
@@ -130,13 +171,13 @@ class ProgressBar(Callback):
             "plus evaluations"
         )
 
-    def _summary(self, trainer: Trainer, result: StepResult) -> str:
+    def _summary(self, trainer: TrainerView, result: StepResult) -> str:
         parts = [f"loss={result.loss:.4f}", f"#G={trainer.splats['means'].shape[0]}"]
         parts += [f"{k}={v:.4g}" for k, v in result.terms.items() if k not in ("photometric",)]
         parts += [f"{k}={v:.4g}" for k, v in result.stats.items()]
         return " ".join(parts)
 
-    def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
+    def on_step_end(self, trainer: TrainerView, result: StepResult) -> None:
         cfg = trainer.cfg
         assert cfg is not None
         if not self.enabled:
@@ -164,13 +205,13 @@ class ProgressBar(Callback):
                 + self._summary(trainer, result)
             )
 
-    def on_eval(self, trainer: Trainer, entry: dict[str, Any]) -> None:
+    def on_eval(self, trainer: TrainerView, entry: dict[str, Any]) -> None:
         if self.bar is not None:
             self.bar.write(eval_line(entry))
         else:
             trainer.say(eval_line(entry))
 
-    def on_end(self, trainer: Trainer, doc: dict[str, Any] | None) -> None:
+    def on_end(self, trainer: TrainerView, doc: dict[str, Any] | None) -> None:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
@@ -183,32 +224,32 @@ class StepProfiler(Callback):
     def __init__(self, enabled: bool = True) -> None:
         self.enabled = enabled
 
-    def on_setup(self, trainer: Trainer) -> None:
+    def on_setup(self, trainer: TrainerView) -> None:
         trainer.profiler.enabled = self.enabled
 
-    def on_step_end(self, trainer: Trainer, result: StepResult) -> None:
+    def on_step_end(self, trainer: TrainerView, result: StepResult) -> None:
         trainer.profiler.steps += 1
 
 
 class CheckpointSaver(Callback):
     """Writes ``checkpoints/step_XXXXXX.pt`` at every checkpoint point (:meth:`Trainer.save_checkpoint`)."""
 
-    def on_checkpoint(self, trainer: Trainer, step: int) -> None:
+    def on_checkpoint(self, trainer: TrainerView, step: int) -> None:
         trainer.save_checkpoint(step)
 
 
 class MetricsWriter(Callback):
     """Writes ``metrics.json`` (validated against its schema) at every checkpoint point and at the end."""
 
-    def _write(self, trainer: Trainer, doc: dict[str, Any]) -> None:
+    def _write(self, trainer: TrainerView, doc: dict[str, Any]) -> None:
         from jsgs.schemas import validate
 
         validate(doc, "metrics", str(trainer.paths.metrics))
         write_json_atomic(trainer.paths.metrics, doc)
 
-    def on_checkpoint(self, trainer: Trainer, step: int) -> None:
+    def on_checkpoint(self, trainer: TrainerView, step: int) -> None:
         self._write(trainer, trainer.metrics_doc(trainer.status_at(step), step))
 
-    def on_end(self, trainer: Trainer, doc: dict[str, Any] | None) -> None:
+    def on_end(self, trainer: TrainerView, doc: dict[str, Any] | None) -> None:
         if doc is not None:
             self._write(trainer, doc)

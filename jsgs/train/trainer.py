@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -40,10 +40,12 @@ from torch import Tensor
 import jsgs
 from jsgs.base.errors import JsgsError
 from jsgs.base.io import LOCK_NAME, OutputLock, write_json_atomic
+from jsgs.base.run_files import RunPaths
 from jsgs.kernels import use_kernels
 from jsgs.strategy import Densifier, initial_subset
 from jsgs.train import checkpoint as ckpt
 from jsgs.train import distributed as dd
+from jsgs.train.callbacks import Callback, StepResult
 from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, to_dict
 from jsgs.train.data import ViewSampler, load_eval_images, load_scene, load_train_images
 from jsgs.train.evaluate import evaluate, synchronize
@@ -58,9 +60,6 @@ from jsgs.train.model import (
 )
 from jsgs.train.profiler import Profiler
 from jsgs.train.render_view import render_view, resolve_backend, resolve_device
-
-if TYPE_CHECKING:
-    from jsgs.train.callbacks import Callback
 
 METRICS_FORMAT = "jsgs-metrics"
 METRICS_VERSION = 1
@@ -90,30 +89,6 @@ class RunFailed(JsgsError):
 
 class TrainingInterrupted(JsgsError):
     """SIGINT (Ctrl-C) or SIGTERM stopped the run after a whole step, with a checkpoint to resume from."""
-
-
-@dataclass
-class RunPaths:
-    root: Path
-
-    @property
-    def config(self) -> Path:
-        return self.root / "config.json"
-
-    @property
-    def metrics(self) -> Path:
-        return self.root / "metrics.json"
-
-    @property
-    def ply(self) -> Path:
-        return self.root / "point_cloud.ply"
-
-    @property
-    def checkpoints(self) -> Path:
-        return self.root / "checkpoints"
-
-    def renders(self, step: int) -> Path:
-        return self.root / "renders" / f"step_{step:06d}"
 
 
 @dataclass
@@ -456,18 +431,6 @@ def json_load(path: Path) -> dict[str, Any]:
     doc: dict[str, Any] = read_json(path)
     return doc
 
-
-
-@dataclass
-class StepResult:
-    """What one training step logged: ``step`` (0-based), the view's name, the total loss, the terms and
-    statistics (host floats, read after the backward)."""
-
-    step: int
-    view: str
-    loss: float
-    terms: dict[str, float]
-    stats: dict[str, float]
 
 
 class Trainer:

@@ -588,8 +588,8 @@ def test_ssim_kernel_cuda_is_refused_without_cuda(scene: Path, tmp_path: Path) -
 def test_callbacks_see_every_event_in_order(scene: Path, tmp_path: Path) -> None:
     """The Trainer calls its callbacks at step boundaries, evaluations, checkpoint points and the end; a
     callback's checkpoint point comes after the standard CheckpointSaver wrote the file."""
-    from jsgs.train.callbacks import Callback
-    from jsgs.train.trainer import StepResult, Trainer
+    from jsgs.train.callbacks import Callback, StepResult
+    from jsgs.train.trainer import Trainer
 
     events: list[tuple[str, Any]] = []
 
