@@ -38,6 +38,10 @@ values and gradients (tested), chosen by ``gc_pooling``:
 
 With ``lambda_fro`` 0 the term is logged only; the ``"now"`` route is used for it (nothing rides in the
 loss).
+
+With ``gc_every`` k > 1 the controller runs on the steps with ``step % k == 0`` only, weighted k·λ_fro there
+(on those steps it is the exact controller with that weight); the other steps render no probe, and their
+``fro`` term and GC statistics are logged as 0, as on lossless views.
 """
 
 from __future__ import annotations
@@ -130,7 +134,7 @@ class JsgsHook(LossHook):
         self._graphed = None
         # what fixes the deferred GC (jsgs.kernels.fro_from_probe_grad), eager or graphed
         self._gc_settings: dict[str, float] = dict(
-            weight=options.lambda_fro, near_plane=near_plane, eps_proj=options.eps_proj, tau_s=options.tau_s
+            weight=self.fro_weight, near_plane=near_plane, eps_proj=options.eps_proj, tau_s=options.tau_s
         )
         self._gc_graphed: GraphedController | None = None
         self._gc_fused = (
@@ -180,6 +184,15 @@ class JsgsHook(LossHook):
 
     # ------------------------------------------------------------------------------------------------
     @property
+    def fro_weight(self) -> float:
+        """The weight of L_fro on the steps the controller runs: λ_fro·gc_every."""
+        return self.opts.lambda_fro * self.opts.gc_every
+
+    def gc_at(self, step: int) -> bool:
+        """Whether the Gaussian Controller runs at 0-based ``step`` (on its JPEG views)."""
+        return self.opts.gc and step % self.opts.gc_every == 0
+
+    @property
     def gc_route(self) -> str:
         return "now" if self.opts.lambda_fro == 0.0 else self.opts.gc_pooling
 
@@ -189,7 +202,7 @@ class JsgsHook(LossHook):
 
     def weights(self) -> dict[str, float]:
         o = self.opts
-        w = {"obs": o.lambda_obs, "low": o.lambda_low, "mid": o.lambda_mid, "fro": o.lambda_fro}
+        w = {"obs": o.lambda_obs, "low": o.lambda_low, "mid": o.lambda_mid, "fro": self.fro_weight}
         return {k: w[k] for k in self.active_terms()}
 
     def base_scale(self, tab: ViewJpeg, step: int | None = None) -> float:
@@ -197,8 +210,9 @@ class JsgsHook(LossHook):
         return base_weight(self.opts, tab, step)
 
     def extra_channels(self, step: int, view: View, splats: torch.nn.ParameterDict) -> Tensor | None:
-        """The Gaussian Controller's probe (``jsgs.method.pooling.new_probe``) on views it runs on."""
-        if not (self.opts.gc and view.index in self.tables):
+        """The Gaussian Controller's probe (``jsgs.method.pooling.new_probe``) on the views and steps it runs
+        on."""
+        if not (self.gc_at(step) and view.index in self.tables):
             return None
         from jsgs.method.pooling import new_probe
 
@@ -270,7 +284,11 @@ class JsgsHook(LossHook):
                 r_map = sup.pixel_score  # [1, H, W], detached
                 if self.keep_last:
                     self.last["ds"] = sup
-        if o.gc:
+        if o.gc and not self.gc_at(ctx.step):  # a step between the controller's: logged as 0
+            zero = torch.zeros((), dtype=ctx.render.dtype, device=ctx.render.device)
+            terms["fro"] = zero
+            stats.update({k: zero.clone() for k in STAT_NAMES})
+        elif o.gc:
             assert r_map is not None
             with self.profiler.phase("gc"):
                 if self.gc_route == "now":

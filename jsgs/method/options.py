@@ -119,6 +119,13 @@ class JsgsOptions:
     eps_dct_loss: float = setting(1e-6, "ε in the DS losses' denominators.", gt=0.0)
     eps_dct_block: float = setting(1e-6, "ε in the DS block scores' denominators.", gt=0.0)
     eps_proj: float = setting(EPS_PROJ, "ε of the Gaussian Controller's pooled projection weights.", gt=0.0)
+    gc_every: int = setting(
+        1,
+        "The Gaussian Controller on every k-th step only (0-based steps with step % k == 0), weighted "
+        "k·λ_fro there, so that its gradient summed over k steps keeps its expected value; the other steps "
+        "render RGB without the probe's two channels. 1: every step (the paper's, exact).",
+        ge=1,
+    )
     gc_pooling: Literal["deferred", "now"] = setting(
         "deferred",
         "deferred: the GC pools inside the main backward (no extra pass); now: one extra rasteriser "

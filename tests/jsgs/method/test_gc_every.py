@@ -1,0 +1,114 @@
+"""``method_options.gc_every``: the Gaussian Controller on every k-th step only, weighted k·λ_fro there.
+
+On the controller's steps it is the exact controller with weight k·λ_fro, bit for bit; on the steps between
+it renders no probe and the step is the one without the controller, bit for bit; over a short training run
+it keeps most of the exact controller's effect on the opacities and scales (k = 2)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+from test_jsgs_method import make_splats, make_view, new_hook, render, target_for
+
+from jsgs.base.errors import JsgsError
+from jsgs.jpeg.losses import photometric_loss
+from jsgs.method.hook import STAT_NAMES, JsgsHook
+from jsgs.method.options import parse_options
+from jsgs.train.method import StepContext
+from jsgs.train.trainer import weighted_loss
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def step_at(hook: JsgsHook, step: int) -> dict[str, Any]:
+    """One training step at 0-based ``step`` on the tiny scene's JPEG view, as the trainer takes it."""
+    view = make_view(50, "4:2:0")
+    splats = make_splats()
+    target = target_for(view)
+    extra = hook.extra_channels(step, view, splats)
+    out = render(splats, extra)
+    ctx = StepContext(step, view, out.rgb, out.alpha, target, out.info, splats, out.extra, {}, 0)
+    h = hook.losses(ctx)
+    h.check("jsgs")
+    x, y = out.rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
+    terms = {"photometric": photometric_loss(x, y, 0.2, padding="valid"), **h.terms}
+    weighted_loss(terms, {"photometric": 1.0, **h.weights}, h.folded, h.folded_loss).backward()
+    return {
+        "probe": extra is not None,
+        "terms": {k: v.item() for k, v in h.terms.items()},
+        "weights": dict(h.weights),
+        "stats": {k: float(v) for k, v in h.stats.items()},
+        "grads": {k: p.grad.clone() for k, p in splats.items() if p.grad is not None},
+    }
+
+
+def assert_same_step(a: dict[str, Any], b: dict[str, Any], skip: tuple[str, ...] = ()) -> None:
+    for key in ("probe", "terms", "weights", "stats"):
+        if key not in skip:
+            assert a[key] == b[key], key
+    assert a["grads"].keys() == b["grads"].keys()
+    for n in a["grads"]:
+        assert torch.equal(a["grads"][n], b["grads"][n]), n
+
+
+@pytest.mark.parametrize("route", ["deferred", "now"])
+def test_on_its_steps_the_controller_is_the_exact_one_weighted_k_times(route: str) -> None:
+    view = make_view(50, "4:2:0")
+    for step in (0, 4, 8):
+        cheap = step_at(new_hook(view, gc_every=4, gc_pooling=route), step)
+        exact = step_at(new_hook(view, lambda_fro=0.05 * 4, gc_pooling=route), step)
+        assert cheap["probe"] and cheap["weights"]["fro"] == 0.2 and cheap["stats"]["gc_damped"] > 0
+        assert_same_step(cheap, exact)
+
+
+def test_between_its_steps_there_is_no_probe_and_no_controller() -> None:
+    view = make_view(50, "4:2:0")
+    for step in (1, 2, 3, 5):
+        cheap = step_at(new_hook(view, gc_every=4), step)
+        off = step_at(new_hook(view, gc=False), step)
+        assert not cheap["probe"]
+        assert cheap["terms"]["fro"] == 0.0 and cheap["stats"] == dict.fromkeys(STAT_NAMES, 0.0)
+        assert {k: v for k, v in cheap["terms"].items() if k != "fro"} == off["terms"]
+        assert_same_step(cheap, off, skip=("terms", "weights", "stats"))
+
+
+def test_gc_every_is_validated() -> None:
+    assert parse_options({}).gc_every == 1
+    assert parse_options({"gc_every": 3}).gc_every == 3
+    for bad, msg in ((0, "must be >= 1"), (1.5, "integer"), ("2", "integer")):
+        with pytest.raises(JsgsError, match=f"method_options.gc_every.*{msg}"):
+            parse_options({"gc_every": bad})
+
+
+def test_a_short_run_keeps_most_of_the_controllers_effect(tmp_path: Path) -> None:
+    """30 steps on the synthetic JPEG scene without densification (the Gaussians stay matched one to one),
+    λ_fro = 1 so that the controller's effect is well above rounding: with k = 2 the opacities and scales
+    end nearer the exact controller's than half the distance the run without the controller ends at, and
+    the controller damps about as many Gaussians per controller step."""
+    from _train_scene import make_scene
+
+    from jsgs.train import checkpoint as ckpt
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.trainer import train
+
+    manifest = make_scene(tmp_path / "scene", jpeg_train=True, n_views=9, n_gaussians=60)
+    runs = {}
+    for name, opts in {"exact": {}, "every2": {"gc_every": 2}, "off": {"gc": False}}.items():
+        c = TrainConfig(method="jsgs", iterations=30, eval_at=[30], device="cpu")
+        c.method_options = {"lambda_fro": 1.0, **opts}
+        c.strategy.refine_start_iter = 10**6
+        c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
+        ev = train(manifest, tmp_path / name, c, progress=False)["evals"][-1]
+        splats = ckpt.load_checkpoint(tmp_path / name / "checkpoints" / "step_000030.pt")["splats"]
+        runs[name] = (ev, splats)
+    exact, cheap, off = (runs[n][1] for n in ("exact", "every2", "off"))
+    for n in ("opacities", "scales"):
+        d_off = (off[n] - exact[n]).norm().item()
+        assert d_off > 1e-3, n  # the controller did something
+        assert (cheap[n] - exact[n]).norm().item() < 0.5 * d_off, n
+    damped = runs["exact"][0]["train"]["stats"]["gc_damped"]
+    damped_cheap = 2 * runs["every2"][0]["train"]["stats"]["gc_damped"]  # logged as 0 between its steps
+    assert damped > 0 and damped_cheap == pytest.approx(damped, rel=0.3)
