@@ -72,7 +72,7 @@ from jsgs.method.image_terms import (
     warn_eager_fallback,
 )
 from jsgs.method.options import JsgsOptions, parse_options, use_cuda_graph
-from jsgs.train.method import HookOutput, LossHook, StepContext
+from jsgs.train.hook import HookOutput, LossHook, StepContext
 from jsgs.train.profiler import Profiler
 
 if TYPE_CHECKING:

@@ -1,13 +1,13 @@
 """The generic trainer: gsplat 1.5.3 simple_trainer's step, evaluation, checkpoints, resume, outputs, as a
 :class:`Trainer` with callbacks (:mod:`jsgs.train.callbacks`). It knows methods only through the loss-hook
-protocol (:mod:`jsgs.train.method`).
+protocol (:mod:`jsgs.train.hook`).
 
 One step (0-based ``step``), as simple_trainer's ``train()``:
 
 1. sample a training view (shuffled epochs), SH degree = min(step // 1000, 3);
 2. rasterise it; ``DefaultStrategy.step_pre_backward`` (retain the screen-space means' gradient);
 3. l_ph = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM) (:func:`jsgs.jpeg.losses.photometric_terms`); plus the
-   method hook's terms (see :mod:`jsgs.train.method`);
+   method hook's terms (see :mod:`jsgs.train.hook`);
 4. backward, Adam step on every group, the means' LR decay; every term and every gradient checked for
    NaN/Inf (TrainingDiverged), then ``DefaultStrategy.step_post_backward`` (densify / prune);
 5. after steps listed in ``eval_at`` (1-based counts): evaluate on the test views, write metrics.json and a
@@ -49,7 +49,7 @@ from jsgs.train.callbacks import Callback, StepResult
 from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, to_dict
 from jsgs.train.data import ViewSampler, load_eval_images, load_scene, load_train_images
 from jsgs.train.evaluate import evaluate, synchronize
-from jsgs.train.method import HookOutput, LossHook, StepContext, make_hook
+from jsgs.train.hook import HookOutput, LossHook, StepContext, make_hook
 from jsgs.train.model import (
     PARAM_NAMES,
     init_splats,
@@ -384,7 +384,7 @@ def weighted_loss(
     folded_loss: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The step's loss Σ weights[k]·terms[k] (terms of weight 0 left out) with the terms in ``folded``
-    replaced by their ready-made weighted sum ``folded_loss`` (:class:`jsgs.train.method.HookOutput`).
+    replaced by their ready-made weighted sum ``folded_loss`` (:class:`jsgs.train.hook.HookOutput`).
 
     Each multiplication and addition is a kernel and an autograd node, which on a GPU cost more host time
     than device time, so a weight of 1 is not multiplied and the sum starts from the first part, not 0."""

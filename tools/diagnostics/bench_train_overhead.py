@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from jsgs.train.config import TrainConfig, from_dict, load_config_file, to_dict  # noqa: E402
 from jsgs.train.data import load_scene  # noqa: E402
-from jsgs.train.method import make_hook  # noqa: E402
+from jsgs.train.hook import make_hook  # noqa: E402
 from jsgs.train.render_view import resolve_device  # noqa: E402
 from jsgs.train.trainer import train  # noqa: E402
 

@@ -33,7 +33,7 @@ from jsgs.method.options import parse_options
 from jsgs.render.bruteforce import render_bruteforce
 from jsgs.train.config import TrainConfig
 from jsgs.train.data import View
-from jsgs.train.method import StepContext, make_hook
+from jsgs.train.hook import StepContext, make_hook
 from jsgs.train.render_view import render_view
 from jsgs.train.trainer import weighted_loss
 

@@ -21,7 +21,7 @@ from _train_scene import make_scene
 from jsgs.base.errors import JsgsError
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.config import TrainConfig, config_schema, from_dict, load_config_file, to_dict
-from jsgs.train.method import HookOutput, LossHook, StepContext
+from jsgs.train.hook import HookOutput, LossHook, StepContext
 from jsgs.train.model import (
     init_splats,
     knn_sq_dists,
