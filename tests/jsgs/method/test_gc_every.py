@@ -17,7 +17,7 @@ from jsgs.base.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.method.hook import STAT_NAMES, JsgsHook
 from jsgs.method.options import parse_options
-from jsgs.train.method import StepContext
+from jsgs.train.hook import StepContext
 from jsgs.train.trainer import weighted_loss
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
