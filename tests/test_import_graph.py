@@ -1,10 +1,13 @@
-"""The import graph of ``jsgs`` and ``jsgstools`` has no cycles.
+"""The import graph of ``jsgs`` and ``jsgstools``: no cycles, and the layers in order.
 
-Every import statement that runs is an edge, those inside functions (lazy) included: a lazy import only
-defers a cycle to run time. Imports under ``if TYPE_CHECKING:`` never run and are not edges; nor is a
-package's ``__init__`` importing its own submodules inside a function. ``from package import name`` is an
-edge to the submodule ``package.name`` when that is a module, else to ``package``. The trainer's method
-registry names its built-in methods as strings (``jsgs.train.method.BUILTIN_METHODS``), which is no import."""
+Every import statement is an edge: those inside functions (lazy) and those under ``if TYPE_CHECKING:``
+included, since a lazy import only defers a cycle to run time and a type-only one still ties the two modules
+together for a reader. ``from package import name`` is an edge to the submodule ``package.name`` when that is
+a module, else to ``package``. The trainer's method registry names its built-in methods as strings
+(``jsgs.train.method.BUILTIN_METHODS``), which is no import.
+
+The layers, bottom first (:data:`LAYERS`): a module imports only from its own layer and those below, so the
+bottom never imports upward. Every module is in one."""
 
 from __future__ import annotations
 
@@ -13,6 +16,18 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("jsgs", "jsgstools")
+#: The layers, bottom first: (name, the packages or modules in it). ``jsgs`` is the top package's
+#: ``__init__`` alone (its version); the rest stand for themselves and everything under them.
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("base", ("jsgs", "jsgs.base", "jsgs.schemas")),
+    ("kernels and image math", ("jsgs.kernels", "jsgs.jpeg", "jsgs.render", "jsgs.metrics")),
+    ("dataset toolkit", ("jsgstools",)),
+    ("trainer", ("jsgs.train", "jsgs.strategy")),
+    ("method", ("jsgs.method",)),
+    ("apps", ("jsgs.apps",)),
+    ("bench", ("jsgs.bench",)),
+    ("command line", ("jsgs.cli",)),
+)
 
 
 def _module_name(path: Path) -> str:
@@ -26,32 +41,17 @@ def _modules() -> dict[str, Path]:
     return {_module_name(p): p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))}
 
 
-def _imports(tree: ast.Module) -> list[tuple[ast.Import | ast.ImportFrom, bool]]:
-    """Every import statement that can run (not under ``if TYPE_CHECKING:``), with whether it lies inside a
-    function."""
-    found: list[tuple[ast.Import | ast.ImportFrom, bool]] = []
-
-    def visit(node: ast.AST, lazy: bool) -> None:
-        if isinstance(node, ast.If) and ast.unparse(node.test) in ("TYPE_CHECKING", "typing.TYPE_CHECKING"):
-            children: list[ast.AST] = list(node.orelse)
-        else:
-            children = list(ast.iter_child_nodes(node))
-        for child in children:
-            if isinstance(child, (ast.Import, ast.ImportFrom)):
-                found.append((child, lazy))
-            visit(child, lazy or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
-
-    visit(tree, False)
-    return found
+def _imports(tree: ast.Module) -> list[ast.Import | ast.ImportFrom]:
+    """Every import statement of a module: at its top, inside functions, under ``if TYPE_CHECKING:``."""
+    return [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
 
 
 def import_graph() -> dict[str, set[str]]:
     modules = _modules()
     graph: dict[str, set[str]] = {m: set() for m in modules}
     for name, path in modules.items():
-        is_pkg = path.name == "__init__.py"
-        package = name if is_pkg else name.rpartition(".")[0]
-        for node, lazy in _imports(ast.parse(path.read_text(), str(path))):
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in _imports(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.Import):
                 targets = [a.name for a in node.names]
             else:
@@ -65,8 +65,7 @@ def import_graph() -> dict[str, set[str]]:
                 # the nearest module of the jsgs/jsgstools tree that the name lies in
                 while t and t not in modules:
                     t = t.rpartition(".")[0]
-                own_submodule = is_pkg and lazy and t.startswith(name + ".")
-                if t and t != name and not own_submodule:
+                if t and t != name:
                     graph[name].add(t)
     return graph
 
@@ -103,6 +102,57 @@ def test_no_import_cycles() -> None:
     assert "jsgs.train.trainer" in graph and "jsgs.method.hook" in graph
     cycle = find_cycle(graph)
     assert cycle is None, " -> ".join(cycle or [])
+
+
+def layer_of(module: str) -> int | None:
+    """The index in :data:`LAYERS` of the layer holding ``module`` (its longest matching entry), or None."""
+    best: tuple[int, int] | None = None
+    for i, (_, entries) in enumerate(LAYERS):
+        for e in entries:
+            holds = module == e if e == "jsgs" else module == e or module.startswith(e + ".")
+            if holds and (best is None or len(e) > best[1]):
+                best = (i, len(e))
+    return None if best is None else best[0]
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """Every edge from a lower layer to a higher one, as ``a (layer) -> b (layer)``."""
+    out = []
+    for a in sorted(graph):
+        for b in sorted(graph[a]):
+            la, lb = layer_of(a), layer_of(b)
+            if la is not None and lb is not None and lb > la:
+                out.append(f"{a} ({LAYERS[la][0]}) -> {b} ({LAYERS[lb][0]})")
+    return out
+
+
+def test_every_module_is_in_a_layer() -> None:
+    graph = import_graph()
+    assert not [m for m in sorted(graph) if layer_of(m) is None]
+
+
+def test_no_layer_imports_upward() -> None:
+    graph = import_graph()
+    assert "jsgs.base.errors" in graph and "jsgs.apps.viewer" in graph
+    assert upward_imports(graph) == []
+
+
+def test_the_layer_check_sees_an_upward_import() -> None:
+    graph = {"jsgs.base.io": {"jsgs.train.trainer"}, "jsgs.train.trainer": {"jsgs.base.io"}}
+    assert upward_imports(graph) == ["jsgs.base.io (base) -> jsgs.train.trainer (trainer)"]
+    assert layer_of("jsgs") == 0 and layer_of("jsgs.cli.train") == len(LAYERS) - 1
+    assert layer_of("jsgstools.dqt.parser") == 2 and layer_of("jsgsx") is None
+
+
+def test_the_graph_counts_lazy_and_type_checking_imports() -> None:
+    code = (
+        "from typing import TYPE_CHECKING\n"
+        "import a\n"
+        "if TYPE_CHECKING:\n    from b import x\n"
+        "def f():\n    import c.d\n"
+    )
+    found = [ast.unparse(n) for n in _imports(ast.parse(code))]
+    assert sorted(found) == ["from b import x", "from typing import TYPE_CHECKING", "import a", "import c.d"]
 
 
 def test_the_generic_trainer_does_not_import_the_method() -> None:
