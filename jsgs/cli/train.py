@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -9,6 +10,28 @@ import click
 
 from jsgs.base.commands import CONTEXT, EXAMPLE, MAX_PROCESSES, PORT, invocation, user_errors
 from jsgs.base.errors import JsgsError
+from jsgs.train.config import PRESETS
+from jsgs.train.method import method_flags, method_names
+
+
+def method_switches(command: Callable[..., Any]) -> Callable[..., Any]:
+    """Add every registered method's ``jsgs train`` switches (:func:`jsgs.train.method.method_flags`)."""
+    for name in reversed(method_names()):
+        for f in reversed(method_flags(name)):
+            text = f"--method {name}: {f.help}"
+            if f.choices:
+                command = click.option(f.flag, f.dest, type=click.Choice(f.choices), default=None, help=text)(
+                    command
+                )
+            else:
+                command = click.option(f.flag, f.dest, is_flag=True, help=text)(command)
+    return command
+
+
+def given_switches(values: dict[str, Any]) -> dict[str, Any]:
+    """The method switches given on the command line: flag -> its value (True for an on/off flag)."""
+    flags = {f.dest: f for name in method_names() for f in method_flags(name)}
+    return {flags[k].flag: v for k, v in values.items() if v is not None and v is not False}
 
 
 def _parse_steps(text: str) -> list[int]:
@@ -64,7 +87,7 @@ def _parse_steps(text: str) -> list[int]:
 )
 @click.option(
     "--preset",
-    type=click.Choice(["mcmc", "paper", "preview"]),
+    type=click.Choice(list(PRESETS)),
     default=None,
     help="Starting settings under --config and the options. mcmc: gsplat simple_trainer's mcmc recipe "
     "(30000 steps, evaluations at 7000 and 30000, MCMCStrategy refining until step 25000 with a budget of "
@@ -89,37 +112,7 @@ def _parse_steps(text: str) -> list[int]:
     default=None,
     help="cuda renders with gsplat, cpu with the torch reference rasterizer [default: auto].",
 )
-@click.option(
-    "--jpeg-mode",
-    "jpeg_mode",
-    type=click.Choice(["exact", "paper", "float"]),
-    default=None,
-    help="--method jsgs: forward of the JPEG observation operator (method_options.jpeg_mode) "
-    "[default: paper].",
-)
-@click.option(
-    "--tables",
-    type=click.Choice(["header", "effective"]),
-    default=None,
-    help="--method jsgs: the quantization JO and DS use (method_options.tables): the files' header tables, "
-    "or the effective tables of views compressed twice (needs `jsgstools manifest --analyze`) "
-    "[default: header].",
-)
-@click.option(
-    "--compile",
-    "compile_backend",
-    type=click.Choice(["off", "inductor", "aot_eager"]),
-    default=None,
-    help="--method jsgs: torch.compile JO, L_obs and DS (method_options.speed.compile) [default: off].",
-)
-@click.option(
-    "--no-jo",
-    "no_jo",
-    is_flag=True,
-    help="--method jsgs: no JPEG observation operator (needs --no-ds --no-gc).",
-)
-@click.option("--no-ds", "no_ds", is_flag=True, help="--method jsgs: no DCT supervision (L_low, L_mid).")
-@click.option("--no-gc", "no_gc", is_flag=True, help="--method jsgs: no Gaussian Controller (L_fro).")
+@method_switches
 @click.option("--resume", is_flag=True, help="Continue RUN from its last checkpoint, bit for bit.")
 @click.option("--force", is_flag=True, help="Overwrite the outputs of an earlier run in RUN.")
 @click.option("--seed", type=int, default=None, help="Random seed [default: 42].")
@@ -166,12 +159,6 @@ def train_command(
     preset: str | None,
     cap_max: str | None,
     device: str | None,
-    jpeg_mode: str | None,
-    tables: str | None,
-    compile_backend: str | None,
-    no_jo: bool,
-    no_ds: bool,
-    no_gc: bool,
     resume: bool,
     force: bool,
     seed: int | None,
@@ -181,6 +168,7 @@ def train_command(
     gpus: int | None,
     processes: int | None,
     stop_at: int | None,
+    **switches: Any,
 ) -> None:
     """Train Gaussians on the views of MANIFEST (a jsgs manifest, or the folder holding its manifest.json;
     see `jsgstools manifest`; for a folder of photos, `jsgstools sfm` first)."""
@@ -204,20 +192,12 @@ def train_command(
         overrides["eval_at"] = _parse_steps(eval_at)
     if cap_max is not None:
         overrides["strategy"] = cap_max_settings(cap_max)
-    method_flags: dict[str, Any] = {}
-    if jpeg_mode is not None:
-        method_flags["jpeg_mode"] = jpeg_mode
-    if tables is not None:
-        method_flags["tables"] = tables
-    if compile_backend is not None:
-        method_flags["speed"] = {"compile": compile_backend}
-    method_flags.update({k: False for k, off in (("jo", no_jo), ("ds", no_ds), ("gc", no_gc)) if off})
     cfg = command_settings(
         preset_name=preset,
         config_file=config_file,
         resume_settings=load_run_settings(out) if resume and config_file is None else None,
         overrides=overrides,
-        method_flags=method_flags,
+        switches=given_switches(switches),
         eval_at_given=eval_at is not None,
     )
     if cap_max is not None and cfg.strategy.type != "mcmc":

@@ -475,11 +475,16 @@ def parse_method_options(name: str, raw: dict[str, Any], where: str = "config") 
 
 
 def from_dict(doc: dict[str, Any], where: str = "config", base: TrainConfig | None = None) -> TrainConfig:
-    """Settings from a (possibly partial) nested dict over ``base`` (defaults when None)."""
+    """Settings from a (possibly partial) nested dict over ``base`` (defaults when None). ``method_options``,
+    when given, is taken whole; a ``method`` other than the base's without it starts from that method's
+    default options."""
     if not isinstance(doc, dict):
         raise JsgsError(f"{where}: settings must be a JSON object")
     base = from_dict(to_dict(base), where) if base is not None else TrainConfig()
+    method = base.method
     cfg = _from_dict(TrainConfig, doc, where, prefix="", base=base)
+    if cfg.method != method and "method_options" not in doc:
+        cfg.method_options = {}  # the options of another method: the new one starts from its defaults
     return cfg
 
 
@@ -488,18 +493,18 @@ MCMC_CAP_MAX = 300_000
 #: The preview preset's training length (steps).
 PREVIEW_ITERATIONS = 1_000
 #: Named starting points for the settings (``jsgs train --preset NAME``); a config file and the command line
-#: apply over them. ``paper``: the settings' own defaults (gsplat simple_trainer's default recipe with
-#: DefaultStrategy, trained 10,000 steps: the paper's protocol). ``mcmc``: simple_trainer's ``mcmc`` recipe
+#: apply over them, and each method's recipe for the preset (:func:`jsgs.train.method.method_recipe`: JSGS's
+#: in :mod:`jsgs.method.recipes`) gives its ``method_options``. ``mcmc``: simple_trainer's ``mcmc`` recipe
 #: at its full length (``max_steps`` 30,000, evaluations at 7,000 and 30,000, the means' learning rate
 #: decaying over the 30,000 steps, MCMCStrategy refining until 25,000) with a budget of
 #: :data:`MCMC_CAP_MAX` Gaussians, measured better than DefaultStrategy for gsplat on all four shared scenes
-#: (docs/results/budget); ``jsgs train`` starts from it unless told otherwise. ``preview``: a quick look at a
-#: capture on a CPU (docs/training.md, "A preview on a CPU"): the baseline (``method`` gsplat) with the
-#: defaults' DefaultStrategy, :data:`PREVIEW_ITERATIONS` steps and one evaluation at the end, meant for a copy
-#: of the photos downscaled by 2, whose pixels no longer carry the files' 8×8 JPEG grid (so JSGS's terms
-#: have nothing to read).
+#: (docs/results/budget); ``jsgs train`` starts from it unless told otherwise. ``paper``: the settings' own
+#: defaults (gsplat simple_trainer's default recipe with DefaultStrategy, trained 10,000 steps: the paper's
+#: protocol). ``preview``: a quick look at a capture on a CPU (docs/training.md, "A preview on a CPU"): the
+#: baseline (``method`` gsplat) with the defaults' DefaultStrategy, :data:`PREVIEW_ITERATIONS` steps and one
+#: evaluation at the end, meant for a copy of the photos downscaled by 2, whose pixels no longer carry the
+#: files' 8×8 JPEG grid (so JSGS's terms have nothing to read).
 PRESETS: dict[str, dict[str, Any]] = {
-    "paper": {},
     "mcmc": {
         "iterations": 30_000,
         "eval_at": [7_000, 30_000],
@@ -507,32 +512,22 @@ PRESETS: dict[str, dict[str, Any]] = {
         "loss": {"opacity_reg": 0.01, "scale_reg": 0.01},
         "strategy": {"type": "mcmc", "refine_stop_iter": 25_000, "cap_max": MCMC_CAP_MAX},
     },
+    "paper": {},
     "preview": {"method": "gsplat", "iterations": PREVIEW_ITERATIONS, "eval_at": [PREVIEW_ITERATIONS]},
 }
 #: the preset of a new ``jsgs train`` run given none
 DEFAULT_PRESET = "mcmc"
-#: The method options a preset gives a method, under the config file's and the command line's. ``mcmc`` gives
-#: JSGS the recipe measured at equal budget (docs/results/budget/default): λ_obs = 1 and λ_base per JPEG view,
-#: w = 1 / (1 + (σ² / σ_ref²)²) with σ² estimated from the file's coefficients and σ_ref = 2. ``paper`` gives
-#: none: the paper's weights (the options' own defaults).
-PRESET_METHOD_OPTIONS: dict[str, dict[str, dict[str, Any]]] = {
-    "mcmc": {
-        "jsgs": {
-            "lambda_obs": 1.0,
-            "base_by_view": True,
-            "base_noise": "pixels",
-            "base_noise_ref": 2.0,
-            "base_noise_exponent": 2.0,
-        },
-    },
-}
 
 
 def preset(name: str) -> TrainConfig:
-    """The settings of preset ``name`` (over the defaults)."""
+    """The settings of preset ``name`` (over the defaults), its method's recipe for it included."""
+    from jsgs.train.method import method_recipe
+
     if name not in PRESETS:
         raise JsgsError(f"--preset: {name!r} is not one of {', '.join(PRESETS)}")
-    return from_dict(PRESETS[name], f"preset {name}")
+    cfg = from_dict(PRESETS[name], f"preset {name}")
+    cfg.method_options = method_recipe(cfg.method, name)
+    return cfg
 
 
 def cap_max_settings(text: str) -> dict[str, Any]:
@@ -562,18 +557,21 @@ def command_settings(
     config_file: str | Path | None = None,
     resume_settings: TrainConfig | None = None,
     overrides: dict[str, Any] | None = None,
-    method_flags: dict[str, Any] | None = None,
+    switches: dict[str, Any] | None = None,
     eval_at_given: bool = False,
 ) -> TrainConfig:
     """The settings of a ``jsgs train`` invocation, in layers: the defaults, the preset (a new run:
     :data:`DEFAULT_PRESET` unless ``preset_name``), the config file (or, when resuming, the run's own
-    settings), the command line's ``overrides`` (dotted-free top-level keys), then the preset's
-    :data:`PRESET_METHOD_OPTIONS` for the method so chosen under ``method_options`` (not with an earlier
-    run's config.json, whose settings are complete), then ``method_flags`` merged over ``method_options``
-    (the JSGS switches; ``speed`` merged one level deeper). With ``iterations`` changed (on the command
-    line, or by a config file over the preset) and the preset's ``eval_at`` kept, the evaluation steps are
-    cut at the new length, which is always evaluated (a longer run: the same steps, and its end).
-    JsgsError (one line) on conflicting choices."""
+    settings), the command line's ``overrides`` (dotted-free top-level keys); then, for a new run, the
+    ``method_options`` of the method so chosen are its recipe for the preset
+    (:func:`jsgs.train.method.method_recipe`) under the config file's (not with an earlier run's
+    config.json, whose settings are complete); then the method's ``switches`` (flag -> value, e.g.
+    ``{"--no-gc": True}``; :class:`jsgs.train.method.MethodFlag`) merged over ``method_options``. With
+    ``iterations`` changed (on the command line, or by a config file over the preset) and the preset's
+    ``eval_at`` kept, the evaluation steps are cut at the new length, which is always evaluated (a longer
+    run: the same steps, and its end). JsgsError (one line) on conflicting choices."""
+    from jsgs.train.method import method_recipe
+
     overrides = dict(overrides or {})
     if resume_settings is not None and preset_name is not None:
         raise JsgsError("--preset applies to a new run; --resume takes the run's own settings")
@@ -581,12 +579,15 @@ def command_settings(
         preset_name = DEFAULT_PRESET
     start = preset(preset_name) if preset_name is not None else TrainConfig()
     whole = False  # an earlier run's config.json: its settings are complete, the preset adds nothing
+    given_options: Any = {}  # the method_options a partial config file gives
     if config_file is not None:
         doc = read_config_document(config_file)
         whole = is_run_config(doc)
-        if isinstance(doc, dict) and not whole and isinstance(doc.get("iterations"), int):
-            # partial settings of another length that keep the preset's evaluation steps: cut them
-            if "eval_at" not in doc and "iterations" not in overrides:
+        if isinstance(doc, dict) and not whole:
+            given_options = doc.get("method_options", {})
+            keeps_steps = "eval_at" not in doc and "iterations" not in overrides
+            if isinstance(doc.get("iterations"), int) and keeps_steps:
+                # partial settings of another length that keep the preset's evaluation steps: cut them
                 doc = {**doc, "eval_at": cut_eval_at(start.eval_at, doc["iterations"])}
         base = config_from_document(doc, config_file, base=start)
     elif resume_settings is not None:
@@ -594,23 +595,39 @@ def command_settings(
     else:
         base = start
     cfg = from_dict(overrides, "command line", base=base)
-    recipe = PRESET_METHOD_OPTIONS.get(preset_name or "", {}).get(cfg.method)
-    if recipe and not whole:
-        cfg.method_options = {**recipe, **cfg.method_options}
-    if method_flags:
-        if cfg.method != "jsgs":
-            raise JsgsError(
-                "--jpeg-mode, --tables, --compile, --no-jo, --no-ds and --no-gc apply to --method jsgs "
-                f"(method is {cfg.method!r})"
-            )
-        flags = dict(method_flags)
-        if isinstance(flags.get("speed"), dict):
-            speed = cfg.method_options.get("speed", {})
-            flags["speed"] = {**(speed if isinstance(speed, dict) else {}), **flags["speed"]}
-        cfg.method_options = {**cfg.method_options, **flags}
+    if preset_name is not None and not whole:
+        cfg.method_options = {**method_recipe(cfg.method, preset_name), **given_options}
+    if switches:
+        cfg.method_options = _merged(cfg.method_options, _switch_options(cfg.method, switches))
     if "iterations" in overrides and not eval_at_given and cfg.eval_at and cfg.eval_at[-1] != cfg.iterations:
         cfg.eval_at = cut_eval_at(cfg.eval_at, cfg.iterations)
     return cfg
+
+
+def _switch_options(method: str, switches: dict[str, Any]) -> dict[str, Any]:
+    """The ``method_options`` that ``switches`` (flag -> value) set; JsgsError (one line) when one belongs
+    to another method than ``method``."""
+    from jsgs.train.method import method_flags, method_names
+
+    out: dict[str, Any] = {}
+    for name in method_names():
+        flags = method_flags(name)
+        given = [f for f in flags if f.flag in switches]
+        if given and name != method:
+            names = [f.flag for f in flags]
+            listed = names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
+            raise JsgsError(f"{listed} apply to --method {name} (method is {method!r})")
+        for f in given:
+            out = _merged(out, f.options(switches[f.flag]))
+    return out
+
+
+def _merged(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``over`` merged into a copy of ``base``, nested objects key by key."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def is_run_config(doc: Any) -> bool:

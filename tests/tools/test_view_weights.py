@@ -18,7 +18,7 @@ def test_weights_are_the_trainers(compressed_scene: Path, tmp_path: Path) -> Non
     from jsgs.train.trainer import train
 
     manifest = compressed_scene / "manifest.json"
-    preset = vw.PRESET_METHOD_OPTIONS["mcmc"]["jsgs"]
+    preset = vw.RECIPES["mcmc"]
     raw = [("default", preset), vw.parse_recipe('b={"base_block_ref": 0.2}')]
     recipes = {n: vw.parse_options(o, n) for n, o in raw}
     rows = vw.view_table(manifest, recipes)
@@ -26,7 +26,7 @@ def test_weights_are_the_trainers(compressed_scene: Path, tmp_path: Path) -> Non
     assert any(r["b"] < 0.9 * r["default"] for r in rows)  # the blockiness factor bites somewhere
     # a one-step run of the same recipe records the same weights
     cfg = TrainConfig(iterations=1, eval_at=[], device="cpu", method="jsgs")
-    cfg.method_options = {**vw.PRESET_METHOD_OPTIONS["mcmc"]["jsgs"], "base_block_ref": 0.2, "gc": False}
+    cfg.method_options = {**vw.RECIPES["mcmc"], "base_block_ref": 0.2, "gc": False}
     train(manifest, tmp_path / "run", cfg, progress=False)
     by_view = json.loads((tmp_path / "run" / "config.json").read_text())["derived"]["method"]["base_by_view"]
     mine, trainers = sorted(r["b"] for r in rows), sorted(r["weight"] for r in by_view.values())

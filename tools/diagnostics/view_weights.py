@@ -4,10 +4,11 @@ applies (``jsgs.method.image_terms.view_tables`` and ``base_weight``, the same c
     .venv/bin/python tools/diagnostics/view_weights.py DATA/cup_gaussian/manifest.json [MANIFEST ...] \
         [--recipe 'b0.5={"base_block_ref": 0.5}' ...]
 
-Each recipe is a ``method_options`` object over the ``mcmc`` preset's (``PRESET_METHOD_OPTIONS``, the row
-``default``). Per manifest, a markdown table: by the views' IJG quality, the median of the file's estimated
-noise variance σ² (8-bit²), of the blockiness B of the decoded luma (``jsgs.jpeg.noise.blockiness``), and of
-each recipe's weight; the last column over all the JPEG training views. CPU only; reads every file once.
+Each recipe is a ``method_options`` object over the ``mcmc`` preset's (``jsgs.method.recipes.RECIPES``,
+the row ``default``). Per manifest, a markdown table: by the views' IJG quality, the median of the file's
+estimated noise variance σ² (8-bit²), of the blockiness B of the decoded luma
+(``jsgs.jpeg.noise.blockiness``), and of each recipe's weight; the last column over all the JPEG training
+views. CPU only; reads every file once.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ import torch
 from jsgs.base.errors import JsgsError, reports_user_errors
 from jsgs.method.image_terms import ViewJpeg, base_weight, view_tables
 from jsgs.method.options import JsgsOptions, parse_options
-from jsgs.train.config import PRESET_METHOD_OPTIONS, TrainConfig
+from jsgs.method.recipes import RECIPES
+from jsgs.train.config import TrainConfig
 from jsgs.train.data import load_scene
 
 
@@ -38,7 +40,7 @@ def parse_recipe(text: str) -> tuple[str, dict]:
         raise JsgsError(f"--recipe {name}: not JSON ({e.msg})") from None
     if not isinstance(extra, dict):
         raise JsgsError(f"--recipe {name}: expected a JSON object of method_options")
-    return name, {**PRESET_METHOD_OPTIONS["mcmc"]["jsgs"], **extra}
+    return name, {**RECIPES["mcmc"], **extra}
 
 
 def view_table(manifest: Path, recipes: dict[str, JsgsOptions]) -> list[dict]:
@@ -85,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         "--recipe", action="append", default=[], help="NAME=JSON: method_options over the preset's"
     )
     a = ap.parse_args(argv)
-    raw = {"default": dict(PRESET_METHOD_OPTIONS["mcmc"]["jsgs"])}
+    raw = {"default": dict(RECIPES["mcmc"])}
     raw.update(parse_recipe(t) for t in a.recipe)
     recipes = {n: parse_options(o, f"--recipe {n}") for n, o in raw.items()}
     for m in a.manifests:

@@ -190,8 +190,8 @@ def test_train_cap_max_needs_mcmc(tmp_path: Path, compressed_scene: Path) -> Non
 def test_bench_at_equal_budget_end_to_end(synth_scene: Path, tmp_path: Path) -> None:
     """Reference run first, the 0.5x budget resolved from its count, every run under that cap."""
     from jsgs.cli import main
+    from jsgs.method.recipes import RECIPES
     from jsgs.schemas import validate
-    from jsgs.train.config import PRESET_METHOD_OPTIONS
 
     cfg = tmp_path / "tiny.json"
     tiny = {"init": {"type": "random", "num_points": 200, "scale": 0.3},
@@ -226,7 +226,7 @@ def test_bench_at_equal_budget_end_to_end(synth_scene: Path, tmp_path: Path) -> 
         assert settings["init"]["num_points"] == 200  # the bench's --config under every run
         assert settings["loss"]["base_weight"] == (0.5 if m == "jsgs" else 1.0)  # the recipe: JSGS only
         # JSGS gets the mcmc preset's recipe, with --jsgs-config over it; gsplat takes no options
-        recipe = {**PRESET_METHOD_OPTIONS["mcmc"]["jsgs"], "base_noise_ref": 3.0} if m == "jsgs" else {}
+        recipe = {**RECIPES["mcmc"], "base_noise_ref": 3.0} if m == "jsgs" else {}
         assert settings["method_options"] == recipe
         metrics = json.loads((run / "metrics.json").read_text())
         assert metrics["num_gaussians"] <= cap and metrics["runs_per_device"] == 2

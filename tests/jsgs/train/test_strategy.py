@@ -213,16 +213,16 @@ def test_the_means_decay_reaches_its_floor_at_the_recipes_length_and_goes_on() -
 
 
 def test_a_new_run_starts_from_the_mcmc_preset(tmp_path: Path) -> None:
-    from jsgs.train.config import DEFAULT_PRESET, PRESET_METHOD_OPTIONS, command_settings
+    from jsgs.method.recipes import RECIPES
+    from jsgs.train.config import DEFAULT_PRESET, command_settings
 
     assert DEFAULT_PRESET == "mcmc"
     # a new run trains JSGS, with the preset's recipe for it
     new = command_settings()
-    assert new.method == "jsgs" and new.method_options == PRESET_METHOD_OPTIONS["mcmc"]["jsgs"]
-    new.method_options = {}
+    assert new.method == "jsgs" and new.method_options == RECIPES["mcmc"]
     assert new == preset("mcmc") and command_settings(preset_name="paper") == TrainConfig()
     baseline = command_settings(overrides={"method": "gsplat"})
-    assert baseline == dataclasses.replace(preset("mcmc"), method="gsplat")
+    assert baseline == dataclasses.replace(preset("mcmc"), method="gsplat", method_options={})
     part = tmp_path / "part.json"
     part.write_text('{"iterations": 50, "eval_at": [50]}')
     cfg = command_settings(config_file=part)
@@ -231,11 +231,35 @@ def test_a_new_run_starts_from_the_mcmc_preset(tmp_path: Path) -> None:
     assert resumed.strategy.type == "default"  # a resumed run keeps its own settings
 
 
+def test_each_method_brings_its_recipes_and_switches_through_the_registry() -> None:
+    """JSGS's recipes and switches live in its package and reach the settings through the method registry;
+    the baseline has neither."""
+    from jsgs.method.options import parse_options
+    from jsgs.method.recipes import RECIPES
+    from jsgs.train.config import command_settings
+    from jsgs.train.method import method_flags, method_recipe
+
+    assert set(RECIPES) <= set(PRESETS) and method_flags("gsplat") == ()
+    assert all(method_recipe("gsplat", p) == {} for p in PRESETS)
+    recipe = method_recipe("jsgs", "mcmc")
+    assert recipe == RECIPES["mcmc"] and recipe is not RECIPES["mcmc"]  # a copy: callers may change it
+    flags = method_flags("jsgs")
+    names = ["--jpeg-mode", "--tables", "--compile", "--no-jo", "--no-ds", "--no-gc"]
+    assert [f.flag for f in flags] == names
+    for f in flags:  # each switch sets a real option to a value it takes
+        opts = parse_options({"ds": False, "gc": False, **f.options(f.choices[-1] if f.choices else True)})
+        value = opts.speed.compile if f.option == "speed.compile" else getattr(opts, f.option)
+        assert value == (f.choices[-1] if f.choices else f.value)
+    with pytest.raises(JsgsError, match="^--jpeg-mode, --tables, .* and --no-gc apply to --method jsgs"):
+        command_settings(preset_name="preview", switches={"--tables": "effective"})
+
+
 def test_the_mcmc_preset_gives_jsgs_its_recipe_under_the_users_options(tmp_path: Path) -> None:
     from jsgs.method.options import parse_options
-    from jsgs.train.config import PRESET_METHOD_OPTIONS, command_settings
+    from jsgs.method.recipes import RECIPES
+    from jsgs.train.config import command_settings
 
-    recipe = PRESET_METHOD_OPTIONS["mcmc"]["jsgs"]
+    recipe = RECIPES["mcmc"]
     assert command_settings(overrides={"method": "jsgs"}).method_options == recipe
     opts = parse_options(recipe)
     assert (opts.lambda_obs, opts.base_by_view, opts.base_noise) == (1.0, True, "pixels")
@@ -246,8 +270,9 @@ def test_the_mcmc_preset_gives_jsgs_its_recipe_under_the_users_options(tmp_path:
     # the config file and the switches apply over the recipe
     part = tmp_path / "part.json"
     part.write_text('{"method": "jsgs", "method_options": {"base_noise_ref": 4.0}}')
-    cfg = command_settings(config_file=part, method_flags={"ds": False})
-    assert cfg.method_options == {**recipe, "base_noise_ref": 4.0, "ds": False}
+    cfg = command_settings(config_file=part, switches={"--no-ds": True, "--compile": "aot_eager"})
+    speed = {"speed": {"compile": "aot_eager"}}
+    assert cfg.method_options == {**recipe, "base_noise_ref": 4.0, "ds": False, **speed}
     # an earlier run's config.json is complete: nothing is added to it, and a resumed run keeps its own
     run_cfg = tmp_path / "config.json"
     run_cfg.write_text(json.dumps({"format": "x", "settings": {"method": "jsgs"}}))

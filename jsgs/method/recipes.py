@@ -1,0 +1,21 @@
+"""The ``method_options`` each preset gives ``--method jsgs`` (:data:`jsgs.train.config.PRESETS`; reached
+through the method registry, :func:`jsgs.train.method.method_recipe`). A config file's ``method_options``
+and the switches apply over them; a run's ``config.json`` records the result in full."""
+
+from __future__ import annotations
+
+from typing import Any
+
+#: Preset name -> the JSGS options it sets. ``mcmc`` (the default preset) gives JSGS the recipe measured at
+#: equal budget (docs/results/budget/default): λ_obs = 1 and λ_base per JPEG view,
+#: w = 1 / (1 + (σ² / σ_ref²)²) with σ² estimated from the file's coefficients and σ_ref = 2. ``paper``
+#: gives none: the paper's weights (the options' own defaults, :class:`jsgs.method.options.JsgsOptions`).
+RECIPES: dict[str, dict[str, Any]] = {
+    "mcmc": {
+        "lambda_obs": 1.0,
+        "base_by_view": True,
+        "base_noise": "pixels",
+        "base_noise_ref": 2.0,
+        "base_noise_exponent": 2.0,
+    },
+}
