@@ -115,8 +115,8 @@ def pairs(rows: list[dict[str, Any]]) -> list[Pair]:
         recipe = int(end["schedule_steps"]) if end.get("schedule_steps") is not None else reached[strat]
         if p.step < recipe:
             p.note = f"stopped at step {p.step}, before its recipe's end ({recipe})"
-        elif not g:
-            p.note = "no gsplat run"
+        if not g:  # a bench of JSGS alone (the budgets' rule) compares nothing in time
+            p.note = p.note or "no gsplat run"
             out.append(p)
             continue
         p.gsplat_share = g[-1].get("runs_per_device")

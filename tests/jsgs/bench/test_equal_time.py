@@ -79,6 +79,17 @@ def test_no_gsplat_run_and_jsgs_before_gsplats_first_evaluation() -> None:
     assert "before gsplat's first evaluation" in pairs(rows)[0].note
 
 
+def test_a_stopped_jsgs_run_without_gsplat_is_listed_not_compared(tmp_path: Path) -> None:
+    # a bench of JSGS alone whose run stopped before its recipe's end (the budgets' rule, cut by --time-limit)
+    from jsgs.bench.equal_time import write_plots
+
+    rows = [_row("jsgs", 0, 100, 12.5, 0.25, 21.0)]
+    (p,) = pairs(rows)
+    assert not p.compared and p.note == "stopped at step 100, before its recipe's end (200)"
+    files = write_plots(rows, tmp_path)  # the curves are still drawn
+    assert files and all(f.exists() for f in files)
+
+
 def test_report_compares_steps_within_the_recipe_and_time_over_everything(tmp_path: Path) -> None:
     """The equal-budget tables compare gsplat at its recipe's end (step 200), not at the 300 steps it
     trained on for the equal-time table; the report has both sections and the time plots."""
