@@ -7,7 +7,7 @@
 #         GPU, to set beside PART=time's auto runs (the auto rule's target).
 # On a lent 2-GPU machine, with the clean bases of scripts/gpu_prepare.sh in $GPU_DIR (default .gpu) and the
 # wheels in .whl (carry [".whl", ".gpu"]):
-#   PART=time TL=470 bash scripts/gpu_run.sh bash tools/campaigns/operating_point.sh
+#   PART=time TL=400 bash scripts/gpu_run.sh bash tools/campaigns/operating_point.sh
 # Each call is self-contained: it trains for at most TL seconds (--time-limit: no run starts that like runs
 # say would not finish; runs still going are stopped at their last evaluation's checkpoint), writes the
 # bench's results.csv, report.md and bench.json, and sends back $OUT/op_<PART>.tgz with those and each run's
@@ -31,7 +31,7 @@ case $P in
   *) echo "error: PART=$P: choose time or rule" >&2; exit 2 ;;
 esac
 # 30,000 steps (the mcmc preset's length), evaluations at 3000, 7000, 10000, 15000, ..., 30000 (the bench's)
-python3 -m jsgs.cli bench $SCENES --out "$B" --strategy mcmc "${ARGS[@]}" --time-limit "${TL:-470}" \
+python3 -m jsgs.cli bench $SCENES --out "$B" --strategy mcmc "${ARGS[@]}" --time-limit "${TL:-400}" \
     --quiet 2>&1 | tail -30
 cd "$B" && tar czf "$OUT/op_$P.tgz" results.csv report.md bench.json \
     $(ls runs/*/*/*/*/*/metrics.json runs/*/*/*/*/*/config.json 2>/dev/null) 2>/dev/null
