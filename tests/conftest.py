@@ -29,8 +29,8 @@ def pytest_configure(config: pytest.Config) -> None:
 # into ../shared) or it uses a fixture built from it; such tests get the ``needs_data`` marker at collection,
 # so ``-m needs_data`` / ``-m "not needs_data"`` select them, and the session's end counts how many ran.
 _DATA_NAMES = ("shared_scene(", "shared_images(", "SHARED", "SCENES", "WEIGHTS", "needs_shared")
-# tests/jsgs/metrics/test_lpips.py: the LPIPS model on the real backbone; tests/jsgstools/test_sfm.py:
-# camera-like JPEGs made from the shared cup
+# tests/test_jsgs/metrics/test_lpips.py: the LPIPS model on the real backbone;
+# tests/test_jsgstools/test_sfm.py: camera-like JPEGs made from the shared cup
 _DATA_FIXTURES = {"model", "jpeg_scene"}
 _data_outcomes: dict[str, int] = {"ran": 0, "skipped": 0}
 

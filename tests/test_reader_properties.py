@@ -3,7 +3,7 @@ the trainer's scene: normalisation, scene scale), the run settings, and PLY mode
 put anywhere in a valid document and random byte mutations give either a valid result or one JsgsError line
 naming the file or setting: never another exception, never a non-finite result, never a hang (every
 example's time is bounded by the deadline). The JPEG header parser has its own fuzzing
-(``tests/jsgstools/test_dqt_fuzz.py``).
+(``tests/test_jsgstools/dqt/test_dqt_fuzz.py``).
 
 Deterministic (derandomized); ``JSGS_PROPERTY_EXAMPLES`` (default 50 per test) sets the size of a run.
 """

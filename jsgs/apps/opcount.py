@@ -82,7 +82,7 @@ def jsgs_step(
     training) and "GC (in backward)" (``fro_from_probe_grad``: r̄ from the probe's gradient,
     ``controller_matrix``, L_fro and its gradient, for ``n_gaussians``; what the hook runs eagerly or records
     as one CUDA graph). ``size`` is (W, H). What ``tools/diagnostics/bench_kernel_count.py`` and
-    ``tests/jsgs/jpeg/test_opcount.py`` count."""
+    ``tests/test_jsgs/apps/test_opcount.py`` count."""
     from jsgs.jpeg.losses import photometric_loss
     from jsgs.jpeg.observe import jpeg_observe
     from jsgs.jpeg.supervision import dct_supervision

@@ -39,7 +39,7 @@ two inner clamps pass gradient strictly inside their range, a float landing exac
 
 Kernel count matters more than arithmetic here (on a GPU at training sizes each small kernel costs more to
 launch than to run): all blocks of the three planes go through one coding pass, and the colour maps and
-DCTs are single matrix products (``tests/jsgs/jpeg/test_opcount.py``,
+DCTs are single matrix products (``tests/test_jsgs/apps/test_opcount.py``,
 ``tools/diagnostics/bench_kernel_count.py``).
 
 No data-dependent Python control flow and no host synchronisation: shapes, the sampling and the mode are

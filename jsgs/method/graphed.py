@@ -6,7 +6,7 @@ At training sizes these terms are a few hundred small kernels per step, forward 
 each one costs more to launch than to run (``tools/diagnostics/bench_kernel_count.py``). A CUDA graph records
 them
 once per image size and replays them as one launch. The arithmetic is the eager code's, kernel for kernel,
-so values and gradients are those of the eager path (``tests/jsgs/method/test_graphed.py``, GPU only).
+so values and gradients are those of the eager path (``tests/test_jsgs/method/test_graphed.py``, GPU only).
 
 The chain itself is :func:`jsgs.method.image_terms.jpeg_terms` (the eager hook runs it too); its tensors-only
 form is :func:`~jsgs.method.image_terms.image_terms`, and what is recorded is

@@ -31,8 +31,8 @@ gradient as well as the photometric one. The probe avoids this: its colours are 
 channels render to exactly 0 and every derivative they send to means2d, conics and opacities carries a
 factor c_j or Σ_behind α·T·c (both 0). Measured: gsplat's means2d/parameter gradients with the probe are
 equal to those without it within gsplat's own run-to-run atomic-add noise
-(tests/jsgs/render/test_render_gpu.py); the reference's agree to 1e-14
-(tests/jsgs/render/test_render_reference.py). Do not use a non-zero probe colour (say r itself).
+(tests/test_jsgs/render/test_render_gpu.py); the reference's agree to 1e-14
+(tests/test_jsgs/render/test_render_reference.py). Do not use a non-zero probe colour (say r itself).
 ``probe_objective`` must enter the loss unscaled (no loss weight, no AMP scaler), or the factor
 must be divided out of the gradient.
 """

@@ -1,7 +1,7 @@
 // Fused SSIM (11x11 Gaussian window) for jsgs.kernels.ssim: one kernel for the forward, one for the
 // backward, instead of the separable-convolution twin's cuDNN depthwise convolutions, layout transposes and
 // about twenty elementwise kernels each way. The twin (jsgs/kernels/_torch_impl.py) is the reference these
-// are tested against (tests/jsgs/kernels/test_ssim_cuda.py).
+// are tested against (tests/test_jsgs/kernels/test_ssim_cuda.py).
 //
 // Forward, per output pixel p of one plane (image x channel): the five windowed moments
 //   mu_x, mu_y, E[x^2], E[y^2], E[xy]  (window w(a) w(b), zero outside the image),

@@ -31,7 +31,7 @@ from jsgstools.dqt import (
     read_header_from,
 )
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 SHARED_SCENES = ROOT.parent / "shared" / "scenes"
 
 

@@ -119,7 +119,7 @@ class _TorchGsplat:
 def test_distorted_gsplat_path_lays_out_channels_as_the_reference(mode: str, monkeypatch) -> None:
     """The distorted camera's gsplat path, its three CUDA kernels replaced by the reference's tile binning and
     compositing: the image, the extra channels and the gradients equal the reference backend's (the same
-    test with gsplat's kernels is tests/jsgs/render/test_render_gpu.py)."""
+    test with gsplat's kernels is tests/test_jsgs/render/test_render_gpu.py)."""
     import gsplat.cuda._wrapper as wrapper
 
     from jsgs.render.backend import _rasterize_gsplat_distorted

@@ -7,7 +7,8 @@ accepts the mutant too.
 
 CI runs ``JSGS_FUZZ_EXAMPLES`` (default 300) hypothesis examples (derandomized: the same ones every run)
 plus a deterministic sweep; a long run is
-``JSGS_FUZZ_EXAMPLES=100000 .venv/bin/python -m pytest tests/jsgstools/test_dqt_fuzz.py -k hypothesis``.
+``JSGS_FUZZ_EXAMPLES=100000 .venv/bin/python -m pytest tests/test_jsgstools/dqt/test_dqt_fuzz.py -k
+hypothesis``.
 """
 
 from __future__ import annotations
