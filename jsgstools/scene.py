@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
+from jsgs.base.camera import Camera, Distortion
 from jsgs.base.errors import JsgsError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -44,7 +45,8 @@ _FACTOR_SNAP = 5e-3
 
 @dataclass(frozen=True)
 class ColmapCamera:
-    """One COLMAP camera. ``params`` in COLMAP's order for ``model`` (pixels for focal lengths and principal
+    """A camera as a COLMAP model records it: its id, and its intrinsics (:attr:`camera`) as COLMAP's
+    parameter vector. ``params`` in COLMAP's order for ``model`` (pixels for focal lengths and principal
     point, COLMAP pixel convention; distortion coefficients are dimensionless)."""
 
     camera_id: int
@@ -82,11 +84,40 @@ class ColmapCamera:
         return tuple(float(self.params[i]) for i in self._colmap().extra_params_idxs())
 
     @property
-    def K(self) -> np.ndarray:
-        """3x3 intrinsic matrix, COLMAP pixel convention."""
+    def camera(self) -> Camera:
+        """The intrinsics as the manifest and the trainer take them: the distortion is None for a pinhole
+        model (a distorted model with zero parameters keeps them)."""
         fx, fy = self.focal
         cx, cy = self.principal_point
-        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        dist = None if self.is_pinhole and not self.distortion else Distortion(self.model, self.distortion)
+        return Camera(self.model, self.width, self.height, fx, fy, cx, cy, dist)
+
+    @classmethod
+    def from_camera(cls, camera_id: int, camera: Camera) -> ColmapCamera:
+        """``camera`` in COLMAP's parameterisation of its model (a model with one focal length takes ``fx``;
+        no distortion: zero distortion parameters)."""
+        import pycolmap
+
+        w, h = camera.width, camera.height
+        cam = pycolmap.Camera.create_from_model_name(camera_id, camera.model, 1.0, w, h)
+        p = [float(v) for v in cam.params]
+        focal = list(cam.focal_length_idxs())
+        p[focal[0]] = camera.fx
+        p[focal[-1]] = camera.fy if len(focal) > 1 else camera.fx
+        ix, iy = cam.principal_point_idxs()
+        p[ix], p[iy] = camera.cx, camera.cy
+        extra = list(cam.extra_params_idxs())
+        dist = (0.0,) * len(extra) if camera.distortion is None else camera.distortion.params
+        if len(dist) != len(extra):
+            raise ValueError(f"{camera.model}: {len(extra)} distortion parameters, not {len(dist)}")
+        for i, v in zip(extra, dist, strict=True):
+            p[i] = float(v)
+        return cls(camera_id, camera.model, camera.width, camera.height, tuple(p))
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix, COLMAP pixel convention."""
+        return self.camera.K
 
     def scaled(self, width: int, height: int) -> ColmapCamera:
         """This camera for an image resized to ``width`` x ``height``: the same as COLMAP's

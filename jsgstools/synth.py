@@ -24,11 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from jsgs.base.camera import Camera, Distortion
 from jsgs.base.errors import JsgsError
 from jsgs.base.io import write_bytes_atomic
 from jsgs.base.limits import MIN_VIEW_SIDE
 
-from .scene import prepare_output_dir, removes_partial_output, write_model_atomic
+from .scene import ColmapCamera, prepare_output_dir, removes_partial_output, write_model_atomic
 
 Texture = Callable[
     [np.ndarray, np.ndarray], np.ndarray
@@ -36,30 +37,6 @@ Texture = Callable[
 
 #: What ``synth`` writes into OUT (and removes first with --force).
 OWNED = ("images", "sparse")
-
-
-@dataclass(frozen=True)
-class SynthCamera:
-    """Intrinsics of the rendered images (pixels, COLMAP convention). ``k1`` != 0 renders through COLMAP's
-    SIMPLE_RADIAL model (needs fx == fy) — for testing undistortion against an exact pinhole rendering."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    k1: float = 0.0
-
-    @property
-    def model(self) -> str:
-        return "PINHOLE" if self.k1 == 0.0 else "SIMPLE_RADIAL"
-
-    def colmap_params(self, scale: float = 1.0) -> list[float]:
-        """COLMAP parameters of ``model`` for images ``scale`` times this size."""
-        if self.k1 == 0.0:
-            return [self.fx * scale, self.fy * scale, self.cx * scale, self.cy * scale]
-        return [self.fx * scale, self.cx * scale, self.cy * scale, self.k1]
 
 
 @dataclass(frozen=True)
@@ -293,24 +270,24 @@ def cast(boxes: list[Box], origin: np.ndarray, dirs: np.ndarray) -> tuple[np.nda
 
 
 def pixel_rays(
-    cam: SynthCamera, R: np.ndarray, t: np.ndarray, xy: np.ndarray
+    cam: Camera, R: np.ndarray, t: np.ndarray, xy: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """World rays (origin (3,), directions (N, 3), not normalized) through image points ``xy`` ((N, 2), COLMAP
     pixel convention) of a camera with world-to-camera pose (R, t)."""
-    if cam.k1 == 0.0:
+    if cam.distortion is None:
         n = np.stack([(xy[:, 0] - cam.cx) / cam.fx, (xy[:, 1] - cam.cy) / cam.fy], -1)
     else:
         import pycolmap
 
-        pc = pycolmap.Camera.create_from_model_name(1, "SIMPLE_RADIAL", cam.fx, cam.width, cam.height)
-        pc.params = cam.colmap_params()
+        pc = pycolmap.Camera.create_from_model_name(1, cam.model, cam.fx, cam.width, cam.height)
+        pc.params = list(ColmapCamera.from_camera(1, cam).params)
         n = pc.cam_from_img(np.ascontiguousarray(xy, dtype=np.float64))  # COLMAP inverts its own distortion
     d_cam = np.concatenate([n, np.ones((len(xy), 1))], axis=1)
     return -R.T @ t, d_cam @ R  # row-wise R.T @ d
 
 
 def render(
-    boxes: list[Box], cam: SynthCamera, R: np.ndarray, t: np.ndarray, supersample: int = 2
+    boxes: list[Box], cam: Camera, R: np.ndarray, t: np.ndarray, supersample: int = 2
 ) -> np.ndarray:
     """(H, W, 3) uint8 image of ``boxes`` from world-to-camera pose (R (3, 3), t (3,)); each pixel averages
     ``supersample`` x ``supersample`` rays at sub-pixel centres (COLMAP convention: pixel (0, 0) spans
@@ -406,7 +383,7 @@ class SynthResult:
     width: int
     height: int
     points: int
-    camera: SynthCamera
+    camera: Camera
 
 
 @removes_partial_output
@@ -450,13 +427,14 @@ def synth(
     if not 0.01 <= point_density <= 100:
         raise JsgsError(f"--point-density {point_density}: must be within 0.01..100")
     xyz, rgb = sample_points(boxes, rng, (6.0 * point_density, 120.0 * point_density))
-    cam = SynthCamera(w, h, 0.85 * w, 0.85 * w, w / 2, h / 2, k1)
+    model, dist = ("PINHOLE", None) if k1 == 0.0 else ("SIMPLE_RADIAL", Distortion("SIMPLE_RADIAL", (k1,)))
+    cam = Camera(model, w, h, 0.85 * w, 0.85 * w, w / 2, h / 2, dist)
     if camera_scale < 1:
         raise JsgsError(f"camera_scale {camera_scale}: must be at least 1")
 
     rec = pycolmap.Reconstruction()
     pc = pycolmap.Camera.create_from_model_name(1, cam.model, cam.fx, w * camera_scale, h * camera_scale)
-    pc.params = cam.colmap_params(camera_scale)
+    pc.params = list(ColmapCamera.from_camera(1, cam).scaled(w * camera_scale, h * camera_scale).params)
     rec.add_camera_with_trivial_rig(pc)
     for i, (R, t) in enumerate(tqdm(poses, desc="rendering", unit="view", disable=not progress)):
         name = f"view_{i:03d}.png"

@@ -3,7 +3,7 @@ but this package and :mod:`jsgs.schemas`.
 
 - :mod:`jsgs.base.errors` (the one-line errors), :mod:`jsgs.base.commands` (what every command line shares);
 - :mod:`jsgs.base.io` (safe reading and writing), :mod:`jsgs.base.limits` (the bounds of what is read);
-- the files: :mod:`jsgs.base.images`, :mod:`jsgs.base.manifest`, :mod:`jsgs.base.ply`,
-  :mod:`jsgs.base.run_files`;
+- the files: :mod:`jsgs.base.images`, :mod:`jsgs.base.manifest` (its cameras: :mod:`jsgs.base.camera`),
+  :mod:`jsgs.base.ply`, :mod:`jsgs.base.run_files`;
 - small numerics: :mod:`jsgs.base.precision`, :mod:`jsgs.base.rotations`, :mod:`jsgs.base.known_grad`.
 """

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from jsgs.base.camera import Camera, Distortion
 from jsgs.base.errors import JsgsError
 from jsgs.base.limits import MAX_COORDINATE, MAX_FOCAL_RATIO, MIN_FOCAL_RATIO, check_coordinates, parse_json
 
@@ -53,34 +54,13 @@ class JpegState:
 
 
 @dataclass(frozen=True)
-class Distortion:
-    model: str  # COLMAP model name
-    params: tuple[float, ...]  # COLMAP's extra parameters, in COLMAP's order
-
-
-@dataclass(frozen=True)
-class ManifestCamera:
-    model: str
-    width: int  # pixels
-    height: int
-    fx: float  # pixels
-    fy: float
-    cx: float  # pixels, COLMAP convention
-    cy: float
-    distortion: Distortion | None
-
-    @property
-    def K(self) -> np.ndarray:
-        """(3, 3) float64 intrinsic matrix (COLMAP pixel convention: the same as gsplat's)."""
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-
-@dataclass(frozen=True)
 class ManifestView:
+    """One view as the manifest records it: its files, split, camera and pose in the manifest's world."""
+
     name: str  # image name in the COLMAP model
     image: Path  # the observed image, resolved against the manifest's folder
     split: str  # "train" | "test"
-    camera: ManifestCamera
+    camera: Camera
     R: np.ndarray  # (3, 3) float64 world-to-camera rotation
     t: np.ndarray  # (3,) float64 world-to-camera translation
     jpeg: JpegState | None  # None for a lossless image
@@ -264,9 +244,9 @@ def _analysis(a: dict[str, Any] | None) -> dict[str, Any]:
     }
 
 
-def _camera(d: dict[str, Any]) -> ManifestCamera:
+def _camera(d: dict[str, Any]) -> Camera:
     dist = d["distortion"]
-    return ManifestCamera(
+    return Camera(
         model=d["model"],
         width=int(d["width"]),
         height=int(d["height"]),

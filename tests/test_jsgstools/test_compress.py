@@ -377,7 +377,8 @@ def test_undistortion_matches_an_exact_pinhole_rendering(tmp_path: Path) -> None
     shows."""
     import pycolmap
 
-    from jsgstools.synth import SynthCamera, default_scene, render, synth
+    from jsgs.base.camera import Camera
+    from jsgstools.synth import default_scene, render, synth
 
     synth(tmp_path / "scene", views=2, size=(160, 120), k1=0.08, camera_scale=4)
     res = compress(tmp_path / "scene", tmp_path / "out", "clean", jobs=1)
@@ -397,7 +398,8 @@ def test_undistortion_matches_an_exact_pinhole_rendering(tmp_path: Path) -> None
         ref = np.asarray(Image.open(tmp_path / "out" / "reference" / (Path(im.name).stem + ".png")))
         corr = []
         for dx in (0.0, 0.5):  # the right camera, and the half-pixel convention mistake
-            pin = SynthCamera(c.width, c.height, c.params[0], c.params[1], c.params[2] + dx, c.params[3])
+            fx, fy, cx, cy = c.params
+            pin = Camera("PINHOLE", c.width, c.height, fx, fy, cx + dx, cy)
             corr.append(_corr(render(boxes, pin, pose.rotation.matrix(), pose.translation, 2), ref))
         raw = np.asarray(Image.open(tmp_path / "scene" / "images" / (Path(im.name).stem + ".png")))
         # Textures of 3-6 px periods: a half-pixel error or no undistortion costs a lot of correlation.
@@ -408,7 +410,7 @@ def test_undistortion_matches_an_exact_pinhole_rendering(tmp_path: Path) -> None
             > _corr(
                 render(
                     boxes,
-                    SynthCamera(c.width, c.height, *c.params),
+                    Camera("PINHOLE", c.width, c.height, *c.params),
                     pose.rotation.matrix(),
                     pose.translation,
                     1,

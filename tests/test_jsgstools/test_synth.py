@@ -9,9 +9,10 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image
 
+from jsgs.base.camera import Camera
 from jsgs.base.errors import JsgsError
 from jsgstools.cli import main
-from jsgstools.synth import SynthCamera, cast, default_scene, look_at, parse_size, pixel_rays, synth
+from jsgstools.synth import cast, default_scene, look_at, parse_size, pixel_rays, synth
 
 
 def test_layout(synth_scene: Path) -> None:
@@ -43,7 +44,7 @@ def test_geometry_is_exact(synth_scene: Path) -> None:
 
     rec = pycolmap.Reconstruction(str(synth_scene / "sparse" / "0"))
     c = rec.cameras[1]
-    cam = SynthCamera(c.width, c.height, *c.params)
+    cam = Camera("PINHOLE", c.width, c.height, *c.params)
     boxes = default_scene(np.random.default_rng(0))
     xyz = np.array([p.xyz for p in rec.points3D.values()])
     rgb = np.array([p.color for p in rec.points3D.values()])
