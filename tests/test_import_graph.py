@@ -23,7 +23,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("base", ("jsgs", "jsgs.base", "jsgs.schemas")),
     ("kernels and image math", ("jsgs.kernels", "jsgs.jpeg", "jsgs.render", "jsgs.metrics")),
     ("dataset toolkit", ("jsgstools",)),
-    ("trainer", ("jsgs.train", "jsgs.strategy")),
+    ("trainer", ("jsgs.train",)),
     ("method", ("jsgs.method",)),
     ("apps", ("jsgs.apps",)),
     ("bench", ("jsgs.bench",)),

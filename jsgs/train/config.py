@@ -158,8 +158,8 @@ class OptimConfig:
 
 @dataclass
 class StrategyConfig:
-    """Densification (``jsgs.strategy``): gsplat's ``DefaultStrategy`` (densify by screen-space gradient,
-    prune by opacity and size) or ``MCMCStrategy`` (a fixed budget of Gaussians, ``cap_max``)."""
+    """Densification (``jsgs.train.strategy``): gsplat's ``DefaultStrategy`` (densify by screen-space
+    gradient, prune by opacity and size) or ``MCMCStrategy`` (a fixed budget of Gaussians, ``cap_max``)."""
 
     type: Literal["default", "mcmc"] = _f(
         "default",

@@ -42,7 +42,6 @@ from jsgs.base.errors import JsgsError
 from jsgs.base.io import LOCK_NAME, OutputLock, write_json_atomic
 from jsgs.base.run_files import RunPaths
 from jsgs.kernels import use_kernels
-from jsgs.strategy import Densifier, initial_subset
 from jsgs.train import checkpoint as ckpt
 from jsgs.train import distributed as dd
 from jsgs.train.callbacks import Callback, StepResult
@@ -60,6 +59,7 @@ from jsgs.train.model import (
 )
 from jsgs.train.profiler import Profiler
 from jsgs.train.render_view import render_view, resolve_backend, resolve_device
+from jsgs.train.strategy import Densifier, initial_subset
 
 METRICS_FORMAT = "jsgs-metrics"
 METRICS_VERSION = 1

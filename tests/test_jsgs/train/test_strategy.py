@@ -1,5 +1,6 @@
-"""Densification strategies (jsgs.strategy): gsplat's MCMCStrategy on the CPU through the torch twins of its
-CUDA ops, the Gaussian budget, the mcmc preset, resume, and the twins against float64 and gsplat's kernels."""
+"""Densification strategies (jsgs.train.strategy): gsplat's MCMCStrategy on the CPU through the torch twins of
+its CUDA ops, the Gaussian budget, the mcmc preset, resume, and the twins against float64 and gsplat's
+kernels."""
 
 from __future__ import annotations
 
@@ -17,10 +18,10 @@ from test_train import tiny_config
 
 from jsgs.base.errors import JsgsError
 from jsgs.kernels import compute_relocation, cpu_twins, quat_scale_to_covar
-from jsgs.strategy import Densifier, initial_subset
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.callbacks import Callback
 from jsgs.train.config import PRESETS, TrainConfig, from_dict, preset
+from jsgs.train.strategy import Densifier, initial_subset
 from jsgs.train.trainer import train
 
 
