@@ -29,7 +29,7 @@ from jsgs.base.io import write_bytes_atomic
 from jsgs.base.limits import read_json
 from jsgs.schemas import validate as schema_validate
 
-from .scene import JPEG_FORMATS, ColmapScene, SceneView, image_stem, view_camera
+from .scene import JPEG_FORMATS, ColmapScene, ColmapView, image_stem, view_camera
 
 RECORD = "compress.json"
 
@@ -65,7 +65,7 @@ def read_record(scene_dir: Path) -> dict[str, Any] | None:
     return doc
 
 
-def camera_doc(scene: ColmapScene, view: SceneView) -> dict[str, Any]:
+def camera_doc(scene: ColmapScene, view: ColmapView) -> dict[str, Any]:
     """The manifest's camera object for ``view``: its camera scaled to the image file."""
     cam = view_camera(scene, view)
     fx, fy = cam.focal
@@ -83,7 +83,7 @@ def camera_doc(scene: ColmapScene, view: SceneView) -> dict[str, Any]:
     }
 
 
-def jpeg_state(view: SceneView, analyze: bool = False) -> dict[str, Any] | None:
+def jpeg_state(view: ColmapView, analyze: bool = False) -> dict[str, Any] | None:
     """The manifest's ``jpeg`` object from the file header, or None for a lossless file; with ``analyze``,
     also what the pixels say about its compression history (``analysis``: :mod:`jsgstools.dqt.analysis`)."""
     if view.format not in JPEG_FORMATS:

@@ -152,7 +152,7 @@ class ColmapCamera:
 
 
 @dataclass(frozen=True)
-class SceneView:
+class ColmapView:
     """One registered image of the model and the file that holds it."""
 
     image_id: int
@@ -177,7 +177,7 @@ class ColmapScene:
     model_format: str  # "binary" | "text"
     images_dir: Path
     cameras: dict[int, ColmapCamera]
-    views: list[SceneView]
+    views: list[ColmapView]
     unregistered: list[str]
     points_xyz: np.ndarray  # (N, 3) float64, world coordinates
     points_rgb: np.ndarray  # (N, 3) uint8
@@ -284,7 +284,7 @@ def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | 
         return None, None, f"cannot read image: {e}", 1
 
 
-def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
+def load_colmap_scene(root: str | Path, images: str = "images") -> ColmapScene:
     """Read the model and probe every registered image's file (header only). Raises JsgsError only when
     the model cannot be found or read; every other defect is left for :mod:`jsgstools.validate`."""
     from jsgstools.colmap_check import check_binary_model, check_camera, check_points_finite
@@ -307,7 +307,7 @@ def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
     }
     images_dir = root / images
     have_dir = images_dir.is_dir()
-    views: list[SceneView] = []
+    views: list[ColmapView] = []
     unregistered: list[str] = []
     by_name: dict[str, list[int]] = {}
     for iid, im in rec.images.items():
@@ -324,7 +324,9 @@ def load_scene(root: str | Path, images: str = "images") -> ColmapScene:
         if path is not None:
             size, fmt_name, err, orientation = _probe_image(path)
         views.append(
-            SceneView(int(iid), str(im.name), int(im.camera_id), R, t, path, size, fmt_name, err, orientation)
+            ColmapView(
+                int(iid), str(im.name), int(im.camera_id), R, t, path, size, fmt_name, err, orientation
+            )
         )
     views.sort(key=lambda v: (v.name, v.image_id))
     n = len(rec.points3D)
@@ -396,7 +398,7 @@ def detect_downscale(scene: ColmapScene) -> Downscale:
     all. The scene's factor is the median of the views' factors, snapped to an integer when within 0.5 % of
     one; every view must match it to within one pixel in both directions. Views whose camera is unknown or
     whose file is missing are skipped here (they are reported elsewhere)."""
-    measured: list[tuple[SceneView, ColmapCamera, float]] = []
+    measured: list[tuple[ColmapView, ColmapCamera, float]] = []
     problems: list[tuple[str, str]] = []
     for v in scene.views:
         cam = scene.cameras.get(v.camera_id)
@@ -438,7 +440,7 @@ def detect_downscale(scene: ColmapScene) -> Downscale:
     return Downscale(factor, tuple(problems))
 
 
-def view_camera(scene: ColmapScene, view: SceneView) -> ColmapCamera:
+def view_camera(scene: ColmapScene, view: ColmapView) -> ColmapCamera:
     """The view's camera scaled to the size of its file (COLMAP's rescale semantics)."""
     cam = scene.cameras[view.camera_id]
     if view.size is None:

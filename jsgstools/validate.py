@@ -42,7 +42,7 @@ from .scene import (
     detect_downscale,
     finite,
     fmt_factor,
-    load_scene,
+    load_colmap_scene,
 )
 
 #: Problem kinds. ``manifest`` accepts scenes whose only problems are of kind ``camera_model`` (it records any
@@ -222,7 +222,7 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
     root = Path(root)
     report = ValidationReport(root=root, scene=None)
     try:
-        scene = load_scene(root)
+        scene = load_colmap_scene(root)
     except JsgsError as e:
         report.problems.append(Problem("model", str(e)))
         return report

@@ -129,12 +129,12 @@ def small_dataset(compressed_scene: Path, tmp_path_factory: pytest.TempPathFacto
 def _read_scene(root: Path, text: str | bytes) -> None:
     """The property for one manifest text: the trainer's scene, finite, or one JsgsError line naming it."""
     from jsgs.train.config import TrainConfig
-    from jsgs.train.data import load_scene
+    from jsgs.train.data import load_training_scene
 
     path = root / "manifest.json"
     path.write_bytes(text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text)
     try:
-        scene = load_scene(path, TrainConfig())
+        scene = load_training_scene(path, TrainConfig())
     except JsgsError as e:
         _one_line(e, str(path))
         event("refused")

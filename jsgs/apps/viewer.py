@@ -55,7 +55,7 @@ def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
     JsgsError (one line) when RUN is not a finished run or its manifest has moved."""
     from jsgs.base.limits import read_json
     from jsgs.base.ply import load_ply
-    from jsgs.train.data import load_scene
+    from jsgs.train.data import load_training_scene
     from jsgs.train.model import splats_from_state
     from jsgs.train.render_view import resolve_backend, resolve_device
     from jsgs.train.trainer import load_run_settings
@@ -73,7 +73,7 @@ def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
     manifest = Path(str(doc.get("manifest", {}).get("path", "")))
     if not manifest.is_file():
         raise JsgsError(f"{run}: its manifest {manifest} is not there any more (the cameras come from it)")
-    scene = load_scene(manifest, cfg)
+    scene = load_training_scene(manifest, cfg)
     dev = resolve_device(device)
     a = load_ply(ply)
     state = {

@@ -125,7 +125,7 @@ class Scene:
         return "lossless" if lossy == 0 else ("jpeg" if lossy == len(tests) else "mixed")
 
 
-def load_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
+def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
     """Read and check the manifest, normalise the world (gsplat's Parser), and compute the scene scale.
 
     :func:`jsgs.base.manifest.load_manifest` validates the document (schema, rotations, unique names, point

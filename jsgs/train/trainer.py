@@ -46,7 +46,7 @@ from jsgs.train import checkpoint as ckpt
 from jsgs.train import distributed as dd
 from jsgs.train.callbacks import Callback, StepResult
 from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, to_dict
-from jsgs.train.data import ViewSampler, load_eval_images, load_scene, load_train_images
+from jsgs.train.data import ViewSampler, load_eval_images, load_train_images, load_training_scene
 from jsgs.train.evaluate import evaluate, synchronize
 from jsgs.train.hook import HookOutput, LossHook, StepContext, make_hook
 from jsgs.train.model import (
@@ -547,7 +547,7 @@ class Trainer:
         self.profiler.device = device
         self.backend = resolve_backend(cfg, device)
         _seed_everything(cfg.seed)
-        self.scene = scene = load_scene(self.manifest, cfg)
+        self.scene = scene = load_training_scene(self.manifest, cfg)
         for note in scene.notes:
             self.say(f"note: {note}")
         if self.resuming:

@@ -46,9 +46,9 @@ def test_from_camera_refuses_a_wrong_distortion() -> None:
 def test_manifest_camera_is_the_colmap_camera(synth_scene: Path) -> None:
     """The manifest writer's camera object holds what ColmapCamera.camera says (scaled to the file)."""
     from jsgstools.manifest_writer import camera_doc
-    from jsgstools.scene import load_scene, view_camera
+    from jsgstools.scene import load_colmap_scene, view_camera
 
-    scene = load_scene(synth_scene)
+    scene = load_colmap_scene(synth_scene)
     for v in scene.views[:3]:
         cam = view_camera(scene, v).camera
         doc = camera_doc(scene, v)

@@ -41,7 +41,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from jsgs.train.config import TrainConfig, from_dict, load_config_file, to_dict  # noqa: E402
-from jsgs.train.data import load_scene  # noqa: E402
+from jsgs.train.data import load_training_scene  # noqa: E402
 from jsgs.train.hook import make_hook  # noqa: E402
 from jsgs.train.render_view import resolve_device  # noqa: E402
 from jsgs.train.trainer import train  # noqa: E402
@@ -75,7 +75,7 @@ def run_once(manifest: Path, out: Path, cfg: TrainConfig, profile: bool) -> dict
     """One training run; with ``profile``, also the hook's own phase timers."""
     hook = None
     if profile and cfg.method != "gsplat":
-        scene = load_scene(manifest, cfg)
+        scene = load_training_scene(manifest, cfg)
         hook = make_hook(cfg, scene, resolve_device(cfg.device))
         if hook is not None:
             hook.profile = True  # type: ignore[attr-defined]

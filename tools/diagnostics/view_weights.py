@@ -26,7 +26,7 @@ from jsgs.method.image_terms import ViewJpeg, base_weight, view_tables
 from jsgs.method.options import JsgsOptions, parse_options
 from jsgs.method.recipes import RECIPES
 from jsgs.train.config import TrainConfig
-from jsgs.train.data import load_scene
+from jsgs.train.data import load_training_scene
 
 
 def parse_recipe(text: str) -> tuple[str, dict]:
@@ -45,7 +45,7 @@ def parse_recipe(text: str) -> tuple[str, dict]:
 
 def view_table(manifest: Path, recipes: dict[str, JsgsOptions]) -> list[dict]:
     """One dict per JPEG training view: ``quality``, ``noise``, ``blockiness`` and each recipe's weight."""
-    views = load_scene(manifest, TrainConfig(device="cpu", eval_at=[])).train_views
+    views = load_training_scene(manifest, TrainConfig(device="cpu", eval_at=[])).train_views
     cpu = torch.device("cpu")
     measured: dict[tuple[str, str], dict[int, ViewJpeg]] = {}
     for o in recipes.values():  # σ² and B read from the files once per (tables, noise) kind

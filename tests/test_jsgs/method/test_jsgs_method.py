@@ -639,11 +639,11 @@ def rbar_parity(manifest: Path, backend: str, device: torch.device, n_views: int
     the first training views at SfM initialisation, against the reference rasteriser's direct pooling
     (``pool_direct``, float64) with the same r(p). Returns the worst figures over views and routes."""
     from jsgs.method.pooling import pool_direct
-    from jsgs.train.data import load_image, load_scene
+    from jsgs.train.data import load_image, load_training_scene
     from jsgs.train.model import activated, init_splats
 
     cfg = TrainConfig(method="jsgs", device=device.type)
-    scene = load_scene(manifest, cfg)
+    scene = load_training_scene(manifest, cfg)
     torch.manual_seed(0)
     splats = init_splats(
         torch.from_numpy(scene.points), torch.from_numpy(scene.points_rgb).float() / 255.0, cfg,
@@ -972,7 +972,7 @@ def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
 
     from jsgs.method.image_terms import quantization_noise_variance, view_tables
     from jsgs.train.config import TrainConfig
-    from jsgs.train.data import load_scene
+    from jsgs.train.data import load_training_scene
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
     doc = json.loads(manifest.read_text())
@@ -984,7 +984,7 @@ def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
                      "effective_chroma_table": j["chroma_table"], "noise_variance": 7.5,
                      "blockiness": 1.7}  # fmt: skip
     manifest.write_text(json.dumps(doc))
-    views = load_scene(manifest, TrainConfig(device="cpu")).train_views
+    views = load_training_scene(manifest, TrainConfig(device="cpu")).train_views
     cpu = torch.device("cpu")
     px = view_tables(views, cpu, "m", noise="pixels")
     tb = view_tables(views, cpu, "m", noise="tables")
@@ -1016,10 +1016,10 @@ def test_many_estimates_are_announced_and_match_one_by_one(
     from jsgs.base.images import read_ycbcr8
     from jsgs.jpeg.noise import jpeg_noise_variance
     from jsgs.train.config import TrainConfig
-    from jsgs.train.data import load_scene
+    from jsgs.train.data import load_training_scene
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
-    views = load_scene(manifest, TrainConfig(device="cpu")).train_views
+    views = load_training_scene(manifest, TrainConfig(device="cpu")).train_views
     jpeg_views = [v for v in views if v.jpeg is not None]
     monkeypatch.setattr(it, "ANNOUNCE_ESTIMATES", len(jpeg_views) - 1)
     got = it.view_tables(views, torch.device("cpu"), "m", noise="pixels")

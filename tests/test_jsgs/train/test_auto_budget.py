@@ -33,13 +33,13 @@ def test_the_rule_on_hand_made_numbers() -> None:
 
 
 def _scene(tmp: Path, size: tuple[int, int], views: int, density: float = 1.0):  # noqa: ANN202
-    from jsgs.train.data import load_scene
+    from jsgs.train.data import load_training_scene
     from jsgstools.manifest_writer import manifest
     from jsgstools.synth import synth
 
     synth(tmp / "scene", views=views, size=size, seed=0, supersample=1, point_density=density)
     manifest(tmp / "scene", tmp / "manifest.json")
-    return load_scene(tmp / "manifest.json", TrainConfig(eval_at=[], iterations=1))
+    return load_training_scene(tmp / "manifest.json", TrainConfig(eval_at=[], iterations=1))
 
 
 def test_smaller_or_simpler_scenes_get_fewer_gaussians(tmp_path: Path) -> None:

@@ -65,7 +65,7 @@ def test_exported_centres_project_with_the_colmap_cameras(
     from jsgs.base.manifest import load_manifest
     from jsgs.base.ply import load_ply
     from jsgs.train.config import load_config_file
-    from jsgs.train.data import load_scene
+    from jsgs.train.data import load_training_scene
 
     manifest, run = moved_run
     out = tmp_path / "scene.ply"
@@ -74,7 +74,7 @@ def test_exported_centres_project_with_the_colmap_cameras(
     exported, trained = load_ply(out), load_ply(run / "point_cloud.ply")
     assert exported["means"].shape == trained["means"].shape
     colmap_views = load_manifest(manifest).views  # the scene's cameras, in its own frame
-    training = load_scene(manifest, load_config_file(run / "config.json"))  # the trainer's cameras
+    training = load_training_scene(manifest, load_config_file(run / "config.json"))  # the trainer's cameras
     assert abs(np.linalg.det(training.transform[:3, :3]) ** (1 / 3) - 1.0) > 0.5  # not a trivial frame
     for colmap, v in zip(colmap_views, training.views, strict=True):
         assert colmap.name == v.name

@@ -563,9 +563,9 @@ def test_lpips_from_config_weights(tmp_path: Path) -> None:
 
 def test_view_camera_tensors_are_made_once_per_device(scene: Path) -> None:
     # the training step reads them every step; a fresh host-to-device copy each time is a GPU sync
-    from jsgs.train.data import load_scene
+    from jsgs.train.data import load_training_scene
 
-    v = load_scene(scene, TrainConfig()).train_views[0]
+    v = load_training_scene(scene, TrainConfig()).train_views[0]
     vm, K = v.viewmat_tensor(torch.device("cpu")), v.K_tensor("cpu")
     assert vm is v.viewmat_tensor("cpu") and K is v.K_tensor(torch.device("cpu"))
     assert vm.shape == (1, 4, 4) and K.shape == (1, 3, 3) and vm.dtype == K.dtype == torch.float32
