@@ -317,6 +317,11 @@ class LiveViewer(Callback):
         size = self.max_size or (1024 if trainer.device.type == "cuda" else 320)
         self.viewer = Viewer(model, host=self.host, port=self.port, max_size=size)
         self.announce(f"viewer: http://localhost:{self.viewer.port} (the model as it trains)")
+        if trainer.world.enabled:  # the callbacks run on rank 0, which holds its shard only
+            self.announce(
+                f"note: the viewer shows rank 0's shard of the Gaussians (about 1/{trainer.world.size} of "
+                "them) while the run trains on several processes; `jsgs view RUN` shows the whole model"
+            )
 
     def on_step_begin(self, trainer: Trainer, step: int) -> None:
         if self.viewer is not None:

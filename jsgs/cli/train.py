@@ -131,8 +131,9 @@ def _parse_steps(text: str) -> list[int]:
     "--gpus",
     type=click.IntRange(max=MAX_PROCESSES),
     default=None,
-    help="Train on this many GPUs of this machine, one process each, every step's views split across "
-    "them (starts the processes as torchrun would; on several machines use torchrun; docs/performance.md).",
+    help="Train on this many GPUs of this machine, one process each, the Gaussians sharded and every step's "
+    "views split across them (starts the processes as torchrun would; on several machines use torchrun; "
+    "docs/performance.md).",
 )
 @click.option(
     "--processes",

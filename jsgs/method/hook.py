@@ -209,6 +209,9 @@ class JsgsHook(LossHook):
         """The multiplier on λ_base for a JPEG view at 0-based ``step`` (:func:`base_weight`)."""
         return base_weight(self.opts, tab, step)
 
+    def renders_extra(self) -> bool:
+        return self.opts.gc
+
     def extra_channels(self, step: int, view: View, splats: torch.nn.ParameterDict) -> Tensor | None:
         """The Gaussian Controller's probe (``jsgs.method.pooling.new_probe``) on the views and steps it runs
         on."""

@@ -99,6 +99,7 @@ def rasterize(
     render_mode: RenderMode = "RGB",
     extra: Tensor | None = None,
     distortion: Tensor | None = None,
+    distributed: bool = False,
 ) -> tuple[Tensor, Tensor, dict]:
     """Rasterise N 3D Gaussians into C pinhole cameras (gsplat 1.5.3 ``rasterization`` semantics).
 
@@ -127,6 +128,13 @@ def rasterize(
             the distortion's Jacobian). The gsplat backend projects with the reference's torch projection
             (differentiable; gsplat's own ``with_ut`` projection is not) and composites with gsplat's tile
             intersection and rasterisation kernels: the same image as the reference backend.
+        distributed: gsplat's ``rasterization(..., distributed=True)`` (gsplat backend, packed, no extra
+            channels, no distortion, no absgrad): ``means`` ... are this process's shard of the Gaussians and
+            ``viewmats``/``Ks`` its own cameras; every process of the torch.distributed group calls it
+            together, each Gaussian is projected on its owner for every process's cameras and sent to the
+            process that renders the camera, and the backward sends the gradients back to the owners.
+            ``info``'s projection keys ("means2d", "radii", "gaussian_ids", "camera_ids") are the owner's
+            (cameras numbered over all processes), as gsplat's strategies expect.
 
     Returns:
         render_colors [C, H, W, D(+1 with depth)], render_alphas [C, H, W, 1], info: gsplat's meta keys
@@ -150,6 +158,12 @@ def rasterize(
             raise ValueError(f"distortion must be [C, 4] with C={C}; got {tuple(distortion.shape)}")
         if packed:
             raise ValueError("lens distortion renders in the non-packed layout only (packed=False)")
+    if distributed and (which != "gsplat" or not packed or extra is not None or distortion is not None
+                        or absgrad):
+        raise ValueError(
+            "distributed rasterisation is gsplat's: backend gsplat, packed, without extra channels, lens "
+            "distortion or absgrad"
+        )
     if which == "torch":
         if packed:
             raise ValueError("the reference rasterizer implements the non-packed layout only (packed=False)")
@@ -170,7 +184,7 @@ def rasterize(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, backgrounds=backgrounds,
             eps2d=eps2d, radius_clip=radius_clip, packed=packed, absgrad=absgrad, render_mode=render_mode,
-            extra=feats,
+            extra=feats, distributed=distributed,
         )  # fmt: skip
     info["backend"] = which
     if extra is not None:
@@ -199,6 +213,7 @@ def _rasterize_gsplat(
     absgrad: bool,
     render_mode: str,
     extra: Tensor | None,
+    distributed: bool = False,
 ) -> tuple[Tensor, Tensor, dict]:
     """gsplat.rasterization in classic mode; with extra features [C, N, E], SH are evaluated here (gsplat's
     own CUDA op) so that the extra channels can be appended to the colour features."""
@@ -208,6 +223,8 @@ def _rasterize_gsplat(
         near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d, packed=packed,
         tile_size=reference.TILE_SIZE, absgrad=absgrad, rasterize_mode="classic",
     )  # fmt: skip
+    if distributed:
+        kw["distributed"] = True
     if extra is None:
         return gsplat.rasterization(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,

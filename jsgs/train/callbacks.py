@@ -61,6 +61,8 @@ class TrainerView(Protocol):
 
     def training_seconds(self) -> float: ...
 
+    def num_gaussians(self) -> int: ...
+
     def save_checkpoint(self, step_done: int) -> str: ...
 
     def status_at(self, step_done: int) -> str: ...
@@ -172,7 +174,7 @@ class ProgressBar(Callback):
         )
 
     def _summary(self, trainer: TrainerView, result: StepResult) -> str:
-        parts = [f"loss={result.loss:.4f}", f"#G={trainer.splats['means'].shape[0]}"]
+        parts = [f"loss={result.loss:.4f}", f"#G={trainer.num_gaussians()}"]
         parts += [f"{k}={v:.4g}" for k, v in result.terms.items() if k not in ("photometric",)]
         parts += [f"{k}={v:.4g}" for k, v in result.stats.items()]
         return " ".join(parts)

@@ -833,7 +833,14 @@ def config_schema() -> dict[str, Any]:
                         "type": "integer",
                         "minimum": 1,
                         "description": "Processes that trained the run (torchrun / jsgs train --gpus N), "
-                        "each rendering one view per step; 1 when absent.",
+                        "each holding a shard of the Gaussians and rendering one view per step; 1 when "
+                        "absent.",
+                    },
+                    "exchange": {
+                        "enum": ["gsplat", "torch"],
+                        "description": "On several processes, how a view reaches the other shards' "
+                        "Gaussians (gsplat: rasterization(..., packed=True, distributed=True); torch: the "
+                        "shards gathered on every process, the gradients all-reduced back to their owners).",
                     },
                     "notes": {"type": "array", "items": {"type": "string"}},
                     "ssim_kernel": {

@@ -1,26 +1,39 @@
-"""One scene on several processes (torch.distributed): data parallel over the training views.
+"""One scene on several processes (torch.distributed): the Gaussians sharded, the views split.
 
 Launched by ``torchrun --nproc-per-node N -m jsgs.cli train ...`` or by ``jsgs train --gpus N`` /
 ``--processes N`` (:mod:`jsgs.train.launch`); the processes find each other through torchrun's environment
 variables (``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``, ``MASTER_ADDR``, ``MASTER_PORT``). Without them a run
 has one process and nothing here communicates.
 
-How a step is shared (replicated Gaussians, DDP-style):
+How a step is shared (gsplat's simple_trainer with ``world_size``):
 
-- every process holds all the Gaussians, the optimizers and the strategy's state, and keeps them identical
-  to the others': same seed, same view sampler (each step draws ``world_size`` views, rank r renders the
-  r-th), same random draws in the same order (MCMC's relocation and noise use the global generator), and
-  the same averaged gradients;
-- each process renders its own view and computes that view's loss, with the method's per-view terms (JSGS's
-  JO, DS and Gaussian Controller) on the process that renders the view;
-- the gradients (and two flags: the view was empty, a stop was requested) are summed over the processes in
-  one all-reduce and divided by ``world_size``; the learning rates follow gsplat's batch rule for a batch of
-  ``world_size`` views (lr·√B, eps/√B, betas 1 − B(1 − β));
-- DefaultStrategy's per-Gaussian statistics (screen-space gradient sums, counts, largest radii) are reduced
-  over the processes every step, so every process densifies and prunes the same Gaussians;
-- the logged values of every view are gathered to every process (NaN/Inf stops all of them alike);
+- each process owns a shard of the Gaussians (the initial points ``rank::world_size``) with its Adam state
+  and its strategy state; the shards change size independently as the strategy grows and prunes them;
+- each step draws ``world_size`` views from the shared sampler, rank r renders the r-th, from every
+  Gaussian, and computes that view's loss with the method's per-view terms (JSGS's JO, DS and Gaussian
+  Controller) on that process;
+- the exchange: on CUDA, gsplat's ``rasterization(..., packed=True, distributed=True)`` projects each shard
+  on its owner for every process's camera, sends the projected Gaussians to the process that renders the
+  camera and, in the backward, the gradients back to the owners; where that cannot render the run's views
+  (the reference rasterizer, a method's extra channels, lens distortion, absgrad) the torch exchange does
+  the same with whole parameters: every shard is gathered on every process (:func:`gather_gaussians`), each
+  process's view's gradients over all of them are all-reduced and each owner keeps its rows
+  (:func:`reduce_gradients`; gloo has no reduce-scatter). Either way a Gaussian's gradient is the mean over
+  the step's views and the learning rates follow gsplat's batch rule for ``world_size`` views;
+- per-Gaussian statistics reach the owner: DefaultStrategy's screen-space gradient sums, counts and radii
+  (gsplat's projection runs on the owner; the torch exchange reduces them, :func:`share_strategy_statistics`)
+  and the Gaussian Controller's (it runs on the view's process, over the gathered Gaussians, and its
+  gradients travel back with the others);
+- the strategies run per shard: DefaultStrategy densifies and prunes each shard on its own statistics;
+  MCMCStrategy's global budget ``cap_max`` is split into shares (:func:`shard_cap`), each shard relocating
+  and growing within its own, so the run's count never exceeds the budget;
+- the logged values and the finiteness of every process's terms, gradients and parameters are gathered to
+  every process (a NaN anywhere stops all of them alike);
 - rank 0 alone evaluates, writes the run folder (config.json, metrics.json, checkpoints, renders, PLY) and
-  holds its lock; the others only read (resume reads the same checkpoint on every process).
+  holds its lock: at each checkpoint point the shards (Gaussians, Adam moments, strategy sums, every
+  process's generators) are gathered to it (:func:`merge_shards`) and written as one checkpoint in one
+  process's layout with the shards' row counts; a resumed process reads its rows back
+  (:func:`split_checkpoint`), on as many processes as the run had.
 
 Errors: a setting or input error found while setting up on any process stops every process with that
 process's one-line message (:func:`agree`); a process that dies later makes the others' next collective
@@ -32,7 +45,7 @@ from __future__ import annotations
 import datetime
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -141,13 +154,6 @@ def local_device(world: World, device: torch.device) -> torch.device:
     return device
 
 
-def align_cuda_rng(world: World, rng: dict[str, Any], device: torch.device) -> None:
-    """On resume: give this process's GPU generator the state of rank 0's GPU (``rng["cuda"][0]``, what the
-    checkpoint's writer drew from), so that every process draws the same numbers again."""
-    if world.enabled and device.type == "cuda" and rng.get("cuda"):
-        torch.cuda.set_rng_state(rng["cuda"][0], device=device)
-
-
 def _first_line(e: BaseException) -> str:
     text = str(e).strip().splitlines()
     return text[0] if text else type(e).__name__
@@ -218,118 +224,285 @@ def scale_optimizers(optimizers: dict[str, torch.optim.Optimizer], batch: int) -
                 group["initial_lr"] = group["initial_lr"] * root
 
 
+# -- the Gaussians' shards -------------------------------------------------------------------------------
+#: DefaultStrategy's per-Gaussian running sums (the rest of a strategy's state is the same on every process)
+PER_GAUSSIAN_STATE = ("grad2d", "count", "radii")
+
+
+def shard_rows(n: int, world: World) -> Tensor:
+    """The rows of ``n`` initial Gaussians this process owns: ``rank``, ``rank + size``, ... (gsplat's
+    simple_trainer: ``points[world_rank::world_size]``)."""
+    return torch.arange(n)[world.rank :: world.size]
+
+
+def shard_cap(cap: int, world: World) -> int:
+    """This process's share of a global Gaussian budget (the shares sum to ``cap``)."""
+    return cap // world.size + (1 if world.rank < cap % world.size else 0)
+
+
+def _dist() -> Any:
+    import torch.distributed as dist
+
+    return dist
+
+
+def gather_sizes(world: World, n: int, device: torch.device) -> list[int]:
+    """Every process's number of Gaussians, by rank."""
+    if not world.enabled:
+        return [n]
+    mine = torch.tensor([n], dtype=torch.int64, device=device)
+    out = [torch.zeros_like(mine) for _ in range(world.size)]
+    with collective("the Gaussians' exchange"):
+        _dist().all_gather(out, mine)
+    return [int(t.item()) for t in out]
+
+
+def gather_rows(world: World, tensors: Sequence[Tensor], sizes: Sequence[int]) -> list[Tensor]:
+    """Each tensor's rows of every process, concatenated by rank (not differentiable): one all-gather for
+    all of them (padded to the largest shard, as gloo and NCCL gather equal sizes)."""
+    if not world.enabled:
+        return [t.detach() for t in tensors]
+    n = tensors[0].shape[0]
+    widths = [t[0].numel() if t.dim() > 1 else 1 for t in tensors]
+    flat = torch.cat([t.detach().reshape(n, -1).float() for t in tensors], dim=1)
+    rows = max(sizes)
+    if n < rows:
+        flat = torch.cat([flat, flat.new_zeros(rows - n, flat.shape[1])])
+    out = [torch.empty_like(flat) for _ in range(world.size)]
+    with collective("the Gaussians' exchange"):
+        _dist().all_gather(out, flat.contiguous())
+    full = torch.cat([o[:s] for o, s in zip(out, sizes, strict=True)])
+    parts = full.split(widths, dim=1)
+    return [
+        p.reshape(-1, *t.shape[1:]).to(t.dtype).contiguous() for p, t in zip(parts, tensors, strict=True)
+    ]
+
+
+@dataclass
+class Exchange:
+    """One step's Gaussians of every process on this one (the torch exchange): ``params`` are fresh leaves
+    (their gradients are this process's view's contributions to every Gaussian), ``sizes`` the shards' row
+    counts by rank."""
+
+    params: torch.nn.ParameterDict
+    names: list[str]  # the order of reduce_gradients' shard (a ParameterDict sorts its keys)
+    sizes: list[int]
+    rank: int
+
+    @property
+    def rows(self) -> tuple[int, int]:
+        """This process's rows in the gathered set."""
+        start = sum(self.sizes[: self.rank])
+        return start, start + self.sizes[self.rank]
+
+
+def gather_gaussians(world: World, shard: torch.nn.ParameterDict, names: Sequence[str]) -> Exchange:
+    """The torch exchange's forward: every process's shard on every process (gloo on the CPU, or NCCL where
+    the step's render needs the whole set: a method's extra channels). Its backward is
+    :func:`reduce_gradients` with ``exchange``."""
+    device = shard[names[0]].device
+    sizes = gather_sizes(world, int(shard[names[0]].shape[0]), device)
+    full = gather_rows(world, [shard[n] for n in names], sizes)
+    params = torch.nn.ParameterDict({n: torch.nn.Parameter(t) for n, t in zip(names, full, strict=True)})
+    return Exchange(params, list(names), sizes, world.rank)
+
+
 @dataclass
 class StepFlags:
-    """What every process learns from the others in the gradient all-reduce."""
+    """What every process learns from the others in the gradient reduction."""
 
-    rendered: int  # processes whose view reached a Gaussian (gradients were summed over these)
+    rendered: int  # processes whose view reached a Gaussian
     stop: str | None  # a stop signal some process received ("SIGTERM to rank 1"), else None
 
 
-def average_gradients(
-    world: World, params: list[Tensor], rendered: bool, signal_name: str | None
+def reduce_gradients(
+    world: World,
+    shard: Sequence[Tensor],
+    rendered: bool,
+    signal_name: str | None,
+    exchange: Exchange | None = None,
 ) -> StepFlags:
-    """Sum every parameter's gradient over the processes and divide by ``world_size`` (a process whose view
-    was empty adds zeros), in one all-reduce with the flags (the view was empty; the stop signal this
-    process received, ``signal_name``, by rank). When no process rendered anything the gradients stay
-    None, as on one process."""
+    """Each shard's gradient (``shard``: in the order of ``exchange.names``), the mean over the step's
+    ``world_size`` views, with two flags (the view was empty; the stop signal this process received,
+    ``signal_name``) in the same all-reduce.
+
+    With the torch ``exchange`` the gradients of the gathered set (one view's each) are summed over the
+    processes and each process keeps its own rows (gloo has no reduce-scatter: all-reduce, then slice).
+    Without it (gsplat's ``distributed=True`` rasterisation) the shards' gradients already hold every
+    view's contribution, summed by gsplat's all-to-all backward; only the flags travel. When no process
+    rendered anything the gradients stay None, as on one process."""
     import signal
 
     if not world.enabled:
         return StepFlags(int(rendered), signal_name)
-    import torch.distributed as dist
-
-    device = params[0].device
-    flat = [
-        (p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1).float() for p in params
-    ]
+    device = shard[0].device
     flags = torch.zeros(1 + world.size, device=device)
     flags[0] = float(rendered)
     if signal_name is not None:
         flags[1 + world.rank] = float(signal.Signals[signal_name].value)
+    full = [exchange.params[n] for n in exchange.names] if exchange is not None else []
+    flat = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1).float() for p in full]
     buf = torch.cat([*flat, flags])
     with collective("the gradient all-reduce"):
-        dist.all_reduce(buf)
+        _dist().all_reduce(buf)
     tail = buf[-(1 + world.size) :].tolist()
     n_rendered = int(round(tail[0]))
     stop = next(
         (f"{signal.Signals(int(v)).name} to rank {r}" for r, v in enumerate(tail[1:]) if v > 0), None
     )
     if n_rendered == 0:
-        for p in params:
+        for p in shard:
             p.grad = None
         return StepFlags(0, stop)
-    buf = buf[: -(1 + world.size)].div_(world.size)
+    if exchange is None:
+        for p in shard:
+            if p.grad is not None:
+                p.grad.div_(world.size)
+        return StepFlags(n_rendered, stop)
+    start, stop_row = exchange.rows
     offset = 0
-    for p in params:
-        n = p.numel()
-        p.grad = buf[offset : offset + n].view_as(p).to(p.dtype)
-        offset += n
+    for p, q in zip(full, shard, strict=True):
+        g = buf[offset : offset + p.numel()].view_as(p)
+        q.grad = (g[start:stop_row] / world.size).to(q.dtype).contiguous()
+        offset += p.numel()
     return StepFlags(n_rendered, stop)
 
 
-def share_strategy_statistics(strategy: Any, world: World) -> None:
-    """Make gsplat's DefaultStrategy reduce its per-Gaussian statistics over the processes every step: the
-    view's own contributions (gradient norm sums, counts, largest normalised radii) are computed as gsplat
-    does into a fresh state, then summed (radii: the maximum) over the processes and added to the running
-    state, which therefore stays identical on every process. A process whose view was empty contributes
-    zeros. MCMCStrategy keeps no per-view statistics: nothing to do."""
+def share_strategy_statistics(
+    strategy: Any, world: World, rows: Callable[[], tuple[int, int]]
+) -> None:
+    """The torch exchange: DefaultStrategy's per-Gaussian statistics of the step's views, kept by the
+    Gaussians' owners. Each process computes its view's contributions as gsplat does, over the gathered set
+    (``info`` of the whole set), into a fresh state; they are summed (radii: the maximum) over the
+    processes and each process adds its own rows (``rows()``, this step's) to its running state. (gsplat's
+    ``distributed=True`` needs none of this: its projection, whose screen-space gradients the strategy
+    reads, runs on the owner.) MCMCStrategy keeps no per-view statistics."""
     if not world.enabled or strategy.type != "default":
         return
-    import torch.distributed as dist
-
     gs = strategy.gsplat
     own_update = gs._update_state
 
     def update_state(params: Any, state: dict[str, Any], info: dict[str, Any], packed: bool = False) -> None:
-        n = len(params["means"])
-        device = params["means"].device
+        dist = _dist()
+        n_full = int(info["means2d"].shape[-2])
+        device = info["means2d"].device
         fresh: dict[str, Any] = {"grad2d": None, "count": None, "radii": None}
         grad_key = info.get(gs.key_for_gradient)
         if grad_key is not None and grad_key.grad is not None:
-            own_update(params, fresh, info, packed=packed)
-        zeros = torch.zeros(n, device=device)
+            own_update({"means": torch.empty(n_full, 0)}, fresh, info, packed=packed)
+        zeros = torch.zeros(n_full, device=device)
         sums = torch.stack([
             fresh["grad2d"] if fresh["grad2d"] is not None else zeros,
             fresh["count"] if fresh["count"] is not None else zeros,
         ])  # fmt: skip
         with collective("the strategy's statistics"):
             dist.all_reduce(sums)
+        start, stop = rows()
+        n = stop - start
         for i, key in enumerate(("grad2d", "count")):
             if state[key] is None:
                 state[key] = torch.zeros(n, device=device)
-            state[key] += sums[i]
+            state[key] += sums[i, start:stop]
         if gs.refine_scale2d_stop_iter > 0:
             radii = fresh["radii"] if fresh["radii"] is not None else zeros.clone()
             with collective("the strategy's statistics"):
                 dist.all_reduce(radii, op=dist.ReduceOp.MAX)
             if state["radii"] is None:
                 state["radii"] = torch.zeros(n, device=device)
-            state["radii"] = torch.maximum(state["radii"], radii)
+            state["radii"] = torch.maximum(state["radii"], radii[start:stop])
 
     gs._update_state = update_state
 
 
-def check_replicas(world: World, params: list[Tensor], step: int) -> None:
-    """Every process must hold the same Gaussians (checked at checkpoints: counts and a checksum)."""
-    if not world.enabled:
-        return
-    import torch.distributed as dist
+# -- checkpoints: the shards gathered on rank 0, one file --------------------------------------------------
+def _cpu(obj: Any) -> Any:
+    if isinstance(obj, Tensor):
+        return obj.detach().cpu()
+    if isinstance(obj, dict):
+        return {k: _cpu(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_cpu(v) for v in obj)
+    return obj
 
-    with torch.no_grad():
-        parts = [torch.tensor(float(params[0].shape[0]), device=params[0].device)]
-        parts += [p.detach().double().sum().reshape(()) for p in params]
-        parts += [p.detach().double().abs().sum().reshape(()) for p in params]
-        mine = torch.stack([x.double() for x in parts])
-    everyone = [torch.empty_like(mine) for _ in range(world.size)]
-    with collective("the replica check"):
-        dist.all_gather(everyone, mine)
-    for rank, theirs in enumerate(everyone):
-        if not torch.equal(theirs, mine):
-            raise JsgsError(
-                f"after step {step}: the Gaussians of rank {rank} differ from those of rank {world.rank} "
-                "(the processes' updates were not identical); the run stops, its last checkpoint is good"
-            )
+
+def gather_to_main(world: World, obj: Any) -> list[Any] | None:
+    """``obj`` of every process on rank 0 (by rank; tensors moved to the CPU first), None elsewhere."""
+    if not world.enabled:
+        return [obj]
+    out: list[Any] | None = [None] * world.size if world.is_main else None
+    with collective("gathering the Gaussians for a checkpoint"):
+        _dist().gather_object(_cpu(obj), out, dst=0)
+    return out
+
+
+def merge_shards(parts: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """One checkpoint's parts from the shards' (``splats``, ``optimizers``, ``strategy``, ``rng`` of each
+    process): the Gaussians and their Adam moments and statistics concatenated by rank (the layout of one
+    process's checkpoint), ``shards`` their row counts, ``rng`` rank 0's and ``rng_ranks`` every process's
+    generators."""
+    first = parts[0]
+    splats = {n: torch.cat([p["splats"][n] for p in parts]) for n in first["splats"]}
+    optimizers: dict[str, Any] = {}
+    for name, sd in first["optimizers"].items():
+        state = {}
+        if 0 in sd["state"]:
+            s0 = dict(sd["state"][0])
+            for m in ("exp_avg", "exp_avg_sq"):
+                s0[m] = torch.cat([p["optimizers"][name]["state"][0][m] for p in parts])
+            state[0] = s0
+        optimizers[name] = {"state": state, "param_groups": sd["param_groups"]}
+    strategy = dict(first["strategy"])
+    for k in PER_GAUSSIAN_STATE:
+        if strategy.get(k) is not None:
+            strategy[k] = torch.cat([p["strategy"][k] for p in parts])
+    return {
+        "splats": splats,
+        "optimizers": optimizers,
+        "strategy": strategy,
+        "rng": first["rng"],
+        "rng_ranks": [p["rng"] for p in parts],
+        "shards": [int(p["splats"]["means"].shape[0]) for p in parts],
+    }
+
+
+def split_checkpoint(doc: dict[str, Any], world: World, path: str) -> dict[str, Any]:
+    """This process's part of a checkpoint :func:`merge_shards` wrote (its rows, its generators)."""
+    sizes = doc.get("shards")
+    n = int(doc["splats"]["means"].shape[0])
+    ranks = doc.get("rng_ranks")
+    if (
+        not isinstance(sizes, list)
+        or len(sizes) != world.size
+        or not all(isinstance(s, int) and s >= 0 for s in sizes)
+        or sum(sizes) != n
+        or not isinstance(ranks, list)
+        or len(ranks) != world.size
+    ):
+        raise JsgsError(
+            f"{path}: unusable checkpoint: shards: not the row counts of {world.size} processes' Gaussians "
+            f"({n} in the file)"
+        )
+    start = sum(sizes[: world.rank])
+    stop = start + sizes[world.rank]
+    out = dict(doc)
+    out["splats"] = {k: v[start:stop] for k, v in doc["splats"].items()}
+    optimizers = {}
+    for name, sd in doc["optimizers"].items():
+        state = {}
+        if 0 in sd["state"]:
+            s0 = dict(sd["state"][0])
+            for m in ("exp_avg", "exp_avg_sq"):
+                s0[m] = s0[m][start:stop]
+            state[0] = s0
+        optimizers[name] = {"state": state, "param_groups": sd["param_groups"]}
+    out["optimizers"] = optimizers
+    strategy = dict(doc["strategy"])
+    for k in PER_GAUSSIAN_STATE:
+        if strategy.get(k) is not None:
+            strategy[k] = strategy[k][start:stop]
+    out["strategy"] = strategy
+    out["rng"] = ranks[world.rank]
+    return out
 
 
 def barrier(world: World, what: str) -> None:

@@ -122,6 +122,12 @@ class LossHook:
         """Per-Gaussian features [N, E] to rasterise alongside RGB in this step's pass, or None."""
         return None
 
+    def renders_extra(self) -> bool:
+        """Whether :meth:`extra_channels` may return features in this run. On several GPUs such a run renders
+        each view from all the Gaussians gathered on its process (:mod:`jsgs.train.distributed`), since a
+        method's per-Gaussian sums are per view."""
+        return type(self).extra_channels is not LossHook.extra_channels
+
     def render_kwargs(self, step: int, view: View) -> dict[str, Any]:
         """Extra keyword arguments for this step's ``jsgs.render.rasterize`` call (e.g. ``render_mode``;
         what it adds to ``info`` reaches :meth:`losses` through ``StepContext.info``)."""

@@ -58,12 +58,15 @@ def render_view(
     extra_features: Tensor | None = None,
     extra_kwargs: dict[str, Any] | None = None,
     distortion: Tensor | None = None,
+    distributed: bool = False,
 ) -> RenderOut:
     """Rasterise one camera. viewmat [1, 4, 4] world-to-camera, K [1, 3, 3] pixels.
 
     ``extra_features`` ([N, E] per-Gaussian features, optional) are the rasterizer's extra channels,
     composited in the same pass as RGB (``rasterize(..., extra=...)``). ``extra_kwargs`` go to ``rasterize``
-    as they are. ``distortion`` [1, 4]: the camera's lens distortion (reference backend only)."""
+    as they are. ``distortion`` [1, 4]: the camera's lens distortion (reference backend only).
+    ``distributed``: ``splats`` are this process's shard and the render is gsplat's distributed one, packed
+    (every process calls it together; :func:`jsgs.render.rasterize`)."""
     from jsgs.render import rasterize
 
     p = activated(splats)
@@ -74,6 +77,8 @@ def render_view(
         absgrad=cfg.strategy.absgrad,
         backend=backend,
     )
+    if distributed:
+        kwargs.update(distributed=True, packed=True)
     if extra_kwargs:
         kwargs.update(extra_kwargs)
     if distortion is not None:

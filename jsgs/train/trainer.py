@@ -476,6 +476,12 @@ class Trainer:
         self.lock: OutputLock | None = None
         self._clock = 0.0
         self.world = dd.World()  # one process unless started by torchrun / --gpus (setup joins the others)
+        #: how a view reaches the other processes' Gaussians: "none" (one process), "gsplat" (its
+        #: distributed rasterisation) or "torch" (gathered; jsgs.train.distributed)
+        self.exchange = "none"
+        self._exchange: dd.Exchange | None = None
+        self._gathered: dict[str, Any] | None = None  # the shards gathered on rank 0 at a checkpoint point
+        self.sizes: list[int] = []  # every process's number of Gaussians (as of the last step)
         self._signal: str | None = None
         self._stop_everywhere: str | None = None
 
@@ -507,6 +513,7 @@ class Trainer:
         except JsgsError as e:
             error = e
         dd.agree(self.world, error)
+        self.sizes = dd.gather_sizes(self.world, int(self.splats["means"].shape[0]), self.device)
         if self._run_config is not None:  # written once every process is ready
             write_json_atomic(self.paths.config, self._run_config)
         self.fire("on_setup")
@@ -594,9 +601,15 @@ class Trainer:
                 f"{budget.train_pixels} training pixels / {budget.pixels_per_gaussian} = {budget.by_pixels})"
             )
         self.strategy = Densifier(cfg.strategy)
-        dd.share_strategy_statistics(self.strategy, self.world)
+        self.exchange = self._exchange_kind(cfg)
+        if self.exchange == "torch":
+            dd.share_strategy_statistics(self.strategy, self.world, lambda: self._exchange_rows())
+        if self.world.enabled and self.strategy.cap_max is not None:
+            # one global budget: each process grows its shard to its share
+            self.strategy.gsplat.cap_max = dd.shard_cap(self.strategy.cap_max, self.world)
         self.sampler = ViewSampler(len(self.train_views), cfg.seed)
 
+        initial = 0
         if start_ckpt is None:
             points = torch.from_numpy(scene.points)
             colors = torch.from_numpy(scene.points_rgb).float() / 255.0
@@ -624,6 +637,14 @@ class Trainer:
                     f"{scene.manifest_path}: the initial Gaussians' {bad!r} are not finite (the points or "
                     "the cameras, after world normalisation, lie beyond float32's range)"
                 )
+            initial = int(self.splats["means"].shape[0])
+            if self.world.enabled:  # every process made the same Gaussians: each keeps its shard
+                rows = dd.shard_rows(initial, self.world).to(device)
+                self.splats = torch.nn.ParameterDict(
+                    {n: torch.nn.Parameter(self.splats[n].data[rows].contiguous()) for n in PARAM_NAMES}
+                )
+                if self.world.rank > 0:  # the processes' own draws (noise, splits, backgrounds) differ
+                    _seed_everything(cfg.seed + self.world.rank)
             self.build_optimization()
         else:
             self.restore(start_ckpt)
@@ -636,7 +657,7 @@ class Trainer:
             "normalization": scene.transform.tolist(),
             "num_train_views": len(self.train_views),
             "num_test_views": len(scene.test_views),
-            "initial_gaussians": int(self.splats["means"].shape[0])
+            "initial_gaussians": initial
             if start_ckpt is None
             else int(json_load(paths.config)["derived"]["initial_gaussians"]),
             "notes": [*scene.notes, *hook_notes],
@@ -646,6 +667,8 @@ class Trainer:
             "method": self.hook.describe() if self.hook is not None else {},
             "world_size": self.world.size,
         }
+        if self.world.enabled:
+            derived["exchange"] = self.exchange
         if self.world.is_main:  # only now that the settings, manifest and checkpoint passed
             _remove_leftovers(paths, self.say)
         if budget is not None:
@@ -668,20 +691,77 @@ class Trainer:
             self._run_config = run_config
         self.setup_time = time.perf_counter() - t_setup
 
+    # -- the shards ------------------------------------------------------------------------------------
+    def _exchange_kind(self, cfg: TrainConfig) -> str:
+        """How each process's view reaches the other processes' Gaussians (``self.exchange``): gsplat's
+        distributed rasterisation where it can render the run's views (gsplat backend, pinhole cameras, no
+        method extra channels, no absgrad), else the torch exchange (gather the shards, reduce the
+        gradients)."""
+        if not self.world.enabled:
+            return "none"
+        if (
+            self.backend == "gsplat"
+            and not (self.hook is not None and self.hook.renders_extra())
+            and not cfg.strategy.absgrad
+            and all(v.distortion is None for v in self.train_views)
+        ):
+            return "gsplat"
+        return "torch"
+
+    def _exchange_rows(self) -> tuple[int, int]:
+        assert self._exchange is not None
+        return self._exchange.rows
+
+    def num_gaussians(self) -> int:
+        """The run's number of Gaussians (every process's shard, as of the last step)."""
+        if self.world.enabled and self.sizes:
+            return sum(self.sizes)
+        return int(self.splats["means"].shape[0])
+
+    def _shard_state(self) -> dict[str, Any]:
+        return {
+            "splats": {n: self.splats[n].data for n in PARAM_NAMES},
+            "optimizers": {n: o.state_dict() for n, o in self.optimizers.items()},
+            "strategy": self.strategy_state,
+            "rng": ckpt.rng_state(),
+        }
+
+    def gather_model(self) -> None:
+        """At a checkpoint point, on every process: the shards (Gaussians, Adam moments, strategy sums,
+        generators) gathered on rank 0 (:func:`jsgs.train.distributed.merge_shards`), which evaluates, writes
+        the checkpoint and the model from them."""
+        if not self.world.enabled:
+            return
+        parts = dd.gather_to_main(self.world, self._shard_state())
+        self._gathered = dd.merge_shards(parts) if parts is not None else None
+        if self._gathered is not None:
+            self.sizes = list(self._gathered["shards"])
+
+    def model(self) -> torch.nn.ParameterDict:
+        """All the Gaussians (rank 0 after :meth:`gather_model` on several processes, else this process's)."""
+        if not self.world.enabled:
+            return self.splats
+        assert self._gathered is not None, "gather_model first"
+        splats = self._gathered["splats"]
+        return torch.nn.ParameterDict(
+            {n: torch.nn.Parameter(splats[n].to(self.device), requires_grad=False) for n in PARAM_NAMES}
+        )
+
     # -- checkpoints ----------------------------------------------------------------------------------
     def checkpoint_state(self, step_done: int) -> dict[str, Any]:
-        """Everything :meth:`resume` needs to continue after ``step_done`` steps bit for bit."""
+        """Everything :meth:`resume` needs to continue after ``step_done`` steps bit for bit (several
+        processes: the shards gathered by :meth:`gather_model`, with their row counts and every process's
+        generators)."""
         cfg = self.cfg
         assert cfg is not None
+        parts = self._gathered if self.world.enabled else self._shard_state()
+        assert parts is not None, "gather_model first"
         return {
             "step": step_done,
             "settings": to_dict(cfg),
             "manifest_sha256": self.scene.manifest_sha256,
-            "splats": {n: self.splats[n].data for n in PARAM_NAMES},
-            "optimizers": {n: o.state_dict() for n, o in self.optimizers.items()},
+            **parts,
             "scheduler": self.scheduler.state_dict(),
-            "strategy": self.strategy_state,
-            "rng": ckpt.rng_state(),
             "sampler": self.sampler.state_dict(),
             "hook": self.hook.state_dict() if self.hook is not None else {},
             "evals": self.evals,
@@ -745,11 +825,13 @@ class Trainer:
         assert cfg is not None
         path = Path(state["_path"])
         ckpt.check_splats(state, path, (cfg.render.sh_degree + 1) ** 2 - 1)
-        self.splats = splats_from_state(state["splats"], self.device)
+        # several processes: this one's rows of the gathered checkpoint (the whole file is checked below)
+        part = dd.split_checkpoint(state, self.world, str(path)) if self.world.enabled else state
+        self.splats = splats_from_state(part["splats"], self.device)
         self.build_optimization()
         self._check_checkpoint_state(state)
         try:
-            self.resume(state)
+            self.resume(part)
         except JsgsError:
             raise
         except Exception as e:  # a defect the checks do not know of: still one line naming the file
@@ -783,7 +865,6 @@ class Trainer:
         self.scheduler.load_state_dict(state["scheduler"])
         self.strategy_state = ckpt.to_device(state["strategy"], device)
         ckpt.set_rng_state(state["rng"])
-        dd.align_cuda_rng(self.world, state["rng"], device)
         self.sampler.load_state_dict(state["sampler"])
         if self.hook is not None:
             self.hook.load_state_dict(ckpt.to_device(state["hook"], device))
@@ -803,15 +884,21 @@ class Trainer:
         cfg, device, splats, hook, profiler = self.cfg, self.device, self.splats, self.hook, self.profiler
         assert cfg is not None
         optimizers, strategy = self.optimizers, self.strategy
+        # what this process renders: its shard (one process; gsplat's distributed rasterisation) or every
+        # process's Gaussians gathered (the torch exchange)
+        shown = splats
         with profiler.phase("data"):
             view = self.train_views[dd.pick_view(self.world, self.sampler.next)]
             target = self.train_images[view.index].float()[None] / 255.0
             sh_degree = sh_degree_at(step, cfg)
-            extra_feats = hook.extra_channels(step, view, splats) if hook is not None else None
+            if self.exchange == "torch":
+                self._exchange = dd.gather_gaussians(self.world, splats, PARAM_NAMES)
+                shown = self._exchange.params
+            extra_feats = hook.extra_channels(step, view, shown) if hook is not None else None
             extra_kw = hook.render_kwargs(step, view) if hook is not None else None
         with profiler.phase("render"):
             r = render_view(
-                splats,
+                shown,
                 view.viewmat_tensor(device),
                 view.K_tensor(device),
                 view.width,
@@ -822,14 +909,15 @@ class Trainer:
                 extra_feats,
                 extra_kw,
                 view.distortion_tensor(device),
+                distributed=self.exchange == "gsplat",
             )
             rgb = r.rgb
             if cfg.render.random_background:
                 bkgd = torch.rand(1, 3, device=device)
                 rgb = rgb + bkgd * (1.0 - r.alpha)
-            strategy.step_pre_backward(splats, optimizers, self.strategy_state, step, r.info)
+            strategy.step_pre_backward(shown, optimizers, self.strategy_state, step, r.info)
         with profiler.phase("loss"):
-            terms, weights = base_terms(rgb, target, splats, cfg)
+            terms, weights = base_terms(rgb, target, shown, cfg)
         stats: dict[str, Any] = {}
         folded: frozenset[str] = frozenset()
         folded_loss = None
@@ -842,7 +930,7 @@ class Trainer:
                     alpha=r.alpha,
                     target=target,
                     info=r.info,
-                    splats=splats,
+                    splats=shown,
                     extra=r.extra,
                     base_terms=dict(terms),
                     sh_degree=sh_degree,
@@ -871,8 +959,9 @@ class Trainer:
             with profiler.phase("backward"):
                 loss.backward()
         if self.world.enabled:
-            params = [splats[n] for n in PARAM_NAMES if splats[n].requires_grad]
-            flags = dd.average_gradients(self.world, params, not empty, self._signal)
+            # the mean over the step's views of each Gaussian's gradient, on its owner
+            params = [splats[n] for n in PARAM_NAMES]
+            flags = dd.reduce_gradients(self.world, params, not empty, self._signal, self._exchange)
             self._stop_everywhere = flags.stop
             empty = flags.rendered == 0
         # every logged value, each gradient's L1 norm and each parameter's L1 norm (NaN/Inf wherever a value
@@ -911,11 +1000,16 @@ class Trainer:
         norm_v = packed_vals[1 + len(names) + len(stats) :]
         grad_v, param_v = norm_v[: len(grad_names)], norm_v[len(grad_names) :]
         views = [(view.name, loss_v, term_v, stats)]
-        if self.world.enabled:  # every view's values on every process: all of them stop alike on a NaN
-            views = dd.gather(self.world, (view.name, loss_v, term_v, dict(zip(stats, stat_v, strict=True))))
-            for _, v_loss, v_terms, _ in views:
+        if self.world.enabled:  # every process's values on every process: all of them stop alike on a NaN
+            logged = dict(zip(stats, stat_v, strict=True))
+            n_own = int(splats["means"].shape[0])
+            mine = (view.name, loss_v, term_v, logged, grad_names, grad_v, param_v, n_own)
+            everyone = dd.gather(self.world, mine)
+            for _, v_loss, v_terms, _, g_names, g_v, p_v, _ in everyone:
                 v_values = [*v_terms, v_loss]
-                _finite_check(step, [*names, "loss"], v_values, [], [], param_v, self.last_checkpoint)
+                _finite_check(step, [*names, "loss"], v_values, g_names, g_v, p_v, self.last_checkpoint)
+            views = [v[:4] for v in everyone]
+            self.sizes = [v[7] for v in everyone]
         _finite_check(
             step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_v, param_v, self.last_checkpoint
         )
@@ -928,8 +1022,9 @@ class Trainer:
                     step,
                     r.info,
                     lr=self.scheduler.get_last_lr()[0],
-                    packed=cfg.render.packed,
+                    packed=cfg.render.packed or self.exchange == "gsplat",
                 )
+        self._exchange = None  # (the strategy's statistics read its rows)
         result = StepResult(
             step,
             view.name,
@@ -955,7 +1050,7 @@ class Trainer:
         training log's means since the last one); then ``on_eval``."""
         assert self.cfg is not None
         entry = evaluate(
-            self.splats, self.scene, self.eval_images, self.cfg, self.backend, self.device, step_done,
+            self.model(), self.scene, self.eval_images, self.cfg, self.backend, self.device, step_done,
             self.paths.renders(step_done),
         )  # fmt: skip
         entry["train_time_s"] = self.train_time
@@ -1031,7 +1126,7 @@ class Trainer:
             "world_size": self.world.size,
             "iterations": cfg.iterations,
             "step": step,
-            "num_gaussians": int(self.splats["means"].shape[0]),
+            "num_gaussians": self.num_gaussians(),
             "train_time_s": self.train_time,
             "setup_time_s": self.setup_time,
             "time_per_iteration_s": self.train_time / max(step, 1) if step else None,
@@ -1047,7 +1142,7 @@ class Trainer:
         from jsgs.base.ply import save_ply
         from jsgs.train.export import export_run
 
-        s = self.splats
+        s = self.model()
         save_ply(self.paths.ply, s["means"], s["scales"], s["quats"], s["opacities"], s["sh0"], s["shN"])
         export_run(self.paths.root, self.paths.root / COLMAP_PLY, "ply", "colmap", force=True, run_owned=True)
 
@@ -1101,6 +1196,7 @@ class Trainer:
                 return doc
             # every step ran but the model was not written (a crash or an error after the last checkpoint)
             self.say(f"{self.paths.root}: every step has run; writing the model")
+            self.gather_model()
             return self._finish(self.start_step)
         self._clock = time.perf_counter()
         step = self.start_step
@@ -1121,7 +1217,7 @@ class Trainer:
                     check_params_finite(self.splats, done, self.last_checkpoint)
                     synchronize(self.device)
                     self.train_time += time.perf_counter() - self._clock
-                    dd.check_replicas(self.world, [self.splats[n] for n in PARAM_NAMES], done)
+                    self.gather_model()
                     if done in self.eval_steps and self.world.is_main:  # evaluated once, by rank 0
                         self.evaluate(done)
                     self.fire("on_checkpoint", done)

@@ -138,9 +138,13 @@ def test_sigterm_to_one_process_stops_all_and_resume_is_exact(scene: Path, tmp_p
 
 
 def test_mcmc_and_jsgs_on_two_processes(tmp_path: Path) -> None:
-    """The mcmc preset (relocation, growth to the budget, noise: one global budget) with JSGS on JPEG views:
-    the processes stay identical (checked at every checkpoint) and the budget is the run's, not a
-    process's."""
+    """The mcmc preset (relocation, growth to the budget, noise) with JSGS on JPEG views (the Gaussian
+    Controller's extra channels: the torch exchange): one global budget, split into the shards' shares, which
+    each shard fills; every view's per-view terms are logged."""
+    import torch
+
+    from jsgs.train.checkpoint import list_checkpoints
+
     scene = make_scene(tmp_path / "jscene", n_views=6, jpeg_train=True)
     cfg = _settings(tmp_path, refine_start_iter=2, refine_every=3, cap_max=60)
     run = tmp_path / "run"
@@ -149,6 +153,10 @@ def test_mcmc_and_jsgs_on_two_processes(tmp_path: Path) -> None:
     _ok(r)
     m = json.loads((run / "metrics.json").read_text())
     assert m["world_size"] == 2 and m["num_gaussians"] == 60
+    assert json.loads((run / "config.json").read_text())["derived"]["exchange"] == "torch"
+    (_, last), *_ = reversed(list_checkpoints(run / "checkpoints"))
+    doc = torch.load(last, weights_only=True)
+    assert doc["shards"] == [30, 30] and doc["splats"]["means"].shape[0] == 60
     terms = m["evals"][0]["train"]["terms"]
     assert {"obs", "low", "mid", "fro"} <= set(terms), terms  # the per-view terms of every view
 
@@ -217,8 +225,10 @@ def test_a_failing_process_stops_every_process_with_one_line(scene: Path, tmp_pa
 
 
 def _reductions_worker(rank: int, store: str) -> None:
-    """One of two processes: renders view ``rank`` and reduces; rank 0 then does both views alone and
-    compares (the averaged gradients and DefaultStrategy's shared statistics against one process's)."""
+    """One of two processes, each owning every other Gaussian and rendering view ``rank`` from all of them
+    (the torch exchange); rank 0 then renders both views alone with every Gaussian and compares: each
+    shard's gradient is its rows of the two views' mean gradient, and DefaultStrategy's statistics are its
+    rows of one process's."""
     import numpy as np
     import torch
     import torch.distributed as dist
@@ -237,8 +247,10 @@ def _reductions_worker(rank: int, store: str) -> None:
     cfg.strategy.refine_scale2d_stop_iter = 100  # the radii statistic too
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(1)
-    splats = init_splats(torch.rand(30, 3, generator=g) - 0.5, torch.rand(30, 3, generator=g), cfg, 1.0,
-                         torch.device("cpu"))  # fmt: skip
+    full = init_splats(torch.rand(31, 3, generator=g) - 0.5, torch.rand(31, 3, generator=g), cfg, 1.0,
+                       torch.device("cpu"))  # fmt: skip
+    rows = dd.shard_rows(31, world)
+    shard = torch.nn.ParameterDict({n: torch.nn.Parameter(full[n].data[rows].clone()) for n in PARAM_NAMES})
     cams = []
     for a in (0.3, 2.1):
         R, t = look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 0.5]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
@@ -248,46 +260,108 @@ def _reductions_worker(rank: int, store: str) -> None:
     K = torch.tensor([[[28.0, 0, 16], [0, 28.0, 12], [0, 0, 1]]])
     target = torch.rand(1, 24, 32, 3, generator=g)
 
-    def one_view(strategy: Densifier, state: dict, i: int) -> None:
+    def one_view(splats: torch.nn.ParameterDict, strategy: Densifier, state: dict, i: int) -> None:
         r = render_view(splats, cams[i], K, 32, 24, 0, cfg, "torch")
         strategy.step_pre_backward(splats, {}, state, 0, r.info)
         (r.rgb - target).abs().mean().backward()
         strategy.gsplat._update_state(splats, state, r.info, packed=False)
 
+    holder: dict = {}
     shared = Densifier(cfg.strategy)
-    dd.share_strategy_statistics(shared, world)
+    dd.share_strategy_statistics(shared, world, lambda: holder["ex"].rows)
     state = shared.initialize_state(scene_scale=1.0)
-    one_view(shared, state, rank)
-    params = [splats[n] for n in PARAM_NAMES]
-    flags = dd.average_gradients(world, params, True, "SIGINT" if rank == 1 else None)
+    holder["ex"] = ex = dd.gather_gaussians(world, shard, PARAM_NAMES)
+    assert ex.sizes == [16, 15] and ex.rows == ((0, 16) if rank == 0 else (16, 31))
+    one_view(ex.params, shared, state, rank)
+    params = [shard[n] for n in PARAM_NAMES]
+    flags = dd.reduce_gradients(world, params, True, "SIGINT" if rank == 1 else None, ex)
     assert (flags.rendered, flags.stop) == (2, "SIGINT to rank 1")
-    averaged = [p.grad.clone() for p in params]
-    if rank == 0:  # the same two views on one process
+    mine = {"grads": [p.grad for p in params], "state": {k: state[k] for k in ("grad2d", "count", "radii")}}
+    parts = dd.gather_to_main(world, mine)
+    if rank == 0:  # both views on one process, every Gaussian in the gathered order
+        assert parts is not None
+        order = torch.cat([torch.arange(0, 31, 2), torch.arange(1, 31, 2)])
+        alone_splats = torch.nn.ParameterDict(
+            {n: torch.nn.Parameter(full[n].data[order].clone()) for n in PARAM_NAMES}
+        )
         alone = Densifier(cfg.strategy)
         ref = alone.initialize_state(scene_scale=1.0)
         grads = []
         for i in (0, 1):
-            for p in params:
+            for p in alone_splats.values():
                 p.grad = None
-            one_view(alone, ref, i)
-            grads.append([p.grad.clone() for p in params])
-        for name, a, g0, g1 in zip(PARAM_NAMES, averaged, *grads, strict=True):
-            assert torch.allclose(a, (g0 + g1) / 2, rtol=1e-5, atol=1e-8), name
+            one_view(alone_splats, alone, ref, i)
+            grads.append([alone_splats[n].grad.clone() for n in PARAM_NAMES])
+        for j, (name, g0, g1) in enumerate(zip(PARAM_NAMES, *grads, strict=True)):
+            got = torch.cat([parts[0]["grads"][j], parts[1]["grads"][j]])
+            assert torch.allclose(got, (g0 + g1) / 2, rtol=1e-5, atol=1e-8), name
         assert ref["count"].sum() > 0 and ref["grad2d"].sum() > 0
         for key in ("grad2d", "count", "radii"):
-            assert torch.allclose(state[key], ref[key], rtol=1e-5, atol=1e-9), key
+            got = torch.cat([parts[0]["state"][key], parts[1]["state"][key]])
+            assert torch.allclose(got, ref[key], rtol=1e-5, atol=1e-9), key
     # both processes leave together: a rank that tears gloo down while its peer still works aborts
     dist.barrier()
     dist.destroy_process_group()
 
 
-def test_gradients_and_strategy_statistics_reduce_as_one_process(tmp_path: Path) -> None:
-    """Two processes, one view each: the averaged gradients are the mean of the two views' gradients, and
-    DefaultStrategy's running statistics equal one process's after both views (sums, counts, max radii)."""
+def test_sharded_gradients_and_statistics_reduce_to_their_owners(tmp_path: Path) -> None:
+    """Two processes, each owning half of the Gaussians and rendering one view from all of them: the
+    gradients and DefaultStrategy's running statistics that reach each owner are its rows of one process's
+    after both views (the mean gradient; sums, counts, max radii)."""
     import torch.multiprocessing as mp
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
     mp.spawn(_reductions_worker, args=(str(tmp_path / "store"),), nprocs=2, join=True)
+
+
+def test_checkpoint_shards_merge_and_split_back() -> None:
+    """A checkpoint gathered from two shards has one process's layout (rows concatenated by rank) and gives
+    each process back exactly its rows, Adam moments, statistics and generators; row counts that do not
+    fit are one line."""
+    import torch
+
+    from jsgs.base.errors import JsgsError
+    from jsgs.train import distributed as dd
+
+    def part(n: int, seed: int) -> dict[str, Any]:
+        g = torch.Generator().manual_seed(seed)
+        moments = {"step": torch.tensor(3.0), "exp_avg": torch.randn(n, 3, generator=g),
+                   "exp_avg_sq": torch.rand(n, 3, generator=g)}  # fmt: skip
+        return {
+            "splats": {"means": torch.randn(n, 3, generator=g)},
+            "optimizers": {"means": {"state": {0: moments}, "param_groups": [{"lr": 0.1}]}},
+            "strategy": {"grad2d": torch.rand(n, generator=g), "count": torch.rand(n, generator=g),
+                         "radii": None, "scene_scale": 1.5},  # fmt: skip
+            "rng": {"torch": torch.tensor([seed], dtype=torch.uint8)},
+        }
+
+    parts = [part(4, 0), part(3, 1)]
+    doc = dd.merge_shards(parts)
+    assert doc["shards"] == [4, 3] and doc["splats"]["means"].shape == (7, 3)
+    assert doc["rng"] is parts[0]["rng"] and doc["strategy"]["scene_scale"] == 1.5
+    for rank, p in enumerate(parts):
+        back = dd.split_checkpoint(doc, dd.World(rank, 2, rank), "ck.pt")
+        assert torch.equal(back["splats"]["means"], p["splats"]["means"])
+        moments, want = back["optimizers"]["means"]["state"][0], p["optimizers"]["means"]["state"][0]
+        for m in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(moments[m], want[m])
+        assert torch.equal(back["strategy"]["grad2d"], p["strategy"]["grad2d"])
+        assert back["strategy"]["radii"] is None and back["rng"] is p["rng"]
+    with pytest.raises(JsgsError, match=r"ck\.pt: .*shards"):
+        dd.split_checkpoint({**doc, "shards": [4, 4]}, dd.World(0, 2, 0), "ck.pt")
+    with pytest.raises(JsgsError, match="3 processes"):
+        dd.split_checkpoint(doc, dd.World(0, 3, 0), "ck.pt")
+
+
+def test_budget_shares_sum_to_the_budget() -> None:
+    from jsgs.train import distributed as dd
+
+    for cap in (0, 1, 59, 60, 61, 1_000_000):
+        for size in (1, 2, 3, 8):
+            shares = [dd.shard_cap(cap, dd.World(r, size, r)) for r in range(size)]
+            assert sum(shares) == cap and max(shares) - min(shares) <= 1
+            rows = [len(dd.shard_rows(cap, dd.World(r, size, r))) for r in range(size)]
+            assert all(n <= s for n, s in zip(rows, shares, strict=True))
 
 
 @pytest.mark.parametrize(
@@ -320,3 +394,116 @@ def test_gpus_without_gpus_is_one_line(tmp_path: Path) -> None:
     args = ["train", str(tmp_path / "m.json"), "--out", str(tmp_path / "r"), "--gpus", "64"]
     r = CliRunner().invoke(main, args)
     assert "GPU(s)" in _one_error((r.exit_code, r.output))
+
+
+def _gsplat_exchange_worker(rank: int, store: str) -> None:
+    """One of two GPUs, each owning every other Gaussian and rendering view ``rank`` through gsplat's
+    ``distributed=True`` rasterisation; rank 0 then renders both views alone (packed, every Gaussian in
+    the shards' order) and compares the gradients and DefaultStrategy's statistics each owner received."""
+    import numpy as np
+    import torch
+    import torch.distributed as dist
+    from _train_scene import look_at
+
+    from jsgs.strategy import Densifier
+    from jsgs.train import distributed as dd
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.model import PARAM_NAMES, init_splats
+    from jsgs.train.render_view import render_view
+
+    torch.cuda.set_device(rank)
+    device = torch.device("cuda", rank)
+    dist.init_process_group("nccl", init_method=f"file://{store}", rank=rank, world_size=2)
+    world = dd.World(rank, 2, rank)
+    cfg = TrainConfig(device="cuda")
+    cfg.strategy.refine_scale2d_stop_iter = 100
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(1)
+    points, colors = torch.rand(301, 3, generator=g) - 0.5, torch.rand(301, 3, generator=g)
+    full = init_splats(points, colors, cfg, 1.0, device)
+    rows = dd.shard_rows(301, world).to(device)
+    shard = torch.nn.ParameterDict({n: torch.nn.Parameter(full[n].data[rows].clone()) for n in PARAM_NAMES})
+    cams = []
+    for a in (0.3, 2.1):
+        R, t = look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 0.5]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+        vm = torch.eye(4)
+        vm[:3, :3], vm[:3, 3] = torch.tensor(R, dtype=torch.float32), torch.tensor(t, dtype=torch.float32)
+        cams.append(vm[None].to(device))
+    K = torch.tensor([[[56.0, 0, 32], [0, 56.0, 24], [0, 0, 1]]], device=device)
+    target = torch.rand(1, 48, 64, 3, generator=g).to(device)
+
+    def one_view(splats: Any, strategy: Densifier, state: dict, i: int, spread: bool) -> None:
+        r = render_view(splats, cams[i], K, 64, 48, 0, cfg, "gsplat", distributed=spread)
+        strategy.step_pre_backward(splats, {}, state, 0, r.info)
+        (r.rgb - target).abs().mean().backward()
+        strategy.gsplat._update_state(splats, state, r.info, packed=True)
+
+    shared = Densifier(cfg.strategy)
+    state = shared.initialize_state(scene_scale=1.0)
+    cfg.render.packed = True
+    one_view(shard, shared, state, rank, True)
+    params = [shard[n] for n in PARAM_NAMES]
+    flags = dd.reduce_gradients(world, params, True, None)
+    assert flags.rendered == 2
+    mine = {"grads": [p.grad for p in params], "state": {k: state[k] for k in ("grad2d", "count", "radii")}}
+    parts = dd.gather_to_main(world, mine)
+    if rank == 0:
+        assert parts is not None
+        order = torch.cat([torch.arange(0, 301, 2), torch.arange(1, 301, 2)]).to(device)
+        alone_splats = torch.nn.ParameterDict(
+            {n: torch.nn.Parameter(full[n].data[order].clone()) for n in PARAM_NAMES}
+        )
+        alone = Densifier(cfg.strategy)
+        ref = alone.initialize_state(scene_scale=1.0)
+        grads = []
+        for i in (0, 1):
+            for p in alone_splats.values():
+                p.grad = None
+            one_view(alone_splats, alone, ref, i, False)
+            grads.append([alone_splats[n].grad.clone().cpu() for n in PARAM_NAMES])
+        for j, (name, g0, g1) in enumerate(zip(PARAM_NAMES, *grads, strict=True)):
+            got = torch.cat([parts[0]["grads"][j], parts[1]["grads"][j]])
+            assert torch.allclose(got, (g0 + g1) / 2, rtol=1e-3, atol=1e-7), name
+        assert ref["count"].sum() > 0
+        for key in ("grad2d", "count", "radii"):
+            got = torch.cat([parts[0]["state"][key], parts[1]["state"][key]])
+            assert torch.allclose(got, ref[key].cpu(), rtol=1e-3, atol=1e-7), key
+    dist.barrier()
+    dist.destroy_process_group()
+
+
+@pytest.mark.gpu
+def test_gsplat_exchange_sends_gradients_and_statistics_to_their_owners(tmp_path: Path) -> None:
+    """Two GPUs, gsplat's ``rasterization(..., packed=True, distributed=True)``: the gradients and
+    DefaultStrategy's statistics each shard receives are its rows of one GPU's after both views."""
+    import torch
+    import torch.multiprocessing as mp
+
+    if torch.cuda.device_count() < 2:
+        pytest.skip("needs two GPUs")
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    mp.spawn(_gsplat_exchange_worker, args=(str(tmp_path / "store"),), nprocs=2, join=True)
+
+
+@pytest.mark.gpu
+def test_two_gpus_train_with_gsplats_exchange(scene: Path, tmp_path: Path) -> None:
+    """`jsgs train --gpus 2` with the gsplat baseline: gsplat's exchange, one run folder, the test PSNR within
+    1 dB of one GPU's at equal views seen; JSGS (the Gaussian Controller) takes the torch exchange."""
+    import torch
+
+    if torch.cuda.device_count() < 2:
+        pytest.skip("needs two GPUs")
+    cfg = tmp_path / "cuda.json"
+    cfg.write_text(json.dumps({"eval": {"fps_passes": 1, "fps_warmup": 0}}))
+    one, two, jsgs_two = tmp_path / "one", tmp_path / "two", tmp_path / "jsgs"
+    common = ["--preset", "paper", "--config", str(cfg), "--device", "cuda"]
+    _ok(_train(scene, one, *common, "--iterations", "400", "--eval-at", "400"))
+    gpus = ["--gpus", "2"]
+    _ok(_train(scene, two, *common, "--iterations", "200", "--eval-at", "200", *gpus))
+    _ok(_train(scene, jsgs_two, *common, "--iterations", "20", "--eval-at", "20", "--method", "jsgs", *gpus))
+    m1 = json.loads((one / "metrics.json").read_text())
+    m2 = json.loads((two / "metrics.json").read_text())
+    c2 = json.loads((two / "config.json").read_text())
+    assert (m2["world_size"], c2["derived"]["exchange"]) == (2, "gsplat")
+    assert json.loads((jsgs_two / "config.json").read_text())["derived"]["exchange"] == "torch"
+    assert abs(m1["evals"][-1]["psnr"] - m2["evals"][-1]["psnr"]) < 1.0
