@@ -405,11 +405,11 @@ def _gsplat_exchange_worker(rank: int, store: str) -> None:
     import torch.distributed as dist
     from _train_scene import look_at
 
-    from jsgs.strategy import Densifier
     from jsgs.train import distributed as dd
     from jsgs.train.config import TrainConfig
     from jsgs.train.model import PARAM_NAMES, init_splats
     from jsgs.train.render_view import render_view
+    from jsgs.train.strategy import Densifier
 
     torch.cuda.set_device(rank)
     device = torch.device("cuda", rank)
