@@ -103,6 +103,26 @@ def test_two_processes_write_one_run_and_match_one_process(scene: Path, tmp_path
 
 
 @pytest.mark.slow
+def test_jsgs_on_two_processes_matches_one_process(tmp_path: Path) -> None:
+    """JSGS on JPEG views (the torch exchange, the Gaussian Controller's gradients sent back to the owners)
+    at equal views seen (2 x 20 steps against 40): the test PSNR within 1 dB of one process's, both having
+    learnt more than that."""
+    scene = make_scene(tmp_path / "jscene", n_views=6, jpeg_train=True)
+    cfg = _settings(tmp_path)
+    one, two = tmp_path / "one", tmp_path / "two"
+    common = ["--preset", "paper", "--config", str(cfg), "--method", "jsgs"]
+    _ok(_train(scene, one, *common, "--iterations", "40", "--eval-at", "4,40"))
+    _ok(_train(scene, two, *common, "--iterations", "20", "--eval-at", "2,20", processes=2))
+    m1 = json.loads((one / "metrics.json").read_text())
+    m2 = json.loads((two / "metrics.json").read_text())
+    assert json.loads((two / "config.json").read_text())["derived"]["exchange"] == "torch"
+    (early1, psnr1), (early2, psnr2) = ((m["evals"][0]["psnr"], m["evals"][1]["psnr"]) for m in (m1, m2))
+    assert psnr1 - early1 > 1.0 and psnr2 - early2 > 1.0, (early1, psnr1, early2, psnr2)
+    assert abs(psnr1 - psnr2) < 1.0, (psnr1, psnr2)
+    assert {"obs", "low", "mid", "fro"} <= set(m2["evals"][1]["train"]["terms"])
+
+
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="finds the processes through /proc")
 def test_sigterm_to_one_process_stops_all_and_resume_is_exact(scene: Path, tmp_path: Path) -> None:
     """SIGTERM to rank 1 alone: every process stops after the same step with rank 0's checkpoint (one error
