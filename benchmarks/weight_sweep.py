@@ -48,7 +48,8 @@ def weights(config: Path | None, method: str = "jsgs") -> dict[str, float | None
     from jsgs.method.options import parse_options
     from jsgs.train.config import TrainConfig, load_config_file
 
-    cfg = load_config_file(config) if config else TrainConfig()
+    paper = TrainConfig.from_preset("paper")
+    cfg = load_config_file(config, paper) if config else paper
     out: dict[str, float | None] = {"base": cfg.loss.base_weight}
     if method == "jsgs":
         o = parse_options(cfg.method_options)

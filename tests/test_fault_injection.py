@@ -218,7 +218,7 @@ def stopped_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 
     root = tmp_path_factory.mktemp("stopped")
     manifest = make_scene(root / "scene")
-    cfg = TrainConfig(method="gsplat", iterations=4, eval_at=[4], device="cpu")
+    cfg = TrainConfig.from_preset("paper", method="gsplat", iterations=4, eval_at=[4], device="cpu")
     cfg.eval.fps_passes, cfg.eval.fps_warmup = 1, 0
     train(manifest, root / "run", cfg, stop_at=2, progress=False, log=lambda s: None)
     return manifest, root / "run"

@@ -134,7 +134,7 @@ def _read_scene(root: Path, text: str | bytes) -> None:
     path = root / "manifest.json"
     path.write_bytes(text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text)
     try:
-        scene = load_training_scene(path, TrainConfig())
+        scene = load_training_scene(path, TrainConfig.from_preset("paper"))
     except JsgsError as e:
         _one_line(e, str(path))
         event("refused")
@@ -208,7 +208,7 @@ def _settings_paths() -> list[tuple[str, ...]]:
 
     out: list[tuple[str, ...]] = []
     for f in dataclasses.fields(TrainConfig):
-        value = getattr(TrainConfig(), f.name)
+        value = getattr(TrainConfig.from_preset("paper"), f.name)
         if dataclasses.is_dataclass(value):
             out += [(f.name, g.name) for g in dataclasses.fields(value)]
         else:

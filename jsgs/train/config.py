@@ -1,23 +1,29 @@
-"""Every setting of a training run, with gsplat 1.5.3's ``examples/simple_trainer.py`` defaults.
+"""Every setting of a training run. The defaults are the default preset's, :data:`DEFAULT_PRESET` (``mcmc``:
+gsplat 1.5.3 ``examples/simple_trainer.py``'s ``mcmc`` recipe with a budget of 300,000 Gaussians, and JSGS's
+recipe for it): ``TrainConfig()`` and ``jsgs train`` without options give the same settings.
+:data:`PRESETS` holds the others (``TrainConfig.from_preset("paper")``: simple_trainer's default recipe with
+DefaultStrategy, the paper's protocol).
 
 A run is reproducible from ``RUN/config.json`` alone: it holds these settings in full (``settings``), the
 values derived from the manifest (scene scale, normalisation transform, ...) and the software versions.
 
-Sources of the defaults (gsplat tag v1.5.3):
+Sources of the values (gsplat tag v1.5.3):
 
 - ``examples/simple_trainer.py`` ``Config`` and ``create_splats_with_optimizers``: SfM initialisation, scales
-  from the mean squared distance to the 3 nearest neighbours, opacity 0.1, Adam learning rates (means
+  from the mean squared distance to the 3 nearest neighbours, opacity 0.1 (mcmc: 0.5, scales x 0.1, opacity
+  and scale regularisation 0.01, 30,000 steps), Adam learning rates (means
   1.6e-4 x scene scale with an exponential decay to 0.01x over the run, scales 5e-3, quats 1e-3, opacities
   5e-2, sh0 2.5e-3, shN 2.5e-3/20), Adam eps 1e-15, SH degree 3 raised every 1000 steps, ssim_lambda 0.2 with
   ``fused_ssim(..., padding="valid")``,
   near/far planes 0.01 / 1e10, random background off, packed off, seed 42 (classic rasterisation: the
   antialiased mode is not implemented by our rasterizers);
-- ``gsplat/strategy/default.py`` ``DefaultStrategy``: the densification and pruning thresholds;
+- ``gsplat/strategy/mcmc.py`` ``MCMCStrategy`` and ``gsplat/strategy/default.py`` ``DefaultStrategy``: the
+  relocation, densification and pruning thresholds;
 - ``examples/datasets/colmap.py`` ``Parser``: world normalisation on, scene scale = 1.1 x the largest
   camera distance from the cameras' mean (times ``global_scale``).
 
 Only what our trainer implements is here (no pose/appearance optimisation, bilateral grid, depth loss,
-batch size > 1, MCMC strategy): a setting that exists is a setting that is honoured.
+batch size > 1): a setting that exists is a setting that is honoured.
 """
 
 from __future__ import annotations
@@ -37,6 +43,8 @@ from jsgs.base.limits import MAX_INT_SETTING, MAX_SETTING, read_json
 RUN_CONFIG_FORMAT = "jsgs-run-config"
 RUN_CONFIG_VERSION = 1
 T = TypeVar("T")
+#: The default Gaussian budget (``strategy.cap_max`` of the mcmc preset, the defaults).
+MCMC_CAP_MAX = 300_000
 
 
 #: range bounds a numeric setting may carry (JSON Schema's keyword for each)
@@ -116,8 +124,8 @@ class InitConfig:
     extent: float = _f(
         3.0, "Half-side of the random cube, as a multiple of the scene scale (type=random).", gt=0.0
     )
-    opacity: float = _f(0.1, "Initial opacity (after the sigmoid).", gt=0.0, lt=1.0)
-    scale: float = _f(1.0, "Multiplier on the kNN scale.", gt=0.0)
+    opacity: float = _f(0.5, "Initial opacity (after the sigmoid; --preset paper: 0.1).", gt=0.0, lt=1.0)
+    scale: float = _f(0.1, "Multiplier on the kNN scale (--preset paper: 1).", gt=0.0)
     knn_neighbors: int = _f(
         3, "Initial scale = sqrt(mean of squared distances to this many nearest other points).", ge=1
     )
@@ -162,11 +170,16 @@ class StrategyConfig:
     gradient, prune by opacity and size) or ``MCMCStrategy`` (a fixed budget of Gaussians, ``cap_max``)."""
 
     type: Literal["default", "mcmc"] = _f(
-        "default",
-        "default: gsplat DefaultStrategy (the count grows as the heuristics decide); mcmc: gsplat "
-        "MCMCStrategy, at most cap_max Gaussians (equal model sizes for comparisons; --preset mcmc).",
+        "mcmc",
+        "mcmc: gsplat MCMCStrategy, at most cap_max Gaussians (equal model sizes for comparisons); default: "
+        "gsplat DefaultStrategy (the count grows as the heuristics decide; --preset paper).",
     )
-    cap_max: int = _f(1_000_000, "mcmc: the budget, the largest number of Gaussians.", ge=1)
+    cap_max: int = _f(
+        MCMC_CAP_MAX,
+        "mcmc: the budget, the largest number of Gaussians (gsplat's MCMCStrategy: 1000000, which --preset "
+        "paper records).",
+        ge=1,
+    )
     cap_max_auto: bool = _f(
         False,
         "mcmc: choose cap_max from the scene when the run starts (jsgs.train.budget: 24 Gaussians per SfM "
@@ -196,8 +209,9 @@ class StrategyConfig:
         500, "Refine (default) or relocate and add (mcmc) only after this step.", ge=0
     )
     refine_stop_iter: int = _f(
-        15_000,
-        "Stop refining at this step (gsplat's MCMCStrategy default, set by --preset mcmc: 25000).",
+        25_000,
+        "Stop refining at this step (gsplat's MCMCStrategy default; its DefaultStrategy's, --preset paper: "
+        "15000).",
         ge=0,
     )
     reset_every: int = _f(3000, "default: opacity reset period (see DefaultStrategy).", ge=1)
@@ -251,8 +265,12 @@ class LossConfig:
         "the original 3DGS).",
     )
     base_weight: float = _f(1.0, "lambda_base: weight of l_ph in the total loss (JSGS exposes it).", ge=0.0)
-    opacity_reg: float = _f(0.0, "Weight of mean(opacity) (gsplat opacity_reg).", ge=0.0)
-    scale_reg: float = _f(0.0, "Weight of mean(exp(scales)) (gsplat scale_reg).", ge=0.0)
+    opacity_reg: float = _f(
+        0.01, "Weight of mean(opacity) (gsplat opacity_reg; --preset paper: 0).", ge=0.0
+    )
+    scale_reg: float = _f(
+        0.01, "Weight of mean(exp(scales)) (gsplat scale_reg; --preset paper: 0).", ge=0.0
+    )
 
 
 @dataclass
@@ -284,12 +302,15 @@ class EvalConfig:
 
 @dataclass
 class TrainConfig:
-    """All settings of a run. Nested sections mirror the JSON (``RUN/config.json`` ``settings``)."""
+    """All settings of a run. Nested sections mirror the JSON (``RUN/config.json`` ``settings``). The defaults
+    are the default preset's (:data:`DEFAULT_PRESET`), ``method_options`` included: when not given they are
+    the method's recipe for it (:func:`jsgs.train.method.method_recipe`); :meth:`from_preset` gives another
+    preset's."""
 
     method: str = _f("jsgs", "Training method: jsgs (the default) or gsplat (the baseline, no JPEG terms).")
-    iterations: int = _f(10_000, "Training steps (one view each).", ge=1)
+    iterations: int = _f(30_000, "Training steps (one view each).", ge=1)
     eval_at: list[int] = _f(
-        default_factory=lambda: [3000, 7000, 10_000],
+        default_factory=lambda: [7000, 30_000],
         help="Evaluate and checkpoint after these steps (1-based: 3000 = after 3000 steps).",
         ge=1,
     )
@@ -299,7 +320,7 @@ class TrainConfig:
     checkpoint_keep: int = _f(
         3,
         "Keep the newest this many checkpoints, deleting older ones as new ones are written (0: keep every "
-        "one). The default keeps the three of the default eval_at.",
+        "one). The default keeps one per evaluation of the presets' eval_at.",
         ge=0,
         required=False,
     )
@@ -315,10 +336,29 @@ class TrainConfig:
     eval: EvalConfig = _f(default_factory=EvalConfig, help="Evaluation.")
     speed: SpeedConfig = _f(default_factory=SpeedConfig, help="Speed settings (same results).")
     method_options: dict[str, Any] = _f(
-        default_factory=dict,
+        default_factory=lambda: _MethodDefaults(),
         help="Settings of the chosen method: its registered options section (jsgs: $defs/jsgs_options), "
-        "parsed and checked like every other section; empty for gsplat.",
+        "parsed and checked like every other section; empty for gsplat. Not given: the method's recipe for "
+        "the preset.",
     )
+
+    def __post_init__(self) -> None:
+        if isinstance(self.method_options, _MethodDefaults):
+            self.method_options = method_defaults(self.method)
+
+    @classmethod
+    def from_preset(cls, name: str, **changes: Any) -> TrainConfig:
+        """The settings of preset ``name`` (:data:`PRESETS`), with its method's recipe for it, and top-level
+        ``changes`` (``method`` without ``method_options``: that method's recipe for the preset)."""
+        from jsgs.train.method import method_recipe
+
+        if name not in PRESETS:
+            raise JsgsError(f"--preset: {name!r} is not one of {', '.join(PRESETS)}")
+        cfg = from_dict(PRESETS[name], f"preset {name}")
+        cfg.method_options = method_recipe(cfg.method, name)
+        if "method" in changes and "method_options" not in changes:
+            changes["method_options"] = method_recipe(changes["method"], name)
+        return dataclasses.replace(cfg, **changes)
 
     def check(self, where: str = "config", method_options: bool = True) -> None:
         """Raise JsgsError (one line) on inconsistent settings; with ``method_options``, also parse and check
@@ -337,6 +377,17 @@ class TrainConfig:
             )
         if method_options:
             parse_method_options(self.method, self.method_options, where)
+
+
+class _MethodDefaults(dict[str, Any]):
+    """``TrainConfig.method_options`` not given (replaced by :func:`method_defaults` when built)."""
+
+
+def method_defaults(name: str) -> dict[str, Any]:
+    """The ``method_options`` method ``name`` has by default: its recipe for :data:`DEFAULT_PRESET`."""
+    from jsgs.train.method import method_recipe
+
+    return method_recipe(name, DEFAULT_PRESET)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -484,50 +535,51 @@ def from_dict(doc: dict[str, Any], where: str = "config", base: TrainConfig | No
     method = base.method
     cfg = _from_dict(TrainConfig, doc, where, prefix="", base=base)
     if cfg.method != method and "method_options" not in doc:
-        cfg.method_options = {}  # the options of another method: the new one starts from its defaults
+        # the options of another method: the new one starts from its defaults
+        cfg.method_options = method_defaults(cfg.method)
     return cfg
 
 
-#: The mcmc preset's Gaussian budget (``strategy.cap_max``).
-MCMC_CAP_MAX = 300_000
+def recorded_settings(settings: Any, where: str) -> TrainConfig:
+    """The complete settings a run recorded (``RUN/config.json`` or a checkpoint's ``settings``). A key that a
+    file written before the key existed lacks takes the value of that time: the ``paper`` preset's, which
+    were then the defaults."""
+    return from_dict(settings, where, base=TrainConfig.from_preset("paper"))
+
+
 #: The preview preset's training length (steps).
 PREVIEW_ITERATIONS = 1_000
-#: Named starting points for the settings (``jsgs train --preset NAME``); a config file and the command line
-#: apply over them, and each method's recipe for the preset (:func:`jsgs.train.method.method_recipe`: JSGS's
-#: in :mod:`jsgs.method.recipes`) gives its ``method_options``. ``mcmc``: simple_trainer's ``mcmc`` recipe
-#: at its full length (``max_steps`` 30,000, evaluations at 7,000 and 30,000, the means' learning rate
-#: decaying over the 30,000 steps, MCMCStrategy refining until 25,000) with a budget of
-#: :data:`MCMC_CAP_MAX` Gaussians, measured better than DefaultStrategy for gsplat on all four shared scenes
-#: (docs/results/budget); ``jsgs train`` starts from it unless told otherwise. ``paper``: the settings' own
-#: defaults (gsplat simple_trainer's default recipe with DefaultStrategy, trained 10,000 steps: the paper's
-#: protocol). ``preview``: a quick look at a capture on a CPU (docs/training.md, "A preview on a CPU"): the
-#: baseline (``method`` gsplat) with the defaults' DefaultStrategy, :data:`PREVIEW_ITERATIONS` steps and one
-#: evaluation at the end, meant for a copy of the photos downscaled by 2, whose pixels no longer carry the
-#: files' 8×8 JPEG grid (so JSGS's terms have nothing to read).
-PRESETS: dict[str, dict[str, Any]] = {
-    "mcmc": {
-        "iterations": 30_000,
-        "eval_at": [7_000, 30_000],
-        "init": {"opacity": 0.5, "scale": 0.1},
-        "loss": {"opacity_reg": 0.01, "scale_reg": 0.01},
-        "strategy": {"type": "mcmc", "refine_stop_iter": 25_000, "cap_max": MCMC_CAP_MAX},
-    },
-    "paper": {},
-    "preview": {"method": "gsplat", "iterations": PREVIEW_ITERATIONS, "eval_at": [PREVIEW_ITERATIONS]},
+#: The paper's protocol over the defaults: gsplat simple_trainer's default recipe with DefaultStrategy,
+#: trained 10,000 steps with evaluations at 3,000, 7,000 and 10,000 (``cap_max``: MCMCStrategy's own,
+#: unused by DefaultStrategy, recorded as before).
+_PAPER: dict[str, Any] = {
+    "iterations": 10_000,
+    "eval_at": [3000, 7000, 10_000],
+    "init": {"opacity": 0.1, "scale": 1.0},
+    "loss": {"opacity_reg": 0.0, "scale_reg": 0.0},
+    "strategy": {"type": "default", "refine_stop_iter": 15_000, "cap_max": 1_000_000},
 }
-#: the preset of a new ``jsgs train`` run given none
+#: Named starting points for the settings (``jsgs train --preset NAME``, :meth:`TrainConfig.from_preset`),
+#: each over the defaults; a config file and the command line apply over them, and each method's recipe for
+#: the preset (:func:`jsgs.train.method.method_recipe`: JSGS's in :mod:`jsgs.method.recipes`) gives its
+#: ``method_options``. ``mcmc``, the defaults (:data:`DEFAULT_PRESET`): simple_trainer's ``mcmc`` recipe at
+#: its full length (``max_steps`` 30,000, evaluations at 7,000 and 30,000, the means' learning rate decaying
+#: over the 30,000 steps, MCMCStrategy refining until 25,000) with a budget of :data:`MCMC_CAP_MAX`
+#: Gaussians, measured better than DefaultStrategy for gsplat on all four shared scenes (docs/results/budget).
+#: ``paper``: the paper's protocol (:data:`_PAPER`). ``preview``: a quick look at a capture on a CPU
+#: (docs/training.md, "A preview on a CPU"): the baseline (``method`` gsplat) with the paper's
+#: DefaultStrategy, :data:`PREVIEW_ITERATIONS` steps and one evaluation at the end, meant for a copy of the
+#: photos downscaled by 2, whose pixels no longer carry the files' 8×8 JPEG grid (so JSGS's terms have nothing
+#: to read).
+PRESETS: dict[str, dict[str, Any]] = {
+    "mcmc": {},
+    "paper": _PAPER,
+    "preview": {
+        **_PAPER, "method": "gsplat", "iterations": PREVIEW_ITERATIONS, "eval_at": [PREVIEW_ITERATIONS]
+    },
+}
+#: the preset of the defaults, and so of a new ``jsgs train`` run given none
 DEFAULT_PRESET = "mcmc"
-
-
-def preset(name: str) -> TrainConfig:
-    """The settings of preset ``name`` (over the defaults), its method's recipe for it included."""
-    from jsgs.train.method import method_recipe
-
-    if name not in PRESETS:
-        raise JsgsError(f"--preset: {name!r} is not one of {', '.join(PRESETS)}")
-    cfg = from_dict(PRESETS[name], f"preset {name}")
-    cfg.method_options = method_recipe(cfg.method, name)
-    return cfg
 
 
 def cap_max_settings(text: str) -> dict[str, Any]:
@@ -543,7 +595,7 @@ def cap_max_settings(text: str) -> dict[str, Any]:
 
 def preset_iterations(name: str) -> int:
     """The training length of preset ``name`` (``jsgs bench`` follows it unless given --iterations)."""
-    return preset(name).iterations
+    return TrainConfig.from_preset(name).iterations
 
 
 def cut_eval_at(eval_at: list[int], iterations: int) -> list[int]:
@@ -577,7 +629,7 @@ def command_settings(
         raise JsgsError("--preset applies to a new run; --resume takes the run's own settings")
     if preset_name is None and resume_settings is None:
         preset_name = DEFAULT_PRESET
-    start = preset(preset_name) if preset_name is not None else TrainConfig()
+    start = TrainConfig.from_preset(preset_name) if preset_name is not None else TrainConfig()
     whole = False  # an earlier run's config.json: its settings are complete, the preset adds nothing
     given_options: Any = {}  # the method_options a partial config file gives
     if config_file is not None:
@@ -656,7 +708,7 @@ def config_from_document(doc: Any, path: str | Path, base: TrainConfig | None = 
     else:
         # a bare settings object: from_dict checks names, types and choices with one-line messages
         settings = doc
-    cfg = from_dict(settings, str(path), base=None if whole else base)
+    cfg = recorded_settings(settings, str(path)) if whole else from_dict(settings, str(path), base=base)
     cfg.check(str(path), method_options=isinstance(settings, dict) and "method" in settings)
     return cfg
 

@@ -184,7 +184,7 @@ def _checkpoint_agrees(doc: dict[str, Any], path: Path, paths: RunPaths, cfg: Tr
     """A checkpoint is used only where it belongs to RUN as it is now: the settings of RUN/config.json, the
     manifest that config.json names, a step within the run's iterations. One line says what differs and how
     to go on otherwise."""
-    from jsgs.train.config import from_dict
+    from jsgs.train.config import recorded_settings
 
     start_over = "move it out of the way to resume from the checkpoint before it, or start over with --force"
     run_sha = json_load(paths.config).get("manifest", {}).get("sha256")
@@ -193,7 +193,7 @@ def _checkpoint_agrees(doc: dict[str, Any], path: Path, paths: RunPaths, cfg: Tr
             f"{path}: written for another manifest than the one {paths.config} names (its manifest hash "
             f"differs); {start_over}"
         )
-    mine = to_dict(from_dict(doc["settings"], str(path)))
+    mine = to_dict(recorded_settings(doc["settings"], str(path)))
     d = _diff_settings(to_dict(cfg), mine, labels=(f"in {paths.config.name}", "in the checkpoint"))
     if d:
         raise JsgsError(
@@ -1275,13 +1275,14 @@ def train(
 ) -> dict[str, Any]:
     """Train on ``manifest`` into the folder ``out``; returns the metrics document (also in RUN/metrics.json).
 
-    ``cfg``: the settings (defaults when None). With ``resume``, the run's own settings are used; ``cfg``,
-    when given, must equal them. ``stop_at``: stop (with a checkpoint) after that many steps, as an
-    interruption would (for tests and time-boxed jobs). ``progress``: a progress bar. ``profile``: record
-    per-phase times (synchronises the device at each phase; slower). ``hook``: a loss hook to use instead of
-    the method's own (tests). ``log``: where one-line notes go (stderr by default). ``callbacks``: more
-    callbacks, after the standard ones (progress, step profiler, checkpoints, metrics.json). Raises
-    JsgsError on bad input, TrainingDiverged on NaN/Inf."""
+    ``cfg``: the settings (when None, ``TrainConfig()``: the default preset's, what ``jsgs train`` without
+    options trains; ``TrainConfig.from_preset("paper")`` for the paper's protocol). With ``resume``, the run's
+    own settings are used; ``cfg``, when given, must equal them. ``stop_at``: stop (with a checkpoint) after
+    that many steps, as an interruption would (for tests and time-boxed jobs). ``progress``: a progress bar.
+    ``profile``: record per-phase times (synchronises the device at each phase; slower). ``hook``: a loss hook
+    to use instead of the method's own (tests). ``log``: where one-line notes go (stderr by default).
+    ``callbacks``: more callbacks, after the standard ones (progress, step profiler, checkpoints,
+    metrics.json). Raises JsgsError on bad input, TrainingDiverged on NaN/Inf."""
     from jsgs.train.callbacks import CheckpointSaver, MetricsWriter, ProgressBar, StepProfiler
 
     standard: list[Callback] = [

@@ -25,7 +25,7 @@ def test_weights_are_the_trainers(compressed_scene: Path, tmp_path: Path) -> Non
     assert rows and all(0.0 < r["b"] <= r["default"] <= 1.0 and r["blockiness"] > 0 for r in rows)
     assert any(r["b"] < 0.9 * r["default"] for r in rows)  # the blockiness factor bites somewhere
     # a one-step run of the same recipe records the same weights
-    cfg = TrainConfig(iterations=1, eval_at=[], device="cpu", method="jsgs")
+    cfg = TrainConfig.from_preset("paper", iterations=1, eval_at=[], device="cpu", method="jsgs")
     cfg.method_options = {**vw.RECIPES["mcmc"], "base_block_ref": 0.2, "gc": False}
     train(manifest, tmp_path / "run", cfg, progress=False)
     by_view = json.loads((tmp_path / "run" / "config.json").read_text())["derived"]["method"]["base_by_view"]

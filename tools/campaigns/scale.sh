@@ -27,9 +27,9 @@ for e in ${SCENES:-jpeg_mouse:300000}; do
             # the mcmc preset's step settings, divided by n
             python3 - "$n" "$cap" "${init:-sfm}" > "$run.settings.json" <<'PY'
 import json, sys
-from jsgs.train.config import preset, to_dict
+from jsgs.train.config import TrainConfig, to_dict
 n, cap, init = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
-d = to_dict(preset("mcmc"))
+d = to_dict(TrainConfig.from_preset("mcmc"))
 s = d["strategy"]
 out = {"strategy": {**{k: max(1, s[k] // n) for k in ("refine_start_iter", "refine_stop_iter", "refine_every")},
                     "cap_max": cap},

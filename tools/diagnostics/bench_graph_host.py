@@ -42,7 +42,7 @@ from jsgs.method.options import JsgsOptions  # noqa: E402
 from jsgs.train.config import TrainConfig  # noqa: E402
 
 # the training defaults: paper mode, DS and GC on, the trainer's photometric loss
-_CFG = TrainConfig()
+_CFG = TrainConfig.from_preset("paper")
 SETTINGS = image_term_settings(
     JsgsOptions(), _CFG.loss.ssim_lambda, _CFG.loss.ssim_padding, _CFG.speed.ssim_kernel
 )

@@ -145,7 +145,8 @@ def main() -> None:
     cuda = device.type == "cuda"
     iterations = args.iterations or (1000 if cuda else 30)
     warmup = args.warmup if args.warmup is not None else (50 if cuda else 3)
-    base = load_config_file(args.config) if args.config else TrainConfig()
+    paper = TrainConfig.from_preset("paper")
+    base = load_config_file(args.config, paper) if args.config else paper
 
     variants: list[tuple[str, str, dict[str, Any]]] = [("gsplat", "gsplat", {})]
     for mode in args.jpeg_modes.split(","):

@@ -730,7 +730,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.threads:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
-    base = load_config_file(args.config) if args.config else TrainConfig()
+    paper = TrainConfig.from_preset("paper")
+    base = load_config_file(args.config, paper) if args.config else paper
     methods = args.methods.split(",")
     iterations = args.warmup + args.settle + args.steps + 1
     results: dict[str, dict[str, Any]] = {}

@@ -52,7 +52,7 @@ def census(manifest: Path, method: str, start: int, steps: int) -> collections.C
         elif calls[0] == start + steps + 1:
             torch.cuda.set_sync_debug_mode("default")
 
-    cfg = variant_config(TrainConfig(), method, {}, start + steps + 1, "cuda")
+    cfg = variant_config(TrainConfig.from_preset("paper"), method, {}, start + steps + 1, "cuda")
     cfg.checkpoint_every = 0
     with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
         warnings.simplefilter("always")

@@ -45,7 +45,8 @@ def parse_recipe(text: str) -> tuple[str, dict]:
 
 def view_table(manifest: Path, recipes: dict[str, JsgsOptions]) -> list[dict]:
     """One dict per JPEG training view: ``quality``, ``noise``, ``blockiness`` and each recipe's weight."""
-    views = load_training_scene(manifest, TrainConfig(device="cpu", eval_at=[])).train_views
+    cfg = TrainConfig.from_preset("paper", device="cpu", eval_at=[])
+    views = load_training_scene(manifest, cfg).train_views
     cpu = torch.device("cpu")
     measured: dict[tuple[str, str], dict[int, ViewJpeg]] = {}
     for o in recipes.values():  # σ² and B read from the files once per (tables, noise) kind

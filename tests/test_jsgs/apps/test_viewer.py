@@ -194,7 +194,7 @@ def test_live_viewer_serves_the_model_while_it_trains(tmp_path: Path) -> None:
                 img = render_rgb(live.viewer.model, v.viewmat, v.K, v.width, v.height)
                 seen.append((result.step, status, float(img.std())))
 
-    cfg = TrainConfig()
+    cfg = TrainConfig.from_preset("paper")
     cfg.iterations, cfg.eval_at, cfg.device = 10, [], "cpu"
     train(manifest, tmp_path / "run", cfg, progress=False, callbacks=[live, Probe()])
     assert [(s, st) for s, st, _ in seen] == [(0, 200), (9, 200)] and all(sd > 1 for *_, sd in seen)

@@ -346,15 +346,16 @@ def test_weight_sweep_configs_and_summary(tmp_path: Path) -> None:
     import sys
 
     from jsgs.method.options import parse_options
-    from jsgs.train.config import load_config_file
+    from jsgs.train.config import TrainConfig, load_config_file
 
     root = Path(__file__).resolve().parents[3]
+    paper = TrainConfig.from_preset("paper")  # the sweeps' configs apply over the paper's protocol
     configs = sorted((root / "benchmarks" / "weight_sweep").glob("*.json"))
     assert len(configs) >= 4
     for folder in ("weight_sweep", "densify_control"):
         seen = set()
         for c in sorted((root / "benchmarks" / folder).glob("*.json")):
-            cfg = load_config_file(c)
+            cfg = load_config_file(c, paper)
             o = parse_options(cfg.method_options)
             if c.stem.startswith("gsplat_"):  # a baseline control: no JSGS options
                 assert not cfg.method_options, c.name

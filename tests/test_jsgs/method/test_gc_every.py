@@ -97,7 +97,7 @@ def test_a_short_run_keeps_most_of_the_controllers_effect(tmp_path: Path) -> Non
     manifest = make_scene(tmp_path / "scene", jpeg_train=True, n_views=9, n_gaussians=60)
     runs = {}
     for name, opts in {"exact": {}, "every2": {"gc_every": 2}, "off": {"gc": False}}.items():
-        c = TrainConfig(method="jsgs", iterations=30, eval_at=[30], device="cpu")
+        c = TrainConfig.from_preset("paper", method="jsgs", iterations=30, eval_at=[30], device="cpu")
         c.method_options = {"lambda_fro": 1.0, **opts}
         c.strategy.refine_start_iter = 10**6
         c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False

@@ -183,7 +183,7 @@ def test_cuda_graph_is_refused_off_cuda_and_with_compile(tmp_path: Path) -> None
 
     with pytest.raises(JsgsError, match="cannot be combined"):
         parse_options(jsgs_options(cuda_graph=True, compile="inductor"))
-    cfg = TrainConfig()
+    cfg = TrainConfig.from_preset("paper")
     cfg.method, cfg.method_options = "jsgs", jsgs_options(cuda_graph=True)
 
     class _Scene:  # make_jsgs_hook refuses before it reads the views
@@ -372,7 +372,7 @@ def train_jsgs_variants(tmp_path: Path, variants: dict[str, dict[str, Any]]) -> 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
     evals = {}
     for name, options in variants.items():
-        c = TrainConfig(method="jsgs", iterations=60, eval_at=[60], device="cuda")
+        c = TrainConfig.from_preset("paper", method="jsgs", iterations=60, eval_at=[60], device="cuda")
         c.method_options = jsgs_options(**options)
         c.strategy.refine_start_iter, c.strategy.refine_every = 5, 10
         c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False

@@ -241,7 +241,7 @@ def render(splats: torch.nn.ParameterDict, extra: torch.Tensor | None) -> Any:
     viewmat, K = camera()
     return render_view(
         splats, torch.tensor(viewmat, dtype=D)[None], torch.tensor(K, dtype=D)[None], WIDTH, HEIGHT, 0,
-        TrainConfig(), "torch", extra,
+        TrainConfig.from_preset("paper"), "torch", extra,
     )  # fmt: skip
 
 
@@ -503,7 +503,8 @@ def test_ablation_switches_change_exactly_their_terms() -> None:
 
 def test_all_switches_off_is_the_baseline_and_no_jo_alone_is_refused(tmp_path: Path) -> None:
     scene = SimpleNamespace(train_views=[make_view(50)], manifest_path=tmp_path / "m.json")
-    cfg = TrainConfig(method="jsgs", method_options={"jo": False, "ds": False, "gc": False})
+    off = {"jo": False, "ds": False, "gc": False}
+    cfg = TrainConfig.from_preset("paper", method="jsgs", method_options=off)
     assert make_hook(cfg, scene, torch.device("cpu")) is None
     for opts in ({"jo": False}, {"jo": False, "ds": False}, {"jo": False, "gc": False}):
         with pytest.raises(JsgsError, match="need JO"):
@@ -550,7 +551,7 @@ def test_unsupported_jpeg_states_are_refused_naming_the_view(
         v.jpeg = JpegState(v.jpeg.luma_table, None, "gray", 50, True, 8, "baseline")
     scene = SimpleNamespace(train_views=[make_view(50), v], manifest_path=tmp_path / "m.json")
     with pytest.raises(JsgsError, match="'v3'"):
-        make_jsgs_hook(TrainConfig(method="jsgs"), scene, torch.device("cpu"))
+        make_jsgs_hook(TrainConfig.from_preset("paper", method="jsgs"), scene, torch.device("cpu"))
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -642,7 +643,7 @@ def rbar_parity(manifest: Path, backend: str, device: torch.device, n_views: int
     from jsgs.train.data import load_image, load_training_scene
     from jsgs.train.model import activated, init_splats
 
-    cfg = TrainConfig(method="jsgs", device=device.type)
+    cfg = TrainConfig.from_preset("paper", method="jsgs", device=device.type)
     scene = load_training_scene(manifest, cfg)
     torch.manual_seed(0)
     splats = init_splats(
@@ -729,7 +730,7 @@ def test_jsgs_runs_resume_bit_exactly_with_densification(tmp_path: Path) -> None
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
 
     def cfg() -> TrainConfig:
-        c = TrainConfig(method="jsgs", iterations=8, eval_at=[4, 8], device="cpu")
+        c = TrainConfig.from_preset("paper", method="jsgs", iterations=8, eval_at=[4, 8], device="cpu")
         c.strategy.refine_start_iter, c.strategy.refine_every = 1, 3
         c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
         return c
@@ -750,7 +751,7 @@ def test_jsgs_runs_resume_bit_exactly_with_densification(tmp_path: Path) -> None
 
 def test_packed_rendering_is_refused_with_gc(tmp_path: Path) -> None:
     scene = SimpleNamespace(train_views=[make_view(50)], manifest_path=tmp_path / "m.json")
-    cfg = TrainConfig(method="jsgs")
+    cfg = TrainConfig.from_preset("paper", method="jsgs")
     cfg.render.packed = True
     with pytest.raises(JsgsError, match="packed"):
         make_jsgs_hook(cfg, scene, torch.device("cpu"))
@@ -878,7 +879,7 @@ def test_base_by_view_scales_the_photometric_weight(
         def on_step_end(self, trainer: Any, result: Any) -> None:
             seen.append((result.view, result.loss, dict(result.terms)))
 
-    cfg = TrainConfig(iterations=4, eval_at=[], device="cpu", method="jsgs")
+    cfg = TrainConfig.from_preset("paper", iterations=4, eval_at=[], device="cpu", method="jsgs")
     cfg.method_options = {"base_by_view": True, "base_noise_ref": 6.0, "base_noise": base_noise, "gc": False}
     if k != 1.0:
         cfg.method_options["base_noise_exponent"] = k
@@ -939,7 +940,7 @@ def test_base_ramp_steps_lowers_each_views_weight_from_one(tmp_path: Path) -> No
         def on_step_end(self, trainer: Any, result: Any) -> None:
             seen.append((result.step, result.view, result.loss, dict(result.terms)))
 
-    cfg = TrainConfig(iterations=6, eval_at=[], device="cpu", method="jsgs")
+    cfg = TrainConfig.from_preset("paper", iterations=6, eval_at=[], device="cpu", method="jsgs")
     cfg.method_options = {"base_by_view": True, "base_noise_ref": 6.0, "base_noise": "tables",
                           "base_noise_exponent": 2.0, "base_ramp_steps": 4, "gc": False}  # fmt: skip
     cfg.strategy.refine_start_iter = 10_000
@@ -984,7 +985,7 @@ def test_base_noise_pixels_takes_the_manifests_estimate(tmp_path: Path) -> None:
                      "effective_chroma_table": j["chroma_table"], "noise_variance": 7.5,
                      "blockiness": 1.7}  # fmt: skip
     manifest.write_text(json.dumps(doc))
-    views = load_training_scene(manifest, TrainConfig(device="cpu")).train_views
+    views = load_training_scene(manifest, TrainConfig.from_preset("paper", device="cpu")).train_views
     cpu = torch.device("cpu")
     px = view_tables(views, cpu, "m", noise="pixels")
     tb = view_tables(views, cpu, "m", noise="tables")
@@ -1019,7 +1020,7 @@ def test_many_estimates_are_announced_and_match_one_by_one(
     from jsgs.train.data import load_training_scene
 
     manifest = make_scene(tmp_path / "scene", jpeg_train=True)
-    views = load_training_scene(manifest, TrainConfig(device="cpu")).train_views
+    views = load_training_scene(manifest, TrainConfig.from_preset("paper", device="cpu")).train_views
     jpeg_views = [v for v in views if v.jpeg is not None]
     monkeypatch.setattr(it, "ANNOUNCE_ESTIMATES", len(jpeg_views) - 1)
     got = it.view_tables(views, torch.device("cpu"), "m", noise="pixels")

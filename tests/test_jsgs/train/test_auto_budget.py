@@ -39,7 +39,8 @@ def _scene(tmp: Path, size: tuple[int, int], views: int, density: float = 1.0): 
 
     synth(tmp / "scene", views=views, size=size, seed=0, supersample=1, point_density=density)
     manifest(tmp / "scene", tmp / "manifest.json")
-    return load_training_scene(tmp / "manifest.json", TrainConfig(eval_at=[], iterations=1))
+    cfg = TrainConfig.from_preset("paper", eval_at=[], iterations=1)
+    return load_training_scene(tmp / "manifest.json", cfg)
 
 
 def test_smaller_or_simpler_scenes_get_fewer_gaussians(tmp_path: Path) -> None:

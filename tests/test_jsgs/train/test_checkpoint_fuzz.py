@@ -29,7 +29,7 @@ def resumable(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Traine
     """A run stopped at step 2 of 4, a Trainer set up to resume it, its checkpoint's path and dict."""
     root = tmp_path_factory.mktemp("ckpt_fuzz")
     scene = make_scene(root / "scene")
-    cfg = TrainConfig(method="gsplat", iterations=4, eval_at=[4], device="cpu")
+    cfg = TrainConfig.from_preset("paper", method="gsplat", iterations=4, eval_at=[4], device="cpu")
     cfg.strategy.refine_start_iter = 10_000
     cfg.eval.fps_passes, cfg.eval.fps_warmup = 1, 0
     train(scene, root / "run", cfg, stop_at=2, progress=False, log=lambda s: None)

@@ -263,7 +263,7 @@ def _reductions_worker(rank: int, store: str) -> None:
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank, world_size=2)
     world = dd.World(rank, 2, rank)
-    cfg = TrainConfig(device="cpu")
+    cfg = TrainConfig.from_preset("paper", device="cpu")
     cfg.strategy.refine_scale2d_stop_iter = 100  # the radii statistic too
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(1)
@@ -435,7 +435,7 @@ def _gsplat_exchange_worker(rank: int, store: str) -> None:
     device = torch.device("cuda", rank)
     dist.init_process_group("nccl", init_method=f"file://{store}", rank=rank, world_size=2)
     world = dd.World(rank, 2, rank)
-    cfg = TrainConfig(device="cuda")
+    cfg = TrainConfig.from_preset("paper", device="cuda")
     cfg.strategy.refine_scale2d_stop_iter = 100
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(1)

@@ -19,10 +19,10 @@ def test_preview_preset_is_the_documented_baseline_recipe() -> None:
     assert cfg.method == "gsplat" and cfg.method_options == {}
     assert cfg.iterations == PREVIEW_ITERATIONS == 1000
     assert cfg.eval_at == [PREVIEW_ITERATIONS]
-    # everything else is the defaults' recipe (DefaultStrategy, its init and losses)
+    # everything else is the paper preset's recipe (DefaultStrategy, its init and losses)
     own = ("method", "iterations", "eval_at")
     rest = {k: v for k, v in to_dict(cfg).items() if k not in own}
-    default = {k: v for k, v in to_dict(TrainConfig()).items() if k not in own}
+    default = {k: v for k, v in to_dict(TrainConfig.from_preset("paper")).items() if k not in own}
     assert rest == default and cfg.strategy.type == "default"
     # the command line still applies over it
     assert command_settings(preset_name="preview", overrides={"method": "jsgs"}).method == "jsgs"

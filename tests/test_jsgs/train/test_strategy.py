@@ -20,7 +20,7 @@ from jsgs.base.errors import JsgsError
 from jsgs.kernels import compute_relocation, cpu_twins, quat_scale_to_covar
 from jsgs.train import checkpoint as ckpt
 from jsgs.train.callbacks import Callback
-from jsgs.train.config import PRESETS, TrainConfig, from_dict, preset
+from jsgs.train.config import PRESETS, TrainConfig, from_dict, to_dict
 from jsgs.train.strategy import Densifier, initial_subset
 from jsgs.train.trainer import train
 
@@ -145,7 +145,7 @@ def test_relocation_twin_matches_gsplat_cuda() -> None:
 def test_mcmc_preset_is_gsplat_simple_trainer_mcmc() -> None:
     from gsplat.strategy import MCMCStrategy
 
-    cfg = preset("mcmc")
+    cfg = TrainConfig.from_preset("mcmc")
     ref = MCMCStrategy()
     assert cfg.strategy.type == "mcmc"
     assert (cfg.init.opacity, cfg.init.scale) == (0.5, 0.1)
@@ -156,7 +156,39 @@ def test_mcmc_preset_is_gsplat_simple_trainer_mcmc() -> None:
     assert (s.refine_start_iter, s.refine_stop_iter, s.refine_every) == (
         ref.refine_start_iter, ref.refine_stop_iter, ref.refine_every,
     )  # fmt: skip
-    assert preset("paper") == TrainConfig() and set(PRESETS) == {"paper", "mcmc", "preview"}
+    assert set(PRESETS) == {"paper", "mcmc", "preview"}
+
+
+def test_the_api_and_the_command_line_share_one_default() -> None:
+    """TrainConfig() is the default preset's settings, JSGS's recipe included: what `jsgs train` gives
+    without options. Another method gets its own recipe; a preset is asked for by name."""
+    from jsgs.method.recipes import RECIPES
+    from jsgs.train.config import DEFAULT_PRESET, command_settings
+
+    assert TrainConfig() == command_settings() == TrainConfig.from_preset(DEFAULT_PRESET)
+    assert TrainConfig().method_options == RECIPES[DEFAULT_PRESET] and TrainConfig().strategy.type == "mcmc"
+    assert TrainConfig(method="gsplat") == command_settings(overrides={"method": "gsplat"})
+    assert TrainConfig(method="gsplat").method_options == {}
+    assert from_dict({"method": "gsplat"}) == TrainConfig(method="gsplat")  # a document changing the method
+    assert from_dict({"method": "jsgs"}, base=TrainConfig(method="gsplat")) == TrainConfig()
+    for name in PRESETS:
+        assert TrainConfig.from_preset(name) == command_settings(preset_name=name)
+    paper = TrainConfig.from_preset("paper", method="gsplat", iterations=20)
+    assert (paper.method, paper.method_options, paper.iterations) == ("gsplat", {}, 20)
+    assert paper.strategy.type == "default" and TrainConfig.from_preset("paper").method_options == {}
+    with pytest.raises(JsgsError, match="--preset: 'fast' is not one of mcmc, paper, preview"):
+        TrainConfig.from_preset("fast")
+
+
+def test_a_recorded_run_missing_a_newer_key_reads_it_as_the_paper_value(tmp_path: Path) -> None:
+    """A config.json written before a setting existed lacks it: it meant the default of that time, the paper
+    preset's, not the mcmc default of today."""
+    from jsgs.train.config import recorded_settings
+
+    settings = to_dict(TrainConfig.from_preset("paper"))
+    del settings["loss"]["opacity_reg"], settings["strategy"]["type"]
+    cfg = recorded_settings(settings, "old/config.json")
+    assert cfg == TrainConfig.from_preset("paper") and cfg.loss.opacity_reg == 0.0
 
 
 def test_the_mcmc_preset_trains_simple_trainers_length() -> None:
@@ -197,7 +229,7 @@ def test_the_means_decay_reaches_its_floor_at_the_recipes_length_and_goes_on() -
     from jsgs.train.model import make_means_scheduler
 
     def lrs(iterations: int, decay: int) -> list[float]:
-        cfg = TrainConfig(iterations=iterations)
+        cfg = TrainConfig.from_preset("paper", iterations=iterations)
         cfg.optim.means_lr_decay_steps = decay
         opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(1))], lr=1.0)
         sched = make_means_scheduler(opt, cfg)
@@ -221,14 +253,15 @@ def test_a_new_run_starts_from_the_mcmc_preset(tmp_path: Path) -> None:
     # a new run trains JSGS, with the preset's recipe for it
     new = command_settings()
     assert new.method == "jsgs" and new.method_options == RECIPES["mcmc"]
-    assert new == preset("mcmc") and command_settings(preset_name="paper") == TrainConfig()
+    assert new == TrainConfig.from_preset("mcmc") == TrainConfig()
+    assert command_settings(preset_name="paper") == TrainConfig.from_preset("paper")
     baseline = command_settings(overrides={"method": "gsplat"})
-    assert baseline == dataclasses.replace(preset("mcmc"), method="gsplat", method_options={})
+    assert baseline == dataclasses.replace(TrainConfig(), method="gsplat", method_options={})
     part = tmp_path / "part.json"
     part.write_text('{"iterations": 50, "eval_at": [50]}')
     cfg = command_settings(config_file=part)
     assert cfg.strategy.type == "mcmc" and cfg.iterations == 50  # a partial file over the default preset
-    resumed = command_settings(resume_settings=TrainConfig())
+    resumed = command_settings(resume_settings=TrainConfig.from_preset("paper"))
     assert resumed.strategy.type == "default"  # a resumed run keeps its own settings
 
 
@@ -280,7 +313,7 @@ def test_the_mcmc_preset_gives_jsgs_its_recipe_under_the_users_options(tmp_path:
     from jsgs.train.config import is_run_config
 
     assert is_run_config(json.loads(run_cfg.read_text())) and not is_run_config(json.loads(part.read_text()))
-    resumed = command_settings(resume_settings=TrainConfig(method="jsgs"))
+    resumed = command_settings(resume_settings=TrainConfig.from_preset("paper", method="jsgs"))
     assert resumed.method_options == {}
 
 
@@ -340,8 +373,10 @@ class Counts(Callback):
 
 
 def mcmc_config(**kw: Any) -> TrainConfig:
-    # the preset's recipe at the tiny run's length
-    recipe = {k: v for k, v in PRESETS["mcmc"].items() if k not in ("iterations", "eval_at")}
+    # the mcmc preset's init, losses and strategy (where they differ from the paper's), the tiny run's length
+    mcmc = to_dict(TrainConfig.from_preset("mcmc"))
+    sections = {k: v for k, v in PRESETS["paper"].items() if k not in ("iterations", "eval_at")}
+    recipe = {name: {k: mcmc[name][k] for k in section} for name, section in sections.items()}
     cfg = from_dict(recipe, "preset", base=tiny_config(**kw))
     cfg.strategy.refine_start_iter = 1
     cfg.strategy.refine_every = 2
@@ -448,7 +483,7 @@ def test_jsgs_trains_with_relocated_gaussians(jpeg_scene: Path, tmp_path: Path) 
 
 
 def test_densifier_refuses_an_unknown_type() -> None:
-    cfg = TrainConfig()
+    cfg = TrainConfig.from_preset("paper")
     cfg.strategy.type = "relocate"  # type: ignore[assignment]
     with pytest.raises(JsgsError, match="strategy.type"):
         Densifier(cfg.strategy)

@@ -38,7 +38,8 @@ ROOT = Path(__file__).resolve().parents[3]
 
 def tiny_config(**kw: Any) -> TrainConfig:
     """Fast settings: no refinement unless asked, cheap FPS measurement."""
-    cfg = TrainConfig(iterations=kw.pop("iterations", 20), eval_at=kw.pop("eval_at", []), device="cpu")
+    iterations, eval_at = kw.pop("iterations", 20), kw.pop("eval_at", [])
+    cfg = TrainConfig.from_preset("paper", iterations=iterations, eval_at=eval_at, device="cpu")
     cfg.strategy.refine_start_iter = 10_000
     cfg.eval.fps_passes = 1
     cfg.eval.fps_warmup = 0
@@ -61,8 +62,8 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
 # settings
 
 
-def test_defaults_are_gsplat_simple_trainer() -> None:
-    cfg = TrainConfig()
+def test_paper_preset_is_gsplat_simple_trainer() -> None:
+    cfg = TrainConfig.from_preset("paper")
     # examples/simple_trainer.py @ v1.5.3 (Config and create_splats_with_optimizers)
     assert (cfg.init.type, cfg.init.opacity, cfg.init.scale, cfg.init.knn_neighbors) == ("sfm", 0.1, 1.0, 3)
     o = cfg.optim
@@ -124,7 +125,7 @@ def test_config_from_dict_and_errors(tmp_path: Path) -> None:
 
 
 def test_sh_degree_schedule_and_means_decay() -> None:
-    cfg = TrainConfig(iterations=100)
+    cfg = TrainConfig.from_preset("paper", iterations=100)
     assert [sh_degree_at(s, cfg) for s in (0, 999, 1000, 2999, 3000, 9999)] == [0, 0, 1, 2, 3, 3]
     p = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(2, 3))})
     opt = torch.optim.Adam([{"params": p["means"], "lr": 1.0, "name": "means"}])
@@ -156,7 +157,7 @@ def test_init_is_gsplat_recipe() -> None:
     torch.manual_seed(0)
     pts = torch.rand(50, 3)
     rgb = torch.rand(50, 3)
-    cfg = TrainConfig()
+    cfg = TrainConfig.from_preset("paper")
     s = init_splats(pts, rgb, cfg, scene_scale=2.0, device=torch.device("cpu"))
     assert torch.equal(s["means"], pts)
     d2 = (torch.cdist(pts.double(), pts.double()) ** 2).sort(dim=1).values[:, 1:4].mean(-1)
@@ -565,7 +566,7 @@ def test_view_camera_tensors_are_made_once_per_device(scene: Path) -> None:
     # the training step reads them every step; a fresh host-to-device copy each time is a GPU sync
     from jsgs.train.data import load_training_scene
 
-    v = load_training_scene(scene, TrainConfig()).train_views[0]
+    v = load_training_scene(scene, TrainConfig.from_preset("paper")).train_views[0]
     vm, K = v.viewmat_tensor(torch.device("cpu")), v.K_tensor("cpu")
     assert vm is v.viewmat_tensor("cpu") and K is v.K_tensor(torch.device("cpu"))
     assert vm.shape == (1, 4, 4) and K.shape == (1, 3, 3) and vm.dtype == K.dtype == torch.float32
@@ -578,7 +579,7 @@ def test_view_camera_tensors_are_made_once_per_device(scene: Path) -> None:
 
 
 def test_ssim_kernel_cuda_is_refused_without_cuda(scene: Path, tmp_path: Path) -> None:
-    cfg = TrainConfig(iterations=1, eval_at=[], device="cpu")
+    cfg = TrainConfig.from_preset("paper", iterations=1, eval_at=[], device="cpu")
     cfg.speed.ssim_kernel = "cuda"
     match = r"config: speed.ssim_kernel cuda needs a CUDA device \(training on cpu\)"
     with pytest.raises(JsgsError, match=match):
@@ -684,7 +685,7 @@ def test_settings_out_of_range_are_one_line_errors(settings: dict[str, Any], mes
 def test_bounds_are_in_the_schema_and_hold_for_the_defaults() -> None:
     from jsgs.train.config import check_bounds, config_schema
 
-    check_bounds(TrainConfig(), "defaults")
+    check_bounds(TrainConfig.from_preset("paper"), "defaults")
     props = config_schema()["$defs"]["settings"]["properties"]
     assert props["optim"]["properties"]["beta1"]["exclusiveMaximum"] == 1.0
     assert props["render"]["properties"]["near_plane"]["exclusiveMinimum"] == 0.0
