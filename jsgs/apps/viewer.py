@@ -27,7 +27,7 @@ from jsgs.base.errors import JsgsError
 from jsgs.base.rotations import matrix_to_quat, pose_matrix
 from jsgs.train.callbacks import Callback
 from jsgs.train.config import TrainConfig
-from jsgs.train.data import Scene
+from jsgs.train.data import TrainingScene
 
 if TYPE_CHECKING:
     from jsgs.train.callbacks import StepResult
@@ -44,7 +44,7 @@ class RunModel:
     run: Path
     splats: torch.nn.ParameterDict
     cfg: TrainConfig
-    scene: Scene
+    scene: TrainingScene
     device: torch.device
     backend: str
 

@@ -77,7 +77,7 @@ from jsgs.train.profiler import Profiler
 
 if TYPE_CHECKING:
     from jsgs.train.config import TrainConfig
-    from jsgs.train.data import Scene, View
+    from jsgs.train.data import TrainingScene, TrainingView
 
 #: Term names in HookOutput.terms (and in metrics.json ``train.terms``).
 TERM_NAMES = ("obs", "low", "mid", "fro")
@@ -212,7 +212,7 @@ class JsgsHook(LossHook):
     def renders_extra(self) -> bool:
         return self.opts.gc
 
-    def extra_channels(self, step: int, view: View, splats: torch.nn.ParameterDict) -> Tensor | None:
+    def extra_channels(self, step: int, view: TrainingView, splats: torch.nn.ParameterDict) -> Tensor | None:
         """The Gaussian Controller's probe (``jsgs.method.pooling.new_probe``) on the views and steps it runs
         on."""
         if not (self.gc_at(step) and view.index in self.tables):
@@ -398,7 +398,7 @@ def _add_grad(p: Tensor, g: Tensor) -> None:
         p.grad.add_(g)
 
 
-def make_jsgs_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> JsgsHook | None:
+def make_jsgs_hook(cfg: TrainConfig, scene: TrainingScene, device: torch.device) -> JsgsHook | None:
     """The ``--method jsgs`` factory: options from ``cfg.method_options``, tables from the manifest."""
     opts = parse_options(cfg.method_options)
     if not opts.any_active:

@@ -26,7 +26,7 @@ from jsgs.jpeg.tables import SAMPLING_FACTORS
 
 if TYPE_CHECKING:
     from jsgs.method.options import JsgsOptions
-    from jsgs.train.data import View
+    from jsgs.train.data import TrainingView
 
 SUPPORTED_SAMPLING = tuple(SAMPLING_FACTORS)
 
@@ -183,7 +183,7 @@ def quantization_noise_variance(luma: np.ndarray, chroma: np.ndarray) -> float:
 
 
 def view_tables(
-    views: list[View],
+    views: list[TrainingView],
     device: torch.device,
     where: str,
     tables: str = "header",
@@ -197,7 +197,7 @@ def view_tables(
     found, ``tables`` (the bound) or ``pixels`` (the estimate ``manifest --analyze`` recorded, made with the
     effective tables, else estimated here from the decoded file with the tables JO uses). ``blocks``: also
     take each view's ``blockiness`` from the analysis, else measure it from its decoded file."""
-    checked: list[tuple[View, Tensor, Tensor | None, np.ndarray]] = []
+    checked: list[tuple[TrainingView, Tensor, Tensor | None, np.ndarray]] = []
     for v in views:
         j = v.jpeg
         if j is None:
@@ -259,7 +259,7 @@ ANNOUNCE_ESTIMATES = 16
 
 
 def _from_files(
-    todo: list[tuple[View, np.ndarray | None, bool]],
+    todo: list[tuple[TrainingView, np.ndarray | None, bool]],
 ) -> dict[int, tuple[float | None, float | None]]:
     """view index -> (σ², B) read from its decoded file, for each ``(view, q, block)``: σ² estimated
     (:func:`jsgs.jpeg.noise.jpeg_noise_variance`) with the tables ``q`` ``(2, 8, 8)`` that JO uses, None
@@ -278,7 +278,7 @@ def _from_files(
         print(f"estimating the quantisation noise of {estimates} JPEG views from their files "
               "(method_options.base_noise pixels) ...", file=sys.stderr, flush=True)  # fmt: skip
 
-    def one(item: tuple[View, np.ndarray | None, bool]) -> tuple[float | None, float | None]:
+    def one(item: tuple[TrainingView, np.ndarray | None, bool]) -> tuple[float | None, float | None]:
         v, q, block = item
         assert v.jpeg is not None
         ycc = read_ycbcr8(v.image, f"view {v.name!r}")

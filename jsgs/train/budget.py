@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from jsgs.train.data import Scene
+    from jsgs.train.data import TrainingScene
 
 #: Gaussians per SfM point (calibrated on the shared scenes; module docstring)
 GAUSSIANS_PER_POINT = 24
@@ -77,6 +77,6 @@ def auto_budget(sfm_points: int, view_sizes: list[tuple[int, int]]) -> AutoBudge
     return AutoBudget(cap, sfm_points, len(view_sizes), pixels, by_points, by_pixels)
 
 
-def scene_budget(scene: Scene) -> AutoBudget:
+def scene_budget(scene: TrainingScene) -> AutoBudget:
     """The budget of a loaded scene: its SfM points and its training views' sizes."""
     return auto_budget(len(scene.points), [(v.width, v.height) for v in scene.train_views])

@@ -8,6 +8,7 @@ blocks).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -18,9 +19,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from jsgs.base.camera import Camera
 from jsgs.base.errors import JsgsError
 from jsgs.base.limits import COINCIDENT_CAMERAS, MAX_POINT_DISTANCE, MIN_VIEW_SIDE
-from jsgs.base.manifest import JpegState, ManifestView
+from jsgs.base.manifest import JpegState, Manifest, ManifestView
 from jsgs.train.config import TrainConfig
 from jsgs.train.normalize import camera_extent, normalize_world
 
@@ -29,14 +31,15 @@ DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
 @dataclass
-class View:
-    """One view of the manifest.
+class TrainingView:
+    """One view as the trainer uses it: the manifest's view (:class:`jsgs.base.manifest.ManifestView`) with
+    its pose in the *training* (normalised) world and its index among the scene's views.
 
-    ``K`` 3x3 pinhole intrinsics in pixels (COLMAP convention: pixel centres at integer + 0.5);
-    ``camtoworld`` 4x4 in the *training* (normalised) world, OpenCV axes; ``viewmat`` its inverse
-    (world-to-camera, what the rasterizer takes). ``jpeg``: the manifest's JPEG state
-    (:class:`jsgs.base.manifest.JpegState`: luma_table, chroma_table 8x8 natural order, sampling, quality,
-    quality_exact, precision, frame) or None for a lossless image.
+    ``camera``: the manifest's intrinsics (:class:`jsgs.base.camera.Camera`; ``K`` 3x3 pinhole intrinsics in
+    pixels, COLMAP convention: pixel centres at integer + 0.5); ``camtoworld`` 4x4 in the training world,
+    OpenCV axes; ``viewmat`` its inverse (world-to-camera, what the rasterizer takes). ``jpeg``: the
+    manifest's JPEG state (:class:`jsgs.base.manifest.JpegState`: luma_table, chroma_table 8x8 natural
+    order, sampling, quality, quality_exact, precision, frame) or None for a lossless image.
     ``image``: the observed/training image; ``reference``: the lossless reference or None."""
 
     index: int
@@ -45,18 +48,38 @@ class View:
     image: Path
     reference: Path | None
     jpeg: JpegState | None
-    width: int
-    height: int
-    K: np.ndarray
+    camera: Camera
     camtoworld: np.ndarray
     viewmat: np.ndarray
-    #: (k1, k2, p1, p2) of a distorted camera (COLMAP SIMPLE_RADIAL, RADIAL, OPENCV), None for a pinhole one
-    distortion: np.ndarray | None = None
     # per (name, device, dtype): a host-to-device copy from pageable memory synchronises with the GPU, once
     # per call; made once, the training step has two fewer syncs (both methods), and none inside a backward
     _tensors: dict[tuple[str, torch.device, torch.dtype], Tensor] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
+
+    @property
+    def width(self) -> int:
+        return self.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.camera.height
+
+    @functools.cached_property
+    def K(self) -> np.ndarray:
+        """(3, 3) float64 pinhole intrinsics (``camera.K``)."""
+        return self.camera.K
+
+    @functools.cached_property
+    def distortion(self) -> np.ndarray | None:
+        """(k1, k2, p1, p2) of a distorted camera (COLMAP SIMPLE_RADIAL, RADIAL, OPENCV: the models
+        :data:`DISTORTION_MODELS` the loader admits), None for a pinhole one (or all-zero parameters)."""
+        dist = self.camera.distortion
+        if dist is None or not any(p != 0.0 for p in dist.params):
+            return None
+        coeffs = np.zeros(4)
+        coeffs[: len(dist.params)] = dist.params  # (k1[, k2[, p1, p2]]) -> (k1, k2, p1, p2)
+        return coeffs
 
     def _on(self, name: str, device: torch.device | str, dtype: torch.dtype) -> Tensor:
         key = (name, torch.device(device), dtype)
@@ -87,7 +110,7 @@ class View:
 
 
 @dataclass
-class Scene:
+class TrainingScene:
     """The manifest as the trainer uses it.
 
     ``points`` P x 3 float32 (normalised world), ``points_rgb`` P x 3 uint8. ``transform``: 4x4
@@ -98,7 +121,7 @@ class Scene:
     manifest_path: Path
     manifest_sha256: str
     name: str
-    views: list[View]
+    views: list[TrainingView]
     points: np.ndarray
     points_rgb: np.ndarray
     transform: np.ndarray
@@ -107,11 +130,11 @@ class Scene:
     notes: list[str] = field(default_factory=list)
 
     @property
-    def train_views(self) -> list[View]:
+    def train_views(self) -> list[TrainingView]:
         return [v for v in self.views if v.split == "train"]
 
     @property
-    def test_views(self) -> list[View]:
+    def test_views(self) -> list[TrainingView]:
         return [v for v in self.views if v.split == "test"]
 
     @property
@@ -125,7 +148,7 @@ class Scene:
         return "lossless" if lossy == 0 else ("jpeg" if lossy == len(tests) else "mixed")
 
 
-def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
+def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> TrainingScene:
     """Read and check the manifest, normalise the world (gsplat's Parser), and compute the scene scale.
 
     :func:`jsgs.base.manifest.load_manifest` validates the document (schema, rotations, unique names, point
@@ -143,82 +166,21 @@ def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
     except OSError as e:
         raise JsgsError(f"{where}: {e.strerror}") from None
 
-    notes: list[str] = []
-    c2ws, metas = [], []
-    for i, v in enumerate(manifest.views):
-        cam = v.camera
-        dist = cam.distortion
-        coeffs = None
-        if dist is not None and any(p != 0.0 for p in dist.params):
-            if dist.model not in DISTORTION_MODELS:
-                raise JsgsError(
-                    f"{where}: view {v.name!r}: camera has lens distortion ({dist.model}); the trainer "
-                    "renders "
-                    f"{', '.join(DISTORTION_MODELS)} on the photo's own grid and never resamples images: "
-                    "undistort the clean images before compressing them, or model the camera as one of those"
-                )
-            coeffs = np.zeros(4)
-            coeffs[: len(dist.params)] = dist.params  # (k1[, k2[, p1, p2]]) -> (k1, k2, p1, p2)
-        c2ws.append(np.linalg.inv(v.world_to_camera))
-        metas.append(
-            dict(
-                index=i,
-                name=v.name,
-                split=v.split,
-                image=v.image,
-                reference=v.reference,
-                jpeg=v.jpeg,
-                width=cam.width,
-                height=cam.height,
-                K=cam.K,
-                distortion=coeffs,
-            )
-        )
-    notes += _check_jpeg_headers(manifest.views, where)
-    xyz = np.asarray(manifest.points_xyz, dtype=np.float64).reshape(-1, 3)
-    rgb = np.asarray(manifest.points_rgb, dtype=np.uint8).reshape(-1, 3)
-
-    train = [m for m in metas if m["split"] == "train"]
-    test = [m for m in metas if m["split"] == "test"]
-    if not train:
-        raise JsgsError(f"{where}: no training views (every view has split 'test')")
-    if cfg.scene.require_lossless_reference:
-        for m in test:
-            if m["reference"] is None and m["jpeg"] is not None:
-                raise JsgsError(
-                    f"{where}: test view {m['name']!r} has only a JPEG image and no lossless reference; "
-                    "scene.require_lossless_reference is set (without it the view is evaluated against "
-                    "its JPEG)"
-                )
-    small = [m for m in metas if min(m["width"], m["height"]) < MIN_VIEW_SIDE]
-    if small:
-        m = small[0]
-        raise JsgsError(
-            f"{where}: view {m['name']!r} is {m['width']}x{m['height']} pixels: {len(small)} view(s) have a "
-            f"side below the SSIM window ({MIN_VIEW_SIDE} pixels), which the losses and the evaluation need"
-        )
-    c2w = np.stack(c2ws)
+    _check_cameras(manifest.views, where)
+    notes = _check_jpeg_headers(manifest.views, where)
+    _check_views(manifest.views, cfg, where)
+    c2w = np.stack([np.linalg.inv(v.world_to_camera) for v in manifest.views])
     centres = c2w[:, :3, 3]
     spread = camera_extent(c2w)
     coincident = spread <= COINCIDENT_CAMERAS * max(1.0, float(np.abs(centres).max()))
     if coincident and cfg.scene.normalize_world:
         at = ", ".join(f"{x:g}" for x in centres[0])
         raise JsgsError(
-            f"{where}: all {len(metas)} cameras are at one position ({at}): "
+            f"{where}: all {len(c2w)} cameras are at one position ({at}): "
             "the world's normalisation (scene.normalize_world) scales by the cameras' distances; set "
             "scene.normalize_world to false to train in the manifest's own units"
         )
-    if len(xyz):
-        # before any linear algebra on the points: those absurdly far from the cameras would dominate the
-        # principal axes and leave float32 once normalised
-        dist = np.linalg.norm(xyz - centres.mean(axis=0), axis=1)
-        far = dist > MAX_POINT_DISTANCE * (1.0 if coincident else spread)
-        if far.any():
-            notes.append(
-                f"{int(far.sum())} of {len(xyz)} points lie farther than {MAX_POINT_DISTANCE:g} x the "
-                f"cameras' extent from them (the farthest at {float(dist.max()):g}); left out"
-            )
-            xyz, rgb = xyz[~far], rgb[~far]
+    xyz, rgb = _points_near_cameras(manifest, centres, 1.0 if coincident else spread, notes)
     if cfg.init.type == "sfm" and len(xyz) <= cfg.init.knn_neighbors:
         raise JsgsError(
             f"{where}: {len(xyz)} points: SfM initialisation needs more than {cfg.init.knn_neighbors} "
@@ -238,12 +200,11 @@ def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
     if coincident or not extent > 1e-12:
         notes.append("all cameras at one position: camera extent 0 replaced by 1")
         extent = 1.0
-    scene_scale = extent * cfg.scene.scene_scale_margin * cfg.scene.global_scale
-
-    views = []
-    for m, cw in zip(metas, c2w, strict=True):
-        views.append(View(camtoworld=cw, viewmat=np.linalg.inv(cw), **m))
-    return Scene(
+    views = [
+        TrainingView(i, v.name, v.split, v.image, v.reference, v.jpeg, v.camera, cw, np.linalg.inv(cw))
+        for i, (v, cw) in enumerate(zip(manifest.views, c2w, strict=True))
+    ]
+    return TrainingScene(
         manifest_path=manifest_path.resolve(),
         manifest_sha256=sha,
         name=manifest.scene.name,
@@ -252,9 +213,67 @@ def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Scene:
         points_rgb=rgb,
         transform=transform,
         camera_extent=extent,
-        scene_scale=scene_scale,
+        scene_scale=extent * cfg.scene.scene_scale_margin * cfg.scene.global_scale,
         notes=notes,
     )
+
+
+def _check_cameras(views: Sequence[ManifestView], where: str) -> None:
+    """Refuse a camera with lens distortion the rasterizer does not model (:data:`DISTORTION_MODELS`)."""
+    for v in views:
+        dist = v.camera.distortion
+        if dist is not None and any(p != 0.0 for p in dist.params) and dist.model not in DISTORTION_MODELS:
+            raise JsgsError(
+                f"{where}: view {v.name!r}: camera has lens distortion ({dist.model}); the trainer "
+                "renders "
+                f"{', '.join(DISTORTION_MODELS)} on the photo's own grid and never resamples images: "
+                "undistort the clean images before compressing them, or model the camera as one of those"
+            )
+
+
+def _check_views(views: Sequence[ManifestView], cfg: TrainConfig, where: str) -> None:
+    """Refuse a manifest without training views, a test view without a lossless image when
+    ``scene.require_lossless_reference`` is set, and a view smaller than the SSIM window."""
+    if not any(v.split == "train" for v in views):
+        raise JsgsError(f"{where}: no training views (every view has split 'test')")
+    if cfg.scene.require_lossless_reference:
+        for v in views:
+            if v.split == "test" and v.reference is None and v.jpeg is not None:
+                raise JsgsError(
+                    f"{where}: test view {v.name!r} has only a JPEG image and no lossless reference; "
+                    "scene.require_lossless_reference is set (without it the view is evaluated against "
+                    "its JPEG)"
+                )
+    small = [v for v in views if min(v.camera.width, v.camera.height) < MIN_VIEW_SIDE]
+    if small:
+        v = small[0]
+        raise JsgsError(
+            f"{where}: view {v.name!r} is {v.camera.width}x{v.camera.height} pixels: {len(small)} view(s) "
+            f"have a side below the SSIM window ({MIN_VIEW_SIDE} pixels), which the losses and the "
+            "evaluation need"
+        )
+
+
+def _points_near_cameras(
+    manifest: Manifest, centres: np.ndarray, extent: float, notes: list[str]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The manifest's points (float64) and colours without those farther than ``MAX_POINT_DISTANCE`` x
+    ``extent`` from the cameras' mean ``centres`` (noted in ``notes``): checked before any linear algebra
+    on the points, since absurdly far ones would dominate the principal axes and leave float32 once
+    normalised."""
+    xyz = np.asarray(manifest.points_xyz, dtype=np.float64).reshape(-1, 3)
+    rgb = np.asarray(manifest.points_rgb, dtype=np.uint8).reshape(-1, 3)
+    if not len(xyz):
+        return xyz, rgb
+    dist = np.linalg.norm(xyz - centres.mean(axis=0), axis=1)
+    far = dist > MAX_POINT_DISTANCE * extent
+    if far.any():
+        notes.append(
+            f"{int(far.sum())} of {len(xyz)} points lie farther than {MAX_POINT_DISTANCE:g} x the "
+            f"cameras' extent from them (the farthest at {float(dist.max()):g}); left out"
+        )
+        xyz, rgb = xyz[~far], rgb[~far]
+    return xyz, rgb
 
 
 def _check_jpeg_headers(views: Sequence[ManifestView], where: str) -> list[str]:
@@ -300,7 +319,7 @@ def load_image(path: Path, width: int, height: int, what: str) -> Tensor:
     return torch.from_numpy(arr)
 
 
-def load_train_images(scene: Scene, device: torch.device) -> dict[int, Tensor]:
+def load_train_images(scene: TrainingScene, device: torch.device) -> dict[int, Tensor]:
     """view index -> [H, W, 3] uint8 on ``device`` for every training view (observed images)."""
     return {
         v.index: load_image(v.image, v.width, v.height, f"training image of view {v.name!r}").to(device)
@@ -308,7 +327,7 @@ def load_train_images(scene: Scene, device: torch.device) -> dict[int, Tensor]:
     }
 
 
-def load_eval_images(scene: Scene, device: torch.device) -> dict[int, Tensor]:
+def load_eval_images(scene: TrainingScene, device: torch.device) -> dict[int, Tensor]:
     """view index -> [H, W, 3] uint8 on ``device``: the uncompressed reference of every test view."""
     return {
         v.index: load_image(v.eval_image_path(), v.width, v.height, f"reference image of view {v.name!r}").to(

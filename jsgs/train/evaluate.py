@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from jsgs.train.config import TrainConfig
-from jsgs.train.data import Scene, View
+from jsgs.train.data import TrainingScene, TrainingView
 from jsgs.train.render_view import render_view
 
 
@@ -45,7 +45,7 @@ def peak_memory(device: torch.device) -> tuple[int, str]:
     return int(rss if sys.platform == "darwin" else rss * 1024), "cpu_max_rss"
 
 
-def safe_name(view: View) -> str:
+def safe_name(view: TrainingView) -> str:
     stem = Path(view.name).stem or "view"
     return f"{view.index:04d}_{re.sub(r'[^A-Za-z0-9._-]+', '_', stem)}.png"
 
@@ -58,7 +58,11 @@ def _finite_or_none(x: float | None) -> float | None:
 
 @torch.no_grad()
 def render_test_views(
-    splats: torch.nn.ParameterDict, views: list[View], cfg: TrainConfig, backend: str, device: torch.device
+    splats: torch.nn.ParameterDict,
+    views: list[TrainingView],
+    cfg: TrainConfig,
+    backend: str,
+    device: torch.device,
 ) -> list[Tensor]:
     """[H, W, 3] float renders in [0, 1] (clamped) of ``views`` at the final SH degree."""
     out = []
@@ -80,7 +84,11 @@ def render_test_views(
 
 @torch.no_grad()
 def measure_fps(
-    splats: torch.nn.ParameterDict, views: list[View], cfg: TrainConfig, backend: str, device: torch.device
+    splats: torch.nn.ParameterDict,
+    views: list[TrainingView],
+    cfg: TrainConfig,
+    backend: str,
+    device: torch.device,
 ) -> dict[str, Any]:
     """Median render speed over the test views (see the module docstring)."""
     args = [
@@ -119,7 +127,7 @@ def save_png(path: Path, image: Tensor) -> None:
 @torch.no_grad()
 def evaluate(
     splats: torch.nn.ParameterDict,
-    scene: Scene,
+    scene: TrainingScene,
     references: dict[int, Tensor],
     cfg: TrainConfig,
     backend: str,

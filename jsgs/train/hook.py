@@ -41,7 +41,7 @@ from jsgs.train.method import method_factory
 
 if TYPE_CHECKING:
     from jsgs.train.config import TrainConfig
-    from jsgs.train.data import Scene, View
+    from jsgs.train.data import TrainingScene, TrainingView
 
 
 @dataclass
@@ -50,7 +50,7 @@ class StepContext:
 
     - ``step``: 0-based step index (the step being taken).
     - ``view``: the sampled training view (name, camera, ``jpeg`` state dict from the manifest or None for a
-      lossless image; see :class:`jsgs.train.data.View`).
+      lossless image; see :class:`jsgs.train.data.TrainingView`).
     - ``render``: [1, H, W, 3] rendered RGB in linear [0, 1]-ish range (not clamped), differentiable; the
       same tensor l_ph was computed on (after random-background compositing, when enabled).
     - ``alpha``: [1, H, W, 1] accumulated opacity.
@@ -64,7 +64,7 @@ class StepContext:
     """
 
     step: int
-    view: View
+    view: TrainingView
     render: Tensor
     alpha: Tensor
     target: Tensor
@@ -118,7 +118,7 @@ class LossHook:
 
     name: str = "hook"
 
-    def extra_channels(self, step: int, view: View, splats: torch.nn.ParameterDict) -> Tensor | None:
+    def extra_channels(self, step: int, view: TrainingView, splats: torch.nn.ParameterDict) -> Tensor | None:
         """Per-Gaussian features [N, E] to rasterise alongside RGB in this step's pass, or None."""
         return None
 
@@ -128,7 +128,7 @@ class LossHook:
         method's per-Gaussian sums are per view."""
         return type(self).extra_channels is not LossHook.extra_channels
 
-    def render_kwargs(self, step: int, view: View) -> dict[str, Any]:
+    def render_kwargs(self, step: int, view: TrainingView) -> dict[str, Any]:
         """Extra keyword arguments for this step's ``jsgs.render.rasterize`` call (e.g. ``render_mode``;
         what it adds to ``info`` reaches :meth:`losses` through ``StepContext.info``)."""
         return {}
@@ -154,13 +154,13 @@ class LossHook:
             raise JsgsError(f"method {self.name}: the checkpoint holds hook state this hook does not take")
 
 
-def make_hook(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
+def make_hook(cfg: TrainConfig, scene: TrainingScene, device: torch.device) -> LossHook | None:
     """The hook of ``cfg.method`` (JsgsError naming the available methods when unknown)."""
     hook: LossHook | None = method_factory(cfg.method)(cfg, scene, device)
     return hook
 
 
-def gsplat_baseline(cfg: TrainConfig, scene: Scene, device: torch.device) -> LossHook | None:
+def gsplat_baseline(cfg: TrainConfig, scene: TrainingScene, device: torch.device) -> LossHook | None:
     """``--method gsplat``: no hook (the trainer's own loss only); it takes no method_options."""
     if cfg.method_options:
         key = sorted(cfg.method_options)[0]

@@ -23,6 +23,7 @@ import torch
 from click.testing import CliRunner
 from PIL import Image
 
+from jsgs.base.camera import Camera
 from jsgs.base.errors import JsgsError
 from jsgs.base.manifest import JpegState
 from jsgs.jpeg.losses import photometric_loss
@@ -32,7 +33,7 @@ from jsgs.method.image_terms import view_tables
 from jsgs.method.options import parse_options
 from jsgs.render.bruteforce import render_bruteforce
 from jsgs.train.config import TrainConfig
-from jsgs.train.data import View
+from jsgs.train.data import TrainingView
 from jsgs.train.hook import StepContext, make_hook
 from jsgs.train.render_view import render_view
 from jsgs.train.trainer import weighted_loss
@@ -224,8 +225,10 @@ def camera() -> tuple[np.ndarray, np.ndarray]:
     return viewmat, K
 
 
-def make_view(quality: int | None, sampling: str = "4:2:0", index: int = 0) -> View:
+def make_view(quality: int | None, sampling: str = "4:2:0", index: int = 0) -> TrainingView:
     viewmat, K = camera()
+    cam = Camera("PINHOLE", WIDTH, HEIGHT, FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2)
+    assert np.array_equal(cam.K, K)
     jpeg = None
     if quality is not None:
         luma, chroma = ijg_tables(quality)
@@ -234,7 +237,7 @@ def make_view(quality: int | None, sampling: str = "4:2:0", index: int = 0) -> V
             sampling, quality, True, 8, "baseline",
         )  # fmt: skip
     c2w = np.linalg.inv(viewmat)
-    return View(index, f"v{index}", "train", Path("x.jpg"), None, jpeg, WIDTH, HEIGHT, K, c2w, viewmat)
+    return TrainingView(index, f"v{index}", "train", Path("x.jpg"), None, jpeg, cam, c2w, viewmat)
 
 
 def render(splats: torch.nn.ParameterDict, extra: torch.Tensor | None) -> Any:
@@ -245,7 +248,7 @@ def render(splats: torch.nn.ParameterDict, extra: torch.Tensor | None) -> Any:
     )  # fmt: skip
 
 
-def target_for(view: View) -> torch.Tensor:
+def target_for(view: TrainingView) -> torch.Tensor:
     """The decoded training JPEG: a different scene (shifted colours and centres) through Pillow with the
     view's own tables and sampling; [1, H, W, 3] float64."""
     sp = make_splats(seed=0)
@@ -270,13 +273,15 @@ def jsgs_options(**options: Any) -> dict[str, Any]:
     return {**options, "speed": speed} if speed else options
 
 
-def new_hook(view: View, **options: Any) -> JsgsHook:
+def new_hook(view: TrainingView, **options: Any) -> JsgsHook:
     hook = JsgsHook(parse_options(jsgs_options(**options)), view_tables([view], torch.device("cpu"), "test"))
     hook.keep_last = True
     return hook
 
 
-def train_step(hook: JsgsHook, view: View, splats: torch.nn.ParameterDict | None = None) -> dict[str, Any]:
+def train_step(
+    hook: JsgsHook, view: TrainingView, splats: torch.nn.ParameterDict | None = None
+) -> dict[str, Any]:
     """One step as the trainer takes it: render (training path), base ℓ_ph, the hook's terms, backward.
     Returns term values (read after the backward, as the trainer does), stats, parameter gradients and
     the screen-space means' gradient."""
