@@ -131,8 +131,9 @@ def image_term_settings(
 
 @dataclass
 class ViewJpeg:
-    """A training view's JPEG state on the training device: ``tables`` [2, 8, 8] float32 (luma, chroma; one
-    tensor so that a graph replay copies them in once), natural order [v, u]."""
+    """A training view's JPEG state (the manifest's :class:`jsgs.base.manifest.JpegState`) as the method uses
+    it, on the training device: ``tables`` [2, 8, 8] float32 (luma, chroma; one tensor so that a graph
+    replay copies them in once), natural order [v, u]."""
 
     tables: Tensor
     sampling: str

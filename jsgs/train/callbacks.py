@@ -17,7 +17,7 @@ The standard ones: :class:`ProgressBar`, :class:`StepProfiler`, :class:`Checkpoi
 :class:`MetricsWriter` (:func:`jsgs.train.trainer.train` installs them in that order).
 
 ``trainer`` is the :class:`~jsgs.train.trainer.Trainer`; what the standard callbacks read of it is
-:class:`TrainerView`, so this module does not import the trainer, which imports it.
+:class:`TrainerProtocol`, so this module does not import the trainer, which imports it.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ class StepResult:
     stats: dict[str, float]
 
 
-class TrainerView(Protocol):
+class TrainerProtocol(Protocol):
     """What the standard callbacks read of the :class:`~jsgs.train.trainer.Trainer` that calls them."""
 
     cfg: TrainConfig | None
@@ -73,22 +73,22 @@ class TrainerView(Protocol):
 class Callback:
     """Base class: every event is a no-op."""
 
-    def on_setup(self, trainer: TrainerView) -> None:
+    def on_setup(self, trainer: TrainerProtocol) -> None:
         pass
 
-    def on_step_begin(self, trainer: TrainerView, step: int) -> None:
+    def on_step_begin(self, trainer: TrainerProtocol, step: int) -> None:
         pass
 
-    def on_step_end(self, trainer: TrainerView, result: StepResult) -> None:
+    def on_step_end(self, trainer: TrainerProtocol, result: StepResult) -> None:
         pass
 
-    def on_eval(self, trainer: TrainerView, entry: dict[str, Any]) -> None:
+    def on_eval(self, trainer: TrainerProtocol, entry: dict[str, Any]) -> None:
         pass
 
-    def on_checkpoint(self, trainer: TrainerView, step: int) -> None:
+    def on_checkpoint(self, trainer: TrainerProtocol, step: int) -> None:
         pass
 
-    def on_end(self, trainer: TrainerView, doc: dict[str, Any] | None) -> None:
+    def on_end(self, trainer: TrainerProtocol, doc: dict[str, Any] | None) -> None:
         pass
 
 
@@ -135,7 +135,7 @@ class ProgressBar(Callback):
         self._mark: tuple[float, int] = (0.0, 0)  # (training seconds, steps done) at the last report
         self._start: tuple[float, int] = (0.0, 0)  # (training seconds, steps done) when this process began
 
-    def _pace(self, trainer: TrainerView, done: int) -> str:
+    def _pace(self, trainer: TrainerProtocol, done: int) -> str:
         """``12.3 ms/step, ETA 5:07`` over the steps since the last report; moves the mark."""
         now = trainer.training_seconds()
         t_mark, s_mark = self._mark
@@ -146,7 +146,7 @@ class ProgressBar(Callback):
         left = max(trainer.end_step - done, 0)
         return f"{1000 * per_step:.1f} ms/step, ETA {duration(per_step * left)}"
 
-    def on_setup(self, trainer: TrainerView) -> None:
+    def on_setup(self, trainer: TrainerProtocol) -> None:
         cfg = trainer.cfg
         assert cfg is not None
         if not (self.enabled and trainer.start_step < cfg.iterations):
@@ -160,7 +160,7 @@ class ProgressBar(Callback):
         self._mark = (trainer.training_seconds(), trainer.start_step)
         self._start = self._mark
 
-    def _estimate(self, trainer: TrainerView, done: int) -> str | None:
+    def _estimate(self, trainer: TrainerProtocol, done: int) -> str | None:
         """The start estimate line once ``ESTIMATE_AFTER`` steps of this process are done (None otherwise)."""
         t0, s0 = self._start
         if done - s0 != self.ESTIMATE_AFTER or done >= trainer.end_step:
@@ -173,13 +173,13 @@ class ProgressBar(Callback):
             "plus evaluations"
         )
 
-    def _summary(self, trainer: TrainerView, result: StepResult) -> str:
+    def _summary(self, trainer: TrainerProtocol, result: StepResult) -> str:
         parts = [f"loss={result.loss:.4f}", f"#G={trainer.num_gaussians()}"]
         parts += [f"{k}={v:.4g}" for k, v in result.terms.items() if k not in ("photometric",)]
         parts += [f"{k}={v:.4g}" for k, v in result.stats.items()]
         return " ".join(parts)
 
-    def on_step_end(self, trainer: TrainerView, result: StepResult) -> None:
+    def on_step_end(self, trainer: TrainerProtocol, result: StepResult) -> None:
         cfg = trainer.cfg
         assert cfg is not None
         if not self.enabled:
@@ -207,13 +207,13 @@ class ProgressBar(Callback):
                 + self._summary(trainer, result)
             )
 
-    def on_eval(self, trainer: TrainerView, entry: dict[str, Any]) -> None:
+    def on_eval(self, trainer: TrainerProtocol, entry: dict[str, Any]) -> None:
         if self.bar is not None:
             self.bar.write(eval_line(entry))
         else:
             trainer.say(eval_line(entry))
 
-    def on_end(self, trainer: TrainerView, doc: dict[str, Any] | None) -> None:
+    def on_end(self, trainer: TrainerProtocol, doc: dict[str, Any] | None) -> None:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
@@ -226,32 +226,32 @@ class StepProfiler(Callback):
     def __init__(self, enabled: bool = True) -> None:
         self.enabled = enabled
 
-    def on_setup(self, trainer: TrainerView) -> None:
+    def on_setup(self, trainer: TrainerProtocol) -> None:
         trainer.profiler.enabled = self.enabled
 
-    def on_step_end(self, trainer: TrainerView, result: StepResult) -> None:
+    def on_step_end(self, trainer: TrainerProtocol, result: StepResult) -> None:
         trainer.profiler.steps += 1
 
 
 class CheckpointSaver(Callback):
     """Writes ``checkpoints/step_XXXXXX.pt`` at every checkpoint point (:meth:`Trainer.save_checkpoint`)."""
 
-    def on_checkpoint(self, trainer: TrainerView, step: int) -> None:
+    def on_checkpoint(self, trainer: TrainerProtocol, step: int) -> None:
         trainer.save_checkpoint(step)
 
 
 class MetricsWriter(Callback):
     """Writes ``metrics.json`` (validated against its schema) at every checkpoint point and at the end."""
 
-    def _write(self, trainer: TrainerView, doc: dict[str, Any]) -> None:
+    def _write(self, trainer: TrainerProtocol, doc: dict[str, Any]) -> None:
         from jsgs.schemas import validate
 
         validate(doc, "metrics", str(trainer.paths.metrics))
         write_json_atomic(trainer.paths.metrics, doc)
 
-    def on_checkpoint(self, trainer: TrainerView, step: int) -> None:
+    def on_checkpoint(self, trainer: TrainerProtocol, step: int) -> None:
         self._write(trainer, trainer.metrics_doc(trainer.status_at(step), step))
 
-    def on_end(self, trainer: TrainerView, doc: dict[str, Any] | None) -> None:
+    def on_end(self, trainer: TrainerProtocol, doc: dict[str, Any] | None) -> None:
         if doc is not None:
             self._write(trainer, doc)
