@@ -27,8 +27,9 @@ How a step is shared (gsplat's simple_trainer with ``world_size``):
 - the strategies run per shard: DefaultStrategy densifies and prunes each shard on its own statistics;
   MCMCStrategy's global budget ``cap_max`` is split into shares (:func:`shard_cap`), each shard relocating
   and growing within its own, so the run's count never exceeds the budget;
-- the logged values and the finiteness of every process's terms, gradients and parameters are gathered to
-  every process (a NaN anywhere stops all of them alike);
+- the logged values, the finiteness of every process's terms, gradients and parameters and the stop signals
+  (Ctrl-C, SIGTERM) are gathered to every process once per step, after the optimizer's step is queued (a
+  NaN or a signal anywhere stops all of them alike, after the same step);
 - rank 0 alone evaluates, writes the run folder (config.json, metrics.json, checkpoints, renders, PLY) and
   holds its lock: at each checkpoint point the shards (Gaussians, Adam moments, strategy sums, every
   process's generators) are gathered to it (:func:`merge_shards`) and written as one checkpoint in one
@@ -307,65 +308,49 @@ def gather_gaussians(world: World, shard: torch.nn.ParameterDict, names: Sequenc
     return Exchange(params, list(names), sizes, world.rank)
 
 
-@dataclass
-class StepFlags:
-    """What every process learns from the others in the gradient reduction."""
-
-    rendered: int  # processes whose view reached a Gaussian
-    stop: str | None  # a stop signal some process received ("SIGTERM to rank 1"), else None
-
-
 def reduce_gradients(
-    world: World,
-    shard: Sequence[Tensor],
-    rendered: bool,
-    signal_name: str | None,
-    exchange: Exchange | None = None,
-) -> StepFlags:
+    world: World, shard: Sequence[Tensor], rendered: bool, exchange: Exchange | None = None
+) -> int:
     """Each shard's gradient (``shard``: in the order of ``exchange.names``), the mean over the step's
-    ``world_size`` views, with two flags (the view was empty; the stop signal this process received,
-    ``signal_name``) in the same all-reduce.
+    ``world_size`` views; returns how many processes' views reached a Gaussian (``rendered``: this one's).
 
     With the torch ``exchange`` the gradients of the gathered set (one view's each) are summed over the
-    processes and each process keeps its own rows (gloo has no reduce-scatter: all-reduce, then slice).
-    Without it (gsplat's ``distributed=True`` rasterisation) the shards' gradients already hold every
-    view's contribution, summed by gsplat's all-to-all backward; only the flags travel. When no process
-    rendered anything the gradients stay None, as on one process."""
-    import signal
-
+    processes, with the count, in one all-reduce, and each process keeps its own rows (gloo has no
+    reduce-scatter: all-reduce, then slice); when no process rendered anything the gradients stay None, as
+    on one process. Without it (gsplat's ``distributed=True`` rasterisation, where every process runs the
+    backward: its all-to-all is a collective) the shards' gradients already hold every view's
+    contribution, summed by gsplat's all-to-all backward: they are divided, and nothing travels."""
     if not world.enabled:
-        return StepFlags(int(rendered), signal_name)
-    device = shard[0].device
-    flags = torch.zeros(1 + world.size, device=device)
-    flags[0] = float(rendered)
-    if signal_name is not None:
-        flags[1 + world.rank] = float(signal.Signals[signal_name].value)
-    full = [exchange.params[n] for n in exchange.names] if exchange is not None else []
-    flat = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1).float() for p in full]
-    buf = torch.cat([*flat, flags])
-    with collective("the gradient all-reduce"):
-        _dist().all_reduce(buf)
-    tail = buf[-(1 + world.size) :].tolist()
-    n_rendered = int(round(tail[0]))
-    stop = next(
-        (f"{signal.Signals(int(v)).name} to rank {r}" for r, v in enumerate(tail[1:]) if v > 0), None
-    )
-    if n_rendered == 0:
-        for p in shard:
-            p.grad = None
-        return StepFlags(0, stop)
+        return int(rendered)
     if exchange is None:
         for p in shard:
             if p.grad is not None:
                 p.grad.div_(world.size)
-        return StepFlags(n_rendered, stop)
-    start, stop_row = exchange.rows
+        return world.size
+    full = [exchange.params[n] for n in exchange.names]
+    flat = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1).float() for p in full]
+    count = torch.full((1,), float(rendered), device=shard[0].device)
+    buf = torch.cat([*flat, count])
+    with collective("the gradient all-reduce"):
+        _dist().all_reduce(buf)
+    n_rendered = int(round(buf[-1].item()))
+    if n_rendered == 0:
+        for p in shard:
+            p.grad = None
+        return 0
+    start, stop = exchange.rows
     offset = 0
     for p, q in zip(full, shard, strict=True):
         g = buf[offset : offset + p.numel()].view_as(p)
-        q.grad = (g[start:stop_row] / world.size).to(q.dtype).contiguous()
+        q.grad = (g[start:stop] / world.size).to(q.dtype).contiguous()
         offset += p.numel()
-    return StepFlags(n_rendered, stop)
+    return n_rendered
+
+
+def stop_request(signals: Sequence[str | None]) -> str | None:
+    """The stop every process makes after this step: the first signal some process received ("SIGTERM to
+    rank 1", from every process's ``signals`` by rank, which every process gathers), else None."""
+    return next((f"{s} to rank {r}" for r, s in enumerate(signals) if s is not None), None)
 
 
 def share_strategy_statistics(

@@ -959,11 +959,14 @@ class Trainer:
             with profiler.phase("backward"):
                 loss.backward()
         if self.world.enabled:
+            if empty and self.exchange == "gsplat":  # the others wait in the exchange's backward
+                raise JsgsError(
+                    f"iteration {step + 1}: view {view.name!r}: gsplat's distributed rasterisation returned "
+                    "an image without gradient; the processes cannot finish this step"
+                )
             # the mean over the step's views of each Gaussian's gradient, on its owner
             params = [splats[n] for n in PARAM_NAMES]
-            flags = dd.reduce_gradients(self.world, params, not empty, self._signal, self._exchange)
-            self._stop_everywhere = flags.stop
-            empty = flags.rendered == 0
+            empty = dd.reduce_gradients(self.world, params, not empty, self._exchange) == 0
         # every logged value, each gradient's L1 norm and each parameter's L1 norm (NaN/Inf wherever a value
         # is), packed on the device and read in one host sync per step, *after* the optimizer's kernels are
         # queued: the host issues the update while the device finishes the backward. A non-finite step has
@@ -1003,9 +1006,11 @@ class Trainer:
         if self.world.enabled:  # every process's values on every process: all of them stop alike on a NaN
             logged = dict(zip(stats, stat_v, strict=True))
             n_own = int(splats["means"].shape[0])
-            mine = (view.name, loss_v, term_v, logged, grad_names, grad_v, param_v, n_own)
+            mine = (view.name, loss_v, term_v, logged, grad_names, grad_v, param_v, n_own, self._signal)
             everyone = dd.gather(self.world, mine)
-            for _, v_loss, v_terms, _, g_names, g_v, p_v, _ in everyone:
+            # a signal reached some process: all of them stop after this same step
+            self._stop_everywhere = dd.stop_request([v[8] for v in everyone])
+            for _, v_loss, v_terms, _, g_names, g_v, p_v, _, _ in everyone:
                 v_values = [*v_terms, v_loss]
                 _finite_check(step, [*names, "loss"], v_values, g_names, g_v, p_v, self.last_checkpoint)
             views = [v[:4] for v in everyone]

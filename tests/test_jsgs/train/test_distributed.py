@@ -294,8 +294,7 @@ def _reductions_worker(rank: int, store: str) -> None:
     assert ex.sizes == [16, 15] and ex.rows == ((0, 16) if rank == 0 else (16, 31))
     one_view(ex.params, shared, state, rank)
     params = [shard[n] for n in PARAM_NAMES]
-    flags = dd.reduce_gradients(world, params, True, "SIGINT" if rank == 1 else None, ex)
-    assert (flags.rendered, flags.stop) == (2, "SIGINT to rank 1")
+    assert dd.reduce_gradients(world, params, True, ex) == 2
     mine = {"grads": [p.grad for p in params], "state": {k: state[k] for k in ("grad2d", "count", "radii")}}
     parts = dd.gather_to_main(world, mine)
     if rank == 0:  # both views on one process, every Gaussian in the gathered order
@@ -371,6 +370,13 @@ def test_checkpoint_shards_merge_and_split_back() -> None:
         dd.split_checkpoint({**doc, "shards": [4, 4]}, dd.World(0, 2, 0), "ck.pt")
     with pytest.raises(JsgsError, match="3 processes"):
         dd.split_checkpoint(doc, dd.World(0, 3, 0), "ck.pt")
+
+
+def test_a_signal_to_any_process_stops_all_after_the_step() -> None:
+    from jsgs.train import distributed as dd
+
+    assert dd.stop_request([None, None]) is None
+    assert dd.stop_request([None, "SIGTERM", "SIGINT"]) == "SIGTERM to rank 1"
 
 
 def test_budget_shares_sum_to_the_budget() -> None:
@@ -463,8 +469,7 @@ def _gsplat_exchange_worker(rank: int, store: str) -> None:
     cfg.render.packed = True
     one_view(shard, shared, state, rank, True)
     params = [shard[n] for n in PARAM_NAMES]
-    flags = dd.reduce_gradients(world, params, True, None)
-    assert flags.rendered == 2
+    assert dd.reduce_gradients(world, params, True) == 2
     mine = {"grads": [p.grad for p in params], "state": {k: state[k] for k in ("grad2d", "count", "radii")}}
     parts = dd.gather_to_main(world, mine)
     if rank == 0:
