@@ -45,74 +45,70 @@ _FACTOR_SNAP = 5e-3
 
 @dataclass(frozen=True)
 class ColmapCamera:
-    """A camera as a COLMAP model records it: its id, and its intrinsics (:attr:`camera`) as COLMAP's
-    parameter vector. ``params`` in COLMAP's order for ``model`` (pixels for focal lengths and principal
-    point, COLMAP pixel convention; distortion coefficients are dimensionless)."""
+    """A camera of a COLMAP model: its id and its intrinsics (:class:`jsgs.base.camera.Camera`), which
+    ``params`` gives as COLMAP's parameter vector for ``model`` (pixels for focal lengths and principal point,
+    COLMAP pixel convention; distortion coefficients are dimensionless)."""
 
     camera_id: int
-    model: str
-    width: int
-    height: int
-    params: tuple[float, ...]
+    camera: Camera
+
+    @classmethod
+    def from_params(
+        cls, camera_id: int, model: str, width: int, height: int, params: tuple[float, ...]
+    ) -> ColmapCamera:
+        """The camera COLMAP records as ``model`` with ``params`` (a model with one focal length gives it as
+        ``fx`` and ``fy``; a model with distortion parameters keeps them, zeros included)."""
+        focal, (ix, iy), extra = _param_indices(model)
+        p = [float(v) for v in params]
+        fx, fy = p[focal[0]], p[focal[-1]]
+        dist = Distortion(model, tuple(p[i] for i in extra)) if extra else None
+        return cls(camera_id, Camera(model, width, height, fx, fy, p[ix], p[iy], dist))
+
+    @property
+    def model(self) -> str:
+        return self.camera.model
+
+    @property
+    def width(self) -> int:
+        return self.camera.width
+
+    @property
+    def height(self) -> int:
+        return self.camera.height
+
+    @property
+    def params(self) -> tuple[float, ...]:
+        """COLMAP's parameter vector of ``model``."""
+        c = self.camera
+        focal, (ix, iy), extra = _param_indices(c.model)
+        dist = (0.0,) * len(extra) if c.distortion is None else c.distortion.params
+        if len(dist) != len(extra):
+            raise ValueError(f"{c.model}: {len(extra)} distortion parameters, not {len(dist)}")
+        p = [0.0] * (len(focal) + 2 + len(extra))
+        p[focal[0]], p[focal[-1]] = (c.fx, c.fy) if len(focal) > 1 else (c.fx, c.fx)
+        p[ix], p[iy] = c.cx, c.cy
+        for i, v in zip(extra, dist, strict=True):
+            p[i] = float(v)
+        return tuple(p)
 
     @property
     def is_pinhole(self) -> bool:
         return self.model in PINHOLE_MODELS
 
-    def _colmap(self) -> pycolmap.Camera:
-        import pycolmap
-
-        cam = pycolmap.Camera.create_from_model_name(self.camera_id, self.model, 1.0, self.width, self.height)
-        cam.params = list(self.params)
-        return cam
-
     @property
     def focal(self) -> tuple[float, float]:
         """(fx, fy) in pixels; models with one focal length give it twice."""
-        idx = list(self._colmap().focal_length_idxs())
-        return float(self.params[idx[0]]), float(self.params[idx[-1]])
+        return self.camera.fx, self.camera.fy
 
     @property
     def principal_point(self) -> tuple[float, float]:
         """(cx, cy) in pixels, COLMAP convention."""
-        ix, iy = self._colmap().principal_point_idxs()
-        return float(self.params[ix]), float(self.params[iy])
+        return self.camera.cx, self.camera.cy
 
     @property
     def distortion(self) -> tuple[float, ...]:
         """The model's extra (distortion) parameters, in COLMAP's order; empty for pinhole models."""
-        return tuple(float(self.params[i]) for i in self._colmap().extra_params_idxs())
-
-    @property
-    def camera(self) -> Camera:
-        """The intrinsics as the manifest and the trainer take them: the distortion is None for a pinhole
-        model (a distorted model with zero parameters keeps them)."""
-        fx, fy = self.focal
-        cx, cy = self.principal_point
-        dist = None if self.is_pinhole and not self.distortion else Distortion(self.model, self.distortion)
-        return Camera(self.model, self.width, self.height, fx, fy, cx, cy, dist)
-
-    @classmethod
-    def from_camera(cls, camera_id: int, camera: Camera) -> ColmapCamera:
-        """``camera`` in COLMAP's parameterisation of its model (a model with one focal length takes ``fx``;
-        no distortion: zero distortion parameters)."""
-        import pycolmap
-
-        w, h = camera.width, camera.height
-        cam = pycolmap.Camera.create_from_model_name(camera_id, camera.model, 1.0, w, h)
-        p = [float(v) for v in cam.params]
-        focal = list(cam.focal_length_idxs())
-        p[focal[0]] = camera.fx
-        p[focal[-1]] = camera.fy if len(focal) > 1 else camera.fx
-        ix, iy = cam.principal_point_idxs()
-        p[ix], p[iy] = camera.cx, camera.cy
-        extra = list(cam.extra_params_idxs())
-        dist = (0.0,) * len(extra) if camera.distortion is None else camera.distortion.params
-        if len(dist) != len(extra):
-            raise ValueError(f"{camera.model}: {len(extra)} distortion parameters, not {len(dist)}")
-        for i, v in zip(extra, dist, strict=True):
-            p[i] = float(v)
-        return cls(camera_id, camera.model, camera.width, camera.height, tuple(p))
+        return () if self.camera.distortion is None else self.camera.distortion.params
 
     @property
     def K(self) -> np.ndarray:
@@ -125,30 +121,33 @@ class ColmapCamera:
         length times their mean; distortion unchanged because it acts on normalized coordinates)."""
         if (width, height) == (self.width, self.height):
             return self
-        sx, sy = width / self.width, height / self.height
-        cam = self._colmap()
-        p = list(self.params)
-        focal = list(cam.focal_length_idxs())
-        if len(focal) == 1:
-            p[focal[0]] *= (sx + sy) / 2
-        else:
-            p[focal[0]] *= sx
-            p[focal[1]] *= sy
-        ix, iy = cam.principal_point_idxs()
-        p[ix] *= sx
-        p[iy] *= sy
-        return replace(self, width=width, height=height, params=tuple(float(v) for v in p))
+        c = self.camera
+        sx, sy = width / c.width, height / c.height
+        focal, _, _ = _param_indices(c.model)
+        fx, fy = (c.fx * ((sx + sy) / 2),) * 2 if len(focal) == 1 else (c.fx * sx, c.fy * sy)
+        cam = replace(c, width=width, height=height, fx=fx, fy=fy, cx=c.cx * sx, cy=c.cy * sy)
+        return replace(self, camera=cam)
 
     def as_pinhole(self) -> ColmapCamera:
         """The same intrinsics as a PINHOLE camera; only for models without distortion."""
         if not self.is_pinhole:
             raise ValueError(f"camera {self.camera_id} ({self.model}) is distorted")
-        fx, fy = self.focal
-        cx, cy = self.principal_point
-        return replace(self, model="PINHOLE", params=(fx, fy, cx, cy))
+        return replace(self, camera=replace(self.camera, model="PINHOLE", distortion=None))
 
     def describe(self) -> str:
         return f"{self.model} {self.width}x{self.height}"
+
+
+@functools.cache
+def _param_indices(model: str) -> tuple[tuple[int, ...], tuple[int, int], tuple[int, ...]]:
+    """Where COLMAP's parameter vector of ``model`` holds the focal length(s), the principal point and the
+    extra (distortion) parameters (pycolmap's tables)."""
+    import pycolmap
+
+    cam = pycolmap.Camera.create_from_model_name(0, model, 1.0, 1, 1)
+    ix, iy = cam.principal_point_idxs()
+    focal = tuple(int(i) for i in cam.focal_length_idxs())
+    return focal, (int(ix), int(iy)), tuple(int(i) for i in cam.extra_params_idxs())
 
 
 @dataclass(frozen=True)
@@ -300,7 +299,7 @@ def load_colmap_scene(root: str | Path, images: str = "images") -> ColmapScene:
             size = (int(c.width), int(c.height))
             check_camera(model_dir / "cameras.txt", int(cid), str(c.model_name), *size, params)
     cameras = {
-        int(cid): ColmapCamera(
+        int(cid): ColmapCamera.from_params(
             int(cid), str(c.model_name), int(c.width), int(c.height), tuple(float(v) for v in c.params)
         )
         for cid, c in rec.cameras.items()
@@ -521,7 +520,8 @@ def undistorted_camera(cam: ColmapCamera) -> tuple[ColmapCamera, float]:
     pts = _probe_points(cam.width, cam.height)
 
     def pinhole(s: float) -> ColmapCamera:
-        return replace(cam, model="PINHOLE", params=(fx * s, fy * s, cx, cy))
+        pin = replace(cam.camera, model="PINHOLE", fx=fx * s, fy=fy * s, distortion=None)
+        return replace(cam, camera=pin)
 
     def inside(s: float) -> bool:
         src = _source_coords(cam, pinhole(s), pts)

@@ -280,7 +280,7 @@ def pixel_rays(
         import pycolmap
 
         pc = pycolmap.Camera.create_from_model_name(1, cam.model, cam.fx, cam.width, cam.height)
-        pc.params = list(ColmapCamera.from_camera(1, cam).params)
+        pc.params = list(ColmapCamera(1, cam).params)
         n = pc.cam_from_img(np.ascontiguousarray(xy, dtype=np.float64))  # COLMAP inverts its own distortion
     d_cam = np.concatenate([n, np.ones((len(xy), 1))], axis=1)
     return -R.T @ t, d_cam @ R  # row-wise R.T @ d
@@ -434,7 +434,7 @@ def synth(
 
     rec = pycolmap.Reconstruction()
     pc = pycolmap.Camera.create_from_model_name(1, cam.model, cam.fx, w * camera_scale, h * camera_scale)
-    pc.params = list(ColmapCamera.from_camera(1, cam).scaled(w * camera_scale, h * camera_scale).params)
+    pc.params = list(ColmapCamera(1, cam).scaled(w * camera_scale, h * camera_scale).params)
     rec.add_camera_with_trivial_rig(pc)
     for i, (R, t) in enumerate(tqdm(poses, desc="rendering", unit="view", disable=not progress)):
         name = f"view_{i:03d}.png"

@@ -1,6 +1,5 @@
-"""A camera's intrinsics: the one camera type of the manifest, the trainer and the synthetic scenes; a COLMAP
-model's cameras convert to and from it (``jsgstools.scene.ColmapCamera``: the same intrinsics as COLMAP's
-parameter vector, with the camera's id).
+"""A camera's intrinsics: the one camera type of the manifest, the trainer, the synthetic scenes and a COLMAP
+model's cameras (``jsgstools.scene.ColmapCamera``: a camera with its id, and COLMAP's parameter vector of it).
 
 Conventions (COLMAP's, the manifest's and gsplat's): pixels, with the top-left *corner* of the image at
 (0, 0), so the centre of pixel (0, 0) is (0.5, 0.5) and a centred principal point is (W/2, H/2). The pose is

@@ -493,8 +493,8 @@ def test_undistortion_of_llff_fern(tmp_path: Path) -> None:
     rec = res.record
     assert rec["source"]["downscale"] == 8.0 and rec["settings"]["undistorted"]
     cam = rec["cameras"][0]
-    src = ColmapCamera(1, "SIMPLE_RADIAL", 504, 378, tuple(cam["scaled"]["params"]))
-    out = ColmapCamera(1, "PINHOLE", 504, 378, tuple(cam["output"]["params"]))
+    src = ColmapCamera.from_params(1, "SIMPLE_RADIAL", 504, 378, tuple(cam["scaled"]["params"]))
+    out = ColmapCamera.from_params(1, "PINHOLE", 504, 378, tuple(cam["output"]["params"]))
     assert src.params[0] == pytest.approx(3260.5263328805895 / 8)
     assert 1.0 < cam["zoom"] < 1.03
     counts = largest_remainder(schedule_weights("gaussian"), 17)
