@@ -11,6 +11,7 @@ import os
 import platform
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ from jsgs.base.io import write_json_atomic
 from jsgs.bench import markdown as report_mod
 from jsgs.bench import results as results_mod
 from jsgs.bench import workers as pool_mod
-from jsgs.bench.plan import BenchPlan, Budget, Dataset, Run, build_plan, resolve_caps, train_argv
+from jsgs.bench.plan import BenchPlan, BenchSettings, Dataset, Run, build_plan, resolve_caps, train_argv
 
 BENCH_FORMAT = "jsgs-bench"
 BENCH_VERSION = 1
@@ -207,108 +208,20 @@ def write_bench_json(doc: dict[str, Any], path: Path) -> None:
     write_json_atomic(path, doc)
 
 
-def _bench(
-    scenes: list[str | Path],
-    out: str | Path,
-    schedules: list[str],
-    fixed: list[int],
-    methods: list[str],
-    ablation: str | None,
-    seeds: list[int],
-    iterations: int | None = None,
-    eval_at: list[int] | None = None,
-    jobs_per_gpu: int = 1,
-    device: str | None = None,
-    config: str | Path | None = None,
-    lpips_weights: str | None = None,
-    progress: bool = True,
-    command: str | None = None,
-    time_limit: float | None = None,
-    prepare_only: bool = False,
-    compile_backend: str = "off",
-    report_only: bool = False,
-    strategy: str = "default",
-    budgets: list[Budget] | None = None,
-    jsgs_config: str | Path | None = None,
-    gsplat_steps: float = 1.0,
-) -> dict[str, Any]:
-    """Run the whole bench into ``out``; returns the final bench.json document. ``time_limit`` (seconds
-    from the call): no run starts after it (nor one that runs like it took longer than what is left) and runs
-    still going are stopped (they resume on a rerun). ``compile_backend``: ``--compile`` of the JSGS runs.
-    ``report_only``: train nothing, only collect the runs already in ``out`` (copied back from GPU machines,
-    say) into results.csv and report.md; runs without results are listed as not run. ``strategy`` mcmc:
-    every run once per budget of ``budgets`` (budgets given as multiples are resolved from the clean
-    DefaultStrategy runs, trained first). ``jsgs_config``: settings over ``config`` for the JSGS runs only.
-    ``iterations`` None: the length of the strategy's preset (mcmc: 30,000 steps; default: the paper's
-    10,000).
-    ``gsplat_steps``: the gsplat runs on JPEG datasets train that many times longer, evaluated past
-    ``iterations`` (:func:`jsgs.bench.plan.build_plan`), for the report's equal-time table."""
+def _bench(settings: BenchSettings) -> dict[str, Any]:
+    """Run the whole bench into ``settings.out``; returns the final bench.json document (the settings'
+    fields: :class:`jsgs.bench.plan.BenchSettings`)."""
     import time
 
-    deadline = None if time_limit is None else time.time() + time_limit
-    from jsgs.bench.plan import default_eval_at
-
-    out = Path(out)
-    if time_limit is not None and time_limit <= 0:
-        raise JsgsError(f"--time-limit {time_limit:g}: must be a positive number of seconds")
-    if jobs_per_gpu < 1:
-        raise JsgsError(f"--jobs-per-gpu {jobs_per_gpu}: must be at least 1")
-    from jsgs.method.options import COMPILE_BACKENDS
-
-    if compile_backend not in COMPILE_BACKENDS:
-        raise JsgsError(f"--compile {compile_backend!r}: choose one of {', '.join(COMPILE_BACKENDS)}")
-    if report_only and prepare_only:
-        raise JsgsError("--report-only and --prepare-only exclude each other")
-    if report_only:
-        device = "cpu" if device in (None, "auto") else device
-    elif device in (None, "auto"):
-        import torch
-
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda" and not report_only:
-        import torch
-
-        if not torch.cuda.is_available():
-            raise JsgsError("--device cuda: no CUDA device is available")
-    if iterations is None:
-        from jsgs.train.config import preset_iterations
-
-        iterations = preset_iterations("mcmc" if strategy == "mcmc" else "paper")
-    eval_at = eval_at or default_eval_at(iterations)
-    config_path = str(Path(config).resolve()) if config is not None else None
-    config_doc = _read_config(config)
-    jsgs_doc = _read_config(jsgs_config)
-    plan = build_plan(
-        scenes, out, schedules, fixed, methods, ablation, seeds, iterations, eval_at, strategy, budgets,
-        gsplat_steps,
-    )  # fmt: skip
-    if compile_backend != "off":
-        for r in plan.runs:
-            if r.train_method == "jsgs":
-                r.flags = [*r.flags, "--compile", compile_backend]
-    out.mkdir(parents=True, exist_ok=True)
-    if jsgs_doc is not None:
-        merged = out / "configs" / "jsgs.json"
-        merged.parent.mkdir(exist_ok=True)
-        write_json_atomic(merged, _merge(config_doc or {}, jsgs_doc))
-        for r in plan.runs:
-            if r.train_method == "jsgs":
-                r.config = str(merged.resolve())
-    longer = {r.schedule_steps for r in plan.runs if r.schedule_steps is not None}
-    for n in longer:  # gsplat past the recipe's length: its schedules laid out over the recipe's steps
-        path = out / "configs" / f"gsplat_recipe{n}.json"
-        path.parent.mkdir(exist_ok=True)
-        write_json_atomic(path, _merge(config_doc or {}, {"optim": {"means_lr_decay_steps": n}}))
-        for r in plan.runs:
-            if r.schedule_steps == n:
-                r.config = str(path.resolve())
-    lpips_weights = lpips_weights or _default_lpips_weights()
-    env_extra = {"JSGS_LPIPS_WEIGHTS": str(Path(lpips_weights).resolve())} if lpips_weights else {}
-    # every training records how many shared its device (metrics.json runs_per_device)
-    from jsgs.train.trainer import RUNS_PER_DEVICE_ENV
-
-    env_extra[RUNS_PER_DEVICE_ENV] = str(jobs_per_gpu)
-    slots = [None] if report_only else pool_mod.detect_slots(device, jobs_per_gpu)
+    deadline = None if settings.time_limit is None else time.time() + settings.time_limit
+    s = _settle(settings)
+    out = s.out
+    config_path = str(Path(s.config).resolve()) if s.config is not None else None
+    config_doc = _read_config(s.config)
+    jsgs_doc = _read_config(s.jsgs_config)
+    plan = build_plan(s)
+    _configure_runs(plan, s, config_doc, jsgs_doc)
+    slots = [None] if s.report_only else pool_mod.detect_slots(s.device, s.jobs_per_gpu)
     if not slots:
         raise JsgsError("--device cuda: torch.cuda.device_count() found no GPU")
     doc: dict[str, Any] = {
@@ -317,59 +230,23 @@ def _bench(
         "status": "running",
         "started": _now(),
         "finished": None,
-        "command": command,
-        "settings": {
-            "scenes": [str(s) for s in scenes],
-            "schedules": schedules,
-            "fixed": fixed,
-            "methods": methods,
-            "ablation": ablation,
-            "seeds": seeds,
-            "iterations": iterations,
-            "eval_at": eval_at,
-            "jobs_per_gpu": jobs_per_gpu,
-            "device": device,
-            "workers": len(slots),
-            "compile": compile_backend,
-            "report_only": report_only,
-            "config": config_path,
-            "config_content": config_doc,
-            "jsgs_config": None if jsgs_config is None else str(Path(jsgs_config).resolve()),
-            "jsgs_config_content": jsgs_doc,
-            "strategy": strategy,
-            "budgets": [b.label for b in budgets or []],
-            "gsplat_steps": gsplat_steps,
-            "lpips_weights": lpips_weights,
-        },  # fmt: skip
-        "environment": environment(device),
-        "datasets": [
-            {
-                "key": d.key,
-                "scene": d.scene,
-                "source": d.source,
-                "schedule": d.schedule,
-                "compress_schedule": d.compress_schedule,
-                "quality": d.quality,
-                "recompress": d.recompress,
-                "seed": d.seed,
-                "out": d.out,
-                "status": "pending",
-            }
-            for d in plan.datasets
-        ],  # fmt: skip
-        "runs": [_run_record(r, device, config_path) for r in plan.runs],
+        "command": s.command,
+        "settings": _settings_record(s, len(slots), config_path, config_doc, jsgs_doc),
+        "environment": environment(s.device),
+        "datasets": [_dataset_record(d) for d in plan.datasets],
+        "runs": [_run_record(r, s.device, config_path) for r in plan.runs],
         "summary": None,
     }
     bench_json = out / "bench.json"
     write_bench_json(doc, bench_json)
 
-    if report_only:
+    if s.report_only:
         ds_status = {d.key: {"status": "skipped"} for d in plan.datasets}
     else:
-        ds_status = prepare_datasets(plan, progress)
+        ds_status = prepare_datasets(plan, s.progress)
     for d in doc["datasets"]:
         d.update(ds_status[d["key"]])
-    if prepare_only:
+    if s.prepare_only:
         # The CPU half of a GPU session: compress here (pycolmap, OpenCV, ../shared), carry RESULTS/data.
         doc["status"] = "prepared"
         doc["finished"] = _now()
@@ -377,31 +254,181 @@ def _bench(
         return doc
     bad = {k for k, v in ds_status.items() if v["status"] == "failed"}
     runnable = [r for r in plan.runs if r.data not in bad]
-    if report_only:
-        _resolve(plan, out, plan.references(), {})
-        doc["runs"] = [_run_record(r, device, config_path) for r in plan.runs]
-        records = {
-            r.id: pool_mod.skipped_record(r)
-            or {"id": r.id, "status": "failed", "stderr_tail": "",
-                "error": f"not run: no complete metrics.json at step {r.iterations} in {r.out}"}
-            for r in runnable
-        }  # fmt: skip
+    if s.report_only:
+        records = _collect_records(plan, out, runnable)
     else:
-        records = {}
-        refs = [r for r in plan.references() if r in runnable]
-        if refs:  # budgets given as multiples of these runs' counts: train them first
-            records = pool_mod.run_pool(
-                refs, slots, device, config_path, env_extra, progress=progress, deadline=deadline
-            )
-        left = _resolve(plan, out, refs, records)
-        records.update(left)
-        rest = [r for r in runnable if r.id not in records]
-        records.update(
-            pool_mod.run_pool(
-                rest, slots, device, config_path, env_extra, progress=progress, deadline=deadline
-            )
+        env_extra = _run_environment(s)
+        records = _train(plan, s, runnable, slots, config_path, env_extra, deadline)
+    doc["runs"] = [_run_record(r, s.device, config_path) for r in plan.runs]
+    _settle_records(doc, plan, records, bad, ds_status)
+
+    rows = results_mod.collect(plan.runs)
+    header = results_mod.write_csv(rows, out / "results.csv")
+    failures = [records[r.id] | {"id": r.id} for r in plan.runs if records[r.id]["status"] == "failed"]
+    counts = {
+        st: sum(1 for r in records.values() if r["status"] == st) for st in ("complete", "skipped", "failed")
+    }
+    head = _report_head(s, doc["environment"], rows, len(slots), len(plan.runs), counts)
+    report_mod.write_report(rows, out, head, failures)
+    doc["status"] = "complete" if not failures else "failed_runs"
+    doc["finished"] = _now()
+    doc["summary"] = {**counts, "runs": len(plan.runs), "rows": len(rows), "csv_header": header}
+    write_bench_json(doc, bench_json)
+    return doc
+
+
+def _settle(s: BenchSettings) -> BenchSettings:
+    """The settings checked (JsgsError, one line, naming the option) with the harness's defaults filled in:
+    the device (``auto``: cuda when there is one; cpu for ``report_only``), the run length
+    (:meth:`BenchSettings.with_run_length`) and the LPIPS weights."""
+    if s.time_limit is not None and s.time_limit <= 0:
+        raise JsgsError(f"--time-limit {s.time_limit:g}: must be a positive number of seconds")
+    if s.jobs_per_gpu < 1:
+        raise JsgsError(f"--jobs-per-gpu {s.jobs_per_gpu}: must be at least 1")
+    from jsgs.method.options import COMPILE_BACKENDS
+
+    if s.compile_backend not in COMPILE_BACKENDS:
+        raise JsgsError(f"--compile {s.compile_backend!r}: choose one of {', '.join(COMPILE_BACKENDS)}")
+    if s.report_only and s.prepare_only:
+        raise JsgsError("--report-only and --prepare-only exclude each other")
+    device = s.device
+    if s.report_only:
+        device = "cpu" if device in (None, "auto") else device
+    elif device in (None, "auto"):
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not s.report_only:
+        import torch
+
+        if not torch.cuda.is_available():
+            raise JsgsError("--device cuda: no CUDA device is available")
+    s = replace(s, device=device, lpips_weights=s.lpips_weights or _default_lpips_weights())
+    return s.with_run_length()
+
+
+def _configure_runs(plan: BenchPlan, s: BenchSettings, config_doc: Any, jsgs_doc: Any) -> None:
+    """The runs' flags and configs beyond the plan's: ``--compile`` of the JSGS runs, their settings with
+    ``--jsgs-config`` over ``--config`` (``OUT/configs/jsgs.json``), and the recipe of gsplat runs trained
+    past its length (``OUT/configs/gsplat_recipe<N>.json``). Makes the results folder."""
+    if s.compile_backend != "off":
+        for r in plan.runs:
+            if r.train_method == "jsgs":
+                r.flags = [*r.flags, "--compile", s.compile_backend]
+    s.out.mkdir(parents=True, exist_ok=True)
+    if jsgs_doc is not None:
+        merged = s.out / "configs" / "jsgs.json"
+        merged.parent.mkdir(exist_ok=True)
+        write_json_atomic(merged, _merge(config_doc or {}, jsgs_doc))
+        for r in plan.runs:
+            if r.train_method == "jsgs":
+                r.config = str(merged.resolve())
+    longer = {r.schedule_steps for r in plan.runs if r.schedule_steps is not None}
+    for n in longer:  # gsplat past the recipe's length: its schedules laid out over the recipe's steps
+        path = s.out / "configs" / f"gsplat_recipe{n}.json"
+        path.parent.mkdir(exist_ok=True)
+        write_json_atomic(path, _merge(config_doc or {}, {"optim": {"means_lr_decay_steps": n}}))
+        for r in plan.runs:
+            if r.schedule_steps == n:
+                r.config = str(path.resolve())
+
+
+def _run_environment(s: BenchSettings) -> dict[str, str]:
+    """The environment every ``jsgs train`` subprocess gets on top of the bench's: the LPIPS weights, and
+    how many runs share a device (recorded in each run's metrics.json, ``runs_per_device``)."""
+    env_extra = {"JSGS_LPIPS_WEIGHTS": str(Path(s.lpips_weights).resolve())} if s.lpips_weights else {}
+    from jsgs.train.trainer import RUNS_PER_DEVICE_ENV
+
+    env_extra[RUNS_PER_DEVICE_ENV] = str(s.jobs_per_gpu)
+    return env_extra
+
+
+def _settings_record(
+    s: BenchSettings, workers: int, config_path: str | None, config_doc: Any, jsgs_doc: Any
+) -> dict[str, Any]:
+    """bench.json's ``settings``: the settled settings, the worker count and the configs' contents."""
+    return {
+        "scenes": [str(x) for x in s.scenes],
+        "schedules": list(s.schedules),
+        "fixed": list(s.fixed),
+        "methods": list(s.methods),
+        "ablation": s.ablation,
+        "seeds": list(s.seeds),
+        "iterations": s.iterations,
+        "eval_at": list(s.eval_at or []),
+        "jobs_per_gpu": s.jobs_per_gpu,
+        "device": s.device,
+        "workers": workers,
+        "compile": s.compile_backend,
+        "report_only": s.report_only,
+        "config": config_path,
+        "config_content": config_doc,
+        "jsgs_config": None if s.jsgs_config is None else str(Path(s.jsgs_config).resolve()),
+        "jsgs_config_content": jsgs_doc,
+        "strategy": s.strategy,
+        "budgets": [b.label for b in s.budgets],
+        "gsplat_steps": s.gsplat_steps,
+        "lpips_weights": s.lpips_weights,
+    }
+
+
+def _dataset_record(d: Dataset) -> dict[str, Any]:
+    """A dataset's bench.json entry before it is built."""
+    return {
+        "key": d.key,
+        "scene": d.scene,
+        "source": d.source,
+        "schedule": d.schedule,
+        "compress_schedule": d.compress_schedule,
+        "quality": d.quality,
+        "recompress": d.recompress,
+        "seed": d.seed,
+        "out": d.out,
+        "status": "pending",
+    }
+
+
+def _collect_records(plan: BenchPlan, out: Path, runnable: list[Run]) -> dict[str, dict[str, Any]]:
+    """``report_only``: the records of the runs already in ``out`` (the others: not run)."""
+    _resolve(plan, out, plan.references(), {})
+    return {
+        r.id: pool_mod.skipped_record(r)
+        or {"id": r.id, "status": "failed", "stderr_tail": "",
+            "error": f"not run: no complete metrics.json at step {r.iterations} in {r.out}"}
+        for r in runnable
+    }  # fmt: skip
+
+
+def _train(
+    plan: BenchPlan, s: BenchSettings, runnable: list[Run], slots: list[Any], config_path: str | None,
+    env_extra: dict[str, str], deadline: float | None,
+) -> dict[str, dict[str, Any]]:  # fmt: skip
+    """Train the runnable runs on the worker pool: the reference runs of budgets given as multiples first,
+    then the rest; their records."""
+    assert s.device is not None  # _settle
+    records: dict[str, dict[str, Any]] = {}
+    refs = [r for r in plan.references() if r in runnable]
+    if refs:  # budgets given as multiples of these runs' counts: train them first
+        records = pool_mod.run_pool(
+            refs, slots, s.device, config_path, env_extra, progress=s.progress, deadline=deadline
         )
-        doc["runs"] = [_run_record(r, device, config_path) for r in plan.runs]
+    left = _resolve(plan, s.out, refs, records)
+    records.update(left)
+    rest = [r for r in runnable if r.id not in records]
+    records.update(
+        pool_mod.run_pool(
+            rest, slots, s.device, config_path, env_extra, progress=s.progress, deadline=deadline
+        )
+    )
+    return records
+
+
+def _settle_records(
+    doc: dict[str, Any], plan: BenchPlan, records: dict[str, dict[str, Any]], bad: set[str],
+    ds_status: dict[str, dict[str, Any]],
+) -> None:  # fmt: skip
+    """Give every run a record (those on a dataset that could not be built and those whose budget has no
+    reference count fail) and copy the records into ``doc["runs"]``."""
     for r in plan.runs:
         if r.data in bad:
             records[r.id] = {"id": r.id, "status": "failed", "error": f"dataset {r.data} could not be built: "
@@ -414,56 +441,50 @@ def _bench(
         rec.pop("id", None)
         rj.update(rec)
 
-    rows = results_mod.collect(plan.runs)
+
+def _report_head(
+    s: BenchSettings, env: dict[str, Any], rows: list[dict[str, Any]], workers: int, runs: int,
+    counts: dict[str, int],
+) -> list[str]:  # fmt: skip
+    """report.md's opening lines: versions, where the runs trained, the command and the settings."""
+    assert s.eval_at is not None  # _settle
     shared = sorted({int(r["runs_per_device"]) for r in rows if r.get("runs_per_device") is not None})
-    header = results_mod.write_csv(rows, out / "results.csv")
-    failures = [records[r.id] | {"id": r.id} for r in plan.runs if records[r.id]["status"] == "failed"]
-    counts = {
-        s: sum(1 for r in records.values() if r["status"] == s) for s in ("complete", "skipped", "failed")
-    }
-    env = doc["environment"]
     gpu_txt = ", ".join(g["name"] for g in env["gpus"]) or "none"
-    if report_only:  # this machine only collected: the devices are those the runs themselves recorded
+    if s.report_only:  # this machine only collected: the devices are those the runs themselves recorded
         devices = sorted({str(r.get("device_name")) for r in rows if r.get("device_name")}) or ["unknown"]
         where = f"collected (--report-only) from runs trained elsewhere, on: {', '.join(devices)}"
     else:
-        where = f"device {device}, GPUs: {gpu_txt}"
+        where = f"device {s.device}, GPUs: {gpu_txt}"
     sharing = (
         "unstated"
         if not shared
         else "; ".join("one run per device" if n == 1 else f"{n} runs per device" for n in shared)
     )
-    head = [
+    return [
         f"Generated {_now()} by jsgs {env['jsgs']} (git {env['git_commit'] or 'unknown'}"
         f"{', uncommitted changes' if env['git_dirty'] else ''}); torch {env['torch']}, "
         f"gsplat {env['gsplat']}, python {env['python']}; {where}.",
         "",
-        f"Command: `{command}`" if command else "Command: (library call)",
+        f"Command: `{s.command}`" if s.command else "Command: (library call)",
         "",
-        f"{iterations} iterations, evaluations at {','.join(map(str, eval_at))}; seeds {seeds}; "
-        f"{len(slots)} concurrent workers ({jobs_per_gpu} per GPU on cuda); device sharing of the runs "
+        f"{s.iterations} iterations, evaluations at {','.join(map(str, s.eval_at))}; seeds {list(s.seeds)}; "
+        f"{workers} concurrent workers ({s.jobs_per_gpu} per GPU on cuda); device sharing of the runs "
         f"reported (their metrics.json): {sharing}."
-        + (f" gsplat's runs on JPEG views train {gsplat_steps:g}x as long (evaluated past {iterations})."
-           if gsplat_steps > 1 else "")
-        + f" Runs: {len(plan.runs)} "
+        + (f" gsplat's runs on JPEG views train {s.gsplat_steps:g}x as long (evaluated past {s.iterations})."
+           if s.gsplat_steps > 1 else "")
+        + f" Runs: {runs} "
         f"({counts['complete']} trained now, {counts['skipped']} already complete, "
         f"{counts['failed']} failed). "
         "Metrics are on the test views against their uncompressed references; settings and versions in "
         "bench.json, every row in results.csv.",
     ]  # fmt: skip
-    report_mod.write_report(rows, out, head, failures)
-    doc["status"] = "complete" if not failures else "failed_runs"
-    doc["finished"] = _now()
-    doc["summary"] = {**counts, "runs": len(plan.runs), "rows": len(rows), "csv_header": header}
-    write_bench_json(doc, bench_json)
-    return doc
 
 
 @functools.wraps(_bench)
-def bench(scenes: list[str | Path], out: str | Path, *args: Any, **kwargs: Any) -> dict[str, Any]:
+def bench(settings: BenchSettings) -> dict[str, Any]:
     """:func:`_bench` holding the results folder's output lock (one bench per folder; a second is refused
     naming the first's PID)."""
     from jsgs.base.io import OutputLock
 
-    with OutputLock(Path(out), f"jsgs bench (into {out})"):
-        return _bench(scenes, out, *args, **kwargs)
+    with OutputLock(settings.out, f"jsgs bench (into {settings.out})"):
+        return _bench(settings)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import re
 import sys
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -241,20 +241,69 @@ def longer_run(eval_at: list[int], iterations: int, factor: float) -> tuple[int,
     return total, [*eval_at, *extra, total]
 
 
-def build_plan(
-    scenes: list[str | Path],
-    out: str | Path,
-    schedules: list[str],
-    fixed: list[int],
-    methods: list[str],
-    ablation: str | None,
-    seeds: list[int],
-    iterations: int,
-    eval_at: list[int],
-    strategy: str = "default",
-    budgets: list[Budget] | None = None,
-    gsplat_steps: float = 1.0,
-) -> BenchPlan:
+@dataclass(frozen=True)
+class BenchSettings:
+    """Everything a bench runs with, as ``jsgs bench`` gives it (built once by the command line, or by a
+    library caller) and read by :func:`jsgs.bench.harness.bench` and :func:`build_plan`. Sequences are kept
+    as tuples (lists given are converted). ``iterations``, ``eval_at``, ``device`` and ``lpips_weights``
+    left None are filled by the harness: the strategy's preset length (mcmc: 30,000 steps; default: the
+    paper's 10,000, :meth:`with_run_length`), :func:`default_eval_at`, the device there is, the weights
+    found (``$JSGS_LPIPS_WEIGHTS``, else ``../shared/lpips``).
+
+    ``time_limit`` (seconds from the call): no run starts after it (nor one that runs like it took longer
+    than what is left) and runs still going are stopped (they resume on a rerun). ``compile_backend``:
+    ``--compile`` of the JSGS runs. ``report_only``: train nothing, only collect the runs already in ``out``
+    (copied back from GPU machines, say) into results.csv and report.md; runs without results are listed as
+    not run. ``prepare_only``: build the datasets and stop. ``strategy`` mcmc: every run once per budget of
+    ``budgets`` (budgets given as multiples are resolved from the clean DefaultStrategy runs, trained
+    first). ``jsgs_config``: settings over ``config`` for the JSGS runs only. ``gsplat_steps``: the gsplat
+    runs on JPEG datasets train that many times longer, evaluated past ``iterations`` (:func:`build_plan`),
+    for the report's equal-time table. ``command``: the command line, recorded in bench.json and the
+    report."""
+
+    scenes: tuple[str | Path, ...]
+    out: Path
+    schedules: tuple[str, ...]
+    fixed: tuple[int, ...]
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    ablation: str | None = None
+    iterations: int | None = None
+    eval_at: tuple[int, ...] | None = None
+    strategy: str = "default"
+    budgets: tuple[Budget, ...] = ()
+    gsplat_steps: float = 1.0
+    jobs_per_gpu: int = 1
+    device: str | None = None
+    config: str | Path | None = None
+    jsgs_config: str | Path | None = None
+    lpips_weights: str | None = None
+    time_limit: float | None = None
+    compile_backend: str = "off"
+    prepare_only: bool = False
+    report_only: bool = False
+    progress: bool = True
+    command: str | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("scenes", "schedules", "fixed", "methods", "seeds", "budgets"):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        if self.eval_at is not None:
+            object.__setattr__(self, "eval_at", tuple(self.eval_at))
+        object.__setattr__(self, "out", Path(self.out))
+
+    def with_run_length(self) -> BenchSettings:
+        """These settings with ``iterations`` (the strategy's preset length) and ``eval_at``
+        (:func:`default_eval_at`) filled in where they are None."""
+        iterations = self.iterations
+        if iterations is None:
+            from jsgs.train.config import preset_iterations
+
+            iterations = preset_iterations("mcmc" if self.strategy == "mcmc" else "paper")
+        return replace(self, iterations=iterations, eval_at=self.eval_at or default_eval_at(iterations))
+
+
+def build_plan(settings: BenchSettings) -> BenchPlan:
     """Every dataset and run of the bench, in the order they are queued (longest-lived first is not
     attempted: runs of one scene and schedule stay together so partial results are usable early). Under
     ``strategy`` mcmc, one run per budget; a budget given as a multiple leaves its runs' ``cap`` None (see
@@ -263,35 +312,71 @@ def build_plan(
     recipe laid out over ``iterations`` (``schedule_steps``; their evaluations up to it are those of a run
     of that length) and evaluated on past it (:func:`longer_run`), so that quality against training time
     can be read at JSGS's end without extrapolating."""
-    out = Path(out)
-    budgets = list(budgets or [])
-    if strategy not in STRATEGIES:
-        raise JsgsError(f"--strategy: unknown strategy {strategy!r} (choose from {', '.join(STRATEGIES)})")
-    if strategy == "mcmc" and not budgets:
+    s = settings.with_run_length()
+    _check_plan_settings(s)
+    names = _scene_folders(s.scenes, s.out)
+    ablation = _ablation_scene(s.ablation, names)
+    planner = _Planner(s, names)
+    multiples = any(b.multiple is not None for b in s.budgets)
+    for scene in names:
+        if multiples:  # the reference counts come first
+            for seed in s.seeds:
+                planner.add(scene, "clean", "gsplat", seed)
+        for label in s.schedules:
+            for seed in s.seeds:
+                for m in s.methods if label != "clean" else ["gsplat"]:
+                    if s.strategy == "default":
+                        planner.add(scene, label, m, seed)
+                    for b in s.budgets:
+                        planner.add(scene, label, m, seed, b)
+        for q in s.fixed:
+            for m in s.methods:
+                planner.add(scene, f"fixed{q}", m, s.seeds[0])
+        if scene == ablation:
+            for variant in ABLATIONS:
+                planner.add(scene, ABLATION_SCHEDULE, ABLATION_ALIAS.get(variant, variant), s.seeds[0])
+    return BenchPlan(list(planner.datasets.values()), planner.runs)
+
+
+def _check_plan_settings(s: BenchSettings) -> None:
+    """JsgsError (one line) for a strategy, budget, schedule, method, quality, seed, length or evaluation
+    step the plan cannot be made of."""
+    if s.strategy not in STRATEGIES:
+        raise JsgsError(f"--strategy: unknown strategy {s.strategy!r} (choose from {', '.join(STRATEGIES)})")
+    if s.strategy == "mcmc" and not s.budgets:
         raise JsgsError("--strategy mcmc needs --budgets (counts such as 300k, or multiples such as 0.5x)")
-    if strategy == "default" and budgets:
+    if s.strategy == "default" and s.budgets:
         raise JsgsError("--budgets needs --strategy mcmc (DefaultStrategy has no Gaussian cap)")
-    if strategy == "mcmc" and (fixed or ablation is not None):
+    if s.strategy == "mcmc" and (s.fixed or s.ablation is not None):
         raise JsgsError("--fixed and --ablation are paper-protocol tables: they run with --strategy default")
-    for s in schedules:
-        twice = _TWICE.fullmatch(s)
-        if s not in SCHEDULES and not twice:
-            raise JsgsError(
-                f"--schedules: unknown schedule {s!r} (choose from {', '.join(SCHEDULES)}, or a mixed one "
-                "saved twice such as gaussian+r90)"
-            )
-        if twice and not 1 <= int(twice["q"]) <= 100:
-            raise JsgsError(f"--schedules: {s!r}: the second quality must be in 1..100")
-    for m in methods:
+    for sched in s.schedules:
+        _check_schedule(sched)
+    for m in s.methods:
         if m not in METHODS:
             raise JsgsError(f"--methods: unknown method {m!r} (choose from {', '.join(METHODS)})")
-    for q in fixed:
+    for q in s.fixed:
         if not 1 <= q <= 100:
             raise JsgsError(f"--fixed: quality {q} is not in 1..100")
-    if not seeds:
+    if not s.seeds:
         raise JsgsError("--seeds: at least one seed is needed")
-    if not (math.isfinite(gsplat_steps) and gsplat_steps >= 1.0):
-        raise JsgsError(f"--gsplat-steps {gsplat_steps:g}: must be a factor of at least 1")
+    if not (math.isfinite(s.gsplat_steps) and s.gsplat_steps >= 1.0):
+        raise JsgsError(f"--gsplat-steps {s.gsplat_steps:g}: must be a factor of at least 1")
+    _check_run_length(s.iterations, list(s.eval_at or []))
+
+
+def _check_schedule(s: str) -> None:
+    twice = _TWICE.fullmatch(s)
+    if s not in SCHEDULES and not twice:
+        raise JsgsError(
+            f"--schedules: unknown schedule {s!r} (choose from {', '.join(SCHEDULES)}, or a mixed one "
+            "saved twice such as gaussian+r90)"
+        )
+    if twice and not 1 <= int(twice["q"]) <= 100:
+        raise JsgsError(f"--schedules: {s!r}: the second quality must be in 1..100")
+
+
+def _check_run_length(iterations: int | None, eval_at: list[int]) -> None:
+    assert iterations is not None  # BenchSettings.with_run_length
     if iterations < 1:
         raise JsgsError(f"--iterations {iterations}: must be at least 1")
     if not eval_at or eval_at[-1] != iterations or sorted(set(eval_at)) != eval_at or eval_at[0] < 1:
@@ -299,26 +384,48 @@ def build_plan(
             f"--eval-at {','.join(map(str, eval_at))}: must be increasing steps ending at --iterations "
             f"{iterations}"
         )
+
+
+def _scene_folders(scenes: tuple[str | Path, ...], out: Path) -> dict[str, Path]:
+    """scene name -> its folder as given; JsgsError for one not found (without prepared datasets standing in
+    for it) or two of one name."""
     names: dict[str, Path] = {}
     for s in scenes:
         p = Path(s)
         # A GPU machine has no source scenes: datasets prepared beforehand (--prepare-only) stand in for them.
-        if not p.is_dir() and not (Path(out) / "data" / p.name).is_dir():
+        if not p.is_dir() and not (out / "data" / p.name).is_dir():
             raise JsgsError(f"{p}: scene folder not found (and no prepared datasets in {out}/data/{p.name})")
         name = p.resolve().name
         if name in names:
             raise JsgsError(f"{p}: two scenes are named {name!r} ({names[name]} and {p})")
         names[name] = p
-    if ablation is not None:
-        abl_name = Path(ablation).resolve().name if Path(ablation).is_dir() else ablation
-        if abl_name not in names:
-            raise JsgsError(f"--ablation {ablation}: not one of the scenes ({', '.join(names)})")
-        ablation = abl_name
+    return names
 
-    datasets: dict[str, Dataset] = {}
-    runs: list[Run] = []
 
-    def dataset(scene: str, label: str, seed: int) -> Dataset:
+def _ablation_scene(ablation: str | None, names: dict[str, Path]) -> str | None:
+    """The name of the ablation's scene, given as a name or a path (JsgsError: not one of the scenes)."""
+    if ablation is None:
+        return None
+    abl_name = Path(ablation).resolve().name if Path(ablation).is_dir() else ablation
+    if abl_name not in names:
+        raise JsgsError(f"--ablation {ablation}: not one of the scenes ({', '.join(names)})")
+    return abl_name
+
+
+class _Planner:
+    """The datasets and runs of a plan as :func:`build_plan` adds them (each dataset once, each run once)."""
+
+    def __init__(self, settings: BenchSettings, names: dict[str, Path]) -> None:
+        assert settings.iterations is not None and settings.eval_at is not None
+        self.s = settings
+        self.iterations: int = settings.iterations
+        self.eval_at: list[int] = list(settings.eval_at)
+        self.names = names
+        self.datasets: dict[str, Dataset] = {}
+        self.runs: list[Run] = []
+
+    def dataset(self, scene: str, label: str, seed: int) -> Dataset:
+        """The dataset of ``scene`` under schedule ``label`` and ``seed`` (made once)."""
         again = None
         if label.startswith("fixed"):
             sched, q = "fixed", int(label[5:])
@@ -327,52 +434,33 @@ def build_plan(
         else:
             sched, q = label, None
         d = Dataset(
-            scene, str(names[scene]), label, sched, q, seed, str(out / "data" / scene / f"{label}_s{seed}"),
-            recompress=again,
-        )
-        return datasets.setdefault(d.key, d)
+            scene, str(self.names[scene]), label, sched, q, seed,
+            str(self.s.out / "data" / scene / f"{label}_s{seed}"), recompress=again,
+        )  # fmt: skip
+        return self.datasets.setdefault(d.key, d)
 
-    def add(scene: str, label: str, method: str, seed: int, budget: Budget | None = None) -> None:
-        d = dataset(scene, label, seed)
+    def add(self, scene: str, label: str, method: str, seed: int, budget: Budget | None = None) -> None:
+        """Queue ``method``'s run on the dataset (unless it is queued already)."""
+        d = self.dataset(scene, label, seed)
         if method in ABLATIONS:
             train_method, flags = ABLATIONS[method]
         elif method in VARIANTS:
             train_method, flags = VARIANTS[method]
         else:
             train_method, flags = method, []
-        steps, evals, recipe = iterations, list(eval_at), None
-        if method == "gsplat" and label != "clean" and gsplat_steps > 1.0:
-            steps, evals = longer_run(eval_at, iterations, gsplat_steps)
-            recipe = iterations if steps > iterations else None
+        steps, evals, recipe = self.iterations, list(self.eval_at), None
+        if method == "gsplat" and label != "clean" and self.s.gsplat_steps > 1.0:
+            steps, evals = longer_run(self.eval_at, self.iterations, self.s.gsplat_steps)
+            recipe = self.iterations if steps > self.iterations else None
         r = Run(
             scene, label, method, seed, train_method, list(flags), d.key, d.manifest, "", "", steps, evals,
             strategy="default" if budget is None else "mcmc", budget=None if budget is None else budget.label,
             cap=None if budget is None else budget.count, schedule_steps=recipe,
         )  # fmt: skip
         if not r.unresolved:
-            set_paths(r, out)
-        if r.id not in {x.id for x in runs}:
-            runs.append(r)
-
-    multiples = any(b.multiple is not None for b in budgets)
-    for scene in names:
-        if multiples:  # the reference counts come first
-            for seed in seeds:
-                add(scene, "clean", "gsplat", seed)
-        for label in schedules:
-            for seed in seeds:
-                for m in methods if label != "clean" else ["gsplat"]:
-                    if strategy == "default":
-                        add(scene, label, m, seed)
-                    for b in budgets:
-                        add(scene, label, m, seed, b)
-        for q in fixed:
-            for m in methods:
-                add(scene, f"fixed{q}", m, seeds[0])
-        if scene == ablation:
-            for variant in ABLATIONS:
-                add(scene, ABLATION_SCHEDULE, ABLATION_ALIAS.get(variant, variant), seeds[0])
-    return BenchPlan(list(datasets.values()), runs)
+            set_paths(r, self.s.out)
+        if r.id not in {x.id for x in self.runs}:
+            self.runs.append(r)
 
 
 def set_paths(run: Run, out: str | Path) -> None:

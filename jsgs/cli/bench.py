@@ -165,21 +165,23 @@ def bench_command(
     import sys
 
     from jsgs.bench import bench
-    from jsgs.bench.plan import parse_budgets, parse_list
+    from jsgs.bench.plan import BenchSettings, parse_budgets, parse_list
 
     if fixed is None:
         fixed = "30,50" if strategy == "default" else ""
 
-    doc = bench(
-        list(scenes), out,
-        schedules=parse_list(schedules, "--schedules"), fixed=parse_list(fixed, "--fixed", int),
-        methods=parse_list(methods, "--methods"), ablation=ablation, seeds=parse_list(seeds, "--seeds", int),
-        iterations=iterations, eval_at=parse_list(eval_at, "--eval-at", int) if eval_at is not None else None,
-        jobs_per_gpu=jobs_per_gpu, device=device, config=config, lpips_weights=lpips_weights,
-        progress=not quiet, time_limit=time_limit, command=invocation(click.get_current_context(), "jsgs"),
-        prepare_only=prepare_only, compile_backend=compile_backend, report_only=report_only,
-        strategy=strategy, budgets=parse_budgets(budgets), jsgs_config=jsgs_config, gsplat_steps=gsplat_steps,
+    settings = BenchSettings(
+        scenes=scenes, out=out, schedules=parse_list(schedules, "--schedules"),
+        fixed=parse_list(fixed, "--fixed", int), methods=parse_list(methods, "--methods"),
+        seeds=parse_list(seeds, "--seeds", int), ablation=ablation, iterations=iterations,
+        eval_at=parse_list(eval_at, "--eval-at", int) if eval_at is not None else None, strategy=strategy,
+        budgets=parse_budgets(budgets), gsplat_steps=gsplat_steps, jobs_per_gpu=jobs_per_gpu, device=device,
+        config=config, jsgs_config=jsgs_config, lpips_weights=lpips_weights, time_limit=time_limit,
+        compile_backend=compile_backend, prepare_only=prepare_only, report_only=report_only,
+        progress=not quiet,
+        command=invocation(click.get_current_context(), "jsgs"),
     )  # fmt: skip
+    doc = bench(settings)
     if prepare_only:
         n = len(doc["datasets"])
         click.echo(f"bench: {n} datasets ready in {out}/data (runs not started: --prepare-only)")

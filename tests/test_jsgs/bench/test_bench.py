@@ -143,10 +143,11 @@ def test_damage_recovered_and_noise_rule() -> None:
 
 
 def test_plan_layout_and_ablation(tmp_path: Path, synth_scene: Path) -> None:
-    p = plan_mod.build_plan(
-        [synth_scene], tmp_path, ["uniform", "gaussian", "clean"], [30, 50], ["gsplat", "jsgs"],
-        synth_scene.name, [0, 1], 100, [50, 100],
-    )  # fmt: skip
+    p = plan_mod.build_plan(plan_mod.BenchSettings(
+        scenes=[synth_scene], out=tmp_path, schedules=["uniform", "gaussian", "clean"], fixed=[30, 50],
+        methods=["gsplat", "jsgs"], ablation=synth_scene.name, seeds=[0, 1], iterations=100,
+        eval_at=[50, 100],
+    ))  # fmt: skip
     ids = [r.id for r in p.runs]
     assert len(ids) == len(set(ids))
     n = synth_scene.name
@@ -162,7 +163,10 @@ def test_plan_layout_and_ablation(tmp_path: Path, synth_scene: Path) -> None:
     argv = plan_mod.train_argv(jo, "cuda", None, resume=False)
     assert argv[-3:] == ["--no-ds", "--no-gc", "--force"] and "--seed" in argv
     with pytest.raises(Exception, match="unknown schedule"):
-        plan_mod.build_plan([synth_scene], tmp_path, ["mixed"], [], ["gsplat"], None, [0], 10, [10])
+        plan_mod.build_plan(plan_mod.BenchSettings(
+            scenes=[synth_scene], out=tmp_path, schedules=["mixed"], fixed=[], methods=["gsplat"],
+            seeds=[0], iterations=10, eval_at=[10],
+        ))
 
 
 def test_prepare_only_then_plan_without_the_source(synth_scene: Path, tmp_path: Path) -> None:
@@ -182,10 +186,16 @@ def test_prepare_only_then_plan_without_the_source(synth_scene: Path, tmp_path: 
     assert (data / "manifest.json").is_file() and not (out / "runs").exists()
     assert json.loads((out / "bench.json").read_text())["status"] == "prepared"
     gone = tmp_path / "elsewhere" / synth_scene.name
-    plan = plan_mod.build_plan([gone], out, ["gaussian"], [], ["gsplat"], None, [0], 2, [2])
+    plan = plan_mod.build_plan(plan_mod.BenchSettings(
+        scenes=[gone], out=out, schedules=["gaussian"], fixed=[], methods=["gsplat"], seeds=[0],
+        iterations=2, eval_at=[2],
+    ))
     assert [d.out for d in plan.datasets] == [str(data)]
     with pytest.raises(JsgsError, match="scene folder not found"):
-        plan_mod.build_plan([tmp_path / "nope"], out, ["gaussian"], [], ["gsplat"], None, [0], 2, [2])
+        plan_mod.build_plan(plan_mod.BenchSettings(
+            scenes=[tmp_path / "nope"], out=out, schedules=["gaussian"], fixed=[], methods=["gsplat"],
+            seeds=[0], iterations=2, eval_at=[2],
+        ))
 
 
 def test_prepare_derives_from_the_clean_base(
@@ -216,7 +226,10 @@ def test_prepare_derives_from_the_clean_base(
 
     monkeypatch.setattr(jsgstools.compress, "compress", no_compress)
     gone = tmp_path / "elsewhere" / synth_scene.name
-    plan = plan_mod.build_plan([gone], out, ["gaussian", "clean"], [30], ["gsplat"], None, [0], 2, [2])
+    plan = plan_mod.build_plan(plan_mod.BenchSettings(
+        scenes=[gone], out=out, schedules=["gaussian", "clean"], fixed=[30], methods=["gsplat"],
+        seeds=[0], iterations=2, eval_at=[2],
+    ))
     status = prepare_datasets(plan, progress=False)
     assert {k: v["status"] for k, v in status.items()} == {
         f"{synth_scene.name}/gaussian_s0": "complete",
@@ -388,7 +401,7 @@ def test_time_limit_must_be_positive(tmp_path: Path) -> None:
     from jsgs.bench.harness import bench
 
     with pytest.raises(JsgsError, match="--time-limit -1: must be a positive number of seconds"):
-        bench(
-            [str(tmp_path / "scene")], tmp_path / "out", ["gaussian"], [], ["gsplat"], None, [0], 10,
-            time_limit=-1.0,
-        )  # fmt: skip
+        bench(plan_mod.BenchSettings(
+            scenes=[str(tmp_path / "scene")], out=tmp_path / "out", schedules=["gaussian"], fixed=[],
+            methods=["gsplat"], seeds=[0], iterations=10, time_limit=-1.0,
+        ))  # fmt: skip

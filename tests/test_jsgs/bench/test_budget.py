@@ -34,10 +34,11 @@ def test_parse_budgets() -> None:
 def test_plan_under_budgets(synth_scene: Path, tmp_path: Path) -> None:
     name = synth_scene.name
     budgets = plan_mod.parse_budgets("2k,0.5x")
-    p = plan_mod.build_plan(
-        [synth_scene], tmp_path, ["gaussian", "clean"], [], ["gsplat", "jsgs"], None, [0, 1], 10, [10],
-        "mcmc", budgets,
-    )  # fmt: skip
+    p = plan_mod.build_plan(plan_mod.BenchSettings(
+        scenes=[synth_scene], out=tmp_path, schedules=["gaussian", "clean"], fixed=[],
+        methods=["gsplat", "jsgs"], seeds=[0, 1], iterations=10, eval_at=[10], strategy="mcmc",
+        budgets=budgets,
+    ))  # fmt: skip
     refs = p.references()
     assert [r.id for r in refs] == [f"{name}/clean/gsplat/s0", f"{name}/clean/gsplat/s1"]
     assert all(r.strategy == "default" and r.cap is None for r in refs)
@@ -64,20 +65,22 @@ def test_plan_under_budgets(synth_scene: Path, tmp_path: Path) -> None:
     for kw, why in refused:
         args = {"fixed": [], "strategy": "mcmc", "budgets": budgets} | kw
         with pytest.raises(JsgsError, match=why):
-            plan_mod.build_plan(
-                [synth_scene], tmp_path, ["gaussian"], args["fixed"], ["gsplat"], None, [0], 10, [10],
-                args["strategy"], args["budgets"],
-            )  # fmt: skip
+            plan_mod.build_plan(plan_mod.BenchSettings(
+                scenes=[synth_scene], out=tmp_path, schedules=["gaussian"], fixed=args["fixed"],
+                methods=["gsplat"], seeds=[0], iterations=10, eval_at=[10], strategy=args["strategy"],
+                budgets=args["budgets"],
+            ))  # fmt: skip
 
 
 def test_plan_of_schedules_saved_twice(synth_scene: Path, tmp_path: Path) -> None:
     """``gaussian+r90``: the gaussian schedule's JPEGs saved once more at 90 (its own datasets, analysed);
     ``jsgs_eff``: JSGS with the effective tables, on the same files as gsplat and jsgs."""
     name = synth_scene.name
-    p = plan_mod.build_plan(
-        [synth_scene], tmp_path, ["gaussian+r90", "gaussian"], [], ["gsplat", "jsgs", "jsgs_eff"], None, [0],
-        10, [10], "mcmc", plan_mod.parse_budgets("2k"),
-    )  # fmt: skip
+    p = plan_mod.build_plan(plan_mod.BenchSettings(
+        scenes=[synth_scene], out=tmp_path, schedules=["gaussian+r90", "gaussian"], fixed=[],
+        methods=["gsplat", "jsgs", "jsgs_eff"], seeds=[0], iterations=10, eval_at=[10], strategy="mcmc",
+        budgets=plan_mod.parse_budgets("2k"),
+    ))  # fmt: skip
     d = {x.schedule: x for x in p.datasets}
     assert (d["gaussian+r90"].compress_schedule, d["gaussian+r90"].recompress) == ("gaussian", 90)
     assert d["gaussian"].recompress is None and d["gaussian+r90"].out.endswith(f"{name}/gaussian+r90_s0")
@@ -87,7 +90,10 @@ def test_plan_of_schedules_saved_twice(synth_scene: Path, tmp_path: Path) -> Non
     assert argv[argv.index("--method") + 1] == "jsgs" and argv[argv.index("--tables") + 1] == "effective"
     for bad in ("clean+r90", "gaussian+r0", "gaussian+90"):
         with pytest.raises(JsgsError, match="--schedules"):
-            plan_mod.build_plan([synth_scene], tmp_path, [bad], [], ["gsplat"], None, [0], 10, [10])
+            plan_mod.build_plan(plan_mod.BenchSettings(
+                scenes=[synth_scene], out=tmp_path, schedules=[bad], fixed=[], methods=["gsplat"],
+                seeds=[0], iterations=10, eval_at=[10],
+            ))
 
 
 def _t_cdf(x: float, df: int) -> float:

@@ -110,10 +110,11 @@ def test_plan_trains_gsplat_past_its_recipe(synth_scene: Path, tmp_path: Path) -
     ev = plan_mod.default_eval_at(30_000)
     assert ev == [3000, 7000, 10_000, 15_000, 20_000, 25_000, 30_000]
     assert plan_mod.default_eval_at(10_000) == [3000, 7000, 10_000] and plan_mod.default_eval_at(500) == [500]
-    plan = plan_mod.build_plan(
-        [synth_scene], tmp_path, ["gaussian", "clean"], [], ["gsplat", "jsgs"], None, [0], 30_000, ev,
-        "mcmc", plan_mod.parse_budgets("300k"), gsplat_steps=1.8,
-    )  # fmt: skip
+    plan = plan_mod.build_plan(plan_mod.BenchSettings(
+        scenes=[synth_scene], out=tmp_path, schedules=["gaussian", "clean"], fixed=[],
+        methods=["gsplat", "jsgs"], seeds=[0], iterations=30_000, eval_at=ev, strategy="mcmc",
+        budgets=plan_mod.parse_budgets("300k"), gsplat_steps=1.8,
+    ))  # fmt: skip
     runs = {(r.schedule, r.method): r for r in plan.runs}
     g = runs[("gaussian", "gsplat")]
     assert (g.iterations, g.schedule_steps) == (54_000, 30_000)
@@ -123,5 +124,7 @@ def test_plan_trains_gsplat_past_its_recipe(synth_scene: Path, tmp_path: Path) -
     assert plan_mod.longer_run([3, 6], 6, 1.0) == (6, [3, 6])
     assert plan_mod.longer_run([6], 6, 2.0) == (12, [6, 12])
     with pytest.raises(JsgsError, match="--gsplat-steps 0.5"):
-        plan_mod.build_plan([synth_scene], tmp_path, ["gaussian"], [], ["gsplat"], None, [0], 10, [10],
-                            gsplat_steps=0.5)  # fmt: skip
+        plan_mod.build_plan(plan_mod.BenchSettings(
+            scenes=[synth_scene], out=tmp_path, schedules=["gaussian"], fixed=[], methods=["gsplat"],
+            seeds=[0], iterations=10, eval_at=[10], gsplat_steps=0.5,
+        ))  # fmt: skip

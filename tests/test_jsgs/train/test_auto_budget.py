@@ -103,8 +103,10 @@ def test_the_bench_budget_auto(synth_scene: Path, tmp_path: Path) -> None:
 
     budgets = plan_mod.parse_budgets("100k,auto")
     assert [b.auto for b in budgets] == [False, True]
-    plan = plan_mod.build_plan([synth_scene], tmp_path, ["gaussian"], [], ["gsplat", "jsgs"], None, [0], 10,
-                               [10], "mcmc", budgets)  # fmt: skip
+    plan = plan_mod.build_plan(plan_mod.BenchSettings(
+        scenes=[synth_scene], out=tmp_path, schedules=["gaussian"], fixed=[], methods=["gsplat", "jsgs"],
+        seeds=[0], iterations=10, eval_at=[10], strategy="mcmc", budgets=budgets,
+    ))  # fmt: skip
     assert not plan.references()  # auto needs no reference run
     auto = [r for r in plan.runs if r.budget == "auto"]
     assert len(auto) == 2 and all(r.out.endswith("mcmc-auto/s0") and r.cap is None for r in auto)

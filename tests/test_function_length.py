@@ -1,0 +1,54 @@
+"""No function or method in ``jsgs`` or ``jsgstools`` longer than :data:`MAX_LINES` lines (its ``def`` line
+to its last, decorators excluded, docstring included): a long one is split into helpers that each do one
+thing. Read with ``ast``, not run."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("jsgs", "jsgstools")
+MAX_LINES = 100
+#: functions still over the limit, as ``path:name`` -> lines; each is to be split, and the test fails
+#: when one of them changes length (so the list shrinks as they are)
+KNOWN_LONG: dict[str, int] = {
+    "jsgs/render/bruteforce.py:render_bruteforce": 117,
+    "jsgs/train/config.py:config_schema": 114,
+    "jsgs/train/data.py:load_scene": 130,
+    "jsgs/train/trainer.py:_setup": 156,
+    "jsgs/train/trainer.py:step": 145,
+    "jsgstools/compress.py:compress": 161,
+    "jsgstools/derive.py:derive": 123,
+    "jsgstools/dqt/parser.py:_finish": 106,
+    "jsgstools/manifest_writer.py:build_manifest": 127,
+    "jsgstools/sfm.py:sfm": 112,
+    "jsgstools/validate.py:validate_scene": 182,
+}
+
+
+def long_functions(source: str, path: str, limit: int = MAX_LINES) -> dict[str, int]:
+    """``path:name`` -> lines of every function (nested and methods too) in ``source`` over ``limit``."""
+    out = {}
+    for node in ast.walk(ast.parse(source, path)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            n = (node.end_lineno or node.lineno) - node.lineno + 1
+            if n > limit:
+                out[f"{path}:{node.name}"] = n
+    return out
+
+
+def test_no_function_is_over_the_limit() -> None:
+    found: dict[str, int] = {}
+    files = [p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))]
+    assert len(files) > 100
+    for p in files:
+        found |= long_functions(p.read_text(), p.relative_to(ROOT).as_posix())
+    assert found == KNOWN_LONG
+
+
+def test_the_check_sees_a_long_function() -> None:
+    body = "".join(f"        x{i} = {i}\n" for i in range(MAX_LINES))
+    code = f"def short():\n    pass\n\nclass A:\n    def long(self):\n{body}"
+    assert long_functions(code, "m.py") == {"m.py:long": MAX_LINES + 1}
+    assert long_functions(code, "m.py", limit=MAX_LINES + 1) == {}
