@@ -53,24 +53,23 @@ def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
     """Read ``RUN/config.json`` and ``RUN/point_cloud.ply`` and the run's manifest (its cameras).
 
     JsgsError (one line) when RUN is not a finished run or its manifest has moved."""
-    from jsgs.base.limits import read_json
     from jsgs.base.ply import load_ply
+    from jsgs.train.config import read_run_config
     from jsgs.train.data import load_training_scene
     from jsgs.train.model import splats_from_state
     from jsgs.train.render_view import resolve_backend, resolve_device
-    from jsgs.train.trainer import load_run_settings
 
     run = Path(run)
     if not run.is_dir():
         raise JsgsError(f"{run}: no such run folder")
-    cfg = load_run_settings(run)
+    recorded = read_run_config(run)
+    cfg = recorded.settings
     ply = run / "point_cloud.ply"
     if not ply.is_file():
         raise JsgsError(
             f"{run}: no point_cloud.ply (the run is not finished: jsgs train --resume continues it)"
         )
-    doc = read_json(run / "config.json", "a run's config.json")
-    manifest = Path(str(doc.get("manifest", {}).get("path", "")))
+    manifest = recorded.manifest
     if not manifest.is_file():
         raise JsgsError(f"{run}: its manifest {manifest} is not there any more (the cameras come from it)")
     scene = load_training_scene(manifest, cfg)

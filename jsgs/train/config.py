@@ -721,6 +721,64 @@ def load_config_file(path: str | Path, base: TrainConfig | None = None) -> Train
 
 
 # ---------------------------------------------------------------------------------------------------------
+# A run's config.json, read in one place (the trainer's resume, jsgs render / export / view)
+
+
+@dataclass
+class RunConfig:
+    """A run folder's ``config.json`` (:func:`read_run_config`): the document, validated against the schema,
+    and its settings."""
+
+    path: Path
+    doc: dict[str, Any]
+    settings: TrainConfig
+
+    @property
+    def manifest(self) -> Path:
+        """The manifest the run was trained on."""
+        return Path(self.doc["manifest"]["path"])
+
+    @property
+    def manifest_sha256(self) -> str:
+        """The hash of that manifest when the run started."""
+        return str(self.doc["manifest"]["sha256"])
+
+    @property
+    def derived(self) -> dict[str, Any]:
+        """What the run derived from the manifest and its settings (``normalization``, ``world_size``)."""
+        out: dict[str, Any] = self.doc["derived"]
+        return out
+
+
+def read_run_config(run: str | Path) -> RunConfig:
+    """``RUN/config.json`` of the run folder ``run``, the one reader of it: the document validated against the
+    schema and its settings read (:func:`recorded_settings`) and checked. JsgsError (one line) when ``run``
+    holds none, or one that is not a run's or does not validate."""
+    from jsgs.base.run_files import RunPaths
+
+    run = Path(run)
+    path = RunPaths(run).config
+    if not path.is_file():
+        raise JsgsError(f"{run}: not a run folder (no config.json)")
+    doc = read_config_document(path)
+    if not is_run_config(doc):
+        raise JsgsError(f"{path}: not the config.json of a jsgs train run (no format)")
+    return RunConfig(path, doc, config_from_document(doc, path))
+
+
+def holds_run_config(run: str | Path) -> bool:
+    """Whether the folder ``run`` holds the ``config.json`` of a run (its ``format``), however damaged the
+    rest (``jsgs train --force`` replaces only such a folder's outputs)."""
+    from jsgs.base.run_files import RunPaths
+
+    path = RunPaths(Path(run)).config
+    try:
+        return bool(json.loads(path.read_text()).get("format") == RUN_CONFIG_FORMAT)
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return False
+
+
+# ---------------------------------------------------------------------------------------------------------
 # JSON Schema of the settings, generated from the dataclasses (jsgs/schemas/config.schema.json holds it;
 # a test checks that the file is up to date).
 

@@ -17,7 +17,6 @@ COLMAP point x to it (``config.json`` ``derived.normalization``, a 4x4 similarit
 from __future__ import annotations
 
 import datetime
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -132,19 +131,19 @@ def export_run(run: str | Path, out: str | Path, fmt: str = "ply", frame: str = 
     import os
 
     import jsgs
-    from jsgs.base.io import atomic_path, read_regular_text, write_json_atomic
+    from jsgs.base.io import atomic_path, write_json_atomic
     from jsgs.base.ply import load_ply
     from jsgs.base.run_files import check_gaussians, refuse_run_files
     from jsgs.schemas import validate
+    from jsgs.train.config import read_run_config
 
     run, out = Path(run), Path(out)
     if fmt not in FORMATS:
         raise JsgsError(f"--format {fmt!r}: choose one of {', '.join(FORMATS)}")
     if frame not in FRAMES:
         raise JsgsError(f"--frame {frame!r}: choose one of {', '.join(FRAMES)}")
-    ply, config = run / "point_cloud.ply", run / "config.json"
-    if not config.is_file():
-        raise JsgsError(f"{run}: not a run folder (no config.json)")
+    ply = run / "point_cloud.ply"
+    recorded = read_run_config(run)  # refuses a folder without a run's config.json
     if not ply.is_file():
         raise JsgsError(
             f"{run}: no point_cloud.ply (the run is not finished: jsgs train --resume continues it)"
@@ -157,11 +156,7 @@ def export_run(run: str | Path, out: str | Path, fmt: str = "ply", frame: str = 
             raise JsgsError(f"{p}: exists (use --force to replace it)")
         if p.is_dir():
             raise JsgsError(f"{p}: is a folder; give a file name")
-    try:
-        doc = json.loads(read_regular_text(config))
-        normalization = np.asarray(doc["derived"]["normalization"], dtype=np.float64)
-    except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
-        raise JsgsError(f"{config}: no usable derived.normalization ({e})") from None
+    normalization = np.asarray(recorded.derived["normalization"], dtype=np.float64)
     arrays = load_ply(ply)
     n = check_gaussians(arrays, ply)
     if frame == "colmap":

@@ -45,7 +45,15 @@ from jsgs.kernels import use_kernels
 from jsgs.train import checkpoint as ckpt
 from jsgs.train import distributed as dd
 from jsgs.train.callbacks import Callback, StepResult
-from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, to_dict
+from jsgs.train.config import (
+    RUN_CONFIG_FORMAT,
+    RUN_CONFIG_VERSION,
+    RunConfig,
+    TrainConfig,
+    holds_run_config,
+    read_run_config,
+    to_dict,
+)
 from jsgs.train.data import ViewSampler, load_eval_images, load_train_images, load_training_scene
 from jsgs.train.evaluate import evaluate, synchronize
 from jsgs.train.hook import HookOutput, LossHook, StepContext, make_hook
@@ -180,24 +188,23 @@ def _diff_settings(
     return None
 
 
-def _checkpoint_agrees(doc: dict[str, Any], path: Path, paths: RunPaths, cfg: TrainConfig) -> None:
+def _checkpoint_agrees(doc: dict[str, Any], path: Path, run: RunConfig, cfg: TrainConfig) -> None:
     """A checkpoint is used only where it belongs to RUN as it is now: the settings of RUN/config.json, the
     manifest that config.json names, a step within the run's iterations. One line says what differs and how
     to go on otherwise."""
     from jsgs.train.config import recorded_settings
 
     start_over = "move it out of the way to resume from the checkpoint before it, or start over with --force"
-    run_sha = json_load(paths.config).get("manifest", {}).get("sha256")
-    if doc["manifest_sha256"] != run_sha:
+    if doc["manifest_sha256"] != run.manifest_sha256:
         raise JsgsError(
-            f"{path}: written for another manifest than the one {paths.config} names (its manifest hash "
+            f"{path}: written for another manifest than the one {run.path} names (its manifest hash "
             f"differs); {start_over}"
         )
     mine = to_dict(recorded_settings(doc["settings"], str(path)))
-    d = _diff_settings(to_dict(cfg), mine, labels=(f"in {paths.config.name}", "in the checkpoint"))
+    d = _diff_settings(to_dict(cfg), mine, labels=(f"in {run.path.name}", "in the checkpoint"))
     if d:
         raise JsgsError(
-            f"{path}: written with other settings than {paths.config} (edited after the checkpoint?): {d}; "
+            f"{path}: written with other settings than {run.path} (edited after the checkpoint?): {d}; "
             f"restore config.json, or start over with --force"
         )
     if doc["step"] > cfg.iterations:
@@ -222,19 +229,12 @@ def _check_out(paths: RunPaths, resume: bool, force: bool) -> None:
             f"{root}: folder is not empty; pass --resume to continue that run or --force to overwrite it"
         )
     if entries and force:
-        ours = paths.config.is_file() and _is_run_config(paths.config)
+        ours = holds_run_config(root)
         if not ours:
             raise JsgsError(
                 f"{root}: --force replaces an earlier run of jsgs train, and this folder holds none (no "
                 "config.json of a run); choose another --out"
             )
-
-
-def _is_run_config(path: Path) -> bool:
-    try:
-        return json.loads(path.read_text()).get("format") == RUN_CONFIG_FORMAT
-    except (OSError, ValueError, AttributeError, RecursionError):
-        return False
 
 
 def _leftovers(paths: RunPaths) -> list[Path]:
@@ -275,15 +275,12 @@ def _clear_out(paths: RunPaths) -> None:
 
 
 def load_run_settings(run_dir: str | Path) -> TrainConfig:
-    """The settings of an existing run (``RUN/config.json``)."""
-    from jsgs.train.config import load_config_file
-
-    path = Path(run_dir) / "config.json"
-    if not path.exists():
+    """The settings of a run to resume (``RUN/config.json``, :func:`jsgs.train.config.read_run_config`)."""
+    if not RunPaths(Path(run_dir)).config.exists():
         raise JsgsError(
             f"{Path(run_dir)}: nothing to resume (no config.json); start the run without --resume"
         )
-    return load_config_file(path)
+    return read_run_config(run_dir).settings
 
 
 def _finite_check(
@@ -425,13 +422,6 @@ def runs_per_device() -> int | None:
     return int(text) if text.isdigit() and int(text) >= 1 else None
 
 
-def json_load(path: Path) -> dict[str, Any]:
-    from jsgs.base.limits import read_json
-
-    doc: dict[str, Any] = read_json(path)
-    return doc
-
-
 
 class Trainer:
     """One training run: :meth:`setup` (settings, scene, Gaussians, optimizers, resume), :meth:`step` (one
@@ -508,6 +498,7 @@ class Trainer:
         error: JsgsError | None = None
         self.lock = None
         self._run_config: dict[str, Any] | None = None
+        self.recorded: RunConfig | None = None  # RUN/config.json of the run resumed
         try:
             self._setup()
         except JsgsError as e:
@@ -526,7 +517,8 @@ class Trainer:
         cfg = self.cfg
         start_ckpt: dict[str, Any] | None = None
         if self.resuming:
-            stored = load_run_settings(paths.root)
+            self.recorded = read_run_config(paths.root)
+            stored = self.recorded.settings
             if cfg is not None:
                 d = _diff_settings(to_dict(stored), to_dict(cfg))
                 if d:
@@ -542,7 +534,8 @@ class Trainer:
             raise JsgsError(f"stop_at must lie in 1..{cfg.iterations} (got {self.stop_at})")
         self.end_step = cfg.iterations if self.stop_at is None else self.stop_at
         if self.resuming:
-            ran_on = int(json_load(paths.config).get("derived", {}).get("world_size", 1))
+            assert self.recorded is not None
+            ran_on = int(self.recorded.derived.get("world_size", 1))
             if ran_on != self.world.size:
                 raise JsgsError(
                     f"{paths.root}: the run was trained on {ran_on} process(es); resume it on as many (now "
@@ -557,9 +550,8 @@ class Trainer:
         self.scene = scene = load_training_scene(self.manifest, cfg)
         for note in scene.notes:
             self.say(f"note: {note}")
-        if self.resuming:
-            old = json_load(paths.config)
-            if old.get("manifest", {}).get("sha256") != scene.manifest_sha256:
+        if self.recorded is not None:
+            if self.recorded.manifest_sha256 != scene.manifest_sha256:
                 raise JsgsError(
                     f"{self.manifest}: differs from the manifest the run in {paths.root} was started with"
                 )
@@ -658,8 +650,8 @@ class Trainer:
             "num_train_views": len(self.train_views),
             "num_test_views": len(scene.test_views),
             "initial_gaussians": initial
-            if start_ckpt is None
-            else int(json_load(paths.config)["derived"]["initial_gaussians"]),
+            if self.recorded is None
+            else int(self.recorded.derived["initial_gaussians"]),
             "notes": [*scene.notes, *hook_notes],
             "ssim_kernel": "cuda"
             if use_kernels(cfg.speed.ssim_kernel, device, "speed.ssim_kernel")
@@ -813,7 +805,8 @@ class Trainer:
         ckpt_step, ckpt_path = found[-1]
         doc = ckpt.load_checkpoint(ckpt_path)
         ckpt.check_structure(doc, ckpt_path, ckpt_step)
-        _checkpoint_agrees(doc, ckpt_path, self.paths, cfg)
+        run = self.recorded if self.recorded is not None else read_run_config(self.paths.root)
+        _checkpoint_agrees(doc, ckpt_path, run, cfg)
         doc["_path"] = str(ckpt_path)
         return doc
 

@@ -259,6 +259,21 @@ def test_end_to_end_loss_decreases_and_outputs(scene: Path, tmp_path: Path) -> N
         train(scene, run, tiny_config(iterations=24, eval_at=[8, 24]), progress=False)
     again = train(scene, run, None, resume=True, progress=False)
     assert again["status"] == "complete" and again["evals"] == doc["evals"]
+    # the one reader of a run's config.json: the document, its settings, the manifest it names
+    from jsgs.train.config import holds_run_config, read_run_config
+
+    recorded = read_run_config(run)
+    assert recorded.doc == conf and recorded.settings == tiny_config(iterations=24, eval_at=[8, 24])
+    assert recorded.manifest.resolve() == scene.resolve() and recorded.derived["initial_gaussians"] == 80
+    assert recorded.manifest_sha256 == conf["manifest"]["sha256"]
+    assert holds_run_config(run) and not holds_run_config(tmp_path)
+    with pytest.raises(JsgsError, match=r"not a run folder \(no config.json\)"):
+        read_run_config(tmp_path)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "config.json").write_text('{"iterations": 5}')
+    with pytest.raises(JsgsError, match="not the config.json of a jsgs train run"):
+        read_run_config(other)
 
 
 def test_densification_as_default_strategy_says(scene: Path, tmp_path: Path) -> None:
