@@ -11,7 +11,7 @@ import click
 from jsgs.base.commands import CONTEXT, EXAMPLE, MAX_PROCESSES, PORT, invocation, user_errors
 from jsgs.base.errors import JsgsError
 from jsgs.train.config import PRESETS
-from jsgs.train.method import method_flags, method_names
+from jsgs.train.method import method_flags, method_names, method_recipe
 
 
 def method_switches(command: Callable[..., Any]) -> Callable[..., Any]:
@@ -26,6 +26,21 @@ def method_switches(command: Callable[..., Any]) -> Callable[..., Any]:
             else:
                 command = click.option(f.flag, f.dest, is_flag=True, help=text)(command)
     return command
+
+
+def recipes_text(preset: str) -> str:
+    """What preset ``preset`` gives each method, for the help (:func:`jsgs.train.method.method_recipe`)."""
+
+    def word(key: str, value: Any) -> str:
+        if isinstance(value, bool):
+            return key if value else f"{key} false"
+        return f"{key} {format(value, 'g') if isinstance(value, float) else value}"
+
+    return "".join(
+        f"; for --method {name}: method_options " + ", ".join(word(k, v) for k, v in recipe.items())
+        for name in method_names()
+        if (recipe := method_recipe(name, preset))
+    )
 
 
 def given_switches(values: dict[str, Any]) -> dict[str, Any]:
@@ -89,11 +104,10 @@ def _parse_steps(text: str) -> list[int]:
     "--preset",
     type=click.Choice(list(PRESETS)),
     default=None,
-    help="Starting settings under --config and the options. mcmc: gsplat simple_trainer's mcmc recipe "
-    "(30000 steps, evaluations at 7000 and 30000, MCMCStrategy refining until step 25000 with a budget of "
-    "strategy.cap_max = 300000 Gaussians, init.opacity 0.5, init.scale 0.1, "
-    "loss.opacity_reg 0.01, loss.scale_reg 0.01; for --method jsgs, λ_obs 1 and λ_base per JPEG view: "
-    "method_options lambda_obs 1, base_by_view, base_noise pixels, base_noise_ref 2, base_noise_exponent 2); "
+    help="Starting settings under --config and the options. mcmc (the defaults): gsplat simple_trainer's "
+    "mcmc recipe (30000 steps, evaluations at 7000 and 30000, MCMCStrategy refining until step 25000 with a "
+    "budget of strategy.cap_max = 300000 Gaussians, init.opacity 0.5, init.scale 0.1, "
+    f"loss.opacity_reg 0.01, loss.scale_reg 0.01{recipes_text('mcmc')}); "
     "paper: the paper's protocol (gsplat's DefaultStrategy and default recipe, JSGS at the paper's "
     "weights, 10000 steps); preview: a quick CPU look at photos downscaled by 2 (the baseline, --method "
     "gsplat, with DefaultStrategy, 1000 steps, one evaluation at the end; docs/training.md) [default: mcmc].",

@@ -286,6 +286,11 @@ def test_each_method_brings_its_recipes_and_switches_through_the_registry() -> N
         assert value == (f.choices[-1] if f.choices else f.value)
     with pytest.raises(JsgsError, match="^--jpeg-mode, --tables, .* and --no-gc apply to --method jsgs"):
         command_settings(preset_name="preview", switches={"--tables": "effective"})
+    from jsgs.cli.train import recipes_text  # the help of --preset names each method's recipe
+
+    words = "lambda_obs 1, base_by_view, base_noise pixels, base_noise_ref 2, base_noise_exponent 2"
+    assert recipes_text("mcmc") == f"; for --method jsgs: method_options {words}"
+    assert recipes_text("paper") == recipes_text("preview") == ""
 
 
 def test_the_mcmc_preset_gives_jsgs_its_recipe_under_the_users_options(tmp_path: Path) -> None:
