@@ -39,6 +39,7 @@ from .scene import (
     PINHOLE_MODELS,
     UNDISTORTABLE_MODELS,
     ColmapScene,
+    ColmapView,
     detect_downscale,
     finite,
     fmt_factor,
@@ -227,10 +228,26 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
         report.problems.append(Problem("model", str(e)))
         return report
     report.scene = scene
-    P = report.problems
+    _check_cameras(scene, report)
+    _check_names(scene, report)
+    _check_views(scene, report, decode)
+    _check_sizes(scene, report)
+    _check_record(scene, report)
+    if (w := orientation_warning(scene)) is not None:
+        report.warnings.append(w)
+    if analyze:
+        report.warnings += _double_compression_warnings(scene)
+    report.warnings += _left_out_warnings(scene)
+    if (w := _coincident_cameras_warning(scene)) is not None:
+        report.warnings.append(w)
+    _check_points(scene, report)
+    return report
 
-    # Cameras (size, finite positive focals, principal point and distortion are checked when the model is
-    # read: jsgstools.colmap_check; a model failing them is a "model" problem above).
+
+def _check_cameras(scene: ColmapScene, report: ValidationReport) -> None:
+    """Camera models: a distorted one compress can undistort is a warning, any other non-pinhole one a
+    problem. (Size, finite positive focals, principal point and distortion are checked when the model is
+    read: jsgstools.colmap_check; a model failing them is a "model" problem.)"""
     for cid, cam in sorted(scene.cameras.items()):
         where = f"{scene.rel(scene.model_dir)}: camera {cid}"
         if cam.model in UNDISTORTABLE_MODELS:
@@ -239,7 +256,7 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
                 "PINHOLE before encoding; a JPEG-only scene trains as it is, on the photos' own grid"
             )
         elif cam.model not in PINHOLE_MODELS:
-            P.append(
+            report.problems.append(
                 Problem(
                     "camera_model",
                     f"{where}: camera model {cam.model} is not supported (supported: "
@@ -248,9 +265,11 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
                 )
             )
 
-    # Names.
+
+def _check_names(scene: ColmapScene, report: ValidationReport) -> None:
+    """Image names used twice, images without a pose (a warning), no registered image."""
     for name, ids in sorted(scene.duplicate_names.items()):
-        P.append(
+        report.problems.append(
             Problem(
                 "names",
                 f"{scene.rel(scene.model_dir)}: image name {name!r} is used by "
@@ -263,67 +282,79 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
             f"are ignored (e.g. {scene.unregistered[0]})"
         )
     if not scene.views:
-        P.append(Problem("model", f"{scene.rel(scene.model_dir)}: no registered images"))
+        report.problems.append(Problem("model", f"{scene.rel(scene.model_dir)}: no registered images"))
 
-    # Images.
+
+def _check_views(scene: ColmapScene, report: ValidationReport, decode: bool) -> None:
+    """The images folder, and each registered image's camera, pose and file."""
     have_images = scene.images_dir.is_dir()
     if not have_images:
-        P.append(Problem("images", f"{scene.images_dir}: images folder not found"))
+        report.problems.append(Problem("images", f"{scene.images_dir}: images folder not found"))
     for v in scene.views:
-        if v.camera_id not in scene.cameras:
-            P.append(
-                Problem(
-                    "camera",
-                    f"{scene.rel(scene.model_dir)}: image {v.name!r} uses camera "
-                    f"{v.camera_id}, which is not in the model",
-                )
-            )
-        if not (finite(v.R) and finite(v.t)):
-            P.append(
-                Problem(
-                    "pose",
-                    f"{scene.rel(scene.model_dir)}: image {v.name!r} has a non-finite pose "
-                    f"(R={v.R.tolist()}, t={v.t.tolist()})",
-                )
-            )
-        elif not _in_range(v.t):
-            P.append(
-                Problem(
-                    "pose",
-                    f"{scene.rel(scene.model_dir)}: image {v.name!r}: its translation {v.t.tolist()} lies "
-                    f"beyond ±{MAX_COORDINATE:g}",
-                )
-            )
-        if not have_images:
-            continue
-        if v.path is None:
-            P.append(
-                Problem(
-                    "image",
-                    f"{scene.rel(scene.images_dir / v.name)}: registered image not found "
-                    "(nor a unique file with the same stem)",
-                )
-            )
-        elif v.read_error is not None:
-            P.append(Problem("image", f"{scene.rel(v.path)}: {v.read_error}"))
-        elif decode and (err := _decode_error(v.path)) is not None:
-            P.append(Problem("image", err))
-        elif v.format not in JPEG_FORMATS + LOSSLESS_FORMATS:
-            P.append(
-                Problem(
-                    "image",
-                    f"{scene.rel(v.path)}: format {v.format} is not supported "
-                    f"(JPEG, or lossless {', '.join(LOSSLESS_FORMATS)})",
-                )
-            )
+        report.problems.extend(_view_model_problems(scene, v))
+        if have_images and (problem := _view_file_problem(scene, v, decode)) is not None:
+            report.problems.append(problem)
 
-    # Sizes: one factor for the scene, one size per camera.
+
+def _view_model_problems(scene: ColmapScene, v: ColmapView) -> list[Problem]:
+    """A view's camera missing from the model; its pose not finite, or beyond the coordinate limit."""
+    out = []
+    if v.camera_id not in scene.cameras:
+        out.append(
+            Problem(
+                "camera",
+                f"{scene.rel(scene.model_dir)}: image {v.name!r} uses camera "
+                f"{v.camera_id}, which is not in the model",
+            )
+        )
+    if not (finite(v.R) and finite(v.t)):
+        out.append(
+            Problem(
+                "pose",
+                f"{scene.rel(scene.model_dir)}: image {v.name!r} has a non-finite pose "
+                f"(R={v.R.tolist()}, t={v.t.tolist()})",
+            )
+        )
+    elif not _in_range(v.t):
+        out.append(
+            Problem(
+                "pose",
+                f"{scene.rel(scene.model_dir)}: image {v.name!r}: its translation {v.t.tolist()} lies "
+                f"beyond ±{MAX_COORDINATE:g}",
+            )
+        )
+    return out
+
+
+def _view_file_problem(scene: ColmapScene, v: ColmapView, decode: bool) -> Problem | None:
+    """A view's image file missing, unreadable, not decodable (with ``decode``) or in a format not used."""
+    if v.path is None:
+        return Problem(
+            "image",
+            f"{scene.rel(scene.images_dir / v.name)}: registered image not found "
+            "(nor a unique file with the same stem)",
+        )
+    if v.read_error is not None:
+        return Problem("image", f"{scene.rel(v.path)}: {v.read_error}")
+    if decode and (err := _decode_error(v.path)) is not None:
+        return Problem("image", err)
+    if v.format not in JPEG_FORMATS + LOSSLESS_FORMATS:
+        return Problem(
+            "image",
+            f"{scene.rel(v.path)}: format {v.format} is not supported "
+            f"(JPEG, or lossless {', '.join(LOSSLESS_FORMATS)})",
+        )
+    return None
+
+
+def _check_sizes(scene: ColmapScene, report: ValidationReport) -> None:
+    """One downscale factor for the scene (recorded in the report), one image size per camera."""
     ds = detect_downscale(scene)
     report.downscale = ds.factor
     by_name = {v.name: v for v in scene.views}
     for name, msg in ds.problems:
         v = by_name[name]
-        P.append(Problem("size", f"{scene.rel(v.path) if v.path else name}: {msg}"))
+        report.problems.append(Problem("size", f"{scene.rel(v.path) if v.path else name}: {msg}"))
     per_cam: dict[int, set[tuple[int, int]]] = defaultdict(set)
     flagged = {name for name, _ in ds.problems}  # already reported once
     for v in scene.views:
@@ -331,7 +362,7 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
             per_cam[v.camera_id].add(v.size)
     for cid, sizes in sorted(per_cam.items()):
         if len(sizes) > 1:
-            P.append(
+            report.problems.append(
                 Problem(
                     "size",
                     f"{scene.rel(scene.model_dir)}: camera {cid} is shared by images of "
@@ -339,7 +370,9 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
                 )
             )
 
-    # The record of a dataset made by compress.
+
+def _check_record(scene: ColmapScene, report: ValidationReport) -> None:
+    """The record of a dataset made by compress (``compress.json``), when there is one, can be read."""
     record = scene.root / "compress.json"
     if record.is_file():
         import json
@@ -351,38 +384,44 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
             ):
                 raise ValueError("settings.test_every or a view's split is not what compress writes")
         except (OSError, ValueError, KeyError, TypeError, RecursionError) as e:
-            P.append(Problem("record", f"{scene.rel(record)}: unreadable ({type(e).__name__}: {e})"))
+            report.problems.append(
+                Problem("record", f"{scene.rel(record)}: unreadable ({type(e).__name__}: {e})")
+            )
 
-    if (w := orientation_warning(scene)) is not None:
-        report.warnings.append(w)
-    if analyze:
-        report.warnings += _double_compression_warnings(scene)
 
-    # What the model leaves out.
+def _left_out_warnings(scene: ColmapScene) -> list[str]:
+    """What the model leaves out: image files it does not use, other models under ``sparse/``."""
+    out = []
     if scene.unused_files:
         names = ", ".join(scene.unused_files[:8]) + (" ..." if len(scene.unused_files) > 8 else "")
-        report.warnings.append(
+        out.append(
             f"{scene.rel(scene.images_dir)}: {len(scene.unused_files)} image file(s) not in the model (not "
             f"registered; no tool uses them): {names}"
         )
     for other in scene.other_models:
-        report.warnings.append(
+        out.append(
             f"{scene.rel(scene.root / other)}: another COLMAP model (every tool reads "
             f"{scene.rel(scene.model_dir)} only)"
         )
+    return out
 
-    # Cameras at one position: the trainer's world normalisation has no extent to scale by.
+
+def _coincident_cameras_warning(scene: ColmapScene) -> str | None:
+    """Cameras at one position: the trainer's world normalisation has no extent to scale by."""
     centres = [-v.R.T @ v.t for v in scene.views if finite(v.R) and _in_range(v.t)]
     if len(centres) > 1:
         c = np.array(centres)
         spread = float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())
         if spread <= COINCIDENT_CAMERAS * max(1.0, float(np.abs(c).max())):
-            report.warnings.append(
+            return (
                 f"{scene.rel(scene.model_dir)}: all {len(c)} cameras are at one position: jsgs train refuses "
                 "the scene unless scene.normalize_world is false"
             )
+    return None
 
-    # Points.
+
+def _check_points(scene: ColmapScene, report: ValidationReport) -> None:
+    """Cameras that see none of the points3D (a warning each); no points3D at all."""
     for v, n in _points_seen(scene):
         if n == 0:
             report.warnings.append(
@@ -390,12 +429,11 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
                 f"{len(scene.points_xyz)} points3D (a pose or a camera that does not belong to this model?)"
             )
     if len(scene.points_xyz) == 0:
-        P.append(
+        report.problems.append(
             Problem(
                 "points", f"{scene.rel(scene.model_dir)}: points3D is empty (the trainer initializes from it)"
             )
         )
-    return report
 
 
 def require_valid(root: str | Path, allow: tuple[str, ...] = ()) -> ValidationReport:

@@ -22,7 +22,6 @@ KNOWN_LONG: frozenset[str] = frozenset({
     "jsgstools/dqt/parser.py:_finish",
     "jsgstools/manifest_writer.py:build_manifest",
     "jsgstools/sfm.py:sfm",
-    "jsgstools/validate.py:validate_scene",
 })  # fmt: skip
 
 
