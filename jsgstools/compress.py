@@ -54,6 +54,7 @@ from jsgs.schemas import validate as schema_validate
 from .scene import (
     LOSSLESS_FORMATS,
     ColmapCamera,
+    ColmapScene,
     image_stem,
     prepare_output_dir,
     removes_partial_output,
@@ -395,76 +396,25 @@ def compress(
     from .validate import require_valid
 
     scene_dir, out = Path(scene_dir), Path(out)
-    if subsampling not in SUBSAMPLING:
-        raise JsgsError(f"--subsampling {subsampling!r}: choose one of {', '.join(SUBSAMPLING)}")
-    if jobs is not None and jobs < 1:
-        raise JsgsError(f"--jobs {jobs}: must be at least 1")
-    if test_every < 1:
-        raise JsgsError(f"--test-every {test_every}: must be at least 1")
+    _check_options(subsampling, jobs, test_every)
     report = require_valid(scene_dir)
     scene = report.scene
     assert scene is not None
-    lossy = [v for v in scene.views if v.format not in LOSSLESS_FORMATS]
-    if lossy:
-        raise JsgsError(
-            f"{lossy[0].path}: compress needs lossless source images, this one is {lossy[0].format}"
-            + (f" (and {len(lossy) - 1} more)" if len(lossy) > 1 else "")
-        )
+    _require_lossless(scene)
     the_plan = plan([v.name for v in scene.views], schedule, quality, seed, test_every)
-
-    # Output names: the stem of the model name, .jpg for encoded views, .png for lossless ones.
-    out_names: dict[str, str] = {}
-    for v in scene.views:
-        ext = ".png" if the_plan.quality[v.name] is None else ".jpg"
-        out_names[v.name] = image_stem(v.name) + ext
-    stems: dict[str, list[str]] = {}
-    for v in scene.views:
-        stems.setdefault(image_stem(v.name).lower(), []).append(v.name)
-    clash = [names for names in stems.values() if len(names) > 1]
-    if clash:
-        raise JsgsError(
-            f"{scene.model_dir}: images {' and '.join(map(repr, clash[0]))} would be written to the "
-            "same output file (names differ only by extension or case)"
-        )
-
-    # Cameras: scaled to the files, then undistorted to PINHOLE.
-    cams_in: dict[int, ColmapCamera] = {}
-    cams_out: dict[int, ColmapCamera] = {}
-    zoom: dict[int, float] = {}
-    for v in scene.views:
-        if v.camera_id not in cams_in:
-            cam = view_camera(scene, v)
-            cams_in[v.camera_id] = cam
-            cams_out[v.camera_id], zoom[v.camera_id] = undistorted_camera(cam)
+    out_names = _output_names(scene, the_plan)
+    cams_in, cams_out, zoom = _cameras(scene)
 
     prepare_output_dir(out, force, OWNED, protect=scene_dir, tool="compress")
     ss_name, ss_pil = SUBSAMPLING[subsampling]
-    tasks = [
-        Task(
-            name=v.name,
-            src=str(v.path),
-            camera=cams_in[v.camera_id],
-            pinhole=cams_out[v.camera_id],
-            reference=str(out / "reference" / (image_stem(v.name) + ".png")),
-            image=str(out / "images" / out_names[v.name]),
-            quality=the_plan.quality[v.name],
-            subsampling=ss_pil,
-            recompress=recompress,
-        )
-        for v in scene.views
-    ]
+    tasks = _tasks(scene, out, the_plan, out_names, cams_in, cams_out, ss_pil, recompress)
     results = {r["name"]: r for r in _run_all(tasks, jobs or os.cpu_count() or 1, progress)}
 
     write_model_atomic(_output_model(scene, out_names, cams_in, cams_out), out / "sparse" / "0")
 
-    undistorted = any(not c.is_pinhole for c in cams_in.values())
     downscale = None if report.downscale in (None, 1.0) else report.downscale
-    command = command or (
-        f"jsgstools compress {shlex.quote(str(scene_dir))} --out {shlex.quote(str(out))} "
-        f"--schedule {schedule}"
-        + (f" --quality {quality}" if quality is not None else "")
-        + f" --seed {seed} --test-every {test_every} --subsampling {subsampling}"
-        + (f" --recompress {recompress}" if recompress is not None else "")
+    command = command or _command_line(
+        scene_dir, out, schedule, quality, seed, test_every, subsampling, recompress
     )
     settings = {
         "schedule": schedule,
@@ -477,7 +427,7 @@ def compress(
         "count_rule": COUNT_RULE,
         "assignment_rule": ASSIGN_RULE,
         "downscale": downscale,
-        "undistorted": undistorted,
+        "undistorted": any(not c.is_pinhole for c in cams_in.values()),
         "recompress": recompress,
     }
     record: dict[str, Any] = {
@@ -492,29 +442,8 @@ def compress(
             "downscale": downscale,
         },
         "settings": settings,
-        "cameras": [
-            {
-                "camera_id": cid,
-                "source": _camera_doc(scene.cameras[cid]),
-                "scaled": _camera_doc(cams_in[cid]),
-                "output": _camera_doc(cams_out[cid]),
-                "undistorted": not cams_in[cid].is_pinhole,
-                "zoom": zoom[cid],
-            }
-            for cid in sorted(cams_out)
-        ],
-        "views": [
-            {
-                "name": out_names[v.name],
-                "source_name": v.name,
-                "split": the_plan.split[v.name],
-                "quality": the_plan.quality[v.name],
-                "image": f"images/{out_names[v.name]}",
-                "reference": f"reference/{image_stem(v.name)}.png",
-                "bytes": results[v.name]["bytes"],
-            }
-            for v in scene.views
-        ],
+        "cameras": _camera_records(scene, cams_in, cams_out, zoom),
+        "views": _view_records(scene, the_plan, out_names, results),
     }
     schema_validate(record, "compress_record", str(out / "compress.json"))
     write_bytes_atomic(out / "compress.json", manifest_mod.dumps(record).encode())
@@ -531,6 +460,134 @@ def compress(
     doc = manifest_mod.build_manifest(out, out / "manifest.json", producer=producer, analyze=analyze)
     manifest_mod.write_manifest(doc, out / "manifest.json")
     return CompressResult(out, record, doc)
+
+
+def _command_line(
+    scene_dir: Path, out: Path, schedule: str, quality: int | None, seed: int, test_every: int,
+    subsampling: str, recompress: int | None,
+) -> str:  # fmt: skip
+    """The ``jsgstools compress`` command line that makes the dataset, recorded when none is given."""
+    return (
+        f"jsgstools compress {shlex.quote(str(scene_dir))} --out {shlex.quote(str(out))} "
+        f"--schedule {schedule}"
+        + (f" --quality {quality}" if quality is not None else "")
+        + f" --seed {seed} --test-every {test_every} --subsampling {subsampling}"
+        + (f" --recompress {recompress}" if recompress is not None else "")
+    )
+
+
+def _check_options(subsampling: str, jobs: int | None, test_every: int) -> None:
+    """JsgsError (one line, naming the option) for a subsampling, job count or test spacing not allowed."""
+    if subsampling not in SUBSAMPLING:
+        raise JsgsError(f"--subsampling {subsampling!r}: choose one of {', '.join(SUBSAMPLING)}")
+    if jobs is not None and jobs < 1:
+        raise JsgsError(f"--jobs {jobs}: must be at least 1")
+    if test_every < 1:
+        raise JsgsError(f"--test-every {test_every}: must be at least 1")
+
+
+def _require_lossless(scene: ColmapScene) -> None:
+    """JsgsError naming the first source image that is not lossless (and how many more there are)."""
+    lossy = [v for v in scene.views if v.format not in LOSSLESS_FORMATS]
+    if lossy:
+        raise JsgsError(
+            f"{lossy[0].path}: compress needs lossless source images, this one is {lossy[0].format}"
+            + (f" (and {len(lossy) - 1} more)" if len(lossy) > 1 else "")
+        )
+
+
+def _output_names(scene: ColmapScene, the_plan: CompressionPlan) -> dict[str, str]:
+    """source name -> output name: the stem of the model name, .jpg for encoded views, .png for lossless
+    ones (JsgsError when two would be one file)."""
+    out_names: dict[str, str] = {}
+    for v in scene.views:
+        ext = ".png" if the_plan.quality[v.name] is None else ".jpg"
+        out_names[v.name] = image_stem(v.name) + ext
+    stems: dict[str, list[str]] = {}
+    for v in scene.views:
+        stems.setdefault(image_stem(v.name).lower(), []).append(v.name)
+    clash = [names for names in stems.values() if len(names) > 1]
+    if clash:
+        raise JsgsError(
+            f"{scene.model_dir}: images {' and '.join(map(repr, clash[0]))} would be written to the "
+            "same output file (names differ only by extension or case)"
+        )
+    return out_names
+
+
+def _cameras(
+    scene: ColmapScene,
+) -> tuple[dict[int, ColmapCamera], dict[int, ColmapCamera], dict[int, float]]:
+    """The cameras of the registered views: scaled to the files (in), then undistorted to PINHOLE (out),
+    and the zoom of each undistortion; by camera id."""
+    cams_in: dict[int, ColmapCamera] = {}
+    cams_out: dict[int, ColmapCamera] = {}
+    zoom: dict[int, float] = {}
+    for v in scene.views:
+        if v.camera_id not in cams_in:
+            cam = view_camera(scene, v)
+            cams_in[v.camera_id] = cam
+            cams_out[v.camera_id], zoom[v.camera_id] = undistorted_camera(cam)
+    return cams_in, cams_out, zoom
+
+
+def _tasks(
+    scene: ColmapScene, out: Path, the_plan: CompressionPlan, out_names: dict[str, str],
+    cams_in: dict[int, ColmapCamera], cams_out: dict[int, ColmapCamera], subsampling: int,
+    recompress: int | None,
+) -> list[Task]:  # fmt: skip
+    """One :class:`Task` per registered view: its source, cameras, output files and quality."""
+    return [
+        Task(
+            name=v.name,
+            src=str(v.path),
+            camera=cams_in[v.camera_id],
+            pinhole=cams_out[v.camera_id],
+            reference=str(out / "reference" / (image_stem(v.name) + ".png")),
+            image=str(out / "images" / out_names[v.name]),
+            quality=the_plan.quality[v.name],
+            subsampling=subsampling,
+            recompress=recompress,
+        )
+        for v in scene.views
+    ]
+
+
+def _camera_records(
+    scene: ColmapScene, cams_in: dict[int, ColmapCamera], cams_out: dict[int, ColmapCamera],
+    zoom: dict[int, float],
+) -> list[dict[str, Any]]:  # fmt: skip
+    """compress.json's ``cameras``: each camera as in the source, scaled and output."""
+    return [
+        {
+            "camera_id": cid,
+            "source": _camera_doc(scene.cameras[cid]),
+            "scaled": _camera_doc(cams_in[cid]),
+            "output": _camera_doc(cams_out[cid]),
+            "undistorted": not cams_in[cid].is_pinhole,
+            "zoom": zoom[cid],
+        }
+        for cid in sorted(cams_out)
+    ]
+
+
+def _view_records(
+    scene: ColmapScene, the_plan: CompressionPlan, out_names: dict[str, str],
+    results: dict[str, dict[str, Any]],
+) -> list[dict[str, Any]]:  # fmt: skip
+    """compress.json's ``views``: each view's names, split, quality, files and size in bytes."""
+    return [
+        {
+            "name": out_names[v.name],
+            "source_name": v.name,
+            "split": the_plan.split[v.name],
+            "quality": the_plan.quality[v.name],
+            "image": f"images/{out_names[v.name]}",
+            "reference": f"reference/{image_stem(v.name)}.png",
+            "bytes": results[v.name]["bytes"],
+        }
+        for v in scene.views
+    ]
 
 
 def schedule_settings(
