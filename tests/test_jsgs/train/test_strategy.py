@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import typing
 from pathlib import Path
 from typing import Any
 
@@ -280,10 +281,12 @@ def test_each_method_brings_its_recipes_and_switches_through_the_registry() -> N
     flags = method_flags("jsgs")
     names = ["--jpeg-mode", "--tables", "--compile", "--no-jo", "--no-ds", "--no-gc"]
     assert [f.flag for f in flags] == names
-    for f in flags:  # each switch sets a real option to a value it takes
+    for f in flags:  # each switch sets a real option to a value it takes; a choice switch offers them all
         opts = parse_options({"ds": False, "gc": False, **f.options(f.choices[-1] if f.choices else True)})
-        value = opts.speed.compile if f.option == "speed.compile" else getattr(opts, f.option)
-        assert value == (f.choices[-1] if f.choices else f.value)
+        section, name = (opts.speed, "compile") if f.option == "speed.compile" else (opts, f.option)
+        assert getattr(section, name) == (f.choices[-1] if f.choices else f.value)
+        if f.choices:
+            assert set(f.choices) == set(typing.get_args(typing.get_type_hints(type(section))[name]))
     with pytest.raises(JsgsError, match="^--jpeg-mode, --tables, .* and --no-gc apply to --method jsgs"):
         command_settings(preset_name="preview", switches={"--tables": "effective"})
     from jsgs.cli.train import recipes_text  # the help of --preset names each method's recipe
