@@ -28,7 +28,15 @@ from jsgs.base.errors import JsgsError
 from jsgs.base.io import write_bytes_atomic
 from jsgs.base.limits import parse_json
 
-from .compress import SUBSAMPLING, check_recompress, load_rgb, observed_jpeg, plan, schedule_settings
+from .compress import (
+    SUBSAMPLING,
+    CompressionPlan,
+    check_recompress,
+    load_rgb,
+    observed_jpeg,
+    plan,
+    schedule_settings,
+)
 from .scene import image_stem, prepare_output_dir, removes_partial_output
 
 #: What ``derive`` writes into OUT (and removes first with ``force``).
@@ -116,53 +124,15 @@ def derive(
     base, source_names = read_base(base_path)
     base_root = base_path.parent
     test_every = int(base["scene"]["test_every"])
-    views = base["views"]
-    by_source = {source_names[v["name"]]: v for v in views}
-    if len(by_source) != len(views):
-        raise JsgsError(f"{base_path}: two views share a source image name")
+    by_source = _views_by_source(base_path, base["views"], source_names)
     # The same split/counts/assignment as compress (validates schedule and quality too).
     the_plan = plan(list(by_source), schedule, quality, seed, test_every)
-    for src, v in by_source.items():
-        if the_plan.split[src] != v["split"]:
-            raise JsgsError(f"{base_path}: view {v['name']!r} is {v['split']} in the base but "
-                            f"{the_plan.split[src]} by the split rule (test every {test_every})")  # fmt: skip
+    _check_split(base_path, by_source, the_plan, test_every)
 
     prepare_output_dir(out, force, OWNED, protect=base_root, tool="derive")
     ss_name, ss_pil = SUBSAMPLING[subsampling]
-
-    def encode(src: str) -> tuple[str, int]:
-        v = by_source[src]
-        q = the_plan.quality[src]
-        assert q is not None
-        ref = base_root / v["reference"]
-        arr = load_rgb(ref)
-        cam = v["camera"]
-        if (arr.shape[1], arr.shape[0]) != (cam["width"], cam["height"]):
-            size = f"{arr.shape[1]}x{arr.shape[0]}"
-            raise JsgsError(f"{ref}: {size} is not its camera's {cam['width']}x{cam['height']}")
-        data = observed_jpeg(arr, q, ss_pil, recompress)
-        write_bytes_atomic(out / "images" / f"{image_stem(v['name'])}.jpg", data)
-        return src, len(data)
-
-    encoded = [s for s in by_source if the_plan.quality[s] is not None]
-    workers = min(jobs or os.cpu_count() or 1, max(1, len(encoded)))
-    with ThreadPoolExecutor(max_workers=workers) as ex:  # Pillow releases the GIL while encoding
-        sizes = dict(ex.map(encode, encoded))
-
-    mviews: list[dict[str, Any]] = []
-    per_view_quality: dict[str, int | None] = {}
-    for src, v in by_source.items():
-        q = the_plan.quality[src]
-        ref_rel = _rel(base_root / v["reference"], out)
-        if q is None:
-            name, image, jpeg = f"{image_stem(v['name'])}.png", ref_rel, None
-        else:
-            name = f"{image_stem(v['name'])}.jpg"
-            image = f"images/{name}"
-            jpeg = manifest_mod.jpeg_file_state(out / image, analyze)
-        per_view_quality[name] = q
-        mviews.append({"name": name, "image": image, "split": v["split"], "camera": v["camera"],
-                       "R": v["R"], "t": v["t"], "jpeg": jpeg, "reference": ref_rel})  # fmt: skip
+    sizes = _encode_views(by_source, the_plan, base_root, out, ss_pil, recompress, jobs)
+    mviews, per_view_quality = _manifest_views(by_source, the_plan, base_root, out, analyze)
 
     command = command or (
         f"jsgstools.derive {shlex.quote(str(base_path))} --out {shlex.quote(str(out))} --schedule {schedule}"
@@ -208,6 +178,78 @@ def derive(
     }
     manifest_mod.write_manifest(doc, out / "manifest.json")  # validated, atomic, written last
     return doc
+
+
+def _views_by_source(
+    base_path: Path, views: list[dict[str, Any]], source_names: dict[str, str]
+) -> dict[str, dict[str, Any]]:
+    """The base's views by their source image name (JsgsError when two share one)."""
+    by_source = {source_names[v["name"]]: v for v in views}
+    if len(by_source) != len(views):
+        raise JsgsError(f"{base_path}: two views share a source image name")
+    return by_source
+
+
+def _check_split(
+    base_path: Path, by_source: dict[str, dict[str, Any]], the_plan: CompressionPlan, test_every: int
+) -> None:
+    """JsgsError when a base view's split is not the one compress's split rule gives it."""
+    for src, v in by_source.items():
+        if the_plan.split[src] != v["split"]:
+            raise JsgsError(f"{base_path}: view {v['name']!r} is {v['split']} in the base but "
+                            f"{the_plan.split[src]} by the split rule (test every {test_every})")  # fmt: skip
+
+
+def _encode_views(
+    by_source: dict[str, dict[str, Any]], the_plan: CompressionPlan, base_root: Path, out: Path,
+    subsampling: int, recompress: int | None, jobs: int | None,
+) -> dict[str, int]:  # fmt: skip
+    """Encode each JPEG view's reference into ``out/images/<stem>.jpg`` on a thread pool; source name ->
+    bytes written."""
+
+    def encode(src: str) -> tuple[str, int]:
+        v = by_source[src]
+        q = the_plan.quality[src]
+        assert q is not None
+        ref = base_root / v["reference"]
+        arr = load_rgb(ref)
+        cam = v["camera"]
+        if (arr.shape[1], arr.shape[0]) != (cam["width"], cam["height"]):
+            size = f"{arr.shape[1]}x{arr.shape[0]}"
+            raise JsgsError(f"{ref}: {size} is not its camera's {cam['width']}x{cam['height']}")
+        data = observed_jpeg(arr, q, subsampling, recompress)
+        write_bytes_atomic(out / "images" / f"{image_stem(v['name'])}.jpg", data)
+        return src, len(data)
+
+    encoded = [s for s in by_source if the_plan.quality[s] is not None]
+    workers = min(jobs or os.cpu_count() or 1, max(1, len(encoded)))
+    with ThreadPoolExecutor(max_workers=workers) as ex:  # Pillow releases the GIL while encoding
+        return dict(ex.map(encode, encoded))
+
+
+def _manifest_views(
+    by_source: dict[str, dict[str, Any]], the_plan: CompressionPlan, base_root: Path, out: Path,
+    analyze: bool,
+) -> tuple[list[dict[str, Any]], dict[str, int | None]]:  # fmt: skip
+    """The manifest's views (a lossless one reads the base's reference; a JPEG one its new file and its
+    header's state) and each view's quality by its name."""
+    from . import manifest_writer as manifest_mod
+
+    mviews: list[dict[str, Any]] = []
+    per_view_quality: dict[str, int | None] = {}
+    for src, v in by_source.items():
+        q = the_plan.quality[src]
+        ref_rel = _rel(base_root / v["reference"], out)
+        if q is None:
+            name, image, jpeg = f"{image_stem(v['name'])}.png", ref_rel, None
+        else:
+            name = f"{image_stem(v['name'])}.jpg"
+            image = f"images/{name}"
+            jpeg = manifest_mod.jpeg_file_state(out / image, analyze)
+        per_view_quality[name] = q
+        mviews.append({"name": name, "image": image, "split": v["split"], "camera": v["camera"],
+                       "R": v["R"], "t": v["t"], "jpeg": jpeg, "reference": ref_rel})  # fmt: skip
+    return mviews, per_view_quality
 
 
 def restore_clean_images(dataset: str | Path) -> int:

@@ -133,58 +133,10 @@ def build_manifest(
     if say is not None and (w := orientation_warning(scene)) is not None:
         say(w)
     base = out.parent
-
+    test_every, split = _split(scene_dir, scene, record, test_every)
+    views = [_view_doc(scene, v, scene_dir, base, split[v.name], analyze) for v in scene.views]
     if record is not None:
-        rec_every = int(record["settings"]["test_every"])
-        if test_every is not None and test_every != rec_every:
-            raise JsgsError(
-                f"{scene_dir / RECORD}: the scene was compressed with --test-every {rec_every}; "
-                f"its split cannot be changed to {test_every}"
-            )
-        test_every = rec_every
-        split = {v["name"]: v["split"] for v in record["views"]}
-        missing = sorted(v.name for v in scene.views if v.name not in split)
-        if missing:
-            raise JsgsError(f"{scene_dir / RECORD}: image {missing[0]!r} of the model is not in the record")
-    else:
-        test_every = 8 if test_every is None else test_every
-        if test_every < 0:
-            raise JsgsError(f"--test-every {test_every}: must be 0 (no test views) or at least 1")
-        split = {
-            v.name: ("test" if test_every and i % test_every == 0 else "train")
-            for i, v in enumerate(scene.views)
-        }
-
-    views = []
-    for v in scene.views:
-        assert v.path is not None
-        ref = scene_dir / "reference" / (image_stem(v.name) + ".png")
-        views.append(
-            {
-                "name": v.name,
-                "image": _rel(v.path, base),
-                "split": split[v.name],
-                "camera": camera_doc(scene, v),
-                "R": v.R.tolist(),
-                "t": v.t.tolist(),
-                "jpeg": jpeg_state(v, analyze),
-                "reference": _rel(ref, base) if ref.is_file() else None,
-            }
-        )
-
-    if record is not None:
-        st = record["settings"]
-        scene_info = {
-            "name": record["source"]["name"],
-            "source": record["source"]["scene"],
-            "schedule": st["schedule"],
-            "quality": st["quality"],
-            "seed": st["seed"],
-            "test_every": test_every,
-            "subsampling": st["subsampling"],
-            "downscale": st["downscale"],
-            "undistorted": st["undistorted"],
-        }
+        scene_info = _recorded_scene_info(record, test_every)
     else:
         ds = report.downscale
         scene_info = {
@@ -199,28 +151,7 @@ def build_manifest(
             "undistorted": False,
         }
     if producer is None:
-        cmd = command or (
-            f"jsgstools manifest {shlex.quote(str(scene_dir))} --out {shlex.quote(str(out))} "
-            f"--test-every {test_every}"
-        )
-        settings: dict[str, Any] = {
-            "test_every": test_every,
-            "split_rule": "the compress record's split"
-            if record
-            else "registered views sorted by image name; view i is test when i % test_every == 0",
-        }
-        if record is not None:
-            settings["compress"] = {
-                "command": record["producer"]["command"],
-                **record["settings"],
-                "per_view_quality": {v["name"]: v["quality"] for v in record["views"]},
-            }
-        producer = {
-            "tool": "jsgstools manifest",
-            "version": __version__,
-            "command": cmd,
-            "settings": settings,
-        }
+        producer = _own_producer(scene_dir, out, record, test_every, command)
 
     return {
         "format": "jsgs-manifest",
@@ -233,6 +164,94 @@ def build_manifest(
             "xyz": scene.points_xyz.tolist(),
             "rgb": scene.points_rgb.astype(int).tolist(),
         },
+    }
+
+
+def _split(
+    scene_dir: Path, scene: ColmapScene, record: dict[str, Any] | None, test_every: int | None
+) -> tuple[int, dict[str, str]]:
+    """The test spacing and each view's split: the compress record's (JsgsError when ``test_every``
+    contradicts it or a view is not in it), else every ``test_every``-th view by sorted name (8 when None)."""
+    if record is not None:
+        rec_every = int(record["settings"]["test_every"])
+        if test_every is not None and test_every != rec_every:
+            raise JsgsError(
+                f"{scene_dir / RECORD}: the scene was compressed with --test-every {rec_every}; "
+                f"its split cannot be changed to {test_every}"
+            )
+        split = {v["name"]: v["split"] for v in record["views"]}
+        missing = sorted(v.name for v in scene.views if v.name not in split)
+        if missing:
+            raise JsgsError(f"{scene_dir / RECORD}: image {missing[0]!r} of the model is not in the record")
+        return rec_every, split
+    test_every = 8 if test_every is None else test_every
+    if test_every < 0:
+        raise JsgsError(f"--test-every {test_every}: must be 0 (no test views) or at least 1")
+    split = {
+        v.name: ("test" if test_every and i % test_every == 0 else "train") for i, v in enumerate(scene.views)
+    }
+    return test_every, split
+
+
+def _view_doc(
+    scene: ColmapScene, v: ColmapView, scene_dir: Path, base: Path, split: str, analyze: bool
+) -> dict[str, Any]:
+    """A view of the manifest, its paths relative to ``base`` (the manifest's folder)."""
+    assert v.path is not None
+    ref = scene_dir / "reference" / (image_stem(v.name) + ".png")
+    return {
+        "name": v.name,
+        "image": _rel(v.path, base),
+        "split": split,
+        "camera": camera_doc(scene, v),
+        "R": v.R.tolist(),
+        "t": v.t.tolist(),
+        "jpeg": jpeg_state(v, analyze),
+        "reference": _rel(ref, base) if ref.is_file() else None,
+    }
+
+
+def _recorded_scene_info(record: dict[str, Any], test_every: int) -> dict[str, Any]:
+    """The manifest's ``scene`` of a dataset made by compress, from its record."""
+    st = record["settings"]
+    return {
+        "name": record["source"]["name"],
+        "source": record["source"]["scene"],
+        "schedule": st["schedule"],
+        "quality": st["quality"],
+        "seed": st["seed"],
+        "test_every": test_every,
+        "subsampling": st["subsampling"],
+        "downscale": st["downscale"],
+        "undistorted": st["undistorted"],
+    }
+
+
+def _own_producer(
+    scene_dir: Path, out: Path, record: dict[str, Any] | None, test_every: int, command: str | None
+) -> dict[str, Any]:
+    """The manifest's ``producer`` when this tool makes it (with the compress record's settings, if any)."""
+    cmd = command or (
+        f"jsgstools manifest {shlex.quote(str(scene_dir))} --out {shlex.quote(str(out))} "
+        f"--test-every {test_every}"
+    )
+    settings: dict[str, Any] = {
+        "test_every": test_every,
+        "split_rule": "the compress record's split"
+        if record
+        else "registered views sorted by image name; view i is test when i % test_every == 0",
+    }
+    if record is not None:
+        settings["compress"] = {
+            "command": record["producer"]["command"],
+            **record["settings"],
+            "per_view_quality": {v["name"]: v["quality"] for v in record["views"]},
+        }
+    return {
+        "tool": "jsgstools manifest",
+        "version": __version__,
+        "command": cmd,
+        "settings": settings,
     }
 
 

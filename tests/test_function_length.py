@@ -17,9 +17,7 @@ KNOWN_LONG: frozenset[str] = frozenset({
     "jsgs/train/config.py:config_schema",
     "jsgs/train/trainer.py:_setup",
     "jsgs/train/trainer.py:step",
-    "jsgstools/derive.py:derive",
     "jsgstools/dqt/parser.py:_finish",
-    "jsgstools/manifest_writer.py:build_manifest",
     "jsgstools/sfm.py:sfm",
 })  # fmt: skip
 
