@@ -536,10 +536,17 @@ def test_coincident_colmap_cameras_are_named_by_validate(synth_scene: Path, tmp_
 
 def _fake_run(root: Path, table: np.ndarray | None = None, header: bytes | None = None) -> Path:
     from jsgs.base.ply import ply_header
+    from jsgs.train.config import RUN_CONFIG_FORMAT, RUN_CONFIG_VERSION, TrainConfig, to_dict
 
     run = root / "run"
     run.mkdir()
-    (run / "config.json").write_text(json.dumps({"derived": {"normalization": np.eye(4).tolist()}}))
+    derived = {"device": "cpu", "backend": "torch", "scene_scale": 1.0, "normalization": np.eye(4).tolist(),
+               "num_train_views": 1, "num_test_views": 0, "initial_gaussians": 1}  # fmt: skip
+    config = {"format": RUN_CONFIG_FORMAT, "format_version": RUN_CONFIG_VERSION, "command": "",
+              "versions": {"jsgs": "0", "torch": "0", "gsplat": None, "python": "3"},
+              "manifest": {"path": str(root / "manifest.json"), "sha256": "0"},
+              "settings": to_dict(TrainConfig()), "derived": derived}  # fmt: skip
+    (run / "config.json").write_text(json.dumps(config))  # a run's config.json: export reads it whole
     n = 0 if table is None else len(table)
     body = b"" if table is None else table.astype("<f4").tobytes()
     (run / "point_cloud.ply").write_bytes((header or ply_header(n, 0)) + body)
