@@ -13,6 +13,10 @@
 #   K = 1 (within the seed spread). Repeat the call until every run is complete (the bench resumes); metrics
 #   come back in $OUT/gc_every<K>.tgz and tools/results/build_report.py gathers them on the CPU.
 #
+# PART=toy (on the CPU, no GPU): the demo's synthetic scene (make demo: 64x48, uniform schedule), 1,500 steps
+#   of the mcmc preset at 2,000 Gaussians, seeds 0,1,2, JSGS with K in $KS and without the controller
+#   (gc false), one run at a time; logs in .res/gc_every_toy/. Run after `make demo`, about 35 minutes.
+#
 # On the CPU first, as speed_pairs.sh and speed_profile_camera.sh say (.gpu4/flower_gaussian, .gpu4/mcmc.json,
 # .gpu3/jpeg_mouse, .gpu3/mcmc.json); the quality part reads llff_flower from $GPU_DIR/bench/data (made by
 # scripts/gpu_prepare.sh), as confirm.sh does. Then on a lent GPU machine, carrying .whl, .gpu3 and .gpu4:
@@ -22,7 +26,22 @@
 set -u
 R='"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0,"base_noise_exponent":2.0'
 KS=${KS:-1 2 4}
-if [ "${PART:-speed}" = speed ]; then
+if [ "${PART:-speed}" = toy ]; then
+    export OMP_NUM_THREADS=1
+    [ -z "${JSGS_LPIPS_WEIGHTS:-}" ] && [ -f ../shared/lpips/alexnet_features.pth ] && \
+        export JSGS_LPIPS_WEIGHTS=$PWD/../shared/lpips/alexnet_features.pth
+    T=.res/gc_every_toy; mkdir -p $T
+    for seed in 0 1 2; do
+        for k in $KS off; do
+            if [ $k = off ]; then o='"gc": false'; else o="\"gc_every\": $k"; fi
+            echo "{\"method_options\": {$o}}" > $T/k$k.json
+            .venv/bin/jsgs train demo_out/data/manifest.json --out $T/k${k}_s$seed --method jsgs --preset mcmc \
+                --cap-max 2000 --config $T/k$k.json --iterations 1500 --eval-at 500,1500 --device cpu --quiet \
+                --force --seed $seed > $T/k${k}_s$seed.log 2>&1
+        done
+    done
+    grep -H "eval @ 1500" $T/*.log
+elif [ "${PART:-speed}" = speed ]; then
     P=tools/diagnostics/profile_step.py
     export CUDA_VISIBLE_DEVICES=0
     bash scripts/gpu_run.sh true
