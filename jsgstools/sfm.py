@@ -80,12 +80,7 @@ def sfm(
 
     say = say or (lambda s: print(s, file=sys.stderr, flush=True))
     photos_dir, out = Path(photos_dir), Path(out)
-    if matcher not in MATCHERS:
-        raise JsgsError(f"--matcher {matcher!r}: choose {', '.join(MATCHERS)}")
-    if camera_model not in CAMERA_MODELS:
-        raise JsgsError(f"--camera-model {camera_model!r}: choose {', '.join(CAMERA_MODELS)}")
-    if max_image_size < 64 or max_features < 64:
-        raise JsgsError("--max-image-size and --max-features must be at least 64")
+    _check_options(matcher, camera_model, max_image_size, max_features)
     pycolmap.logging.minloglevel = 2  # COLMAP's own per-image log lines; our progress line per stage instead
     photos = list_photos(photos_dir)
     sizes = _sizes(photos)
@@ -100,41 +95,13 @@ def sfm(
         db = out / "database.db"
         times: dict[str, float] = {}
 
-        t0 = time.perf_counter()
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = camera_model
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.max_image_size = max_image_size
-        extraction.num_threads = threads
-        extraction.sift.max_num_features = max_features
-        mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE
-        pycolmap.extract_features(db, images, camera_mode=mode, reader_options=reader,
-                                  extraction_options=extraction, device=pycolmap.Device.cpu)  # fmt: skip
-        times["features"] = time.perf_counter() - t0
+        times["features"] = _extract_features(db, images, camera_model, single, max_image_size, max_features,
+                                              threads)  # fmt: skip
         say(f"sfm: features of {len(photos)} photos ({times['features']:.1f} s)")
-
-        t0 = time.perf_counter()
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = threads
-        if matcher == "exhaustive":
-            pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
-        else:
-            pycolmap.match_sequential(db, matching_options=matching, device=pycolmap.Device.cpu)
-        times["matching"] = time.perf_counter() - t0
+        times["matching"] = _match_features(db, matcher, threads)
         say(f"sfm: {matcher} matching ({times['matching']:.1f} s)")
-
         t0 = time.perf_counter()
-        opts = pycolmap.IncrementalPipelineOptions()
-        opts.num_threads = threads
-        opts.random_seed = seed
-        work = out / ".sfm_models"
-        if work.exists():
-            shutil.rmtree(work)
-        work.mkdir()
-        try:
-            models = pycolmap.incremental_mapping(db, images, work, options=opts)
-        finally:
-            shutil.rmtree(work, ignore_errors=True)
+        models = _incremental_mapping(db, images, out / ".sfm_models", threads, seed)
         times["mapping"] = time.perf_counter() - t0
         if not models:
             raise JsgsError(f"{photos_dir}: no model could be built from these photos (too few matches)")
@@ -167,3 +134,63 @@ def sfm(
         validate(record, "sfm", str(out / "sfm.json"))
         write_json_atomic(out / "sfm.json", record)
     return record
+
+
+def _check_options(matcher: str, camera_model: str, max_image_size: int, max_features: int) -> None:
+    """JsgsError (one line, naming the option) for a matcher, camera model or size not allowed."""
+    if matcher not in MATCHERS:
+        raise JsgsError(f"--matcher {matcher!r}: choose {', '.join(MATCHERS)}")
+    if camera_model not in CAMERA_MODELS:
+        raise JsgsError(f"--camera-model {camera_model!r}: choose {', '.join(CAMERA_MODELS)}")
+    if max_image_size < 64 or max_features < 64:
+        raise JsgsError("--max-image-size and --max-features must be at least 64")
+
+
+def _extract_features(
+    db: Path, images: Path, camera_model: str, single: bool, max_image_size: int, max_features: int,
+    threads: int,
+) -> float:  # fmt: skip
+    """SIFT features of every photo into the database (one shared camera when ``single``); seconds taken."""
+    import pycolmap
+
+    t0 = time.perf_counter()
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = max_image_size
+    extraction.num_threads = threads
+    extraction.sift.max_num_features = max_features
+    mode = pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE
+    pycolmap.extract_features(db, images, camera_mode=mode, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)  # fmt: skip
+    return time.perf_counter() - t0
+
+
+def _match_features(db: Path, matcher: str, threads: int) -> float:
+    """Match the features, every pair (exhaustive) or neighbours in name order (sequential); seconds taken."""
+    import pycolmap
+
+    t0 = time.perf_counter()
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_sequential(db, matching_options=matching, device=pycolmap.Device.cpu)
+    return time.perf_counter() - t0
+
+
+def _incremental_mapping(db: Path, images: Path, work: Path, threads: int, seed: int) -> Any:
+    """pycolmap's incremental mapping: every model it finds (its scratch folder ``work`` removed after)."""
+    import pycolmap
+
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = threads
+    opts.random_seed = seed
+    if work.exists():
+        shutil.rmtree(work)
+    work.mkdir()
+    try:
+        return pycolmap.incremental_mapping(db, images, work, options=opts)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)

@@ -18,7 +18,6 @@ KNOWN_LONG: frozenset[str] = frozenset({
     "jsgs/train/trainer.py:_setup",
     "jsgs/train/trainer.py:step",
     "jsgstools/dqt/parser.py:_finish",
-    "jsgstools/sfm.py:sfm",
 })  # fmt: skip
 
 
