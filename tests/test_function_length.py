@@ -17,7 +17,6 @@ KNOWN_LONG: frozenset[str] = frozenset({
     "jsgs/train/config.py:config_schema",
     "jsgs/train/trainer.py:_setup",
     "jsgs/train/trainer.py:step",
-    "jsgstools/dqt/parser.py:_finish",
 })  # fmt: skip
 
 

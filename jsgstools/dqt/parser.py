@@ -399,81 +399,14 @@ def _finish(r: _Reader, st: ParseState, sos: bytes, sos_at: int) -> JpegHeader:
     mname = _MARKER_NAMES[code]
     frame, coding = SUPPORTED_SOF[code]
     lossless = frame == "lossless"
-    if len(p) < 6:
-        raise _fail(name, f"the {mname} segment at offset {at} is too short ({len(p) + 2} bytes, minimum 8)")
-    precision, height, width, nf = p[0], (p[1] << 8) | p[2], (p[3] << 8) | p[4], p[5]
-    if len(p) != 6 + 3 * nf:
-        raise _fail(
-            name,
-            f"the {mname} segment at offset {at} has length {len(p) + 2}, but its {nf} components need "
-            f"{8 + 3 * nf}",
-        )
-    if not 1 <= nf <= 4:
-        raise _fail(name, f"the frame header ({mname}) declares {nf} components (supported: 1 to 4)")
-    allowed = range(2, 17) if lossless else ((8,) if frame == "baseline" else (8, 12))
-    if precision not in allowed:
-        raise _fail(name, f"{precision}-bit samples are not valid in a {frame} frame ({mname})")
-    if width == 0:
-        raise _fail(name, f"the frame header ({mname}) declares width 0")
-    if height == 0:
-        raise _fail(
-            name, f"the frame header ({mname}) declares height 0 (height set by a DNL marker: not supported)"
-        )
-
+    precision, height, width, nf = _frame_fields(name, mname, at, p, frame)
     ids = list(p[6::3])
     if len(set(ids)) != nf:
         raise _fail(name, f"the frame header ({mname}) repeats a component id: {ids}")
     color_space = _color_space(ids, st.jfif, st.adobe_transform)
-    names = _COMPONENT_NAMES.get(color_space) or tuple(f"C{i + 1}" for i in range(nf))
-    components: list[Component] = []
-    for i in range(nf):
-        cid, hv, tq = p[6 + 3 * i], p[7 + 3 * i], p[8 + 3 * i]
-        h, v = hv >> 4, hv & 15
-        if not (1 <= h <= 4 and 1 <= v <= 4):
-            raise _fail(name, f"component {names[i]} has invalid sampling factors {h}x{v} (must be 1..4)")
-        if lossless:
-            tq = None
-        elif tq > 3:
-            raise _fail(name, f"component {names[i]} uses quantization table id {tq} (must be 0..3)")
-        components.append(Component(cid, names[i], h, v, tq))
-
-    # The first scan: it must fit its length and name frame components.
-    ns = sos[0] if sos else 0
-    if not 1 <= ns <= 4 or len(sos) != 4 + 2 * ns:
-        raise _fail(
-            name, f"the SOS segment at offset {sos_at} is malformed ({ns} components, length {len(sos) + 2})"
-        )
-    for i in range(ns):
-        if sos[1 + 2 * i] not in ids:
-            raise _fail(
-                name,
-                f"the first scan (SOS at offset {sos_at}) names component id {sos[1 + 2 * i]}, "
-                "which is not in the frame",
-            )
-
-    quality: QualityEstimate | None = None
-    if not lossless:
-        if not tables:
-            raise _fail(
-                name,
-                "no quantization table (DQT) before the first scan: an abbreviated JPEG stream whose tables "
-                "are stored elsewhere",
-            )
-        for c in components:
-            if c.table not in tables:
-                raise _fail(
-                    name,
-                    f"component {c.name} uses quantization table {c.table}, which is not defined before "
-                    "the first scan",
-                )
-        luma = tables[components[0].table].values  # type: ignore[index]
-        chroma = tables[components[1].table].values if nf >= 2 else None  # type: ignore[index]
-        quality = quality_of(luma, chroma)
-        if precision == 8 and any(t.precision == 16 for t in tables.values()):
-            warnings.append(
-                "16-bit quantization tables with 8-bit samples (T.81 allows only 8-bit tables here)"
-            )
-
+    components = _components(name, p, nf, color_space, lossless)
+    _check_first_scan(name, sos, sos_at, ids)
+    quality = None if lossless else _quality(name, tables, warnings, components, precision)
     return JpegHeader(
         path=name,
         file_size=r.size,
@@ -496,6 +429,91 @@ def _finish(r: _Reader, st: ParseState, sos: bytes, sos_at: int) -> JpegHeader:
         app_segments=tuple(st.apps),
         warnings=tuple(warnings),
     )
+
+
+def _frame_fields(name: str, mname: str, at: int, p: bytes, frame: str) -> tuple[int, int, int, int]:
+    """The frame header's sample precision, height, width and component count, checked (its length, the
+    count, the precision its frame allows, a size that is not 0)."""
+    if len(p) < 6:
+        raise _fail(name, f"the {mname} segment at offset {at} is too short ({len(p) + 2} bytes, minimum 8)")
+    precision, height, width, nf = p[0], (p[1] << 8) | p[2], (p[3] << 8) | p[4], p[5]
+    if len(p) != 6 + 3 * nf:
+        raise _fail(
+            name,
+            f"the {mname} segment at offset {at} has length {len(p) + 2}, but its {nf} components need "
+            f"{8 + 3 * nf}",
+        )
+    if not 1 <= nf <= 4:
+        raise _fail(name, f"the frame header ({mname}) declares {nf} components (supported: 1 to 4)")
+    allowed = range(2, 17) if frame == "lossless" else ((8,) if frame == "baseline" else (8, 12))
+    if precision not in allowed:
+        raise _fail(name, f"{precision}-bit samples are not valid in a {frame} frame ({mname})")
+    if width == 0:
+        raise _fail(name, f"the frame header ({mname}) declares width 0")
+    if height == 0:
+        raise _fail(
+            name, f"the frame header ({mname}) declares height 0 (height set by a DNL marker: not supported)"
+        )
+    return precision, height, width, nf
+
+
+def _components(name: str, p: bytes, nf: int, color_space: str, lossless: bool) -> list[Component]:
+    """The frame's components with their sampling factors and table ids (none in a lossless frame)."""
+    names = _COMPONENT_NAMES.get(color_space) or tuple(f"C{i + 1}" for i in range(nf))
+    components: list[Component] = []
+    for i in range(nf):
+        cid, hv, tq = p[6 + 3 * i], p[7 + 3 * i], p[8 + 3 * i]
+        h, v = hv >> 4, hv & 15
+        if not (1 <= h <= 4 and 1 <= v <= 4):
+            raise _fail(name, f"component {names[i]} has invalid sampling factors {h}x{v} (must be 1..4)")
+        if lossless:
+            tq = None
+        elif tq > 3:
+            raise _fail(name, f"component {names[i]} uses quantization table id {tq} (must be 0..3)")
+        components.append(Component(cid, names[i], h, v, tq))
+    return components
+
+
+def _check_first_scan(name: str, sos: bytes, sos_at: int, ids: list[int]) -> None:
+    """The first scan must fit its length and name frame components."""
+    ns = sos[0] if sos else 0
+    if not 1 <= ns <= 4 or len(sos) != 4 + 2 * ns:
+        raise _fail(
+            name, f"the SOS segment at offset {sos_at} is malformed ({ns} components, length {len(sos) + 2})"
+        )
+    for i in range(ns):
+        if sos[1 + 2 * i] not in ids:
+            raise _fail(
+                name,
+                f"the first scan (SOS at offset {sos_at}) names component id {sos[1 + 2 * i]}, "
+                "which is not in the frame",
+            )
+
+
+def _quality(
+    name: str, tables: dict[int, QuantTable], warnings: list[str], components: list[Component], precision: int
+) -> QualityEstimate:
+    """The quality estimate of a DCT frame from its luma (and chroma) tables, which must all be defined;
+    a warning for 16-bit tables with 8-bit samples."""
+    if not tables:
+        raise _fail(
+            name,
+            "no quantization table (DQT) before the first scan: an abbreviated JPEG stream whose tables "
+            "are stored elsewhere",
+        )
+    for c in components:
+        if c.table not in tables:
+            raise _fail(
+                name,
+                f"component {c.name} uses quantization table {c.table}, which is not defined before "
+                "the first scan",
+            )
+    luma = tables[components[0].table].values  # type: ignore[index]
+    chroma = tables[components[1].table].values if len(components) >= 2 else None  # type: ignore[index]
+    quality = quality_of(luma, chroma)
+    if precision == 8 and any(t.precision == 16 for t in tables.values()):
+        warnings.append("16-bit quantization tables with 8-bit samples (T.81 allows only 8-bit tables here)")
+    return quality
 
 
 def read_header_from(f: BinaryIO, name: str, size: int | None = None) -> JpegHeader:
