@@ -13,8 +13,6 @@ MAX_LINES = 100
 #: functions still over the limit, to be split (``path:name``); no other may join them
 KNOWN_LONG: frozenset[str] = frozenset({
     "jsgs/render/backend.py:rasterize",
-    "jsgs/render/bruteforce.py:render_bruteforce",
-    "jsgs/train/config.py:config_schema",
     "jsgs/train/trainer.py:_setup",
     "jsgs/train/trainer.py:step",
 })  # fmt: skip

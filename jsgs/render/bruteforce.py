@@ -76,90 +76,26 @@ def render_bruteforce(
     C, N = viewmats.shape[0], means.shape[0]
     images, alphas, radii_all = [], [], []
     pooled = {k: torch.zeros(C, N, dtype=means.dtype) for k in ("s_r", "s_1", "nu")}
+    D = colors.shape[-1] if sh_degree is None else 3
     for c in range(C):
-        W3, t3 = viewmats[c, :3, :3], viewmats[c, :3, 3]
-        fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
         gauss = []  # (depth, index, mean2d, conic, colour, tile box)
         radii = torch.zeros(N, 2, dtype=torch.int32)
         for j in range(N):
-            p = W3 @ means[j] + t3
-            if not (near_plane <= float(p[2].detach()) <= far_plane):
-                continue
-            R = _rotation(quats[j])
-            S = torch.diag(scales[j])
-            sigma3 = R @ S @ S @ R.T
-            lim_xp = (width - cx) / fx + FOV_MARGIN * 0.5 * width / fx
-            lim_xn = cx / fx + FOV_MARGIN * 0.5 * width / fx
-            lim_yp = (height - cy) / fy + FOV_MARGIN * 0.5 * height / fy
-            lim_yn = cy / fy + FOV_MARGIN * 0.5 * height / fy
-            u = p[0] / p[2]
-            v = p[1] / p[2]
-            # J is evaluated at the clamped direction but with the true depth
-            uc = torch.clamp(u, -lim_xn, lim_xp)
-            vc = torch.clamp(v, -lim_yn, lim_yp)
-            z = p[2]
-            J = torch.stack(
-                [
-                    torch.stack([fx / z, torch.zeros_like(z), -fx * uc / z]),
-                    torch.stack([torch.zeros_like(z), fy / z, -fy * vc / z]),
-                ]
-            )
-            cov = J @ W3 @ sigma3 @ W3.T @ J.T + eps2d * torch.eye(2, dtype=means.dtype)
-            det = cov[0, 0] * cov[1, 1] - cov[0, 1] * cov[1, 0]
-            if float(det.detach()) <= 0 or float(opacities[j].detach()) < ALPHA_THRESHOLD:
-                continue
-            conic = torch.linalg.inv(cov)
-            m2 = torch.stack([fx * u + cx, fy * v + cy])
-            e = min(EXTEND_MAX, math.sqrt(2 * math.log(float(opacities[j].detach()) / ALPHA_THRESHOLD)))
-            rx = math.ceil(e * math.sqrt(float(cov[0, 0].detach())))
-            ry = math.ceil(e * math.sqrt(float(cov[1, 1].detach())))
-            if rx <= radius_clip and ry <= radius_clip:
-                continue
-            mx, my = float(m2[0].detach()), float(m2[1].detach())
-            if mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height:
-                continue
-            radii[j] = torch.tensor([rx, ry], dtype=torch.int32)
-            box = (
-                math.floor(mx / TILE_SIZE - rx / TILE_SIZE),
-                math.ceil(mx / TILE_SIZE + rx / TILE_SIZE),
-                math.floor(my / TILE_SIZE - ry / TILE_SIZE),
-                math.ceil(my / TILE_SIZE + ry / TILE_SIZE),
-            )
-            if sh_degree is None:
-                col = colors[j] if colors.dim() == 2 else colors[c, j]
-            else:
-                cam_centre = torch.linalg.inv(viewmats[c])[:3, 3]
-                col = _sh_rgb(colors[j], means[j] - cam_centre, sh_degree)
-            gauss.append((float(z.detach()), j, m2, conic, col, box))
+            g = _project(
+                c, j, means, quats, scales, opacities, colors, viewmats, Ks, width, height, sh_degree,
+                near_plane, far_plane, eps2d, radius_clip,
+            )  # fmt: skip
+            if g is not None:
+                gauss.append(g[0])
+                radii[j] = torch.tensor(g[1], dtype=torch.int32)
         gauss.sort(key=lambda g: (g[0], g[1]))
         radii_all.append(radii)
-        pix_rows, alpha_rows = [], []
-        D = colors.shape[-1] if sh_degree is None else 3
         bg = backgrounds[c] if backgrounds is not None else torch.zeros(D, dtype=means.dtype)
+        pix_rows, alpha_rows = [], []
         for i in range(height):
             row, arow = [], []
             for jx in range(width):
-                tile_x, tile_y = jx // TILE_SIZE, i // TILE_SIZE
-                px = torch.tensor([jx + 0.5, i + 0.5], dtype=means.dtype)
-                T = torch.ones((), dtype=means.dtype)
-                out = torch.zeros(D, dtype=means.dtype)
-                for _, j, m2, conic, col, box in gauss:
-                    if not (box[0] <= tile_x < box[1] and box[2] <= tile_y < box[3]):
-                        continue
-                    d = m2 - px
-                    sig = 0.5 * (d @ conic @ d)
-                    alpha = torch.clamp(opacities[j] * torch.exp(-sig), max=ALPHA_MAX)
-                    if float(sig.detach()) < 0 or float(alpha.detach()) < ALPHA_THRESHOLD:
-                        continue
-                    if float((T * (1 - alpha)).detach()) <= T_STOP:
-                        break
-                    out = out + alpha * T * col
-                    if r is not None:
-                        kappa = (T * alpha / opacities[j]).detach()
-                        pooled["s_r"][c, j] += kappa * r[c, i, jx]
-                        pooled["s_1"][c, j] += kappa
-                        pooled["nu"][c, j] += (T * alpha).detach()
-                    T = T * (1 - alpha)
+                out, T = _composite(c, i, jx, gauss, opacities, D, means.dtype, r, pooled)
                 row.append(out + T * bg)
                 arow.append(1 - T)
             pix_rows.append(torch.stack(row))
@@ -167,3 +103,98 @@ def render_bruteforce(
         images.append(torch.stack(pix_rows))
         alphas.append(torch.stack(alpha_rows)[..., None])
     return torch.stack(images), torch.stack(alphas), torch.stack(radii_all), pooled
+
+
+#: a projected Gaussian: (depth, index, mean2d, conic, colour, tile box)
+_Projected = tuple[float, int, Tensor, Tensor, Tensor, tuple[int, int, int, int]]
+
+
+def _project(
+    c: int, j: int, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
+    viewmats: Tensor, Ks: Tensor, width: int, height: int, sh_degree: int | None, near_plane: float,
+    far_plane: float, eps2d: float, radius_clip: float,
+) -> tuple[_Projected, tuple[int, int]] | None:  # fmt: skip
+    """Gaussian ``j`` seen by camera ``c``: its projection and its radii in pixels, or None when it is
+    culled (outside the depth range, a degenerate or transparent footprint, under the radius clip, off the
+    image)."""
+    W3, t3 = viewmats[c, :3, :3], viewmats[c, :3, 3]
+    fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+    p = W3 @ means[j] + t3
+    if not (near_plane <= float(p[2].detach()) <= far_plane):
+        return None
+    R = _rotation(quats[j])
+    S = torch.diag(scales[j])
+    sigma3 = R @ S @ S @ R.T
+    lim_xp = (width - cx) / fx + FOV_MARGIN * 0.5 * width / fx
+    lim_xn = cx / fx + FOV_MARGIN * 0.5 * width / fx
+    lim_yp = (height - cy) / fy + FOV_MARGIN * 0.5 * height / fy
+    lim_yn = cy / fy + FOV_MARGIN * 0.5 * height / fy
+    u = p[0] / p[2]
+    v = p[1] / p[2]
+    # J is evaluated at the clamped direction but with the true depth
+    uc = torch.clamp(u, -lim_xn, lim_xp)
+    vc = torch.clamp(v, -lim_yn, lim_yp)
+    z = p[2]
+    J = torch.stack(
+        [
+            torch.stack([fx / z, torch.zeros_like(z), -fx * uc / z]),
+            torch.stack([torch.zeros_like(z), fy / z, -fy * vc / z]),
+        ]
+    )
+    cov = J @ W3 @ sigma3 @ W3.T @ J.T + eps2d * torch.eye(2, dtype=means.dtype)
+    det = cov[0, 0] * cov[1, 1] - cov[0, 1] * cov[1, 0]
+    if float(det.detach()) <= 0 or float(opacities[j].detach()) < ALPHA_THRESHOLD:
+        return None
+    conic = torch.linalg.inv(cov)
+    m2 = torch.stack([fx * u + cx, fy * v + cy])
+    e = min(EXTEND_MAX, math.sqrt(2 * math.log(float(opacities[j].detach()) / ALPHA_THRESHOLD)))
+    rx = math.ceil(e * math.sqrt(float(cov[0, 0].detach())))
+    ry = math.ceil(e * math.sqrt(float(cov[1, 1].detach())))
+    if rx <= radius_clip and ry <= radius_clip:
+        return None
+    mx, my = float(m2[0].detach()), float(m2[1].detach())
+    if mx + rx <= 0 or mx - rx >= width or my + ry <= 0 or my - ry >= height:
+        return None
+    box = (
+        math.floor(mx / TILE_SIZE - rx / TILE_SIZE),
+        math.ceil(mx / TILE_SIZE + rx / TILE_SIZE),
+        math.floor(my / TILE_SIZE - ry / TILE_SIZE),
+        math.ceil(my / TILE_SIZE + ry / TILE_SIZE),
+    )
+    if sh_degree is None:
+        col = colors[j] if colors.dim() == 2 else colors[c, j]
+    else:
+        cam_centre = torch.linalg.inv(viewmats[c])[:3, 3]
+        col = _sh_rgb(colors[j], means[j] - cam_centre, sh_degree)
+    return (float(z.detach()), j, m2, conic, col, box), (rx, ry)
+
+
+def _composite(
+    c: int, i: int, jx: int, gauss: list[_Projected], opacities: Tensor, D: int, dtype: torch.dtype,
+    r: Tensor | None, pooled: dict[str, Tensor],
+) -> tuple[Tensor, Tensor]:  # fmt: skip
+    """Pixel (row ``i``, column ``jx``) of camera ``c``: front-to-back compositing of the depth-sorted
+    Gaussians whose tile box holds its tile; its colour and transmittance (and, with ``r``, each Gaussian's
+    share added to ``pooled``)."""
+    tile_x, tile_y = jx // TILE_SIZE, i // TILE_SIZE
+    px = torch.tensor([jx + 0.5, i + 0.5], dtype=dtype)
+    T = torch.ones((), dtype=dtype)
+    out = torch.zeros(D, dtype=dtype)
+    for _, j, m2, conic, col, box in gauss:
+        if not (box[0] <= tile_x < box[1] and box[2] <= tile_y < box[3]):
+            continue
+        d = m2 - px
+        sig = 0.5 * (d @ conic @ d)
+        alpha = torch.clamp(opacities[j] * torch.exp(-sig), max=ALPHA_MAX)
+        if float(sig.detach()) < 0 or float(alpha.detach()) < ALPHA_THRESHOLD:
+            continue
+        if float((T * (1 - alpha)).detach()) <= T_STOP:
+            break
+        out = out + alpha * T * col
+        if r is not None:
+            kappa = (T * alpha / opacities[j]).detach()
+            pooled["s_r"][c, j] += kappa * r[c, i, jx]
+            pooled["s_1"][c, j] += kappa
+            pooled["nu"][c, j] += (T * alpha).detach()
+        T = T * (1 - alpha)
+    return out, T

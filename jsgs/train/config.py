@@ -908,84 +908,89 @@ def config_schema() -> dict[str, Any]:
                 "properties": {"path": {"type": "string"}, "sha256": {"type": "string"}},
             },
             "settings": {"allOf": [{"$ref": "#/$defs/settings"}, {"required": _all_names()}]},
-            "derived": {
-                "type": "object",
-                "description": "Values computed from the manifest and the settings.",
-                "required": [
-                    "device",
-                    "backend",
-                    "scene_scale",
-                    "normalization",
-                    "num_train_views",
-                    "num_test_views",
-                    "initial_gaussians",
-                ],
-                "properties": {
-                    "device": {"type": "string"},
-                    "backend": {"enum": ["torch", "gsplat"]},
-                    "scene_scale": {
-                        "type": "number",
-                        "description": "camera_extent x margin x global_scale (what the lrs use).",
-                    },
-                    "camera_extent": {"type": "number"},
-                    "normalization": {
-                        "description": "4x4 world-to-training-world similarity (row-major); the PLY and "
-                        "checkpoints are in the training world.",
-                        "type": "array",
-                        "minItems": 4,
-                        "maxItems": 4,
-                        "items": {"type": "array", "minItems": 4, "maxItems": 4, "items": {"type": "number"}},
-                    },
-                    "num_train_views": {"type": "integer"},
-                    "num_test_views": {"type": "integer"},
-                    "initial_gaussians": {"type": "integer"},
-                    "world_size": {
-                        "type": "integer",
-                        "minimum": 1,
-                        "description": "Processes that trained the run (torchrun / jsgs train --gpus N), "
-                        "each holding a shard of the Gaussians and rendering one view per step; 1 when "
-                        "absent.",
-                    },
-                    "exchange": {
-                        "enum": ["gsplat", "torch"],
-                        "description": "On several processes, how a view reaches the other shards' "
-                        "Gaussians (gsplat: rasterization(..., packed=True, distributed=True); torch: the "
-                        "shards gathered on every process, the gradients all-reduced back to their owners).",
-                    },
-                    "notes": {"type": "array", "items": {"type": "string"}},
-                    "ssim_kernel": {
-                        "enum": ["torch", "cuda"],
-                        "description": "The SSIM implementation that speed.ssim_kernel resolved to on this "
-                        "device (cuda: the fused kernel, built before training starts).",
-                    },
-                    "budget": {
-                        "type": "object",
-                        "description": "strategy.cap_max_auto: the budget chosen from the scene and its "
-                        "inputs (jsgs.train.budget.AutoBudget).",
-                        "required": ["cap_max", "sfm_points", "train_views", "train_pixels", "by_points",
-                                     "by_pixels", "gaussians_per_point", "pixels_per_gaussian", "rule"],
-                        "properties": {
-                            "cap_max": {"type": "integer", "minimum": 1},
-                            "sfm_points": {"type": "integer", "minimum": 0},
-                            "train_views": {"type": "integer", "minimum": 0},
-                            "train_pixels": {"type": "integer", "minimum": 0},
-                            "by_points": {"type": "integer", "minimum": 0},
-                            "by_pixels": {"type": "integer", "minimum": 0},
-                            "gaussians_per_point": {"type": "integer", "minimum": 1},
-                            "pixels_per_gaussian": {"type": "integer", "minimum": 1},
-                            "rule": {"type": "string"},
-                        },
-                    },
-                    "method": {
-                        "type": "object",
-                        "description": "What the method resolved from its options for this run (JSGS: "
-                        "cuda_graph, cuda_graph_gc, gc_kernel, gc_route, jpeg_mode; with base_by_view, "
-                        "base_by_view: each JPEG training view's noise_variance and ℓ_ph weight by name).",
-                    },
-                },
-            },
+            "derived": _derived_schema(),
         },
         "$defs": {"settings": settings, **option_defs},
+    }
+
+
+def _derived_schema() -> dict[str, Any]:
+    """The schema of config.json's ``derived``: what the run computed from the manifest and the settings."""
+    return {
+        "type": "object",
+        "description": "Values computed from the manifest and the settings.",
+        "required": [
+            "device",
+            "backend",
+            "scene_scale",
+            "normalization",
+            "num_train_views",
+            "num_test_views",
+            "initial_gaussians",
+        ],
+        "properties": {
+            "device": {"type": "string"},
+            "backend": {"enum": ["torch", "gsplat"]},
+            "scene_scale": {
+                "type": "number",
+                "description": "camera_extent x margin x global_scale (what the lrs use).",
+            },
+            "camera_extent": {"type": "number"},
+            "normalization": {
+                "description": "4x4 world-to-training-world similarity (row-major); the PLY and "
+                "checkpoints are in the training world.",
+                "type": "array",
+                "minItems": 4,
+                "maxItems": 4,
+                "items": {"type": "array", "minItems": 4, "maxItems": 4, "items": {"type": "number"}},
+            },
+            "num_train_views": {"type": "integer"},
+            "num_test_views": {"type": "integer"},
+            "initial_gaussians": {"type": "integer"},
+            "world_size": {
+                "type": "integer",
+                "minimum": 1,
+                "description": "Processes that trained the run (torchrun / jsgs train --gpus N), "
+                "each holding a shard of the Gaussians and rendering one view per step; 1 when "
+                "absent.",
+            },
+            "exchange": {
+                "enum": ["gsplat", "torch"],
+                "description": "On several processes, how a view reaches the other shards' "
+                "Gaussians (gsplat: rasterization(..., packed=True, distributed=True); torch: the "
+                "shards gathered on every process, the gradients all-reduced back to their owners).",
+            },
+            "notes": {"type": "array", "items": {"type": "string"}},
+            "ssim_kernel": {
+                "enum": ["torch", "cuda"],
+                "description": "The SSIM implementation that speed.ssim_kernel resolved to on this "
+                "device (cuda: the fused kernel, built before training starts).",
+            },
+            "budget": {
+                "type": "object",
+                "description": "strategy.cap_max_auto: the budget chosen from the scene and its "
+                "inputs (jsgs.train.budget.AutoBudget).",
+                "required": ["cap_max", "sfm_points", "train_views", "train_pixels", "by_points",
+                             "by_pixels", "gaussians_per_point", "pixels_per_gaussian", "rule"],
+                "properties": {
+                    "cap_max": {"type": "integer", "minimum": 1},
+                    "sfm_points": {"type": "integer", "minimum": 0},
+                    "train_views": {"type": "integer", "minimum": 0},
+                    "train_pixels": {"type": "integer", "minimum": 0},
+                    "by_points": {"type": "integer", "minimum": 0},
+                    "by_pixels": {"type": "integer", "minimum": 0},
+                    "gaussians_per_point": {"type": "integer", "minimum": 1},
+                    "pixels_per_gaussian": {"type": "integer", "minimum": 1},
+                    "rule": {"type": "string"},
+                },
+            },
+            "method": {
+                "type": "object",
+                "description": "What the method resolved from its options for this run (JSGS: "
+                "cuda_graph, cuda_graph_gc, gc_kernel, gc_route, jpeg_mode; with base_by_view, "
+                "base_by_view: each JPEG training view's noise_variance and ℓ_ph weight by name).",
+            },
+        },
     }
 
 
