@@ -12,7 +12,6 @@ PACKAGES = ("jsgs", "jsgstools")
 MAX_LINES = 100
 #: functions still over the limit, to be split (``path:name``); no other may join them
 KNOWN_LONG: frozenset[str] = frozenset({
-    "jsgs/render/backend.py:rasterize",
     "jsgs/train/trainer.py:_setup",
     "jsgs/train/trainer.py:step",
 })  # fmt: skip

@@ -144,26 +144,8 @@ def rasterize(
     """
     _check(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, backgrounds, render_mode)
     which = resolve_backend(backend, means.device)
-    C, N = viewmats.shape[0], means.shape[0]
-    feats = None
-    if extra is not None:
-        if render_mode in ("D", "ED"):
-            raise ValueError("extra channels need a colour render_mode ('RGB', 'RGB+D' or 'RGB+ED')")
-        if extra.dim() not in (2, 3) or extra.shape[-2] != N or (extra.dim() == 3 and extra.shape[0] != C):
-            raise ValueError(f"extra must be [N, E] or [C, N, E] with N={N}, C={C}; got {tuple(extra.shape)}")
-        feats = extra if extra.dim() == 3 else extra[None].expand(C, -1, -1)
-
-    if distortion is not None:
-        if distortion.shape != (C, 4):
-            raise ValueError(f"distortion must be [C, 4] with C={C}; got {tuple(distortion.shape)}")
-        if packed:
-            raise ValueError("lens distortion renders in the non-packed layout only (packed=False)")
-    if distributed and (which != "gsplat" or not packed or extra is not None or distortion is not None
-                        or absgrad):
-        raise ValueError(
-            "distributed rasterisation is gsplat's: backend gsplat, packed, without extra channels, lens "
-            "distortion or absgrad"
-        )
+    feats = _extra_features(extra, render_mode, viewmats.shape[0], means.shape[0])
+    _check_layout(which, viewmats.shape[0], packed, absgrad, extra, distortion, distributed)
     if which == "torch":
         if packed:
             raise ValueError("the reference rasterizer implements the non-packed layout only (packed=False)")
@@ -190,6 +172,36 @@ def rasterize(
     if extra is not None:
         info["extra_features"] = extra
     return img, alpha, info
+
+
+def _extra_features(extra: Tensor | None, render_mode: str, C: int, N: int) -> Tensor | None:
+    """The extra channels as [C, N, E] (an [N, E] one expanded over the cameras), checked."""
+    if extra is None:
+        return None
+    if render_mode in ("D", "ED"):
+        raise ValueError("extra channels need a colour render_mode ('RGB', 'RGB+D' or 'RGB+ED')")
+    if extra.dim() not in (2, 3) or extra.shape[-2] != N or (extra.dim() == 3 and extra.shape[0] != C):
+        raise ValueError(f"extra must be [N, E] or [C, N, E] with N={N}, C={C}; got {tuple(extra.shape)}")
+    return extra if extra.dim() == 3 else extra[None].expand(C, -1, -1)
+
+
+def _check_layout(
+    which: str, C: int, packed: bool, absgrad: bool, extra: Tensor | None, distortion: Tensor | None,
+    distributed: bool,
+) -> None:  # fmt: skip
+    """ValueError for lens distortion of the wrong shape or in the packed layout, and for a distributed
+    rasterisation that is not gsplat's packed one without extras."""
+    if distortion is not None:
+        if distortion.shape != (C, 4):
+            raise ValueError(f"distortion must be [C, 4] with C={C}; got {tuple(distortion.shape)}")
+        if packed:
+            raise ValueError("lens distortion renders in the non-packed layout only (packed=False)")
+    if distributed and (which != "gsplat" or not packed or extra is not None or distortion is not None
+                        or absgrad):
+        raise ValueError(
+            "distributed rasterisation is gsplat's: backend gsplat, packed, without extra channels, lens "
+            "distortion or absgrad"
+        )
 
 
 def _rasterize_gsplat(
