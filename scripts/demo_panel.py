@@ -3,7 +3,7 @@ quality (what the worst training views look like), the gsplat render, the JSGS r
 each with its PSNR against the reference, enlarged with nearest-neighbour sampling so the blocks stay
 visible; below them the same four cropped to where that JPEG damages the view most (the window, a third of
 the view a side, with the largest squared error of the JPEG against the reference; outlined above), zoomed
-further.
+further; below those, each crop's absolute error against the reference (×3, grey: black is exact).
 
     python scripts/demo_panel.py DATA RUN_GSPLAT RUN_JSGS --out panel.png [--view NAME] [--scale 3]
 
@@ -21,16 +21,19 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+#: the error row's gain (mean absolute error over the channels, 8-bit units, times this)
+ERROR_GAIN = 3
+
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
     return float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse)
 
 
-def damage_window(jpeg: np.ndarray, ref: np.ndarray) -> tuple[int, int, int, int]:
-    """(x, y, w, h) of the window a third of the view a side where ``jpeg`` differs most from ``ref`` (sum of
-    squared errors over the window; the first such window in row-major order)."""
-    err = ((jpeg.astype(np.float64) - ref.astype(np.float64)) ** 2).sum(axis=2)
+def damage_window(a: np.ndarray, b: np.ndarray) -> tuple[int, int, int, int]:
+    """(x, y, w, h) of the window a third of the view a side where ``a`` differs most from ``b`` (sum of
+    squared differences over the window; the first such window in row-major order)."""
+    err = ((a.astype(np.float64) - b.astype(np.float64)) ** 2).sum(axis=2)
     h, w = err.shape
     ch, cw = max(1, h // 3), max(1, w // 3)
     c = np.zeros((h + 1, w + 1))
@@ -83,7 +86,8 @@ def main() -> None:
     label_h = 16
     cx, cy, cw, ch = damage_window(jpeg, ref)
     z = max(1, (w * s) // cw)  # the crop as wide as a panel
-    canvas = Image.new("RGB", (len(panels) * (w * s + 4) - 4, h * s + 2 * label_h + ch * z), (255, 255, 255))
+    rows_h = h * s + 3 * label_h + 2 * ch * z
+    canvas = Image.new("RGB", (len(panels) * (w * s + 4) - 4, rows_h), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
     for i, (name, img) in enumerate(panels):
         x = i * (w * s + 4)
@@ -97,10 +101,19 @@ def main() -> None:
         part = ref[cy : cy + ch, cx : cx + cw]
         text = f"{name}, crop" if name == "reference" else f"{name}, crop  {psnr(crop, part):.1f} dB"
         draw.text((x + 2, h * s + label_h + 2), text, fill=(0, 0, 0))
+        if name != "reference":
+            err = np.abs(crop.astype(np.int16) - part.astype(np.int16)).mean(axis=2) * ERROR_GAIN
+            grey = Image.fromarray(np.clip(err, 0, 255).astype(np.uint8)).convert("RGB")
+            top = h * s + 2 * label_h + ch * z
+            canvas.paste(grey.resize((cw * z, ch * z), Image.NEAREST), (x, top + label_h))
+            draw.text((x + 2, top + 2), f"{name}, crop: |error| x{ERROR_GAIN}", fill=(0, 0, 0))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     canvas.save(args.out)
     names = ", ".join(n for n, _ in panels)
-    print(f"wrote {args.out} (test view {view['name']}: {names}; below, {cw}x{ch} px at ({cx}, {cy}) x{z})")
+    print(
+        f"wrote {args.out} (test view {view['name']}: {names}; below, where the JPEG damages it most, "
+        f"{cw}x{ch} px at ({cx}, {cy}) x{z}, and its errors)"
+    )
 
 
 if __name__ == "__main__":

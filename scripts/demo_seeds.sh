@@ -7,8 +7,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN=${DEMO_BIN:-.venv/bin}
 SEEDS=${DEMO_SEEDS:-0 1 2}
+FOLDERS=()
 for s in $SEEDS; do
     DEMO_SEED=$s DEMO_README=0 DEMO_OUT=demo_seeds/s$s bash scripts/demo.sh
+    FOLDERS+=("demo_seeds/s$s")
 done
-# shellcheck disable=SC2086
-$BIN/python scripts/demo_record.py docs/results/demo/README.md demo_seeds/s* 
+$BIN/python scripts/demo_record.py docs/results/demo/README.md "${FOLDERS[@]}"

@@ -184,3 +184,32 @@ def test_the_demo_writes_its_block_of_the_readme() -> None:
     assert re.findall(block, new, re.DOTALL) == ["== 1. x\n" + "y" * 109 + "…"]
     assert new.split(demo_readme.BEGIN)[0] == readme.split(demo_readme.BEGIN)[0]
     assert new.split(demo_readme.END)[1] == readme.split(demo_readme.END)[1]
+
+
+def test_the_readme_demo_block_has_the_demos_shape() -> None:
+    """The README's demo block has every line the demo prints (scripts/demo_readme.py SHAPE, in order), its
+    metrics table agrees with the runs' own summary lines and with the comparison line, and the demo
+    refuses output that lacks a line (a run without LPIPS, one that stopped early)."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import demo_readme
+    finally:
+        sys.path.pop(0)
+    readme = (ROOT / "README.md").read_text()
+    text = re.findall(re.escape(demo_readme.BEGIN) + r"\n```\n(.*?)\n```\n", readme, re.DOTALL)[0]
+    gap = demo_readme.missing(text)
+    assert gap is None, f"README.md demo block: no line like {gap!r}"
+    done = r"^(gsplat|jsgs): complete: .*PSNR ([\d.]+), SSIM ([\d.]+), LPIPS ([\d.]+)"
+    summary = {m: (p, s, lp) for m, p, s, lp in re.findall(done, text, re.M)}
+    row = r"^(gsplat|jsgs) +([\d.]+) +([\d.]+) +([\d.]+) "
+    table = {m: (p, s, lp) for m, p, s, lp in re.findall(row, text, re.M)}
+    assert summary == table and set(table) == {"gsplat", "jsgs"}
+    (gp, _, gl), (jp, _, jl) = ((float(x) for x in table[m]) for m in ("gsplat", "jsgs"))
+    line = re.search(r"^JSGS against gsplat: LPIPS (\S+) %, PSNR (\S+) dB", text, re.M)
+    assert line is not None
+    assert abs(float(line[1]) - 100 * (jl / gl - 1)) < 0.2 and abs(float(line[2]) - (jp - gp)) < 0.002
+    met = "met" if jl <= 0.95 * gl and jp >= gp else "NOT met"
+    assert f"PSNR not lower): {met}" in text
+    for drop in ("== 8. a test view side by side", "jsgs: complete:"):
+        broken = "\n".join(x for x in text.splitlines() if not x.startswith(drop))
+        assert demo_readme.missing(broken) is not None
