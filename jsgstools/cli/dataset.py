@@ -1,6 +1,5 @@
-"""``jsgstools synth | compress | validate | manifest``: thin wrappers over
-``jsgstools.{synth,compress,validate,
-manifest}`` (the logic and its rules live there)."""
+"""``jsgstools synth | compress | validate | manifest | downscale``: thin wrappers over
+``jsgstools.{synth,compress,validate,manifest,downscale}`` (the logic and its rules live there)."""
 
 from __future__ import annotations
 
@@ -307,7 +306,38 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, analyze: bool, 
     click.echo(f"wrote {out}")
 
 
+@click.command(
+    "downscale",
+    context_settings=CONTEXT,
+    epilog=EXAMPLE.format("jsgstools downscale cup --out cup_half"),
+)
+@click.argument("scene", type=click.Path(path_type=Path))
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder DIR.")
+@click.option(
+    "--factor", type=click.Choice(["2", "3", "4", "8"]), default="2", show_default=True,
+    help="Divide width and height by this.",
+)  # fmt: skip
+@click.option(
+    "--force", is_flag=True, help="Replace the outputs of an earlier downscale in DIR (its .jsgstools.json)."
+)
+@user_errors
+def downscale_cmd(scene: Path, out: Path, factor: str, force: bool) -> None:
+    """Copy the COLMAP scene SCENE into DIR at 1/FACTOR of its size, for `jsgs train --preset preview`: each
+    view cropped to a multiple of FACTOR and block-averaged (Pillow's reduce) into DIR/images/<stem>.png, the
+    model in DIR/sparse/0/ with its cameras rescaled as COLMAP does and its keypoints divided by FACTOR, and
+    DIR/downscale.json recording how. SCENE is never written to; a DIR not made by downscale is refused."""
+    from jsgstools.downscale import downscale
+
+    command = invocation(click.get_current_context(), "jsgstools")
+    with OutputLock(out, f"jsgstools downscale (into {out})"):
+        record = downscale(scene, out, factor=int(factor), force=force, command=command)
+    (w0, h0), (w, h) = record["views"][0]["source_size"], record["views"][0]["size"]
+    click.echo(f"downscale: {len(record['views'])} views, {w0}x{h0} -> {w}x{h} (factor {factor})")
+    click.echo(f"wrote {out}/images/, {out}/sparse/0/, {out}/downscale.json")
+    click.echo(f"next: jsgstools manifest {out} --out {out}/manifest.json")
+
+
 def register(group: click.Group) -> None:
     """Add this module's commands to ``group``."""
-    for cmd in (synth_cmd, compress_cmd, validate_cmd, manifest_cmd):
+    for cmd in (synth_cmd, compress_cmd, validate_cmd, manifest_cmd, downscale_cmd):
         group.add_command(cmd)
