@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -54,7 +54,14 @@ from jsgs.train.config import (
     read_run_config,
     to_dict,
 )
-from jsgs.train.data import ViewSampler, load_eval_images, load_train_images, load_training_scene
+from jsgs.train.data import (
+    TrainingScene,
+    TrainingView,
+    ViewSampler,
+    load_eval_images,
+    load_train_images,
+    load_training_scene,
+)
 from jsgs.train.evaluate import evaluate, synchronize
 from jsgs.train.hook import HookOutput, LossHook, StepContext, make_hook
 from jsgs.train.model import (
@@ -66,8 +73,11 @@ from jsgs.train.model import (
     splats_from_state,
 )
 from jsgs.train.profiler import Profiler
-from jsgs.train.render_view import render_view, resolve_backend, resolve_device
+from jsgs.train.render_view import RenderOut, render_view, resolve_backend, resolve_device
 from jsgs.train.strategy import Densifier, initial_subset
+
+if TYPE_CHECKING:
+    from jsgs.train.budget import AutoBudget
 
 METRICS_FORMAT = "jsgs-metrics"
 METRICS_VERSION = 1
@@ -510,6 +520,36 @@ class Trainer:
         self.fire("on_setup")
 
     def _setup(self) -> None:
+        cfg, start_ckpt = self._settle_settings()
+        t_setup = time.perf_counter()
+        self.device = device = dd.local_device(self.world, resolve_device(cfg.device))
+        self.profiler.device = device
+        self.backend = resolve_backend(cfg, device)
+        _seed_everything(cfg.seed)
+        scene = self._load_scene(cfg, device)
+        hook_notes = self._make_hook(cfg, scene, device)
+        budget = self._scene_budget(cfg, scene)
+        self._make_strategy(cfg)
+        initial = 0
+        if start_ckpt is None:
+            initial = self._initial_gaussians(cfg, scene, device)
+            self.build_optimization()
+        else:
+            self.restore(start_ckpt)
+        derived = self._derived(cfg, scene, device, initial, hook_notes, budget)
+        if self.world.is_main:  # only now that the settings, manifest and checkpoint passed
+            _remove_leftovers(self.paths, self.say)
+        if budget is not None:
+            derived["budget"] = budget.to_json()
+        if not self.resuming and self.world.is_main:
+            _clear_out(self.paths)  # only now that the settings and the manifest have been checked
+            self._run_config = self._new_run_config(cfg, scene, derived)
+        self.setup_time = time.perf_counter() - t_setup
+
+    def _settle_settings(self) -> tuple[TrainConfig, dict[str, Any] | None]:
+        """Check RUN (rank 0 takes its lock), take the run's own settings and last checkpoint when resuming
+        (``cfg``, when given, must equal them), check the settings, ``stop_at`` and the process count:
+        the settings (``self.cfg``) and the checkpoint to resume from (None: a new run)."""
         paths = self.paths
         if self.world.is_main:
             _check_out(paths, self.resuming, self.force)
@@ -541,19 +581,19 @@ class Trainer:
                     f"{paths.root}: the run was trained on {ran_on} process(es); resume it on as many (now "
                     f"{self.world.size})"
                 )
+        return cfg, start_ckpt
 
-        t_setup = time.perf_counter()
-        self.device = device = dd.local_device(self.world, resolve_device(cfg.device))
-        self.profiler.device = device
-        self.backend = resolve_backend(cfg, device)
-        _seed_everything(cfg.seed)
+    def _load_scene(self, cfg: TrainConfig, device: torch.device) -> TrainingScene:
+        """The scene (``self.scene``; the one the resumed run started with), its training images and, when
+        there are test views and evaluation steps, its evaluation images on ``device``."""
         self.scene = scene = load_training_scene(self.manifest, cfg)
         for note in scene.notes:
             self.say(f"note: {note}")
         if self.recorded is not None:
             if self.recorded.manifest_sha256 != scene.manifest_sha256:
                 raise JsgsError(
-                    f"{self.manifest}: differs from the manifest the run in {paths.root} was started with"
+                    f"{self.manifest}: differs from the manifest the run in {self.paths.root} was started "
+                    "with"
                 )
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
@@ -572,6 +612,11 @@ class Trainer:
                 "against their JPEG (metrics.json reference)"
             )
         self.eval_images = load_eval_images(scene, device) if self.eval_steps else {}
+        return scene
+
+    def _make_hook(self, cfg: TrainConfig, scene: TrainingScene, device: torch.device) -> list[str]:
+        """The method's loss hook (unless one was given), made without moving the random streams; its
+        notes."""
         if self.hook is None:
             # the method's own random draws (if any) must not shift the initialisation: every method starts
             # from the same Gaussians as the baseline for a given seed
@@ -580,18 +625,27 @@ class Trainer:
         hook_notes = self.hook.notes() if self.hook is not None else []
         for note in hook_notes:
             self.say(f"note: {note}")
-        budget = None
-        if cfg.strategy.type == "mcmc" and cfg.strategy.cap_max_auto and not self.resuming:
-            # a resumed run keeps the budget its config.json records
-            from jsgs.train.budget import scene_budget
+        return hook_notes
 
-            budget = scene_budget(scene)
-            cfg.strategy.cap_max = budget.cap_max
-            self.say(
-                f"note: budget from the scene: strategy.cap_max = {budget.cap_max} (the smaller of "
-                f"{budget.gaussians_per_point} x {budget.sfm_points} SfM points = {budget.by_points} and "
-                f"{budget.train_pixels} training pixels / {budget.pixels_per_gaussian} = {budget.by_pixels})"
-            )
+    def _scene_budget(self, cfg: TrainConfig, scene: TrainingScene) -> AutoBudget | None:
+        """``strategy.cap_max_auto`` on a new MCMC run: the budget chosen from the scene, set as
+        ``strategy.cap_max`` (a resumed run keeps the one its config.json records); else None."""
+        if not (cfg.strategy.type == "mcmc" and cfg.strategy.cap_max_auto and not self.resuming):
+            return None
+        from jsgs.train.budget import scene_budget
+
+        budget = scene_budget(scene)
+        cfg.strategy.cap_max = budget.cap_max
+        self.say(
+            f"note: budget from the scene: strategy.cap_max = {budget.cap_max} (the smaller of "
+            f"{budget.gaussians_per_point} x {budget.sfm_points} SfM points = {budget.by_points} and "
+            f"{budget.train_pixels} training pixels / {budget.pixels_per_gaussian} = {budget.by_pixels})"
+        )
+        return budget
+
+    def _make_strategy(self, cfg: TrainConfig) -> None:
+        """The densification strategy (its budget this process's share on several), how the shards are
+        exchanged, and the view sampler."""
         self.strategy = Densifier(cfg.strategy)
         self.exchange = self._exchange_kind(cfg)
         if self.exchange == "torch":
@@ -601,46 +655,52 @@ class Trainer:
             self.strategy.gsplat.cap_max = dd.shard_cap(self.strategy.cap_max, self.world)
         self.sampler = ViewSampler(len(self.train_views), cfg.seed)
 
-        initial = 0
-        if start_ckpt is None:
-            points = torch.from_numpy(scene.points)
-            colors = torch.from_numpy(scene.points_rgb).float() / 255.0
-            keep = None
-            if cfg.init.type == "sfm":
-                keep = initial_subset(len(points), self.strategy.cap_max, cfg.seed)
-            if keep is not None:
-                self.say(
-                    f"note: {len(points)} initial points exceed strategy.cap_max = {self.strategy.cap_max}; "
-                    f"starting from a random {len(keep)} of them (seed {cfg.seed})"
-                )
-                points, colors = points[keep], colors[keep]
-            if cfg.init.type == "random" and self.strategy.cap_max is not None:
-                if cfg.init.num_points > self.strategy.cap_max:
-                    self.say(
-                        f"note: init.num_points = {cfg.init.num_points} exceeds strategy.cap_max = "
-                        f"{self.strategy.cap_max}; starting from {self.strategy.cap_max} random points"
-                    )
-            self.splats = init_splats(
-                points, colors, cfg, scene.scene_scale, device, max_points=self.strategy.cap_max
+    def _initial_gaussians(self, cfg: TrainConfig, scene: TrainingScene, device: torch.device) -> int:
+        """The Gaussians of a new run (``self.splats``: from the SfM points, a random subset of them past
+        the budget, or random points; on several processes each keeps its shard); how many there are in
+        all."""
+        points = torch.from_numpy(scene.points)
+        colors = torch.from_numpy(scene.points_rgb).float() / 255.0
+        keep = None
+        if cfg.init.type == "sfm":
+            keep = initial_subset(len(points), self.strategy.cap_max, cfg.seed)
+        if keep is not None:
+            self.say(
+                f"note: {len(points)} initial points exceed strategy.cap_max = {self.strategy.cap_max}; "
+                f"starting from a random {len(keep)} of them (seed {cfg.seed})"
             )
-            bad = first_nonfinite_param(self.splats)
-            if bad is not None:
-                raise JsgsError(
-                    f"{scene.manifest_path}: the initial Gaussians' {bad!r} are not finite (the points or "
-                    "the cameras, after world normalisation, lie beyond float32's range)"
+            points, colors = points[keep], colors[keep]
+        if cfg.init.type == "random" and self.strategy.cap_max is not None:
+            if cfg.init.num_points > self.strategy.cap_max:
+                self.say(
+                    f"note: init.num_points = {cfg.init.num_points} exceeds strategy.cap_max = "
+                    f"{self.strategy.cap_max}; starting from {self.strategy.cap_max} random points"
                 )
-            initial = int(self.splats["means"].shape[0])
-            if self.world.enabled:  # every process made the same Gaussians: each keeps its shard
-                rows = dd.shard_rows(initial, self.world).to(device)
-                self.splats = torch.nn.ParameterDict(
-                    {n: torch.nn.Parameter(self.splats[n].data[rows].contiguous()) for n in PARAM_NAMES}
-                )
-                if self.world.rank > 0:  # the processes' own draws (noise, splits, backgrounds) differ
-                    _seed_everything(cfg.seed + self.world.rank)
-            self.build_optimization()
-        else:
-            self.restore(start_ckpt)
+        self.splats = init_splats(
+            points, colors, cfg, scene.scene_scale, device, max_points=self.strategy.cap_max
+        )
+        bad = first_nonfinite_param(self.splats)
+        if bad is not None:
+            raise JsgsError(
+                f"{scene.manifest_path}: the initial Gaussians' {bad!r} are not finite (the points or "
+                "the cameras, after world normalisation, lie beyond float32's range)"
+            )
+        initial = int(self.splats["means"].shape[0])
+        if self.world.enabled:  # every process made the same Gaussians: each keeps its shard
+            rows = dd.shard_rows(initial, self.world).to(device)
+            self.splats = torch.nn.ParameterDict(
+                {n: torch.nn.Parameter(self.splats[n].data[rows].contiguous()) for n in PARAM_NAMES}
+            )
+            if self.world.rank > 0:  # the processes' own draws (noise, splits, backgrounds) differ
+                _seed_everything(cfg.seed + self.world.rank)
+        return initial
 
+    def _derived(
+        self, cfg: TrainConfig, scene: TrainingScene, device: torch.device, initial: int,
+        hook_notes: list[str], budget: AutoBudget | None,
+    ) -> dict[str, Any]:  # fmt: skip
+        """config.json's ``derived``: what the run computed from the manifest and the settings (the budget
+        is added by the caller)."""
         derived = {
             "device": str(device),
             "backend": self.backend,
@@ -661,27 +721,26 @@ class Trainer:
         }
         if self.world.enabled:
             derived["exchange"] = self.exchange
-        if self.world.is_main:  # only now that the settings, manifest and checkpoint passed
-            _remove_leftovers(paths, self.say)
-        if budget is not None:
-            derived["budget"] = budget.to_json()
-        if not self.resuming and self.world.is_main:
-            _clear_out(paths)  # only now that the settings and the manifest have been checked
-            run_config = {
-                "format": RUN_CONFIG_FORMAT,
-                "format_version": RUN_CONFIG_VERSION,
-                "versions": _versions(),
-                "command": self.command or "",
-                "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-                "manifest": {"path": str(scene.manifest_path), "sha256": scene.manifest_sha256},
-                "settings": to_dict(cfg),
-                "derived": derived,
-            }
-            from jsgs.schemas import validate
+        return derived
 
-            validate(run_config, "config", str(paths.config))
-            self._run_config = run_config
-        self.setup_time = time.perf_counter() - t_setup
+    def _new_run_config(
+        self, cfg: TrainConfig, scene: TrainingScene, derived: dict[str, Any]
+    ) -> dict[str, Any]:
+        """A new run's config.json document, validated (written once every process is ready)."""
+        run_config = {
+            "format": RUN_CONFIG_FORMAT,
+            "format_version": RUN_CONFIG_VERSION,
+            "versions": _versions(),
+            "command": self.command or "",
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "manifest": {"path": str(scene.manifest_path), "sha256": scene.manifest_sha256},
+            "settings": to_dict(cfg),
+            "derived": derived,
+        }
+        from jsgs.schemas import validate
+
+        validate(run_config, "config", str(self.paths.config))
+        return run_config
 
     # -- the shards ------------------------------------------------------------------------------------
     def _exchange_kind(self, cfg: TrainConfig) -> str:
@@ -874,9 +933,87 @@ class Trainer:
     # -- one step -------------------------------------------------------------------------------------
     def step(self, step: int) -> StepResult:
         """Train on one view (gsplat simple_trainer's step; module docstring). TrainingDiverged on NaN/Inf."""
-        cfg, device, splats, hook, profiler = self.cfg, self.device, self.splats, self.hook, self.profiler
+        cfg, splats, profiler = self.cfg, self.splats, self.profiler
         assert cfg is not None
-        optimizers, strategy = self.optimizers, self.strategy
+        view, target, sh_degree, shown, r, rgb = self._render_step(step, cfg)
+        with profiler.phase("loss"):
+            terms, weights = base_terms(rgb, target, shown, cfg)
+        stats: dict[str, Any] = {}
+        folded: frozenset[str] = frozenset()
+        folded_loss = None
+        if self.hook is not None:
+            with profiler.phase("hook"):
+                ctx = StepContext(
+                    step=step,
+                    view=view,
+                    render=rgb,
+                    alpha=r.alpha,
+                    target=target,
+                    info=r.info,
+                    splats=shown,
+                    extra=r.extra,
+                    base_terms=dict(terms),
+                    sh_degree=sh_degree,
+                )
+                stats, folded, folded_loss = self._hook_terms(ctx, cfg, terms, weights)
+        loss = weighted_loss(terms, weights, folded, folded_loss)
+        empty = self._backward(step, view, loss, stats)
+        names = list(terms)
+        grad_names, packed = self._pack_step_values(loss, terms, names, stats)
+        with profiler.phase("optimizer"):
+            for o in self.optimizers.values():
+                o.step()
+                o.zero_grad(set_to_none=True)
+            self.scheduler.step()
+        packed_vals = packed.tolist()
+        term_v = packed_vals[1 : 1 + len(names)]
+        # Summed from the term values read *after* the backward: a method may fill a term's value during
+        # the backward (JSGS's deferred L_fro), which the pre-backward total cannot include.
+        loss_v = packed_vals[0] if self.hook is None else _weighted_sum(names, term_v, weights)
+        stat_v = packed_vals[1 + len(names) : 1 + len(names) + len(stats)]
+        norm_v = packed_vals[1 + len(names) + len(stats) :]
+        grad_v, param_v = norm_v[: len(grad_names)], norm_v[len(grad_names) :]
+        views = [(view.name, loss_v, term_v, stats)]
+        if self.world.enabled:  # every process's values on every process: all of them stop alike on a NaN
+            views = self._gather_step_values(
+                step, view.name, names, loss_v, term_v, stats, stat_v, grad_names, grad_v, param_v
+            )
+        _finite_check(
+            step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_v, param_v, self.last_checkpoint
+        )
+        with profiler.phase("densify"):
+            if not empty:  # the strategies read the screen-space gradients this step does not have
+                self.strategy.step_post_backward(
+                    splats,
+                    self.optimizers,
+                    self.strategy_state,
+                    step,
+                    r.info,
+                    lr=self.scheduler.get_last_lr()[0],
+                    packed=cfg.render.packed or self.exchange == "gsplat",
+                )
+        self._exchange = None  # (the strategy's statistics read its rows)
+        result = StepResult(
+            step,
+            view.name,
+            loss_v,
+            dict(zip(names, term_v, strict=True)),
+            dict(zip(stats, stat_v, strict=True)),
+        )
+        if self.world.enabled:
+            for v_name, v_loss, v_terms, v_stats in views:
+                self.acc.add(v_loss, dict(zip(names, v_terms, strict=True)), v_stats, v_name)
+        else:
+            self.acc.add(result.loss, result.terms, result.stats, view.name)
+        return result
+
+    def _render_step(
+        self, step: int, cfg: TrainConfig
+    ) -> tuple[TrainingView, Tensor, int, torch.nn.ParameterDict, RenderOut, Tensor]:
+        """The step's view and target, its SH degree, the Gaussians it shows (this process's shard, or every
+        process's gathered for the torch exchange), the render and the image the loss sees (over a random
+        background with ``render.random_background``); the strategy's pre-backward step done."""
+        device, splats, hook, profiler = self.device, self.splats, self.hook, self.profiler
         # what this process renders: its shard (one process; gsplat's distributed rasterisation) or every
         # process's Gaussians gathered (the torch exchange)
         shown = splats
@@ -908,35 +1045,27 @@ class Trainer:
             if cfg.render.random_background:
                 bkgd = torch.rand(1, 3, device=device)
                 rgb = rgb + bkgd * (1.0 - r.alpha)
-            strategy.step_pre_backward(shown, optimizers, self.strategy_state, step, r.info)
-        with profiler.phase("loss"):
-            terms, weights = base_terms(rgb, target, shown, cfg)
-        stats: dict[str, Any] = {}
-        folded: frozenset[str] = frozenset()
-        folded_loss = None
-        if hook is not None:
-            with profiler.phase("hook"):
-                ctx = StepContext(
-                    step=step,
-                    view=view,
-                    render=rgb,
-                    alpha=r.alpha,
-                    target=target,
-                    info=r.info,
-                    splats=shown,
-                    extra=r.extra,
-                    base_terms=dict(terms),
-                    sh_degree=sh_degree,
-                )
-                hout: HookOutput = hook.losses(ctx)
-                hout.check(cfg.method)
-                terms.update(hout.terms)
-                weights.update(hout.weights)
-                if hout.base_scale != 1.0:
-                    weights["photometric"] *= hout.base_scale
-                stats = dict(hout.stats)
-                folded, folded_loss = hout.folded, hout.folded_loss
-        loss = weighted_loss(terms, weights, folded, folded_loss)
+            self.strategy.step_pre_backward(shown, self.optimizers, self.strategy_state, step, r.info)
+        return view, target, sh_degree, shown, r, rgb
+
+    def _hook_terms(
+        self, ctx: StepContext, cfg: TrainConfig, terms: dict[str, Tensor], weights: dict[str, float]
+    ) -> tuple[dict[str, Any], frozenset[str], Tensor | None]:
+        """The method's terms and weights added to ``terms`` and ``weights`` (its base scale applied to the
+        photometric weight); its stats, the terms it folds and their folded loss."""
+        assert self.hook is not None
+        hout: HookOutput = self.hook.losses(ctx)
+        hout.check(cfg.method)
+        terms.update(hout.terms)
+        weights.update(hout.weights)
+        if hout.base_scale != 1.0:
+            weights["photometric"] *= hout.base_scale
+        return dict(hout.stats), hout.folded, hout.folded_loss
+
+    def _backward(self, step: int, view: TrainingView, loss: Tensor, stats: dict[str, Any]) -> bool:
+        """The backward of ``loss`` (on several processes, each Gaussian's gradient then averaged over the
+        step's views on its owner); whether no gradient reached any Gaussian (an empty view: counted in
+        ``stats``, noted once per view)."""
         # a view that sees no Gaussian (a camera looking away, everything culled) renders a constant: no
         # gradient reaches any parameter, so the step only logs itself
         empty = not loss.requires_grad
@@ -949,7 +1078,7 @@ class Trainer:
                     "counted (train stats empty_view)"
                 )
         else:
-            with profiler.phase("backward"):
+            with self.profiler.phase("backward"):
                 loss.backward()
         if self.world.enabled:
             if empty and self.exchange == "gsplat":  # the others wait in the exchange's backward
@@ -958,8 +1087,16 @@ class Trainer:
                     "an image without gradient; the processes cannot finish this step"
                 )
             # the mean over the step's views of each Gaussian's gradient, on its owner
-            params = [splats[n] for n in PARAM_NAMES]
+            params = [self.splats[n] for n in PARAM_NAMES]
             empty = dd.reduce_gradients(self.world, params, not empty, self._exchange) == 0
+        return empty
+
+    def _pack_step_values(
+        self, loss: Tensor, terms: dict[str, Tensor], names: list[str], stats: dict[str, Any]
+    ) -> tuple[list[str], Tensor]:
+        """The names of the parameters with a gradient, and every logged value, each gradient's L1 norm and
+        each parameter's L1 norm in one tensor on the device (read in one host sync after the optimizer's
+        kernels are queued)."""
         # every logged value, each gradient's L1 norm and each parameter's L1 norm (NaN/Inf wherever a value
         # is), packed on the device and read in one host sync per step, *after* the optimizer's kernels are
         # queued: the host issues the update while the device finishes the backward. A non-finite step has
@@ -970,7 +1107,7 @@ class Trainer:
         # fused multi-tensor reduction: on CUDA one kernel launch over all twelve tensors, reading each value
         # once, as the optimizer's own step does) and the same stack and host read as before: no extra sync,
         # no extra launch per parameter.
-        names = list(terms)
+        splats = self.splats
         grad_names = [n for n in PARAM_NAMES if splats[n].grad is not None]
         with torch.no_grad():
             norms = torch._foreach_norm(
@@ -979,63 +1116,31 @@ class Trainer:
         packed = torch.stack(
             [loss.detach().float()]
             + [terms[n].detach().float().reshape(()) for n in names]
-            + [_stat_tensor(stats[k], device) for k in stats]
+            + [_stat_tensor(stats[k], self.device) for k in stats]
             + list(norms)
         )
-        with profiler.phase("optimizer"):
-            for o in optimizers.values():
-                o.step()
-                o.zero_grad(set_to_none=True)
-            self.scheduler.step()
-        packed_vals = packed.tolist()
-        term_v = packed_vals[1 : 1 + len(names)]
-        # Summed from the term values read *after* the backward: a method may fill a term's value during
-        # the backward (JSGS's deferred L_fro), which the pre-backward total cannot include.
-        loss_v = packed_vals[0] if hook is None else _weighted_sum(names, term_v, weights)
-        stat_v = packed_vals[1 + len(names) : 1 + len(names) + len(stats)]
-        norm_v = packed_vals[1 + len(names) + len(stats) :]
-        grad_v, param_v = norm_v[: len(grad_names)], norm_v[len(grad_names) :]
-        views = [(view.name, loss_v, term_v, stats)]
-        if self.world.enabled:  # every process's values on every process: all of them stop alike on a NaN
-            logged = dict(zip(stats, stat_v, strict=True))
-            n_own = int(splats["means"].shape[0])
-            mine = (view.name, loss_v, term_v, logged, grad_names, grad_v, param_v, n_own, self._signal)
-            everyone = dd.gather(self.world, mine)
-            # a signal reached some process: all of them stop after this same step
-            self._stop_everywhere = dd.stop_request([v[8] for v in everyone])
-            for _, v_loss, v_terms, _, g_names, g_v, p_v, _, _ in everyone:
-                v_values = [*v_terms, v_loss]
-                _finite_check(step, [*names, "loss"], v_values, g_names, g_v, p_v, self.last_checkpoint)
-            views = [v[:4] for v in everyone]
-            self.sizes = [v[7] for v in everyone]
-        _finite_check(
-            step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_v, param_v, self.last_checkpoint
-        )
-        with profiler.phase("densify"):
-            if not empty:  # the strategies read the screen-space gradients this step does not have
-                strategy.step_post_backward(
-                    splats,
-                    optimizers,
-                    self.strategy_state,
-                    step,
-                    r.info,
-                    lr=self.scheduler.get_last_lr()[0],
-                    packed=cfg.render.packed or self.exchange == "gsplat",
-                )
-        self._exchange = None  # (the strategy's statistics read its rows)
-        result = StepResult(
-            step,
-            view.name,
-            loss_v,
-            dict(zip(names, term_v, strict=True)),
-            dict(zip(stats, stat_v, strict=True)),
-        )
-        if self.world.enabled:
-            for v_name, v_loss, v_terms, v_stats in views:
-                self.acc.add(v_loss, dict(zip(names, v_terms, strict=True)), v_stats, v_name)
-        else:
-            self.acc.add(result.loss, result.terms, result.stats, view.name)
-        return result
+        return grad_names, packed
+
+    def _gather_step_values(
+        self, step: int, view_name: str, names: list[str], loss_v: float, term_v: list[float],
+        stats: dict[str, Any], stat_v: list[float], grad_names: list[str], grad_v: list[float],
+        param_v: list[float],
+    ) -> list[tuple[Any, ...]]:  # fmt: skip
+        """Several processes: every process's logged values on every process, each checked for NaN/Inf (all
+        of them stop alike), a stop signal that reached any of them shared, every process's Gaussian count
+        noted; each process's (view name, loss, terms, stats)."""
+        splats = self.splats
+        logged = dict(zip(stats, stat_v, strict=True))
+        n_own = int(splats["means"].shape[0])
+        mine = (view_name, loss_v, term_v, logged, grad_names, grad_v, param_v, n_own, self._signal)
+        everyone = dd.gather(self.world, mine)
+        # a signal reached some process: all of them stop after this same step
+        self._stop_everywhere = dd.stop_request([v[8] for v in everyone])
+        for _, v_loss, v_terms, _, g_names, g_v, p_v, _, _ in everyone:
+            v_values = [*v_terms, v_loss]
+            _finite_check(step, [*names, "loss"], v_values, g_names, g_v, p_v, self.last_checkpoint)
+        self.sizes = [v[7] for v in everyone]
+        return [v[:4] for v in everyone]
 
     def training_seconds(self) -> float:
         """Seconds spent training so far, the step in progress included (evaluations and checkpoints do not
