@@ -168,6 +168,51 @@ def test_the_checks_see_bad_names_and_commands() -> None:
     assert "--methd" not in known["jsgs"]["train"] and "sfmm" not in known["jsgstools"]
 
 
+# a path into the repository's own folders (jsgs/…, tests/…, tools/…), not part of a longer path or a URL
+REPO_PATH = re.compile(r"(?<![\w./-])((?:jsgs|jsgstools|tests|tools|scripts|benchmarks)/[\w./*-]*[\w*])")
+# what the shipped code and the docs write about the code: its sources, scripts and every page but the
+# recorded profiler frames (docs/results/budget/speed/gaps_*.md name the files of the code they measured)
+SHIPPED = sorted(
+    p for folder in ("jsgs", "jsgstools", "scripts", "tools", "benchmarks")
+    for p in (ROOT / folder).rglob("*") if p.suffix in {".py", ".sh", ".md"} and p.is_file()
+)  # fmt: skip
+WRITTEN = [p for p in (*DOCS, *SHIPPED) if not re.search(r"docs/results/budget/speed/gaps_", str(p))]
+
+
+def _missing_paths(text: str) -> list[str]:
+    """The repository paths ``text`` names (globs allowed) that match nothing in the checkout."""
+    paths = {m.rstrip(".") for m in REPO_PATH.findall(text)}
+    return sorted(p for p in paths if not any(ROOT.glob(p)) and not any(ROOT.glob(p + "*")))
+
+
+def test_paths_in_docs_and_code_exist() -> None:
+    """Every jsgs/…, jsgstools/…, tests/…, tools/…, scripts/… and benchmarks/… path that the docs or the
+    shipped code's comments and docstrings write down exists (a file moved leaves no stale path)."""
+    bad = [f"{p.relative_to(ROOT)}: {m}" for p in WRITTEN for m in _missing_paths(p.read_text())]
+    assert not bad, "\n".join(bad)
+
+
+# the file types a code's string may name (``"jsgs.json"``): not dotted names of the code
+FILE_TYPES = {"json", "py", "md", "csv", "txt", "png", "ply", "pt", "log", "toml", "sh", "tgz"}
+
+
+def test_dotted_names_in_code_resolve() -> None:
+    """Every jsgs.x.y that the shipped code's comments, docstrings and scripts name is a module, or an
+    attribute of one (a renamed or moved definition leaves no stale name)."""
+    bad = sorted(
+        f"{p.relative_to(ROOT)}: {n}"
+        for p in SHIPPED if p.suffix != ".md"
+        for n in set(DOTTED.findall(p.read_text()))
+        if n.rpartition(".")[2] not in FILE_TYPES and not _resolves(n)
+    )  # fmt: skip
+    assert not bad, "\n".join(bad)
+
+
+def test_the_path_check_sees_stale_paths() -> None:
+    text = "See jsgs/ssim.py, tests/jsgs/ and `jsgs/kernels/_torch_impl.py`; runs in tools/campaigns/*.sh."
+    assert _missing_paths(text) == ["jsgs/ssim.py", "tests/jsgs"]
+
+
 def test_the_demo_writes_its_block_of_the_readme() -> None:
     """README.md has one fenced demo-output block, and scripts/demo_readme.py (which scripts/demo.sh runs)
     replaces exactly that block with what the demo printed, long lines shortened."""

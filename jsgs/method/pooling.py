@@ -9,7 +9,7 @@ t the transmittance in front of j, α(p) = min(0.999, o_j·exp(−σ)) the compo
 the footprint without opacity (= exp(−σ) except in the rare core where α hit gsplat's 0.999 clamp; this
 definition makes ν = o_j·S_1 the rendered contribution mass exactly). r̄ = S_r / (S_1 + ε_proj).
 
-Three ways to get them, all equal to ``jsgs.render.bruteforce.pool_bruteforce``:
+Three ways to get them, all equal to the pooled sums of ``jsgs.render.bruteforce.render_bruteforce``:
 
 * ``pool_direct`` — the reference rasterizer's tiles evaluated again without autograd (any device; the
   brute-force-checked definition; a second pass).

@@ -1,7 +1,7 @@
 """Evaluation at the ``--eval-at`` steps: image metrics against the uncompressed references, render speed,
 model size and peak memory.
 
-- PSNR / SSIM / LPIPS-alex via :func:`jsgs.metrics.psnr.evaluate_images` on renders clamped to [0, 1] (as
+- PSNR / SSIM / LPIPS-alex via :func:`jsgs.metrics.evaluate_images` on renders clamped to [0, 1] (as
   gsplat's simple_trainer), at the final SH degree, against each test view's lossless reference.
 - FPS: ``fps_warmup`` untimed passes over the test views, then ``fps_passes`` timed passes, each pass
   bracketed by device synchronisation and timed with ``time.perf_counter``; FPS = views / median pass time.

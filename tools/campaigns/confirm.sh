@@ -4,7 +4,7 @@
 #   BUDGETS=300k SCHEDULES=uniform,gaussian,descending,clean TL=470 bash scripts/gpu_run.sh bash tools/campaigns/confirm.sh
 # repeated (the bench resumes its runs from their checkpoints) until every run is complete; metrics come back
 # in $OUT/confirm.tgz and tools/results/build_report.py gathers them on the CPU. JSGS trains with the mcmc
-# preset's recipe (jsgs.train.config.PRESET_METHOD_OPTIONS); RECIPE (JSON) goes over it and OUT_DIR names the
+# preset's recipe (jsgs.method.recipes.RECIPES); RECIPE (JSON) goes over it and OUT_DIR names the
 # bench folder. confirm/ was made with the tables' noise bound at σ_ref = 4:
 #   RECIPE='{"method_options": {"lambda_obs": 1.0, "base_by_view": true, "base_noise": "tables",
 #     "base_noise_ref": 4.0}}' OUT_DIR=.res/tables4 ... bash tools/campaigns/confirm.sh
