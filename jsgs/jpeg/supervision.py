@@ -129,6 +129,29 @@ class DctSupervision(NamedTuple):
     pixel_score: Tensor
 
 
+class TableWeights(NamedTuple):
+    """What DS takes from a luma table alone (no image): ``omega`` ``(B, 8, 8)`` (eq. omega), ``w_mid``
+    ``(B, 8, 8)`` = M_mid omega and ``w_sum`` ``(B,)`` its sum. A view's tables are fixed for the run, so the
+    method computes these once per view (:func:`table_weights`) instead of once per step."""
+
+    omega: Tensor
+    w_mid: Tensor
+    w_sum: Tensor
+
+
+def table_weights(
+    luma_table: Tensor, batch: int = 1, dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> TableWeights:  # fmt: skip
+    """:class:`TableWeights` of ``luma_table`` ``(8, 8)`` or ``(batch, 8, 8)``, in ``dtype`` on ``device``:
+    the operations :func:`dct_supervision` runs on them without it, so the values are bit for bit its own."""
+    table = torch.as_tensor(luma_table, device=_dev(device)).to(dtype)
+    table = table.expand(batch, 8, 8)
+    w = omega(table)
+    w_mid = mid_mask(dtype, table.device) * w
+    return TableWeights(w, w_mid, w_mid.sum(dim=(-1, -2)))
+
+
 def dct_supervision(
     observation: Tensor,
     target: Tensor,
@@ -136,6 +159,7 @@ def dct_supervision(
     eps_sm: float = EPS_SM,
     eps_loss: float = EPS_LOSS,
     eps_block: float = EPS_BLOCK,
+    weights: TableWeights | None = None,
 ) -> DctSupervision:
     """DS between the JO output and the decoded training image.
 
@@ -145,6 +169,8 @@ def dct_supervision(
         luma_table: ``(B, 8, 8)`` or ``(8, 8)`` luminance quantization steps, natural order.
         eps_sm, eps_loss, eps_block: epsilon_sm, epsilon_DCT^loss, epsilon_DCT^block (paper: 1e-3,
             1e-6, 1e-6).
+        weights: :func:`table_weights` of ``luma_table``, made beforehand (``B`` views, in the observation's
+            dtype, on its device); None: made here.
     Returns:
         :class:`DctSupervision`. With no valid block (H < 8 or W < 8) the losses are 0 and the score map is 0.
     """
@@ -154,15 +180,13 @@ def dct_supervision(
     delta = (c_j - c_i) / 255.0
     pen = psi(delta, eps_sm)
 
-    table = torch.as_tensor(luma_table, device=observation.device).to(observation.dtype)
-    table = table.expand(b, 8, 8)
-    w = omega(table)
+    if weights is None:
+        weights = table_weights(luma_table, b, observation.dtype, observation.device)
+    w, w_mid, w_sum = weights  # w_sum: (B,)
     m_low = low_mask(observation.dtype, observation.device)
-    w_mid = mid_mask(observation.dtype, observation.device) * w
 
     n_blocks = c_j.shape[1] * c_j.shape[2]
     block_error = (pen * w_mid[:, None, None]).sum(dim=(-1, -2))  # e_b
-    w_sum = w_mid.sum(dim=(-1, -2))  # (B,)
     loss_low = (pen * m_low).sum(dim=(1, 2, 3, 4)) / (n_blocks * 10 + eps_loss)  # 10 = |M_low|
     loss_mid = block_error.sum(dim=(1, 2)) / (n_blocks * w_sum + eps_loss)
     block_score = block_error / (w_sum[:, None, None] + eps_block)

@@ -277,6 +277,7 @@ class JsgsHook(LossHook):
         else:
             obs, terms["obs"], sup = jpeg_terms(
                 x, y, tab.luma, tab.chroma, sampling=tab.sampling, phase=self.profiler.phase, first=tab.first,
+                ds_weights=tab.ds_weights if x.dtype == torch.float32 else None,
                 **self._jpeg_settings, **self._jpeg_functions,
             )  # fmt: skip
             if self.keep_last:

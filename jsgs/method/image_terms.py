@@ -21,7 +21,7 @@ from torch import Tensor
 from jsgs.base.errors import JsgsError, one_line
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
-from jsgs.jpeg.supervision import DctSupervision, dct_supervision
+from jsgs.jpeg.supervision import DctSupervision, TableWeights, dct_supervision, table_weights
 from jsgs.jpeg.tables import SAMPLING_FACTORS
 
 if TYPE_CHECKING:
@@ -52,6 +52,7 @@ def jpeg_terms(
     supervise: Callable[..., DctSupervision] = dct_supervision,
     phase: Callable[[str], AbstractContextManager[Any]] = lambda name: nullcontext(),
     first: Tensor | None = None,
+    ds_weights: TableWeights | None = None,
 ) -> tuple[Tensor, Tensor, DctSupervision | None]:
     """JO, L_obs and DS for one view: the one home of that chain, for the eager hook and for the graph.
 
@@ -63,6 +64,8 @@ def jpeg_terms(
         phase: a profiler's ``phase(name)`` context ("jo" around JO and L_obs, "ds" around DS);
         first: ``(2, 8, 8)`` effective tables of a view compressed twice: JO quantizes with them first, then
             with ``luma``/``chroma`` (the file's history), and DS weights by their luma.
+        ds_weights: DS's weights of the table it weights by (:attr:`ViewJpeg.ds_weights`), made once per
+            view; None: DS makes them.
     Returns:
         The observation ``(1, 3, H, W)``, L_obs (0-dim) and the DS terms (None without DS and GC; with GC
         alone they are computed on the detached observation, so no graph runs through DS).
@@ -76,7 +79,7 @@ def jpeg_terms(
         return obs, l_obs, None
     with phase("ds"):
         ds_table = first[0] if first is not None else luma
-        sup = supervise(obs if ds else obs.detach(), y, ds_table, eps_sm, eps_loss, eps_block)
+        sup = supervise(obs if ds else obs.detach(), y, ds_table, eps_sm, eps_loss, eps_block, ds_weights)
     return obs, l_obs, sup
 
 
@@ -146,6 +149,14 @@ class ViewJpeg:
     #: coarser of the earlier and the header's step per coefficient), quantized with before ``tables``; DS
     #: weights by their luma. None: one quantization with ``tables``.
     first: Tensor | None = None
+    #: DS's weights of the luma table it weights by (``first``'s where set, else ``tables``'s), float32 on
+    #: the tables' device: fixed for the run, so made once here instead of in every step
+    ds_weights: TableWeights | None = None
+
+    def __post_init__(self) -> None:
+        if self.ds_weights is None:
+            ds_table = self.first[0] if self.first is not None else self.tables[0]
+            self.ds_weights = table_weights(ds_table, 1, torch.float32, self.tables.device)
 
     @property
     def luma(self) -> Tensor:

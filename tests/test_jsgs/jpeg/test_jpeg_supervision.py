@@ -156,6 +156,23 @@ def test_batch_equals_views_one_by_one_and_float32() -> None:
         assert (a.double() - b).abs().max() < 1e-5
 
 
+def test_weights_made_beforehand_are_bit_identical() -> None:
+    # a view's DS weights are made once (table_weights) and passed to every step: the same bits as DS's own,
+    # for an integer table, a float one and a batch, in float32 and float64, with the same gradient
+    for dtype in (torch.float32, torch.float64):
+        obs = torch.rand(2, 3, 24, 17, dtype=dtype, requires_grad=True)
+        tgt = torch.rand(2, 3, 24, 17, dtype=dtype)
+        for table in (torch.tensor(TABLES["ijg50"]), torch.tensor(ijg_tables(90)[0]).float(),
+                      torch.tensor(np.stack([ijg_tables(10)[0], ijg_tables(90)[0]]))):  # fmt: skip
+            own = S.dct_supervision(obs, tgt, table)
+            given = S.dct_supervision(obs, tgt, table, weights=S.table_weights(table, 2, dtype))
+            for a, b in zip(own, given, strict=True):
+                assert a.dtype == b.dtype and torch.equal(a, b)
+            g_own = torch.autograd.grad(own.loss_mid.sum() + own.loss_low.sum(), obs)[0]
+            g_given = torch.autograd.grad(given.loss_mid.sum() + given.loss_low.sum(), obs)[0]
+            assert torch.equal(g_own, g_given)
+
+
 def test_gradcheck() -> None:
     obs = torch.rand(1, 3, 8, 16, dtype=torch.float64, requires_grad=True)
     tgt = torch.rand(1, 3, 8, 16, dtype=torch.float64)
