@@ -1,6 +1,6 @@
-"""tools/results/build_report.py --baseline: a folder of one recipe's JSGS runs gets the other folder's
-gsplat runs of the same cells and the clean runs of the same scenes and budgets, with their settings, and
-nothing else."""
+"""tools/results/build_report.py: the current results folder rebuilds byte for byte; --baseline: a folder of
+one recipe's JSGS runs gets the other folder's gsplat runs of the same cells and the clean runs of the same
+scenes and budgets, with their settings, and nothing else."""
 
 from __future__ import annotations
 
@@ -63,3 +63,21 @@ def test_refuses_results_without_budget_columns(tmp_path: Path) -> None:
         br.main(old, [])
     # nothing written into the folder it refused
     assert sorted(p.name for p in old.iterdir()) == ["results.csv"]
+
+
+def test_the_operating_point_rebuilds_byte_for_byte(tmp_path: Path) -> None:
+    """docs/results/operating_point (the current results) is what the bench's report code makes of its own
+    results.csv and configs.json: report.md, results.csv and configs.json byte for byte, the same plots (their
+    pixels depend on the matplotlib version, so only their names are compared)."""
+    import shutil
+
+    committed = Path(__file__).resolve().parents[2] / "docs" / "results" / "operating_point"
+    target = tmp_path / committed.name
+    shutil.copytree(committed, target)
+    shutil.rmtree(target / "plots")
+    (target / "report.md").unlink()  # made again from results.csv and configs.json, which it rewrites
+    br.main(target, [])
+    for name in ("report.md", "results.csv", "configs.json"):
+        assert (target / name).read_bytes() == (committed / name).read_bytes(), name
+    assert sorted(p.name for p in (target / "plots").iterdir()) == sorted(
+        p.name for p in (committed / "plots").iterdir())  # fmt: skip
