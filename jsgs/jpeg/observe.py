@@ -122,7 +122,8 @@ def _code_blocks(blocks: Tensor, q: Tensor, mode: str) -> Tensor:
     exact = mode == "exact"
     work = torch.float64 if exact else blocks.dtype
     t_value = fdct_islow(blocks, work)
-    deq_value = quantize_libjpeg(t_value, q.to(work)) * q.to(work)
+    q_work = q.to(work)  # one copy for both uses (exact: float64)
+    deq_value = quantize_libjpeg(t_value, q_work) * q_work
     t = _through(t_value, 8.0 * block_dct(blocks))
     deq = _through(deq_value, q * round_soft_grad(t / (8.0 * q)))
     out = _clamp_255(block_idct(deq) + 128.0)

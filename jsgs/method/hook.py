@@ -284,7 +284,8 @@ class JsgsHook(LossHook):
                 self.last["observation"] = obs.detach()
             if sup is not None:
                 if o.ds:
-                    terms["low"], terms["mid"] = sup.loss_low.sum(), sup.loss_mid.sum()
+                    # the one view's entries (views, no kernel; the sum of one value is that value)
+                    terms["low"], terms["mid"] = sup.loss_low.view(()), sup.loss_mid.view(())
                 r_map = sup.pixel_score  # [1, H, W], detached
                 if self.keep_last:
                     self.last["ds"] = sup

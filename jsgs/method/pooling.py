@@ -40,6 +40,7 @@ must be divided out of the gradient.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from jsgs.base.known_grad import with_known_gradient
@@ -87,7 +88,8 @@ def _upstream(info: dict, r: Tensor) -> Tensor:
     if r.shape != (C, H, W):
         raise ValueError(f"r must be [C, H, W] = {(C, H, W)}, got {tuple(r.shape)}")
     r = r.detach().to(ch.dtype)
-    return torch.stack([r, torch.ones_like(r)], dim=-1)
+    # [C, H, W, 2] = (r, 1): r with a channel of ones padded on, one kernel (stack with ones_like is two)
+    return F.pad(r[..., None], (0, 1), value=1.0)
 
 
 def probe_objective(info: dict, r: Tensor) -> Tensor:
