@@ -196,8 +196,10 @@ def jpeg_observe(
     blocks = torch.cat([luma_b.reshape(b, n_y, 8, 8), chroma_b.reshape(b, n_c, 8, 8)], dim=1)
     q = torch.cat([tab_y[:, None].expand(b, n_y, 8, 8), tab_c[:, None].expand(b, n_c, 8, 8)], dim=1)
     decoded = _code_blocks(blocks, q, mode)
-    luma = unblockify(decoded[:, :n_y].reshape(luma_b.shape))[..., :height, :width]
-    chroma = unblockify(decoded[:, n_y:].reshape(chroma_b.shape))[..., :ch, :cw]
+    # one split: its backward is one cat (two slices' are two zero-filled copies and their sum)
+    luma_d, chroma_d = decoded.split([n_y, n_c], dim=1)
+    luma = unblockify(luma_d.reshape(luma_b.shape))[..., :height, :width]
+    chroma = unblockify(chroma_d.reshape(chroma_b.shape))[..., :ch, :cw]
 
     # Decoder up-sampling (jdsample.c) from the real chroma samples only.
     if not (h == 1 and v == 1):
