@@ -1,0 +1,28 @@
+"""tools/diagnostics/op_sources.py on a tiny synthetic scene on the CPU: JSGS's JO and DS parts exist and
+the baseline has none, JSGS counts more ops, and the table prints."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from conftest import load_benchmark
+
+ops = load_benchmark("op_sources", "tools/diagnostics")
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def test_parts_of_a_tiny_window(capsys: Any) -> None:
+    counts = {}
+    for method in ("gsplat", "jsgs"):
+        by_op, reads = ops.run(method, (48, 32), 6, 3, 2)
+        parts = {p.removesuffix(" (backward)") for p, _ in by_op}
+        counts[method] = sum(by_op.values())
+        assert reads >= 0 and counts[method] > 0
+        assert ("JO" in parts and "DS" in parts) == (method == "jsgs")
+        assert "rasteriser" in parts and "trainer" in parts
+    assert counts["jsgs"] > counts["gsplat"]
+    assert ops.main(["--size", "48x32", "--views", "6", "--warmup", "3", "--steps", "1", "--detail"]) == 0
+    printed = capsys.readouterr().out
+    assert "| part (forward and backward) | aten ops per step |" in printed and "| JO |" in printed
