@@ -1328,7 +1328,8 @@ class Trainer:
                 if self.interrupted is not None and done < self.end_step:
                     message = (
                         f"{self.paths.root}: interrupted by {self.interrupted} after step {done} of "
-                        f"{cfg.iterations}; checkpoint saved, continue with --resume"
+                        f"{cfg.iterations}; checkpoint saved, continue with --resume (its own settings, no "
+                        f"--preset or --config): jsgs train {self.manifest} --out {self.paths.root} --resume"
                     )
                     self.fire("on_end", self.metrics_doc("stopped", done, message))
                     raise TrainingInterrupted(message)

@@ -752,6 +752,7 @@ def test_a_signal_stops_after_the_step_with_a_checkpoint(scene: Path, tmp_path: 
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
     m = json.loads((tmp_path / "b" / "metrics.json").read_text())
     assert m["status"] == "stopped" and m["step"] == 4 and "continue with --resume" in m["error"]
+    assert m["error"].endswith(" --resume") and " --out " in m["error"]
     assert (tmp_path / "b" / "checkpoints" / "step_000004.pt").is_file()
     train(scene, tmp_path / "b", None, resume=True, progress=False)
     train(scene, tmp_path / "a", tiny_config(iterations=10, eval_at=[10]), progress=False)
