@@ -626,7 +626,9 @@ def command_settings(
 
     overrides = dict(overrides or {})
     if resume_settings is not None and preset_name is not None:
-        raise JsgsError("--preset applies to a new run; --resume takes the run's own settings (drop --preset)")
+        raise JsgsError(
+            "--preset applies to a new run; --resume takes the run's own settings (drop --preset)"
+        )
     if preset_name is None and resume_settings is None:
         preset_name = DEFAULT_PRESET
     start = TrainConfig.from_preset(preset_name) if preset_name is not None else TrainConfig()
