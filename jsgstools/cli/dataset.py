@@ -295,7 +295,11 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, analyze: bool, 
             "and OPENCV on the photos' own grid; compress undistorts clean scenes)"
         )
     refs = sum(v["reference"] is not None for v in views)
-    click.echo(f"  {refs} view(s) have a lossless reference")
+    if refs:
+        n = len(views)
+        click.echo(f"  {refs} of {n} views have a separate lossless reference (evaluation compares with it)")
+    else:
+        click.echo("  no separate lossless references: evaluation compares with the images themselves")
     double = [v for v in views if v["jpeg"] and (v["jpeg"].get("analysis") or {}).get("double_compressed")]
     if analyze:
         click.echo(f"  {len(double)} JPEG view(s) compressed twice (the earlier, coarser tables recorded)")

@@ -68,6 +68,7 @@ def test_manifest_reads_the_copy_at_its_own_size(odd_scene: Path, tmp_path: Path
     assert "35x27 -> 17x13 (factor 2)" in r.output
     r = CliRunner().invoke(main, ["manifest", str(out), "--out", str(out / "manifest.json")])
     assert r.exit_code == 0, r.output
+    assert "no separate lossless references: evaluation compares with the images themselves" in r.output
     doc = json.loads((out / "manifest.json").read_text())
     cams = {(v["camera"]["width"], v["camera"]["height"]) for v in doc["views"]}
     assert cams == {(17, 13)}
