@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -111,8 +112,10 @@ def render_run(
         raise JsgsError(f"{out}: exists (use --force to replace it)")
     if not video and (os.path.lexists(out) and not out.is_dir()):
         raise JsgsError(f"{out}: exists and is not a folder")
-    if not video and out.is_dir() and any(out.iterdir()) and not force:
-        raise JsgsError(f"{out}: folder is not empty (use --force to replace its frames)")
+    if not video and out.is_dir() and any(out.iterdir()):
+        if not force:
+            raise JsgsError(f"{out}: folder is not empty (use --force to replace its frames)")
+        check_frames_folder(out)
 
     model = load_run_model(run, device)  # refuses a model that would draw nothing
     views = sorted(model.scene.train_views, key=lambda v: v.name)
@@ -153,7 +156,7 @@ def render_run(
     if video:
         count, shape = _write_video(out, images(), fps, cameras, doc)
     else:
-        count, shape = _write_frames(out, images(), cameras, doc)
+        count, shape = _write_frames(out, images(), doc)
     return {"frames": count, "out": str(out), "cameras": str(cameras), "width": shape[1], "height": shape[0]}
 
 
@@ -183,38 +186,55 @@ def _write_video(
     return count, shape
 
 
+#: the entries of a folder of frames jsgs render wrote: its frames, the camera path, and the temporary
+#: files of its atomic writes that a killed call left
+_FRAMES_ENTRY = re.compile(r"(\.)?(?:frame_\d{5}\.png|cameras\.json)(?(1)\.\w+\.part\.\w+)")
+
+
+def check_frames_folder(out: Path) -> None:
+    """JsgsError (one line) unless ``out`` is a folder jsgs render made: a real folder (not a link) holding
+    its ``cameras.json`` and only plain files it writes (``frame_NNNNN.png``); ``--force`` replaces only such
+    a folder, so nothing the tool did not write is deleted."""
+    hint = "--force replaces only a folder of frames that jsgs render made (choose another --out)"
+    if out.is_symlink():
+        raise JsgsError(f"{out}: is a link; {hint}")
+    for p in sorted(out.iterdir()):
+        if not _FRAMES_ENTRY.fullmatch(p.name) or p.is_symlink() or not p.is_file():
+            raise JsgsError(f"{out}: holds {p.name}, which jsgs render does not write; {hint}")
+    if not (out / "cameras.json").is_file():
+        raise JsgsError(f"{out}: has no cameras.json of jsgs render; {hint}")
+
+
 def _write_frames(
-    out: Path, images: Iterator[np.ndarray], cameras: Path, doc: dict[str, Any]
+    out: Path, images: Iterator[np.ndarray], doc: dict[str, Any]
 ) -> tuple[int, tuple[int, ...]]:
-    """Each image to ``out/frame_NNNNN.png`` as it comes (atomically), then ``cameras``; a failure removes
-    the frames written by this call (and ``out`` when this call made it)."""
+    """Each image to ``frame_NNNNN.png`` as it comes (atomically), then ``cameras.json``. An existing empty
+    ``out`` is written in place (a failure removes what this call wrote); otherwise the frames go to a
+    temporary sibling folder that replaces ``out`` only when complete (:func:`jsgs.base.io.atomic_folder`):
+    earlier frames (--force, :func:`check_frames_folder`) are removed only then, and a failed or interrupted
+    call leaves them as they were."""
+    from contextlib import nullcontext
+
     from PIL import Image
 
-    from jsgs.base.io import write_json_atomic, write_with_atomic
+    from jsgs.base.io import atomic_folder, write_json_atomic, write_with_atomic
 
-    made = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    for old in out.glob("frame_*.png"):
-        old.unlink()
+    in_place = out.is_dir() and not any(out.iterdir())
     written: list[Path] = []
     shape: tuple[int, ...] = (0, 0)
-    try:
-        for i, img in enumerate(images):
+    with nullcontext(out) if in_place else atomic_folder(out) as work:
+        try:
+            for i, img in enumerate(images):
 
-            def save(p: Path, a: np.ndarray = img) -> None:
-                Image.fromarray(a).save(p, format="PNG")
+                def save(p: Path, a: np.ndarray = img) -> None:
+                    Image.fromarray(a).save(p, format="PNG")
 
-            written.append(out / f"frame_{i:05d}.png")
-            write_with_atomic(written[-1], save)
-            shape = img.shape
-        write_json_atomic(cameras, doc)
-    except BaseException:
-        for p in written:
-            p.unlink(missing_ok=True)
-        if made:
-            try:
-                out.rmdir()
-            except OSError:
-                pass
-        raise
+                written.append(work / f"frame_{i:05d}.png")
+                write_with_atomic(written[-1], save)
+                shape = img.shape
+            write_json_atomic(work / "cameras.json", doc)
+        except BaseException:
+            for p in written if in_place else []:
+                p.unlink(missing_ok=True)
+            raise
     return len(written), shape

@@ -57,6 +57,66 @@ def atomic_path(final: str | os.PathLike[str]) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+@contextmanager
+def atomic_folder(final: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a new empty folder ``.NAME.XXXXXXXX.part`` beside ``final`` (same parent, so the renames stay on
+    one file system); when the block succeeds it takes ``final``'s place: an existing ``final`` is first
+    moved aside (``.NAME.XXXXXXXX.old``), put back if the rename fails, and removed only once the new folder
+    is in place. When the block fails (an error, Ctrl-C) the temporary folder is removed and ``final`` is
+    untouched. A link at ``final`` is replaced, never followed. The caller decides whether ``final`` may be
+    replaced at all (only what the tool made)."""
+    import shutil
+
+    from jsgs.base.errors import JsgsError
+
+    final = Path(final)
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".part", dir=final.parent))
+        os.chmod(work, 0o777 & ~_umask())  # mkdtemp makes 0700; give what mkdir would
+    except OSError as e:
+        raise JsgsError(f"{final}: cannot write ({e.strerror or e})") from None
+    try:
+        yield work
+        try:
+            _swap_in(work, final)
+        except OSError as e:
+            raise JsgsError(f"{final}: cannot replace it ({e.strerror or e})") from None
+    finally:
+        if os.path.lexists(work):
+            shutil.rmtree(work, ignore_errors=True)
+
+
+def _swap_in(work: Path, final: Path) -> None:
+    """Rename ``work`` onto ``final`` (see :func:`atomic_folder`)."""
+    import shutil
+
+    if not os.path.lexists(final):
+        os.rename(work, final)
+        return
+    folder = final.is_dir() and not final.is_symlink()
+    if folder:  # a folder is renamed onto an empty folder, a file or link onto a file
+        aside = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent))
+    else:
+        fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".old", dir=final.parent)
+        os.close(fd)
+        aside = Path(name)
+    try:
+        os.replace(final, aside)
+    except BaseException:
+        aside.rmdir() if folder else aside.unlink()
+        raise
+    try:
+        os.rename(work, final)
+    except BaseException:
+        os.replace(aside, final)
+        raise
+    if folder:
+        shutil.rmtree(aside, ignore_errors=True)
+    else:
+        aside.unlink()
+
+
 def atomic_leftovers(folder: str | os.PathLike[str], final_name: str) -> list[Path]:
     """The temporary files :func:`atomic_path` left in ``folder`` for final names matching the regular
     expression ``final_name`` (a process killed mid-write leaves them; a writer that holds the folder's

@@ -46,7 +46,8 @@ from jsgs.base.commands import CONTEXT, EXAMPLE, user_errors
 @click.option(
     "--force",
     is_flag=True,
-    help="Replace an existing video or the frames of a folder (never one of the run's own files).",
+    help="Replace an existing video, or a folder of frames that jsgs render made, once the new render is "
+    "complete (never one of the run's own files).",
 )
 @user_errors
 def render_command(

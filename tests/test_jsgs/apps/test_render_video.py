@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -132,3 +133,87 @@ def test_render_errors_are_one_line(run: Path, tmp_path: Path) -> None:
     ):
         r = CliRunner().invoke(main, ["render", str(run), *args, "--device", "cpu"])
         assert r.exit_code == 1 and needle in r.output and r.output.count("\n") == 1, r.output
+
+
+def _siblings(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.parent.iterdir() if p.name.startswith(f".{folder.name}."))
+
+
+def test_force_keeps_the_earlier_frames_until_the_new_ones_are_complete(
+    run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import jsgs.apps.viewer
+    from jsgs.apps.render_video import render_run
+
+    out = tmp_path / "frames"
+    render_run(run, out, "spiral", 3, device="cpu", progress=False)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert sorted(before) == ["cameras.json", "frame_00000.png", "frame_00001.png", "frame_00002.png"]
+    render_rgb, calls = jsgs.apps.viewer.render_rgb, []
+
+    def interrupted(*a: object, **k: object) -> np.ndarray:
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return render_rgb(*a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(jsgs.apps.viewer, "render_rgb", interrupted)
+    with pytest.raises(KeyboardInterrupt):  # Ctrl-C in the middle of a --force render
+        render_run(run, out, "ellipse", 2, size=(30, 20), device="cpu", progress=False, force=True)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before and _siblings(out) == []
+    monkeypatch.setattr(jsgs.apps.viewer, "render_rgb", render_rgb)
+    render_run(run, out, "ellipse", 2, size=(30, 20), device="cpu", progress=False, force=True)
+    assert sorted(p.name for p in out.iterdir()) == ["cameras.json", "frame_00000.png", "frame_00001.png"]
+    assert json.loads((out / "cameras.json").read_text())["kind"] == "ellipse" and _siblings(out) == []
+    assert Image.open(out / "frame_00001.png").size == (30, 20)  # the new frames, not the earlier 32x24
+
+
+def test_force_replaces_only_a_folder_of_frames_render_made(run: Path, tmp_path: Path) -> None:
+    from jsgs.cli import main
+
+    victim = tmp_path / "victim"
+    victim.mkdir()
+    (victim / "frame_00000.png").write_bytes(b"mine")
+    mixed, bare, link = tmp_path / "mixed", tmp_path / "bare", tmp_path / "link"
+    args = ["render", str(run), "--out", str(mixed), "--frames", "2", "--device", "cpu"]
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    (mixed / "notes.txt").write_text("keep")
+    bare.mkdir()
+    (bare / "frame_00000.png").write_bytes(b"not a render")  # frames from elsewhere, no cameras.json
+    shutil.copy(mixed / "cameras.json", victim / "cameras.json")
+    link.symlink_to(victim, target_is_directory=True)
+    for out, needle in ((mixed, "holds notes.txt, which jsgs render does not write"),
+                        (bare, "has no cameras.json of jsgs render"), (link, "is a link")):  # fmt: skip
+        args = ["render", str(run), "--out", str(out), "--frames", "2", "--force", "--device", "cpu"]
+        r = CliRunner().invoke(main, args)
+        assert r.exit_code == 1 and r.output.count("\n") == 1 and needle in r.output, r.output
+        assert "--force replaces only a folder of frames that jsgs render made" in r.output
+    assert (mixed / "notes.txt").read_text() == "keep" and len(list(mixed.glob("frame_*.png"))) == 2
+    assert (bare / "frame_00000.png").read_bytes() == b"not a render"
+    assert (victim / "frame_00000.png").read_bytes() == b"mine" and link.is_symlink()
+
+
+def test_atomic_folder_swaps_in_only_a_finished_folder(tmp_path: Path) -> None:
+    from jsgs.base.io import atomic_folder
+
+    final = tmp_path / "out"
+    final.mkdir()
+    (final / "old").write_text("old")
+    with pytest.raises(RuntimeError), atomic_folder(final) as work:
+        (work / "new").write_text("half")
+        raise RuntimeError("disk error")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"] and (final / "old").read_text() == "old"
+    with atomic_folder(final) as work:
+        (work / "new").write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert [p.name for p in final.iterdir()] == ["new"]
+    target = tmp_path / "target"
+    target.mkdir()
+    (target / "t").write_text("t")
+    link = tmp_path / "link"
+    link.symlink_to(target, target_is_directory=True)
+    with atomic_folder(link) as work:
+        (work / "new").write_text("new")
+    assert not link.is_symlink() and (link / "new").exists() and (target / "t").read_text() == "t"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "out", "target"]
