@@ -15,6 +15,7 @@ Conventions (the same as COLMAP's, and the manifest's):
 from __future__ import annotations
 
 import functools
+import os
 import shlex
 from collections.abc import Callable
 from contextvars import ContextVar
@@ -201,13 +202,21 @@ def find_model_dir(root: Path) -> tuple[Path, str]:
     """The COLMAP model folder of a scene and its format: ``sparse/0`` first, then ``sparse``; binary
     (``cameras.bin``, ``images.bin``, ``points3D.bin``) or text (``.txt``). Raises JsgsError naming what was
     looked for."""
+    from jsgs.base.io import not_regular
+
     if not root.is_dir():
         raise JsgsError(f"{root}: not a folder")
+    broken = None  # the first model whose three files are all there but one is no regular file
     for sub in ("sparse/0", "sparse"):
         d = root / sub
         for fmt, ext in (("binary", ".bin"), ("text", ".txt")):
-            if all((d / f"{n}{ext}").is_file() for n in ("cameras", "images", "points3D")):
+            files = [d / f"{n}{ext}" for n in ("cameras", "images", "points3D")]
+            if all(p.is_file() for p in files):
                 return d, fmt
+            if broken is None and all(os.path.lexists(p) for p in files):
+                broken = next((f"{p}: {why}" for p in files if (why := not_regular(p)) is not None), None)
+    if broken is not None:
+        raise JsgsError(f"{broken}; a COLMAP model needs cameras, images and points3D as regular files")
     raise JsgsError(
         f"{root}: no COLMAP model (looked for cameras, images and points3D .bin or .txt in sparse/0/ and "
         f"sparse/); for a folder of photos, make one with "

@@ -202,6 +202,19 @@ def read_regular_text(path: str | os.PathLike[str], encoding: str = "utf-8") -> 
     return read_regular_bytes(path).decode(encoding)
 
 
+def not_regular(path: str | os.PathLike[str]) -> str | None:
+    """Why the entry at ``path`` cannot be read as a regular file, in words (``"is a FIFO (named pipe), not
+    a regular file"``, ``"is a link to a missing file"``), found without opening it; None when it is a
+    regular file or absent."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return "is a link to a missing file" if os.path.islink(path) else None
+    except OSError as e:
+        return f"cannot be read ({e.strerror or e})"
+    return None if stat.S_ISREG(st.st_mode) else f"is {_kind(st.st_mode)}, not a regular file"
+
+
 def refuse_non_regular(path: str | os.PathLike[str]) -> None:
     """JsgsError when ``path`` exists and is not a regular file (for readers that take a path and open it
     themselves, such as pycolmap); a missing file is left to the reader."""

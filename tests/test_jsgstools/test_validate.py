@@ -3,7 +3,9 @@ problems are all listed; real scenes' downscale factors are found."""
 
 from __future__ import annotations
 
+import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -260,3 +262,42 @@ def test_real_scenes(name: str, factor: str, sizes: str) -> None:
     assert f"image size   {sizes}" in out
     if name == "llff_fern":
         assert "SIMPLE_RADIAL" in out and "compress undistorts it" in out
+
+
+def _fifo(p: Path) -> str:
+    p.unlink()
+    os.mkfifo(p)  # nobody writes it: a reader that opened it would wait forever
+    return "is a FIFO (named pipe), not a regular file"
+
+
+def _folder(p: Path) -> str:
+    p.unlink()
+    p.mkdir()
+    return "is a folder, not a regular file"
+
+
+def _dangling(p: Path) -> str:
+    p.unlink()
+    p.symlink_to(p.parent / "gone.bin")
+    return "is a link to a missing file"
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+@pytest.mark.parametrize(
+    ("name", "make"),
+    [("cameras.bin", _fifo), ("images.bin", _folder), ("points3D.bin", _dangling), ("points3D.bin", _fifo)],
+)
+def test_a_model_file_that_is_no_regular_file_is_named(
+    synth_scene: Path, tmp_path: Path, name: str, make: Callable[[Path], str]
+) -> None:
+    scene = _copy(synth_scene, tmp_path / "s")
+    path = scene / "sparse" / "0" / name
+    why = make(path)
+    code, out = _run(scene)
+    problems = [line for line in out.splitlines() if line.startswith("problem: ")]
+    assert code == 1 and problems == [f"problem: {path}: {why}; a COLMAP model needs cameras, images and "
+                                      "points3D as regular files"], out  # fmt: skip
+    r = CliRunner().invoke(main, ["manifest", str(scene), "--out", str(tmp_path / "m.json")])
+    errors = [line for line in r.output.splitlines() if line.startswith("error: ")]
+    assert r.exit_code == 1 and len(errors) == 1 and f"{path}: {why}" in errors[0], r.output
+    assert "Traceback" not in r.output + out and not (tmp_path / "m.json").exists()
