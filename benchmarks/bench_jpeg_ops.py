@@ -8,6 +8,13 @@ at 1297 x 840 (the paper's Mip-NeRF 360 training size), beside, on CUDA with gsp
     .venv/bin/python benchmarks/bench_jpeg_ops.py                      # CPU
     .venv/bin/python benchmarks/bench_jpeg_ops.py --device cuda --compile
     .venv/bin/python benchmarks/bench_jpeg_ops.py --fidelity           # PSNR vs Pillow, per mode and q
+    .venv/bin/python benchmarks/bench_jpeg_ops.py --fused-jo --device cuda   # Triton JO vs its twin
+
+Fused JO (``--fused-jo``): mode "paper"'s coding pass as the Triton kernels of ``jsgs/kernels/_triton_jo.py``
+against the torch twin, at ``--sizes`` (default 1440x1920 and 504x378, width x height): the largest
+difference of JO's output and gradient, and the time of the coding pass alone, of JO, and (CUDA) of the
+whole JO + L_obs + DS chain with its gradient replayed as one CUDA graph (what a training step runs), each
+twin vs fused.
 
 Fidelity: PSNR of each mode's output against Pillow's (libjpeg-turbo's) decode of Pillow's encode, on
 photographs from ../shared/scenes, per quality and sampling; for mode "exact" also the share of bit-exact
@@ -142,6 +149,117 @@ def run_speed(args: argparse.Namespace) -> None:
         print(f"| {mode} | {t_fwd:.2f} | {t_ds:.2f} | {t_all:.2f} |{ratio}", flush=True)
 
 
+def _loop_ms(fn: Callable[[], object], device: torch.device, n: int, warmup: int) -> float:
+    """Milliseconds per call of ``fn`` over ``n`` back-to-back calls (CUDA events on a GPU)."""
+    for _ in range(warmup):
+        fn()
+    _sync(device)
+    if device.type != "cuda":
+        t0 = time.perf_counter()
+        for _ in range(n):
+            fn()
+        return 1000 * (time.perf_counter() - t0) / n
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    start.record()
+    for _ in range(n):
+        fn()
+    end.record()
+    end.synchronize()
+    return start.elapsed_time(end) / n
+
+
+def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: torch.device) -> None:
+    from jsgs.kernels._triton_jo import paper_code
+    from jsgs.method.graphed import GraphedImageTerms
+
+    gen = torch.Generator().manual_seed(0)
+    rgb = torch.rand(1, 3, height, width, generator=gen).to(device)
+    target = torch.rand(1, 3, height, width, generator=gen).to(device)
+    weight = torch.randn(1, 3, height, width, generator=gen).to(device)
+    luma, chroma = (torch.tensor(t, dtype=torch.float32, device=device) for t in ijg_tables(args.quality))
+    out = {}
+    for kernel in ("torch", "triton"):
+        x = rgb.clone().requires_grad_()
+        obs = jpeg_observe(x, luma, chroma, args.sampling, "paper", kernel=kernel)
+        (grad,) = torch.autograd.grad((obs * weight).sum(), x)
+        out[kernel] = (obs.detach(), grad)
+    d_obs = 255 * (out["triton"][0] - out["torch"][0]).abs()
+    d_grad = (out["triton"][1] - out["torch"][1]).abs()
+    share = 100 * float((d_obs > 0.01).float().mean())
+    largest = float(out["torch"][1].abs().max())
+    print(f"\n{width}x{height}, q={args.quality}, {args.sampling}: max |fused - twin| of JO "
+          f"{float(d_obs.max()):.2e} (8-bit units; pixels > 0.01: {share:.4f} %), of its gradient "
+          f"{float(d_grad.max()):.2e} (largest gradient {largest:.2e})")
+    planes = (255 * torch.rand(1, 3, 8 * (height // 8), 8 * (width // 8), generator=gen)).to(device)
+    tab = luma.expand(1, 8, 8)
+    p_grad = torch.randn_like(planes)
+
+    def coding(kernel: str) -> Callable[[], object]:
+        def run() -> None:
+            x = planes.clone().requires_grad_()
+            y = paper_code(x, tab) if kernel == "triton" else _twin_code(x, tab)
+            torch.autograd.grad(y, x, p_grad)
+
+        return run
+
+    def jo(kernel: str) -> Callable[[], object]:
+        def run() -> None:
+            x = rgb.clone().requires_grad_()
+            y = jpeg_observe(x, luma, chroma, args.sampling, "paper", kernel=kernel)
+            torch.autograd.grad(y, x, weight)
+
+        return run
+
+    rows = [("coding pass (3 planes), fwd + bwd", coding), ("JO, fwd + bwd", jo)]
+    if device.type == "cuda":
+        settings = dict(mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3,
+                        eps_loss=1e-6, eps_block=1e-6)
+        tables = torch.stack([luma, chroma])
+
+        def graphed(kernel: str) -> Callable[[], object]:
+            terms = GraphedImageTerms(weights=(0.2, 0.02, 0.03), jo_kernel=kernel, **settings)
+            x = rgb.clone().requires_grad_()
+            return lambda: terms(x, target, tables, args.sampling)
+
+        rows.append(("JO + L_obs + DS + gradient, one CUDA graph replay", graphed))
+    print("| what | twin (ms) | fused (ms) | saved (ms) |")
+    print("|---|---|---|---|")
+    for name, make in rows:
+        t_twin, t_fused = (_loop_ms(make(k), device, args.repeats, args.warmup) for k in ("torch", "triton"))
+        print(f"| {name} | {t_twin:.3f} | {t_fused:.3f} | {t_twin - t_fused:.3f} |", flush=True)
+
+
+def _twin_code(planes: torch.Tensor, tables: torch.Tensor) -> torch.Tensor:
+    """Mode "paper"'s coding pass of ``(1, C, H, W)`` planes as JO's torch code runs it."""
+    from jsgs.jpeg.dct import blockify, unblockify
+    from jsgs.jpeg.observe import _code_blocks
+
+    blocks = blockify(planes)
+    n = blocks.shape[1] * blocks.shape[2] * blocks.shape[3]
+    coded = _code_blocks(blocks.reshape(1, n, 8, 8), tables[:, None].expand(1, n, 8, 8), "paper")
+    return unblockify(coded.reshape(blocks.shape))
+
+
+def run_fused_jo(args: argparse.Namespace) -> None:
+    from jsgs.kernels._triton_jo import fused_jo_runs, triton_available
+
+    device = torch.device(args.device)
+    probe = torch.zeros(1, device=device)
+    if not fused_jo_runs(probe):
+        raise SystemExit(
+            f"--fused-jo needs Triton ({'present' if triton_available() else 'not installed'}) and a CUDA "
+            "device (or TRITON_INTERPRET=1 on cpu)"
+        )
+    import triton
+
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu, Triton's interpreter"
+    print(f"device {device} ({name}), torch {torch.__version__}, triton {triton.__version__}, "
+          f"{args.repeats} timed calls after {args.warmup} warm-up calls")  # fmt: skip
+    for size in args.sizes.split(","):
+        width, height = (int(v) for v in size.lower().split("x"))
+        _fused_jo_size(width, height, args, device)
+
+
 def _photos(n: int) -> list[np.ndarray]:
     from PIL import Image
 
@@ -208,8 +326,13 @@ def main() -> None:
     p.add_argument("--photos", type=int, default=8)
     p.add_argument("--qualities", default="1,5,10,20,30,40,50,60,70,80,90,95,100")
     p.add_argument("--samplings", default="4:2:0,4:2:2,4:4:4")
+    p.add_argument("--fused-jo", action="store_true", help="the fused Triton JO against its twin")
+    p.add_argument("--sizes", default="1440x1920,504x378", help="--fused-jo: image sizes, width x height")
     args = p.parse_args()
-    run_fidelity(args) if args.fidelity else run_speed(args)
+    if args.fused_jo:
+        run_fused_jo(args)
+    else:
+        run_fidelity(args) if args.fidelity else run_speed(args)
 
 
 if __name__ == "__main__":

@@ -65,6 +65,9 @@ Mode = Literal["paper", "float", "exact"]
 Sampling = Literal["4:4:4", "4:2:2", "4:2:0"]
 
 MODES: tuple[str, ...] = ("paper", "float", "exact")
+#: how the coding pass runs: "torch" (the code below) or "triton" (mode "paper" only: the fused kernels of
+#: :mod:`jsgs.kernels._triton_jo`, equal up to float rounding; other modes run the torch code)
+KERNELS: tuple[str, ...] = ("torch", "triton")
 
 
 def _ceil_div(a: int, b: int) -> int:
@@ -134,12 +137,31 @@ def _code_blocks(blocks: Tensor, q: Tensor, mode: str) -> Tensor:
     return out
 
 
+def _code_planes(
+    luma: Tensor, chroma: Tensor, tab_y: Tensor, tab_c: Tensor, mode: str
+) -> tuple[Tensor, Tensor]:
+    """The coding pass of the padded planes, luma ``(B, 1, ., .)`` and chroma ``(B, 2, ., .)`` (multiples of
+    8), with the views' tables ``(B, 8, 8)``: every block of the three planes through one
+    :func:`_code_blocks`, each with its plane's table. Returns the decoded planes, same shapes."""
+    b = luma.shape[0]
+    luma_b, chroma_b = blockify(luma), blockify(chroma)  # (B, 1, ., ., 8, 8), (B, 2, ., ., 8, 8)
+    n_y = luma_b.shape[1] * luma_b.shape[2] * luma_b.shape[3]
+    n_c = chroma_b.shape[1] * chroma_b.shape[2] * chroma_b.shape[3]
+    blocks = torch.cat([luma_b.reshape(b, n_y, 8, 8), chroma_b.reshape(b, n_c, 8, 8)], dim=1)
+    q = torch.cat([tab_y[:, None].expand(b, n_y, 8, 8), tab_c[:, None].expand(b, n_c, 8, 8)], dim=1)
+    decoded = _code_blocks(blocks, q, mode)
+    # one split: its backward is one cat (two slices' are two zero-filled copies and their sum)
+    luma_d, chroma_d = decoded.split([n_y, n_c], dim=1)
+    return unblockify(luma_d.reshape(luma_b.shape)), unblockify(chroma_d.reshape(chroma_b.shape))
+
+
 def jpeg_observe(
     rgb: Tensor,
     luma_table: Tensor | np.ndarray,
     chroma_table: Tensor | np.ndarray,
     sampling: str = "4:2:0",
     mode: str = "paper",
+    kernel: str = "torch",
 ) -> Tensor:
     """The JPEG observation of a rendered image, ``C_JPEG(rgb; T^Y, T^C)`` (paper eq. jpeg_operator).
 
@@ -151,6 +173,9 @@ def jpeg_observe(
         chroma_table: the same for Cb and Cr.
         sampling: ``"4:4:4"``, ``"4:2:2"`` (h2v1) or ``"4:2:0"`` (h2v2), as read from the file; one per call.
         mode: ``"exact"``, ``"float"`` or ``"paper"`` (module docstring).
+        kernel: ``"torch"`` or ``"triton"``: in mode "paper" the coding pass as two fused Triton kernels
+            (forward, backward; :func:`jsgs.kernels._triton_jo.paper_code`), which need CUDA tensors (or
+            ``TRITON_INTERPRET=1`` on CPU) and Triton; the other modes ignore it.
     Returns:
         ``(B, 3, H, W)`` decoded RGB in [0, 1], same dtype as ``rgb``. In modes "exact" and "float" the
         values are exactly ``k / 255`` for integers k; in "exact" k equals libjpeg-turbo's decode of
@@ -160,10 +185,21 @@ def jpeg_observe(
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     if sampling not in SAMPLING_FACTORS:
         raise ValueError(f"sampling must be one of {tuple(SAMPLING_FACTORS)}, got {sampling!r}")
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
     if rgb.dim() != 4 or rgb.shape[1] != 3:
         raise ValueError(f"rgb must be (B, 3, H, W), got {tuple(rgb.shape)}")
     if not rgb.is_floating_point():
         rgb = rgb.float()
+    fused = kernel == "triton" and mode == "paper"
+    if fused:
+        from jsgs.kernels._triton_jo import fused_jo_runs
+
+        if not fused_jo_runs(rgb):
+            raise ValueError(
+                f"kernel 'triton' needs Triton and float32/float64 CUDA tensors, got {rgb.dtype} on "
+                f"{rgb.device.type}"
+            )
     b, _, height, width = rgb.shape
     h, v = SAMPLING_FACTORS[sampling]
     tab_y = as_tables(luma_table, b, rgb.dtype, rgb.device)
@@ -189,17 +225,15 @@ def jpeg_observe(
         chroma = _through(downsample_libjpeg(chroma, h, v), small) if integer else small
         chroma = pad_replicate(chroma, 8 * _ceil_div(ch, 8), chroma.shape[-1])
 
-    # Every block of the three planes through one coding pass, each with its plane's table.
-    luma_b, chroma_b = blockify(luma), blockify(chroma)  # (B, 1, ., ., 8, 8), (B, 2, ., ., 8, 8)
-    n_y = luma_b.shape[1] * luma_b.shape[2] * luma_b.shape[3]
-    n_c = chroma_b.shape[1] * chroma_b.shape[2] * chroma_b.shape[3]
-    blocks = torch.cat([luma_b.reshape(b, n_y, 8, 8), chroma_b.reshape(b, n_c, 8, 8)], dim=1)
-    q = torch.cat([tab_y[:, None].expand(b, n_y, 8, 8), tab_c[:, None].expand(b, n_c, 8, 8)], dim=1)
-    decoded = _code_blocks(blocks, q, mode)
-    # one split: its backward is one cat (two slices' are two zero-filled copies and their sum)
-    luma_d, chroma_d = decoded.split([n_y, n_c], dim=1)
-    luma = unblockify(luma_d.reshape(luma_b.shape))[..., :height, :width]
-    chroma = unblockify(chroma_d.reshape(chroma_b.shape))[..., :ch, :cw]
+    # Every block of the three planes through the coding pass, each with its plane's table.
+    if fused:
+        from jsgs.kernels._triton_jo import paper_code
+
+        luma = paper_code(luma, tab_y)[..., :height, :width]
+        chroma = paper_code(chroma, tab_c)[..., :ch, :cw]
+    else:
+        luma, chroma = _code_planes(luma, chroma, tab_y, tab_c, mode)
+        luma, chroma = luma[..., :height, :width], chroma[..., :ch, :cw]
 
     # Decoder up-sampling (jdsample.c) from the real chroma samples only.
     if not (h == 1 and v == 1):

@@ -14,7 +14,12 @@ Gaussian Controller   ``csrc/controller.cu``               :func:`fro_from_probe
                       (:func:`fro_from_probe_grad_fused`)
 MCMC relocation       gsplat's ``relocation`` and          :func:`compute_relocation`,
                       ``quat_scale_to_covar_preci``        :func:`quat_scale_to_covar` (:func:`cpu_twins`)
+JO's coding pass      Triton: ``_triton_jo.py``            ``jsgs.jpeg.observe._code_blocks`` (mode
+(mode "paper")        (``paper_code``, optional)           "paper")
 ====================  ===================================  ===========================================
+
+The Triton kernels are imported only where used (:mod:`jsgs.kernels._triton_jo`, by ``jsgs.jpeg.observe``
+with ``kernel="triton"``); without Triton that module still imports and says so (``triton_available``).
 """
 
 from jsgs.kernels._backend import KERNEL_CHOICES, build_error, extension, use_kernels

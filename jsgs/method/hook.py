@@ -71,7 +71,7 @@ from jsgs.method.image_terms import (
     view_tables,
     warn_eager_fallback,
 )
-from jsgs.method.options import JsgsOptions, parse_options, use_cuda_graph
+from jsgs.method.options import JsgsOptions, parse_options, use_cuda_graph, use_fused_jo
 from jsgs.train.hook import HookOutput, LossHook, StepContext
 from jsgs.train.profiler import Profiler
 
@@ -125,7 +125,10 @@ class JsgsHook(LossHook):
         from jsgs.jpeg.supervision import dct_supervision
 
         # what fixes the JO / L_obs / DS chain (jsgs.method.image_terms.jpeg_terms), in both routes
-        self._jpeg_settings = image_term_settings(options, ssim_lambda, ssim_padding, ssim_kernel)
+        self.jo_kernel = "triton" if options.jo and use_fused_jo(options, self.device) else "torch"
+        self._jpeg_settings = image_term_settings(
+            options, ssim_lambda, ssim_padding, ssim_kernel, self.jo_kernel
+        )
         self._jpeg_functions = {
             "observe": maybe_compile(jpeg_observe, options.speed.compile),
             "photometric": maybe_compile(photometric_loss, options.speed.compile),
@@ -155,6 +158,7 @@ class JsgsHook(LossHook):
             "cuda_graph_gc": self._gc_graphed is not None,
             "gc_kernel": "cuda" if self._gc_fused else "torch",
             "gc_route": self.gc_route,
+            "jo_kernel": self.jo_kernel,
             "jpeg_mode": self.opts.jpeg_mode,
         }
         if self.opts.base_by_view:
@@ -410,7 +414,8 @@ def make_jsgs_hook(cfg: TrainConfig, scene: TrainingScene, device: torch.device)
             "config: method jsgs: the Gaussian Controller pools through the rasteriser's probe, which needs "
             "render.packed false (or train with --no-gc)"
         )
-    use_cuda_graph(opts, device)  # its error before the tables are built
+    use_cuda_graph(opts, device)  # their errors before the tables are built
+    use_fused_jo(opts, device)
     noise = opts.base_noise if opts.base_by_view else "tables"  # the estimate reads every view: only if used
     t0 = time.perf_counter()
     blocks = opts.base_by_view and opts.base_block_ref > 0

@@ -47,6 +47,13 @@ class JsgsSpeed:
         "fused kernels, no graph), torch (its twin jsgs.kernels.fro_from_probe_grad, graphed per "
         "cuda_graph_gc) or auto (cuda on a GPU where the kernels build, torch elsewhere).",
     )
+    fused_jo: bool | Literal["auto"] = setting(
+        False,
+        "JO's coding pass in jpeg_mode paper (per 8x8 block: DCT, soft quantisation, IDCT, clamp) as two "
+        "fused Triton kernels, forward and backward (jsgs/kernels/_triton_jo.py), instead of about twenty "
+        "torch kernels: true needs CUDA, Triton and jpeg_mode paper; auto: on where those hold and "
+        "compile is off; false: the torch code (its twin).",
+    )
 
 
 @dataclass
@@ -148,6 +155,11 @@ class JsgsOptions:
                 f"{where}: method_options.speed.cuda_graph and method_options.speed.compile "
                 f"({self.speed.compile}) cannot be combined yet; use one of them"
             )
+        if self.speed.fused_jo is True and (self.speed.compile != "off" or self.jpeg_mode != "paper"):
+            raise JsgsError(
+                f"{where}: method_options.speed.fused_jo covers jpeg_mode paper without compile (got "
+                f"jpeg_mode {self.jpeg_mode}, compile {self.speed.compile}); set it to false or \"auto\""
+            )
         if self.base_ramp_steps and not self.base_by_view:
             raise JsgsError(
                 f"{where}: method_options.base_ramp_steps ({self.base_ramp_steps}) ramps base_by_view's "
@@ -179,6 +191,29 @@ def use_cuda_graph(opts: JsgsOptions, device: torch.device) -> bool:
             f'(training on {device.type}); set it to false or "auto"'
         )
     return bool(s.cuda_graph)
+
+
+def use_fused_jo(opts: JsgsOptions, device: torch.device) -> bool:
+    """Whether JO's coding pass runs as the fused Triton kernels on ``device``
+    (``method_options.speed.fused_jo`` resolved); JsgsError (one line) for ``true`` where they cannot run."""
+    from jsgs.kernels._triton_jo import triton_available
+
+    s = opts.speed
+    if s.fused_jo == "auto":
+        return (
+            device.type == "cuda" and triton_available() and opts.jpeg_mode == "paper" and s.compile == "off"
+        )
+    if s.fused_jo and device.type != "cuda":
+        raise JsgsError(
+            "config: method jsgs: method_options.speed.fused_jo needs a CUDA device "
+            f'(training on {device.type}); set it to false or "auto"'
+        )
+    if s.fused_jo and not triton_available():
+        raise JsgsError(
+            "config: method jsgs: method_options.speed.fused_jo needs Triton (not installed); set it to "
+            'false or "auto"'
+        )
+    return bool(s.fused_jo)
 
 
 def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:

@@ -17,6 +17,7 @@ from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision
 from jsgs.kernels import fro_from_probe_grad, packed_fro_stats
+from jsgs.kernels._triton_jo import triton_available
 from jsgs.method.graphed import GraphedController, GraphedImageTerms, _Recording
 from jsgs.method.hook import JsgsHook
 from jsgs.method.image_terms import image_terms, terms_with_gradient
@@ -403,6 +404,20 @@ def test_gpu_training_with_graphs_matches_eager(tmp_path: Path, capsys: Any) -> 
     assert_same_training(evals["graphs"], evals["eager"])
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(
+    not (torch.cuda.is_available() and triton_available()), reason="the fused JO needs CUDA and Triton"
+)
+def test_gpu_training_with_fused_jo_matches_the_twin(tmp_path: Path, capsys: Any) -> None:
+    """The same short run with JO's coding pass as the Triton kernels (method_options.speed.fused_jo, inside
+    the CUDA graph) and as its torch twin: no fallback, the same training."""
+    evals = train_jsgs_variants(tmp_path, {"fused": {"fused_jo": True}, "twin": {"fused_jo": False}})
+    assert "eagerly for the rest of the run" not in capsys.readouterr().err  # the graph recorded the kernels
+    print(f"\nfused vs twin: PSNR {evals['fused']['psnr']:.3f} vs {evals['twin']['psnr']:.3f}, terms "
+          f"{evals['fused']['train']['terms']} vs {evals['twin']['train']['terms']}")
+    assert_same_training(evals["fused"], evals["twin"])
+
+
 def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
     """The GC graph exists exactly with cuda_graph on, the deferred route and cuda_graph_gc (default true);
     config.json's derived.method says so (built for a CUDA device without touching it)."""
@@ -417,8 +432,10 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
     assert described()["cuda_graph_gc"] is True
     assert described(cuda_graph_gc=False) == {
         "cuda_graph": True, "cuda_graph_gc": False, "gc_kernel": "torch", "gc_route": "deferred",
-        "jpeg_mode": "paper",
+        "jo_kernel": "torch", "jpeg_mode": "paper",
     }  # fmt: skip
+    # JO's fused kernels: off by default; auto where Triton imports (checked, not run, for a CUDA device)
+    assert described(fused_jo="auto")["jo_kernel"] == ("triton" if triton_available() else "torch")
     assert described(gc_pooling="now")["cuda_graph_gc"] is False
     assert described(cuda_graph=False)["cuda_graph_gc"] is False
     if torch.cuda.is_available():  # the default on a GPU: the fused kernels, which need no graph

@@ -264,7 +264,7 @@ def target_for(view: TrainingView) -> torch.Tensor:
     return torch.tensor(ref_pillow_jpeg(img, j.luma_table, j.chroma_table, j.sampling), dtype=D)[None]
 
 
-SPEED_KEYS = ("compile", "cuda_graph", "cuda_graph_gc", "gc_kernel")
+SPEED_KEYS = ("compile", "cuda_graph", "cuda_graph_gc", "gc_kernel", "fused_jo")
 
 
 def jsgs_options(**options: Any) -> dict[str, Any]:
@@ -608,7 +608,7 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
     # what "auto" and the routes resolved to on this device
     resolved = {
         "cuda_graph": False, "cuda_graph_gc": False, "gc_kernel": "torch", "gc_route": "deferred",
-        "jpeg_mode": "float",
+        "jo_kernel": "torch", "jpeg_mode": "float",
     }  # fmt: skip
     assert run_config["derived"]["method"] == resolved
     assert "--jpeg-mode float" in json.loads((run / "config.json").read_text())["command"]

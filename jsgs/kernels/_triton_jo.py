@@ -1,0 +1,212 @@
+"""The coding pass of the JPEG observation operator (JO, :mod:`jsgs.jpeg.observe`, mode "paper") as two
+Triton kernels: one forward and one backward, each reading the padded planes where they lie.
+
+Per 8x8 block of a plane, with ``K = kron(D, D)`` (``D`` the orthonormal DCT-II matrix) acting on the
+row-major 64-vector of the block and ``Q`` the block's quantisation table (its view's, per plane group)::
+
+    c = K (x - 128);  z = c / Q;  deq = Q (round(z) + (z - round z)^3);  out = clamp(K^T deq + 128, 0, 255)
+
+``round`` rounds half away from zero; the soft rounding is the paper's (eq. soft_round). The backward is
+the chain's transpose with the elementwise soft-round derivative ``3 (z - round z)^2`` and the clamp's mask
+(gradient strictly inside (0, 255), as ``hardtanh``): ``g_x = K^T (3 (z - round z)^2 K (mask g))``. It
+recomputes ``z`` from the saved input instead of storing it.
+
+The torch twin is ``jsgs.jpeg.observe._code_blocks`` (mode "paper"), the reference of the tests. Each
+kernel is one launch per plane group (the luma plane, the two chroma planes) with no host synchronisation
+and outputs allocated by torch, so a CUDA graph records it like any other op. The 64 x 64 products run with
+``input_precision="ieee"`` (no TF32): float32 stays float32 as in the twin.
+
+Triton is optional: without it (or off CUDA, unless ``TRITON_INTERPRET=1`` runs the kernels on CPU tensors
+with Triton's interpreter, which the tests use) :func:`fused_jo_runs` is False and JO runs the twin.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+try:  # optional: training without Triton runs the torch twin
+    import triton
+    import triton.language as tl
+except ImportError:  # pragma: no cover - depends on the environment
+    triton = None
+    tl = None
+
+#: 8x8 blocks per Triton program (the M dimension of its 64 x 64 products)
+BLOCKS_PER_PROGRAM = 32
+
+
+def triton_available() -> bool:
+    """Whether Triton imports here."""
+    return triton is not None
+
+
+def interpreting() -> bool:
+    """Whether Triton's interpreter runs the kernels (``TRITON_INTERPRET=1``: on CPU tensors, for tests)."""
+    return os.environ.get("TRITON_INTERPRET", "0") == "1"
+
+
+def fused_jo_runs(x: Tensor) -> bool:
+    """Whether the fused kernels can run on ``x``: Triton imports and ``x`` is a CUDA tensor (or a CPU
+    tensor under Triton's interpreter), float32 or float64."""
+    if triton is None or x.dtype not in (torch.float32, torch.float64):
+        return False
+    return x.is_cuda or (interpreting() and x.device.type == "cpu")
+
+
+@functools.cache
+def _kron(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``kron(D, D)`` (64 x 64, row-major ``[(v, u), (y, x)]``), built in float64 and cached per device (a
+    host-to-device copy on first use only, before any graph records)."""
+    k = np.arange(8)[:, None]
+    n = np.arange(8)[None, :]
+    d = np.cos((2 * n + 1) * k * math.pi / 16) * 0.5
+    d[0, :] = math.sqrt(1 / 8)
+    return torch.tensor(np.kron(d, d), dtype=dtype, device=device)
+
+
+def dct_kron(dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu") -> Tensor:
+    """The 64 x 64 matrix the kernels multiply by: ``coef64 = K @ block64`` (row-major 8x8 blocks)."""
+    return _kron(dtype, torch.device(device))
+
+
+if triton is not None:
+
+    @triton.jit
+    def _block_offsets(n, e, nb, nbx, planes, s_b, s_c, s_h, s_w):  # type: ignore[no-untyped-def]
+        """Element offsets ``[BN, 64]`` of blocks ``n`` (``[BN]``) in a strided (B, C, H, W) tensor, and the
+        view index of each block."""
+        bc = n // nb
+        rem = n % nb
+        by = rem // nbx
+        bx = rem % nbx
+        view = bc // planes
+        chan = bc % planes
+        row = by[:, None] * 8 + (e // 8)[None, :]
+        col = bx[:, None] * 8 + (e % 8)[None, :]
+        base = view.to(tl.int64) * s_b + chan.to(tl.int64) * s_c
+        return base[:, None] + row.to(tl.int64) * s_h + col.to(tl.int64) * s_w, view
+
+    @triton.jit
+    def _round_half_away(z):  # type: ignore[no-untyped-def]
+        return tl.where(z >= 0, tl.floor(z + 0.5), -tl.floor(0.5 - z))
+
+    @triton.jit
+    def _paper_forward(  # type: ignore[no-untyped-def]
+        x_ptr, q_ptr, k_ptr, out_ptr, n_blocks, nb, nbx, planes,
+        xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, BN: tl.constexpr,
+    ):  # fmt: skip
+        n = tl.program_id(0) * BN + tl.arange(0, BN)
+        e = tl.arange(0, 64)
+        valid = (n < n_blocks)[:, None]
+        x_off, view = _block_offsets(n, e, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w)
+        o_off, _ = _block_offsets(n, e, nb, nbx, planes, os_b, os_c, os_h, os_w)
+        k = tl.load(k_ptr + e[:, None] * 64 + e[None, :])  # K[i, j]
+        kt = tl.load(k_ptr + e[None, :] * 64 + e[:, None])  # K[j, i]
+        x = tl.load(x_ptr + x_off, mask=valid, other=128.0)
+        q = tl.load(q_ptr + view.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=1.0)
+        c = tl.dot(x - 128.0, kt, input_precision="ieee")
+        z = c / q
+        r = _round_half_away(z)
+        f = z - r
+        deq = q * (r + f * f * f)
+        o = tl.dot(deq, k, input_precision="ieee") + 128.0
+        out = tl.minimum(tl.maximum(o, 0.0), 255.0)
+        tl.store(out_ptr + o_off, out, mask=valid)
+
+    @triton.jit
+    def _paper_backward(  # type: ignore[no-untyped-def]
+        x_ptr, q_ptr, k_ptr, out_ptr, g_ptr, gx_ptr, n_blocks, nb, nbx, planes,
+        xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, gs_b, gs_c, gs_h, gs_w, BN: tl.constexpr,
+    ):  # fmt: skip
+        n = tl.program_id(0) * BN + tl.arange(0, BN)
+        e = tl.arange(0, 64)
+        valid = (n < n_blocks)[:, None]
+        x_off, view = _block_offsets(n, e, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w)
+        o_off, _ = _block_offsets(n, e, nb, nbx, planes, os_b, os_c, os_h, os_w)
+        g_off, _ = _block_offsets(n, e, nb, nbx, planes, gs_b, gs_c, gs_h, gs_w)
+        k = tl.load(k_ptr + e[:, None] * 64 + e[None, :])
+        kt = tl.load(k_ptr + e[None, :] * 64 + e[:, None])
+        x = tl.load(x_ptr + x_off, mask=valid, other=128.0)
+        q = tl.load(q_ptr + view.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=1.0)
+        out = tl.load(out_ptr + o_off, mask=valid, other=0.0)
+        g = tl.load(g_ptr + g_off, mask=valid, other=0.0)
+        z = tl.dot(x - 128.0, kt, input_precision="ieee") / q
+        f = z - _round_half_away(z)
+        g = tl.where((out > 0.0) & (out < 255.0), g, 0.0)  # the clamp passes strictly inside
+        g_deq = tl.dot(g, kt, input_precision="ieee")
+        g_c = (g_deq * q) * (3.0 * f * f) / q
+        g_x = tl.dot(g_c, k, input_precision="ieee")
+        tl.store(gx_ptr + o_off, g_x, mask=valid)
+
+
+def _grid_args(planes: Tensor, bn: int) -> tuple[tuple[int], tuple[int, int, int, int]]:
+    b, c, h, w = planes.shape
+    nb = (h // 8) * (w // 8)
+    return (triton.cdiv(b * c * nb, bn),), (b * c * nb, nb, w // 8, c)
+
+
+def paper_code_forward(
+    planes: Tensor, tables: Tensor, blocks_per_program: int = BLOCKS_PER_PROGRAM
+) -> Tensor:
+    """The forward kernel alone (no autograd): ``planes`` ``(B, C, H, W)`` (H, W multiples of 8, any
+    strides), ``tables`` ``(B, 64)`` contiguous in ``planes``' dtype -> decoded ``(B, C, H, W)``."""
+    out = torch.empty(planes.shape, dtype=planes.dtype, device=planes.device)
+    grid, (n, nb, nbx, c) = _grid_args(planes, blocks_per_program)
+    _paper_forward[grid](
+        planes, tables, _kron(planes.dtype, planes.device), out, n, nb, nbx, c,
+        *planes.stride(), *out.stride(), BN=blocks_per_program,
+    )  # fmt: skip
+    return out
+
+
+def paper_code_backward(
+    planes: Tensor, tables: Tensor, out: Tensor, grad: Tensor, blocks_per_program: int = BLOCKS_PER_PROGRAM
+) -> Tensor:
+    """The backward kernel alone: the gradient with respect to ``planes`` of ``sum(grad * forward)``, given
+    the forward's ``out``."""
+    grad_x = torch.empty(out.shape, dtype=out.dtype, device=out.device)
+    grid, (n, nb, nbx, c) = _grid_args(planes, blocks_per_program)
+    _paper_backward[grid](
+        planes, tables, _kron(planes.dtype, planes.device), out, grad, grad_x, n, nb, nbx, c,
+        *planes.stride(), *out.stride(), *grad.stride(), BN=blocks_per_program,
+    )  # fmt: skip
+    return grad_x
+
+
+class _PaperCode(torch.autograd.Function):
+    """The coding pass of mode "paper" on padded planes, differentiable in the planes (not the tables)."""
+
+    @staticmethod
+    def forward(ctx: Any, planes: Tensor, tables: Tensor) -> Tensor:  # type: ignore[override]
+        out = paper_code_forward(planes, tables)
+        ctx.save_for_backward(planes, tables, out)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        planes, tables, out = ctx.saved_tensors
+        return paper_code_backward(planes, tables, out, grad), None
+
+
+def paper_code(planes: Tensor, tables: Tensor) -> Tensor:
+    """Mode "paper"'s coding pass (level shift, DCT, soft quantisation, dequantisation, IDCT, +128, clamp
+    to [0, 255]) of every 8x8 block of ``planes`` ``(B, C, H, W)`` (H, W multiples of 8), block by block,
+    with ``tables`` ``(B, 8, 8)`` (one per view, natural order ``[v, u]``; no gradient): the fused kernels.
+    Equal to ``unblockify(_code_blocks(blockify(planes), tables, "paper"))`` of :mod:`jsgs.jpeg.observe`
+    up to float rounding. Needs :func:`fused_jo_runs`."""
+    b, _, h, w = planes.shape
+    if h % 8 or w % 8 or tables.shape != (b, 8, 8):
+        raise ValueError(
+            f"paper_code: planes must be (B, C, 8m, 8n) and tables (B, 8, 8), got {tuple(planes.shape)}, "
+            f"{tuple(tables.shape)}"
+        )
+    q = tables.detach().to(planes.dtype).reshape(b, 64).contiguous()
+    return _PaperCode.apply(planes, q)

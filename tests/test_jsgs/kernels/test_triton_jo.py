@@ -1,0 +1,268 @@
+"""The fused Triton coding pass of JO (``jsgs/kernels/_triton_jo.py``) against its torch twin
+(``jsgs.jpeg.observe._code_blocks``, mode "paper") and float64, and how ``method_options.speed.fused_jo``
+resolves.
+
+On the CPU the kernels run under Triton's interpreter: these tests need Triton and ``TRITON_INTERPRET=1``
+(``PYTHONPATH=$PWD:/path/to/triton TRITON_INTERPRET=1 pytest tests/test_jsgs/kernels/test_triton_jo.py``)
+and skip otherwise. On CUDA (``-m gpu``, without ``TRITON_INTERPRET``) the kernels are compiled and compared
+with the twin on CUDA, eagerly and inside a CUDA graph; they print the largest differences.
+
+Tolerances: float64 against the float64 twin, 1e-9 (8-bit units; the two sum the 64-term products in
+different orders). float32: the soft rounding ``round(z) + (z - round z)^3`` jumps by 3/4 of a step where
+``z`` crosses a half-integer, so a float32 rounding difference in ``z`` (~1e-6 relative) flips a
+coefficient now and then; blocks that hold no such flip agree within 2e-3 (8-bit units), and at most 1 % of
+the blocks may hold one.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from jsgs.base.errors import JsgsError
+from jsgs.jpeg.dct import blockify, dct_matrix, unblockify
+from jsgs.jpeg.observe import _code_blocks, jpeg_observe
+from jsgs.jpeg.tables import ijg_tables
+from jsgs.kernels import _triton_jo
+from jsgs.kernels._triton_jo import dct_kron, interpreting, paper_code, triton_available
+from jsgs.method.options import parse_options, use_fused_jo
+
+needs_interpreter = pytest.mark.skipif(
+    not (triton_available() and interpreting()),
+    reason="needs Triton and TRITON_INTERPRET=1 (the fused JO kernels on CPU tensors)",
+)
+cuda_triton = pytest.mark.skipif(
+    not (torch.cuda.is_available() and triton_available() and not interpreting()),
+    reason="needs CUDA and Triton, without TRITON_INTERPRET",
+)
+
+
+def twin(planes: torch.Tensor, tables: torch.Tensor) -> torch.Tensor:
+    """Mode "paper"'s coding pass of ``(B, C, H, W)`` planes through the torch code JO runs."""
+    b = planes.shape[0]
+    blocks = blockify(planes)
+    n = blocks.shape[1] * blocks.shape[2] * blocks.shape[3]
+    q = tables[:, None].expand(b, n, 8, 8)
+    return unblockify(_code_blocks(blocks.reshape(b, n, 8, 8), q, "paper").reshape(blocks.shape))
+
+
+def _tables(kind: str, views: int, gen: torch.Generator) -> torch.Tensor:
+    if kind == "random":  # each view its own, steps 1..255
+        return torch.randint(1, 256, (views, 8, 8), generator=gen).double()
+    if kind == "16bit":  # extreme steps: most coefficients quantize to 0
+        return torch.randint(1, 65536, (views, 8, 8), generator=gen).double()
+    q = int(kind.removeprefix("q"))
+    return torch.as_tensor(ijg_tables(q)[0], dtype=torch.float64).reshape(1, 8, 8).expand(views, 8, 8)
+
+
+def _planes(shape: tuple[int, ...], seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(*shape, generator=g, dtype=torch.float64) * 300.0 - 20.0  # clamps hit at both ends
+    return x, torch.randn(*shape, generator=g, dtype=torch.float64)
+
+
+def _value_and_grad(fn, x: torch.Tensor, tables: torch.Tensor, g: torch.Tensor):  # type: ignore[no-untyped-def]
+    xa = x.clone().requires_grad_()
+    out = fn(xa, tables)
+    (grad,) = torch.autograd.grad(out, xa, g)
+    return out.detach(), grad
+
+
+def _block_agreement(a: torch.Tensor, b: torch.Tensor, tol: float) -> tuple[float, float, float]:
+    """(max |a - b| over all, max over the blocks within ``tol``, share of blocks beyond ``tol``)."""
+    err = blockify((a - b).abs().double()).flatten(-2).amax(-1).flatten()
+    ok = err <= tol
+    return float(err.max()), float(err[ok].max()) if ok.any() else 0.0, float((~ok).double().mean())
+
+
+def test_kron_is_the_dct_of_jo() -> None:
+    d = dct_matrix(torch.float64)
+    assert torch.equal(dct_kron(torch.float64), torch.kron(d, d))
+
+
+@needs_interpreter
+@pytest.mark.parametrize("kind", ["q10", "q50", "q95", "random", "16bit"])
+@pytest.mark.parametrize("shape", [(2, 1, 16, 24), (2, 2, 8, 40), (1, 2, 24, 8)])
+def test_matches_twin_float64(kind: str, shape: tuple[int, ...]) -> None:
+    x, g = _planes(shape, 1)
+    tables = _tables(kind, shape[0], torch.Generator().manual_seed(2))
+    v1, g1 = _value_and_grad(paper_code, x, tables, g)
+    v2, g2 = _value_and_grad(twin, x, tables, g)
+    torch.testing.assert_close(v1, v2, rtol=0, atol=1e-9)
+    torch.testing.assert_close(g1, g2, rtol=0, atol=1e-9)
+    assert g2.abs().max() > 0.01  # the comparison has something to compare
+
+
+@needs_interpreter
+def test_strided_planes_and_views_with_their_own_tables() -> None:
+    # a plane of a channels-last tensor (as JO's luma is when the image needs no padding), two views whose
+    # tables differ: each block must use its own view's
+    base, g = _planes((2, 3, 16, 32), 3)
+    cl = base.contiguous(memory_format=torch.channels_last)[:, 1:]
+    assert not cl.is_contiguous()
+    tables = _tables("random", 2, torch.Generator().manual_seed(4))
+    v1, g1 = _value_and_grad(paper_code, cl, tables, g[:, 1:])
+    v2, g2 = _value_and_grad(twin, cl.contiguous(), tables, g[:, 1:])
+    torch.testing.assert_close(v1, v2, rtol=0, atol=1e-9)
+    torch.testing.assert_close(g1, g2, rtol=0, atol=1e-9)
+    swapped = paper_code(cl, tables.flip(0))
+    assert (swapped - v1).abs().max() > 1.0
+
+
+@needs_interpreter
+def test_float32_against_twin_and_float64() -> None:
+    x, g = _planes((2, 2, 32, 48), 5)
+    tables = _tables("q50", 2, torch.Generator())
+    v32, g32 = _value_and_grad(paper_code, x.float(), tables.float(), g.float())
+    t32, tg32 = _value_and_grad(twin, x.float(), tables.float(), g.float())
+    t64, tg64 = _value_and_grad(twin, x, tables, g)
+    for ref in (t32, t64):
+        _, within, flipped = _block_agreement(v32, ref, 2e-3)
+        assert within <= 2e-3 and flipped <= 0.01
+    for ref in (tg32, tg64):
+        _, within, flipped = _block_agreement(g32, ref, 2e-3)
+        assert within <= 2e-3 and flipped <= 0.01
+
+
+@needs_interpreter
+def test_gradcheck_float64() -> None:
+    g = torch.Generator().manual_seed(6)
+    x = (torch.rand(2, 1, 8, 16, generator=g, dtype=torch.float64) * 200.0 + 20.0).requires_grad_()
+    tables = torch.randint(2, 60, (2, 8, 8), generator=g).double()
+    assert torch.autograd.gradcheck(lambda t: paper_code(t, tables), (x,), eps=1e-6, atol=1e-6)
+
+
+@needs_interpreter
+@pytest.mark.parametrize("sampling", ["4:2:0", "4:2:2", "4:4:4"])
+@pytest.mark.parametrize(("height", "width"), [(37, 53), (13, 9), (16, 32)])
+def test_jpeg_observe_triton_matches_torch(sampling: str, height: int, width: int) -> None:
+    # the padding and cropping around the kernels: odd sizes, every sampling, two views with own tables
+    g = torch.Generator().manual_seed(7)
+    rgb = torch.rand(2, 3, height, width, generator=g, dtype=torch.float64) * 1.1 - 0.05
+    w = torch.randn(2, 3, height, width, generator=g, dtype=torch.float64)
+    luma = torch.randint(1, 80, (2, 8, 8), generator=g).double()
+    chroma = torch.randint(1, 120, (2, 8, 8), generator=g).double()
+    out = []
+    for kernel in ("triton", "torch"):
+        x = rgb.clone().requires_grad_()
+        o = jpeg_observe(x, luma, chroma, sampling, "paper", kernel=kernel)
+        (grad,) = torch.autograd.grad((o * w).sum(), x)
+        out.append((o.detach(), grad))
+    torch.testing.assert_close(out[0][0], out[1][0], rtol=0, atol=1e-11)
+    torch.testing.assert_close(out[0][1], out[1][1], rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("mode", ["float", "exact"])
+def test_other_modes_ignore_the_kernel(mode: str) -> None:
+    g = torch.Generator().manual_seed(8)
+    rgb = torch.rand(1, 3, 19, 21, generator=g)
+    luma, chroma = (torch.as_tensor(t).float() for t in ijg_tables(75))
+    a = jpeg_observe(rgb, luma, chroma, "4:2:0", mode, kernel="triton")
+    assert torch.equal(a, jpeg_observe(rgb, luma, chroma, "4:2:0", mode))
+
+
+def test_kernel_choice_is_checked(monkeypatch: pytest.MonkeyPatch) -> None:
+    rgb = torch.rand(1, 3, 16, 16)
+    luma, chroma = (torch.as_tensor(t).float() for t in ijg_tables(75))
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        jpeg_observe(rgb, luma, chroma, kernel="cuda")
+    monkeypatch.setattr(_triton_jo, "fused_jo_runs", lambda x: False)
+    with pytest.raises(ValueError, match="kernel 'triton' needs Triton"):
+        jpeg_observe(rgb, luma, chroma, "4:2:0", "paper", kernel="triton")
+
+
+def test_fused_jo_setting() -> None:
+    cpu = torch.device("cpu")
+    assert parse_options({}).speed.fused_jo is False
+    assert not use_fused_jo(parse_options({}), cpu)
+    assert not use_fused_jo(parse_options({"speed": {"fused_jo": "auto"}}), cpu)
+    with pytest.raises(JsgsError, match="fused_jo needs a CUDA device"):
+        use_fused_jo(parse_options({"speed": {"fused_jo": True}}), cpu)
+    for other in ({"jpeg_mode": "float"}, {"speed": {"compile": "inductor"}}):
+        raw = {**other, "speed": {**other.get("speed", {}), "fused_jo": True}}
+        with pytest.raises(JsgsError, match="fused_jo covers jpeg_mode paper without compile"):
+            parse_options(raw)
+    cuda = torch.device("cuda")
+    auto = parse_options({"speed": {"fused_jo": "auto"}})
+    assert use_fused_jo(auto, cuda) == triton_available()
+    assert not use_fused_jo(parse_options({"jpeg_mode": "exact", "speed": {"fused_jo": "auto"}}), cuda)
+
+
+# --- CUDA -----------------------------------------------------------------------------------------------
+
+
+@cuda_triton
+@pytest.mark.gpu
+@pytest.mark.parametrize("kind", ["q10", "q50", "q95", "random", "16bit"])
+def test_cuda_matches_twin(kind: str) -> None:
+    x, g = _planes((2, 2, 120, 168), 11)
+    tables = _tables(kind, 2, torch.Generator().manual_seed(12))
+    x, g, tables = (t.cuda() for t in (x, g, tables))
+    v1, g1 = _value_and_grad(paper_code, x, tables, g)
+    v2, g2 = _value_and_grad(twin, x, tables, g)
+    print(f"\nfloat64 {kind}: max |fused - twin| value {float((v1 - v2).abs().max()):.2e}, "
+          f"gradient {float((g1 - g2).abs().max()):.2e} (8-bit units)")  # fmt: skip
+    torch.testing.assert_close(v1, v2, rtol=0, atol=1e-9)
+    torch.testing.assert_close(g1, g2, rtol=0, atol=1e-9)
+    x, g, tables = x.float(), g.float(), tables.float()
+    v1, g1 = _value_and_grad(paper_code, x, tables, g)
+    v2, g2 = _value_and_grad(twin, x, tables, g)
+    value, grad = _block_agreement(v1, v2, 2e-3), _block_agreement(g1, g2, 2e-3)
+    print(f"float32 {kind}: value max {value[0]:.2e}, within-tolerance blocks max {value[1]:.2e}, "
+          f"flipped blocks {100 * value[2]:.3f} %; gradient {grad[0]:.2e} / {grad[1]:.2e} / "
+          f"{100 * grad[2]:.3f} %")  # fmt: skip
+    assert value[1] <= 2e-3 and value[2] <= 0.01 and grad[1] <= 2e-3 and grad[2] <= 0.01
+
+
+@cuda_triton
+@pytest.mark.gpu
+@pytest.mark.parametrize(("height", "width"), [(1440, 1920), (378, 504), (37, 53)])
+def test_cuda_jpeg_observe_matches_twin(height: int, width: int) -> None:
+    g = torch.Generator().manual_seed(13)
+    rgb = torch.rand(1, 3, height, width, generator=g).cuda()
+    w = torch.randn(1, 3, height, width, generator=g).cuda()
+    luma, chroma = (torch.as_tensor(t, device="cuda").float() for t in ijg_tables(50))
+    out = []
+    for kernel in ("triton", "torch"):
+        x = rgb.clone().requires_grad_()
+        o = jpeg_observe(x, luma, chroma, "4:2:0", "paper", kernel=kernel)
+        (grad,) = torch.autograd.grad((o * w).sum(), x)
+        out.append((o.detach(), grad))
+    d_val = 255 * (out[0][0] - out[1][0]).abs()
+    d_grad = (out[0][1] - out[1][1]).abs()
+    print(f"\n{width}x{height} float32: max |fused - twin| {float(d_val.max()):.2e} (8-bit units), pixels "
+          f"> 0.01: {100 * float((d_val > 0.01).double().mean()):.4f} %; gradient max "
+          f"{float(d_grad.max()):.2e} of {float(out[1][1].abs().max()):.2e}")  # fmt: skip
+    assert float((d_val > 0.01).double().mean()) < 1e-3
+    assert float((d_grad > 1e-3 * out[1][1].abs().max()).double().mean()) < 1e-3
+
+
+@cuda_triton
+@pytest.mark.gpu
+def test_cuda_graph_replays_the_fused_chain() -> None:
+    from jsgs.method.graphed import GraphedImageTerms
+    from jsgs.method.image_terms import terms_with_gradient
+
+    settings = dict(
+        mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
+        eps_block=1e-6,
+    )  # fmt: skip
+    weights = (0.2, 0.02, 0.03)
+    graphed = GraphedImageTerms(weights=weights, jo_kernel="triton", **settings)
+    for seed in (14, 15):  # the second view replays the graph recorded for the first
+        g = torch.Generator().manual_seed(seed)
+        x = torch.rand(1, 3, 378, 504, generator=g).cuda().requires_grad_()
+        y = torch.rand(1, 3, 378, 504, generator=g).cuda()
+        tables = torch.randint(1, 100, (2, 8, 8), generator=g).float().cuda()
+        got = graphed(x, y, tables, "4:2:0")
+        (grad_graph,) = torch.autograd.grad(got.weighted, x)
+        values, grad_eager, r, obs = terms_with_gradient(
+            x, y, tables, weights=weights, sampling="4:2:0", jo_kernel="torch", **settings
+        )
+        print(f"\ngraph (fused) vs eager (twin), view {seed}: terms {got.values.tolist()} vs "
+              f"{values[1:].tolist()}; max |obs diff| {float((got.obs - obs).abs().max()) * 255:.2e} "
+              f"(8-bit units), max |grad diff| {float((grad_graph - grad_eager).abs().max()):.2e}")
+        torch.testing.assert_close(got.values, values[1:], rtol=1e-4, atol=1e-6)
+        assert float(((got.obs - obs).abs() * 255 > 0.01).double().mean()) < 1e-3
+        off = (grad_graph - grad_eager).abs() > 1e-3 * grad_eager.abs().max()
+        assert float(off.double().mean()) < 1e-3
