@@ -190,6 +190,9 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
     print(f"\n{width}x{height}, q={args.quality}, {args.sampling}: max |fused - twin| of JO "
           f"{float(d_obs.max()):.2e} (8-bit units; pixels > 0.01: {share:.4f} %), of its gradient "
           f"{float(d_grad.max()):.2e} (largest gradient {largest:.2e})")
+    deltas = [dct_supervision(rgb, target, luma, kernel=k).delta for k in ("torch", "triton")]
+    print(f"max |fused - twin| of DS's Delta {float((deltas[1] - deltas[0]).abs().max()):.2e} (largest "
+          f"{float(deltas[0].abs().max()):.2e})")
     planes = (255 * torch.rand(1, 3, 8 * (height // 8), 8 * (width // 8), generator=gen)).to(device)
     tab = luma.expand(1, 8, 8)
     p_grad = torch.randn_like(planes)
@@ -210,7 +213,15 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
 
         return run
 
-    rows = [("coding pass (3 planes), fwd + bwd", coding), ("JO, fwd + bwd", jo)]
+    def ds(kernel: str) -> Callable[[], object]:
+        def run() -> None:
+            x = rgb.clone().requires_grad_()
+            sup = dct_supervision(x, target, luma, kernel=kernel)
+            torch.autograd.grad(sup.loss_low.sum() + sup.loss_mid.sum(), x)
+
+        return run
+
+    rows = [("coding pass (3 planes), fwd + bwd", coding), ("JO, fwd + bwd", jo), ("DS, fwd + bwd", ds)]
     if device.type == "cuda":
         settings = dict(mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3,
                         eps_loss=1e-6, eps_block=1e-6)
@@ -227,6 +238,28 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
     for name, make in rows:
         t_twin, t_fused = (_loop_ms(make(k), device, args.repeats, args.warmup) for k in ("torch", "triton"))
         print(f"| {name} | {t_twin:.3f} | {t_fused:.3f} | {t_twin - t_fused:.3f} |", flush=True)
+    _blocks_per_program(planes, tab, p_grad, args, device)
+
+
+def _blocks_per_program(
+    planes: torch.Tensor, tab: torch.Tensor, grad: torch.Tensor, args: argparse.Namespace,
+    device: torch.device,
+) -> None:
+    """The coding pass's two kernels alone, per choice of 8x8 blocks per Triton program."""
+    from jsgs.kernels._triton_jo import BLOCKS_PER_PROGRAM, paper_code_backward, paper_code_forward
+
+    q = tab.reshape(1, 64).contiguous()
+    cells = []
+    for bn in (16, 32, 64):
+        out = paper_code_forward(planes, q, bn)
+
+        def run(bn: int = bn, out: torch.Tensor = out) -> None:
+            paper_code_forward(planes, q, bn)
+            paper_code_backward(planes, q, out, grad, bn)
+
+        cells.append(f"{bn}: {_loop_ms(run, device, args.repeats, args.warmup):.3f} ms")
+    print(f"coding pass kernels alone (fwd + bwd) by blocks per program (used: {BLOCKS_PER_PROGRAM}): "
+          + ", ".join(cells))
 
 
 def _twin_code(planes: torch.Tensor, tables: torch.Tensor) -> torch.Tensor:

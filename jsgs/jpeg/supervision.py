@@ -152,6 +152,19 @@ def table_weights(
     return TableWeights(w, w_mid, w_mid.sum(dim=(-1, -2)))
 
 
+def _delta(observation: Tensor, target: Tensor, kernel: str) -> Tensor:
+    """``Delta = (C_J - C_I) / 255`` ``(B, nby, nbx, 8, 8)``: the torch code, or the fused kernel (``kernel``
+    "triton", where it can run)."""
+    if kernel not in ("torch", "triton"):
+        raise ValueError(f"kernel must be 'torch' or 'triton', got {kernel!r}")
+    if kernel == "triton" and min(observation.shape[-2:]) >= 8 and not target.requires_grad:
+        from jsgs.kernels._triton_jo import ds_delta, fused_jo_runs
+
+        if fused_jo_runs(observation):
+            return ds_delta(observation, target)
+    return (valid_blocks_dct(observation) - valid_blocks_dct(target)) / 255.0
+
+
 def dct_supervision(
     observation: Tensor,
     target: Tensor,
@@ -160,6 +173,7 @@ def dct_supervision(
     eps_loss: float = EPS_LOSS,
     eps_block: float = EPS_BLOCK,
     weights: TableWeights | None = None,
+    kernel: str = "torch",
 ) -> DctSupervision:
     """DS between the JO output and the decoded training image.
 
@@ -171,13 +185,14 @@ def dct_supervision(
             1e-6, 1e-6).
         weights: :func:`table_weights` of ``luma_table``, made beforehand (``B`` views, in the observation's
             dtype, on its device); None: made here.
+        kernel: ``"torch"`` or ``"triton"``: Delta as one fused Triton kernel forward and one backward
+            (:func:`jsgs.kernels._triton_jo.ds_delta`; CUDA tensors, or ``TRITON_INTERPRET=1`` on CPU), where
+            it can run (a target that needs no gradient, at least one valid block), else the torch code.
     Returns:
         :class:`DctSupervision`. With no valid block (H < 8 or W < 8) the losses are 0 and the score map is 0.
     """
     b, _, height, width = observation.shape
-    c_j = valid_blocks_dct(observation)
-    c_i = valid_blocks_dct(target)
-    delta = (c_j - c_i) / 255.0
+    delta = _delta(observation, target, kernel)
     pen = psi(delta, eps_sm)
 
     if weights is None:
@@ -185,7 +200,7 @@ def dct_supervision(
     w, w_mid, w_sum = weights  # w_sum: (B,)
     m_low = low_mask(observation.dtype, observation.device)
 
-    n_blocks = c_j.shape[1] * c_j.shape[2]
+    n_blocks = delta.shape[1] * delta.shape[2]
     block_error = (pen * w_mid[:, None, None]).sum(dim=(-1, -2))  # e_b
     loss_low = (pen * m_low).sum(dim=(1, 2, 3, 4)) / (n_blocks * 10 + eps_loss)  # 10 = |M_low|
     loss_mid = block_error.sum(dim=(1, 2)) / (n_blocks * w_sum + eps_loss)

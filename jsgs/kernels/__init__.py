@@ -16,6 +16,8 @@ MCMC relocation       gsplat's ``relocation`` and          :func:`compute_reloca
                       ``quat_scale_to_covar_preci``        :func:`quat_scale_to_covar` (:func:`cpu_twins`)
 JO's coding pass      Triton: ``_triton_jo.py``            ``jsgs.jpeg.observe._code_blocks`` (mode
 (mode "paper")        (``paper_code``, optional)           "paper")
+DS's Delta            Triton: ``_triton_jo.py``            ``jsgs.jpeg.supervision._delta``
+                      (``ds_delta``, optional)             (kernel "torch")
 ====================  ===================================  ===========================================
 
 The Triton kernels are imported only where used (:mod:`jsgs.kernels._triton_jo`, by ``jsgs.jpeg.observe``

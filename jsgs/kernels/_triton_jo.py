@@ -1,5 +1,6 @@
 """The coding pass of the JPEG observation operator (JO, :mod:`jsgs.jpeg.observe`, mode "paper") as two
-Triton kernels: one forward and one backward, each reading the padded planes where they lie.
+Triton kernels, one forward and one backward, each reading the padded planes where they lie; and DS's
+Delta (:mod:`jsgs.jpeg.supervision`) as one kernel each way (:func:`ds_delta`).
 
 Per 8x8 block of a plane, with ``K = kron(D, D)`` (``D`` the orthonormal DCT-II matrix) acting on the
 row-major 64-vector of the block and ``Q`` the block's quantisation table (its view's, per plane group)::
@@ -145,6 +146,41 @@ if triton is not None:
         g_x = tl.dot(g_c, k, input_precision="ieee")
         tl.store(gx_ptr + o_off, g_x, mask=valid)
 
+    @triton.jit
+    def _ds_delta_forward(  # type: ignore[no-untyped-def]
+        o_ptr, t_ptr, w_ptr, k_ptr, d_ptr, n_blocks, nb, nbx,
+        os_b, os_c, os_h, os_w, ts_b, ts_c, ts_h, ts_w, BN: tl.constexpr,
+    ):  # fmt: skip
+        n = tl.program_id(0) * BN + tl.arange(0, BN)
+        e = tl.arange(0, 64)
+        valid = (n < n_blocks)[:, None]
+        o_off, _ = _block_offsets(n, e, nb, nbx, 1, os_b, os_c, os_h, os_w)
+        t_off, _ = _block_offsets(n, e, nb, nbx, 1, ts_b, ts_c, ts_h, ts_w)
+        kt = tl.load(k_ptr + e[None, :] * 64 + e[:, None])
+        y = tl.zeros((BN, 64), dtype=kt.dtype)
+        for c in tl.static_range(3):
+            w = tl.load(w_ptr + c)
+            diff = tl.load(o_ptr + o_off + c * os_c, mask=valid, other=0.0) - tl.load(
+                t_ptr + t_off + c * ts_c, mask=valid, other=0.0
+            )
+            y += w * diff
+        delta = tl.dot(y, kt, input_precision="ieee") / 255.0
+        tl.store(d_ptr + n.to(tl.int64)[:, None] * 64 + e[None, :], delta, mask=valid)
+
+    @triton.jit
+    def _ds_delta_backward(  # type: ignore[no-untyped-def]
+        g_ptr, w_ptr, k_ptr, gx_ptr, n_blocks, nb, nbx, gs_b, gs_c, gs_h, gs_w, BN: tl.constexpr,
+    ):  # fmt: skip
+        n = tl.program_id(0) * BN + tl.arange(0, BN)
+        e = tl.arange(0, 64)
+        valid = (n < n_blocks)[:, None]
+        x_off, _ = _block_offsets(n, e, nb, nbx, 1, gs_b, gs_c, gs_h, gs_w)
+        k = tl.load(k_ptr + e[:, None] * 64 + e[None, :])
+        g = tl.load(g_ptr + n.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=0.0) / 255.0
+        g_y = tl.dot(g, k, input_precision="ieee")
+        for c in tl.static_range(3):
+            tl.store(gx_ptr + x_off + c * gs_c, tl.load(w_ptr + c) * g_y, mask=valid)
+
 
 def _grid_args(planes: Tensor, bn: int) -> tuple[tuple[int], tuple[int, int, int, int]]:
     b, c, h, w = planes.shape
@@ -210,3 +246,64 @@ def paper_code(planes: Tensor, tables: Tensor) -> Tensor:
         )
     q = tables.detach().to(planes.dtype).reshape(b, 64).contiguous()
     return _PaperCode.apply(planes, q)
+
+
+# --- DS's block DCT ---------------------------------------------------------------------------------------
+
+#: Y8's weights (eq. jsgs_luminance), as ``jsgs.jpeg.supervision.luma8`` multiplies them
+_LUMA_WEIGHTS = (255.0 * 0.299, 255.0 * 0.587, 255.0 * 0.114)
+
+
+@functools.cache
+def _luma_weights(dtype: torch.dtype, device: torch.device) -> Tensor:
+    return torch.tensor(_LUMA_WEIGHTS, dtype=dtype, device=device)
+
+
+class _DsDelta(torch.autograd.Function):
+    """DS's Delta of two images, differentiable in the observation (the target is data)."""
+
+    @staticmethod
+    def forward(ctx: Any, obs: Tensor, target: Tensor) -> Tensor:  # type: ignore[override]
+        b, _, h, w = obs.shape
+        nby, nbx = h // 8, w // 8
+        delta = torch.empty((b, nby, nbx, 8, 8), dtype=obs.dtype, device=obs.device)
+        n = b * nby * nbx
+        bn = BLOCKS_PER_PROGRAM
+        _ds_delta_forward[(triton.cdiv(n, bn),)](
+            obs, target, _luma_weights(obs.dtype, obs.device), _kron(obs.dtype, obs.device), delta, n,
+            nby * nbx, nbx, *obs.stride(), *target.stride(), BN=bn,
+        )  # fmt: skip
+        ctx.shape = obs.shape
+        return delta
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        b, _, h, w = ctx.shape
+        nby, nbx = h // 8, w // 8
+        grad = grad.contiguous()
+        # pixels outside the valid blocks get no gradient: zeros, then the kernel writes the blocks
+        grad_obs = torch.zeros(ctx.shape, dtype=grad.dtype, device=grad.device)
+        n = b * nby * nbx
+        bn = BLOCKS_PER_PROGRAM
+        _ds_delta_backward[(triton.cdiv(n, bn),)](
+            grad, _luma_weights(grad.dtype, grad.device), _kron(grad.dtype, grad.device), grad_obs, n,
+            nby * nbx, nbx, *grad_obs.stride(), BN=bn,
+        )  # fmt: skip
+        return grad_obs, None
+
+
+def ds_delta(observation: Tensor, target: Tensor) -> Tensor:
+    """DS's ``Delta = (C_J - C_I) / 255`` (eqs. jsgs_level_shift ... jsgs_dct_residual) in one kernel:
+    the luminance ``Y8`` of both images over their valid blocks (``floor(H/8) x floor(W/8)``), the block
+    DCT of their difference (the level shift cancels), ``(B, nby, nbx, 8, 8)``. Differentiable in
+    ``observation``; ``target`` must need no gradient. Equal to ``jsgs.jpeg.supervision``'s torch code up
+    to float rounding. Needs :func:`fused_jo_runs` and at least one valid block."""
+    if observation.shape != target.shape or observation.dim() != 4 or observation.shape[1] != 3:
+        raise ValueError(
+            f"ds_delta needs two (B, 3, H, W) images of one shape, got {tuple(observation.shape)}, "
+            f"{tuple(target.shape)}"
+        )
+    if observation.shape[-2] < 8 or observation.shape[-1] < 8 or target.requires_grad:
+        raise ValueError("ds_delta needs images of at least 8 x 8 and a target that needs no gradient")
+    return _DsDelta.apply(observation, target.to(observation.dtype))

@@ -60,8 +60,8 @@ def jpeg_terms(
     Args:
         x: ``(1, 3, H, W)`` the rendering; y: ``(1, 3, H, W)`` the decoded training JPEG, in [0, 1].
         luma, chroma: ``(8, 8)`` the view's tables. The settings: as
-            :class:`jsgs.method.options.JsgsOptions`; ``jo_kernel``: JO's ``kernel`` ("torch" or "triton",
-            :func:`jsgs.jpeg.observe.jpeg_observe`).
+            :class:`jsgs.method.options.JsgsOptions`; ``jo_kernel``: JO's and DS's ``kernel`` ("torch" or
+            "triton": :func:`jsgs.jpeg.observe.jpeg_observe`, :func:`jsgs.jpeg.supervision.dct_supervision`).
         observe, photometric, supervise: the three functions (the hook passes torch.compile'd ones);
         phase: a profiler's ``phase(name)`` context ("jo" around JO and L_obs, "ds" around DS);
         first: ``(2, 8, 8)`` effective tables of a view compressed twice: JO quantizes with them first, then
@@ -81,7 +81,10 @@ def jpeg_terms(
         return obs, l_obs, None
     with phase("ds"):
         ds_table = first[0] if first is not None else luma
-        sup = supervise(obs if ds else obs.detach(), y, ds_table, eps_sm, eps_loss, eps_block, ds_weights)
+        sup = supervise(
+            obs if ds else obs.detach(), y, ds_table, eps_sm, eps_loss, eps_block, ds_weights,
+            kernel=jo_kernel,
+        )  # fmt: skip
     return obs, l_obs, sup
 
 

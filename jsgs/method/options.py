@@ -50,9 +50,9 @@ class JsgsSpeed:
     fused_jo: bool | Literal["auto"] = setting(
         False,
         "JO's coding pass in jpeg_mode paper (per 8x8 block: DCT, soft quantisation, IDCT, clamp) as two "
-        "fused Triton kernels, forward and backward (jsgs/kernels/_triton_jo.py), instead of about twenty "
-        "torch kernels: true needs CUDA, Triton and jpeg_mode paper; auto: on where those hold and "
-        "compile is off; false: the torch code (its twin).",
+        "fused Triton kernels, forward and backward, and DS's Delta as one kernel each way "
+        "(jsgs/kernels/_triton_jo.py), instead of a few dozen torch kernels: true needs CUDA, Triton and "
+        "jpeg_mode paper; auto: on where those hold and compile is off; false: the torch code (its twin).",
     )
 
 

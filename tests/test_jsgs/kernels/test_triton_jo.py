@@ -1,6 +1,6 @@
-"""The fused Triton coding pass of JO (``jsgs/kernels/_triton_jo.py``) against its torch twin
-(``jsgs.jpeg.observe._code_blocks``, mode "paper") and float64, and how ``method_options.speed.fused_jo``
-resolves.
+"""The fused Triton kernels of ``jsgs/kernels/_triton_jo.py`` against their torch twins and float64: JO's
+coding pass (``jsgs.jpeg.observe._code_blocks``, mode "paper") and DS's Delta
+(``jsgs.jpeg.supervision.dct_supervision``), and how ``method_options.speed.fused_jo`` resolves.
 
 On the CPU the kernels run under Triton's interpreter: these tests need Triton and ``TRITON_INTERPRET=1``
 (``PYTHONPATH=$PWD:/path/to/triton TRITON_INTERPRET=1 pytest tests/test_jsgs/kernels/test_triton_jo.py``)
@@ -11,7 +11,8 @@ Tolerances: float64 against the float64 twin, 1e-9 (8-bit units; the two sum the
 different orders). float32: the soft rounding ``round(z) + (z - round z)^3`` jumps by 3/4 of a step where
 ``z`` crosses a half-integer, so a float32 rounding difference in ``z`` (~1e-6 relative) flips a
 coefficient now and then; blocks that hold no such flip agree within 2e-3 (8-bit units), and at most 1 % of
-the blocks may hold one.
+the blocks may hold one. DS's Delta has no rounding: float64 within 1e-12, float32 within 1e-4 (Delta is in
+8-bit levels / 255, up to ~8).
 """
 
 from __future__ import annotations
@@ -22,9 +23,10 @@ import torch
 from jsgs.base.errors import JsgsError
 from jsgs.jpeg.dct import blockify, dct_matrix, unblockify
 from jsgs.jpeg.observe import _code_blocks, jpeg_observe
+from jsgs.jpeg.supervision import dct_supervision
 from jsgs.jpeg.tables import ijg_tables
 from jsgs.kernels import _triton_jo
-from jsgs.kernels._triton_jo import dct_kron, interpreting, paper_code, triton_available
+from jsgs.kernels._triton_jo import dct_kron, ds_delta, interpreting, paper_code, triton_available
 from jsgs.method.options import parse_options, use_fused_jo
 
 needs_interpreter = pytest.mark.skipif(
@@ -152,6 +154,61 @@ def test_jpeg_observe_triton_matches_torch(sampling: str, height: int, width: in
     torch.testing.assert_close(out[0][1], out[1][1], rtol=0, atol=1e-11)
 
 
+def _ds_both(obs: torch.Tensor, target: torch.Tensor, tables: torch.Tensor):  # type: ignore[no-untyped-def]
+    """DS's delta, losses, block scores and the gradient of a mix of its terms, fused and torch."""
+    out = []
+    for kernel in ("triton", "torch"):
+        x = obs.clone().requires_grad_()
+        s = dct_supervision(x, target, tables, kernel=kernel)
+        loss = s.loss_low.sum() + 2.0 * s.loss_mid.sum() + (s.block_score**2).sum()
+        (grad,) = torch.autograd.grad(loss, x)
+        out.append((s.delta.detach(), torch.stack([s.loss_low, s.loss_mid]).detach(), s.pixel_score, grad))
+    return out
+
+
+@needs_interpreter
+@pytest.mark.parametrize(("height", "width"), [(37, 53), (16, 8), (8, 31)])
+def test_ds_delta_matches_torch_float64(height: int, width: int) -> None:
+    g = torch.Generator().manual_seed(9)
+    obs = torch.rand(2, 3, height, width, generator=g, dtype=torch.float64)
+    target = torch.rand(2, 3, height, width, generator=g, dtype=torch.float64)
+    tables = torch.randint(1, 80, (2, 8, 8), generator=g).double()
+    fused, twin_ = _ds_both(obs, target, tables)
+    for a, b in zip(fused, twin_, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+    assert twin_[3].abs().max() > 1e-3 and twin_[0].abs().max() > 0.1
+
+
+@needs_interpreter
+def test_ds_delta_float32_and_gradcheck() -> None:
+    g = torch.Generator().manual_seed(10)
+    obs = torch.rand(1, 3, 24, 40, generator=g, dtype=torch.float64)
+    target = torch.rand(1, 3, 24, 40, generator=g, dtype=torch.float64)
+    d64 = ds_delta(obs, target)
+    torch.testing.assert_close(ds_delta(obs.float(), target.float()).double(), d64, rtol=0, atol=1e-4)
+    x = obs[..., :16, :16].clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda t: ds_delta(t, target[..., :16, :16]), (x,))
+
+
+def test_ds_falls_back_where_the_kernel_cannot_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    g = torch.Generator().manual_seed(11)
+    table = torch.randint(1, 80, (8, 8), generator=g).float()
+    with pytest.raises(ValueError, match="kernel must be"):
+        dct_supervision(torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16), table, kernel="cuda")
+    # no valid block, or a target that needs a gradient: the torch code, whatever the kernel
+    for obs, target in (
+        (torch.rand(1, 3, 7, 30, generator=g), torch.rand(1, 3, 7, 30, generator=g)),
+        (torch.rand(1, 3, 16, 16, generator=g), torch.rand(1, 3, 16, 16, generator=g).requires_grad_()),
+    ):
+        a = dct_supervision(obs, target, table, kernel="triton")
+        b = dct_supervision(obs, target, table)
+        assert torch.equal(a.delta, b.delta) and torch.equal(a.loss_mid, b.loss_mid)
+    monkeypatch.setattr(_triton_jo, "fused_jo_runs", lambda x: False)
+    obs, target = torch.rand(1, 3, 16, 16, generator=g), torch.rand(1, 3, 16, 16, generator=g)
+    assert torch.equal(dct_supervision(obs, target, table, kernel="triton").delta,
+                       dct_supervision(obs, target, table).delta)  # fmt: skip
+
+
 @pytest.mark.parametrize("mode", ["float", "exact"])
 def test_other_modes_ignore_the_kernel(mode: str) -> None:
     g = torch.Generator().manual_seed(8)
@@ -235,6 +292,27 @@ def test_cuda_jpeg_observe_matches_twin(height: int, width: int) -> None:
           f"{float(d_grad.max()):.2e} of {float(out[1][1].abs().max()):.2e}")  # fmt: skip
     assert float((d_val > 0.01).double().mean()) < 1e-3
     assert float((d_grad > 1e-3 * out[1][1].abs().max()).double().mean()) < 1e-3
+
+
+@cuda_triton
+@pytest.mark.gpu
+@pytest.mark.parametrize(("height", "width"), [(1440, 1920), (378, 504), (37, 53)])
+def test_cuda_ds_matches_twin(height: int, width: int) -> None:
+    g = torch.Generator().manual_seed(16)
+    obs = torch.rand(1, 3, height, width, generator=g).cuda()
+    target = torch.rand(1, 3, height, width, generator=g).cuda()
+    tables = torch.randint(1, 80, (1, 8, 8), generator=g).float().cuda()
+    fused, twin_ = _ds_both(obs, target, tables)
+    errs = [float((a - b).abs().max()) for a, b in zip(fused, twin_, strict=True)]
+    print(f"\nDS {width}x{height} float32: max |fused - twin| delta {errs[0]:.2e}, losses {errs[1]:.2e}, "
+          f"pixel score {errs[2]:.2e}, gradient {errs[3]:.2e} of {float(twin_[3].abs().max()):.2e}")
+    torch.testing.assert_close(fused[0], twin_[0], rtol=0, atol=1e-4)
+    torch.testing.assert_close(fused[1], twin_[1], rtol=1e-4, atol=1e-7)
+    # psi's derivative delta / sqrt(delta^2 + eps_sm^2) amplifies float32 rounding of a Delta near 0 (1/eps_sm
+    # = 1000): a bound on the largest difference and on the share of larger ones, not on every element
+    diff, largest = (fused[3] - twin_[3]).abs(), float(twin_[3].abs().max())
+    assert float(diff.max()) <= 1e-2 * largest
+    assert float((diff > 1e-3 * largest).double().mean()) < 1e-3
 
 
 @cuda_triton
