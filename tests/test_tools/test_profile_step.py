@@ -214,3 +214,14 @@ def test_pairs_must_not_be_negative(capsys: Any) -> None:
     with pytest.raises(SystemExit):
         ps.parse_args(["--pairs", "-1"])
     assert "--pairs must be >= 0, got -1" in capsys.readouterr().err
+
+
+def test_preset_mcmc_is_the_equal_budget_protocol(tmp_path: Path) -> None:
+    """``--preset mcmc`` starts every method from gsplat's MCMC recipe (the default paper preset does not),
+    and ``--config`` applies over the preset."""
+    paper = ps.base_config(ps.parse_args([]))
+    mcmc = ps.base_config(ps.parse_args(["--preset", "mcmc"]))
+    assert (paper.strategy.type, mcmc.strategy.type) == ("default", "mcmc")
+    over = tmp_path / "over.json"
+    over.write_text(json.dumps({"strategy": {"cap_max": 1234}}))
+    assert ps.base_config(ps.parse_args(["--preset", "mcmc", "--config", str(over)])).strategy.cap_max == 1234

@@ -17,8 +17,8 @@
 #   of the mcmc preset at 2,000 Gaussians, seeds 0,1,2, JSGS with K in $KS and without the controller
 #   (gc false), one run at a time; logs in .res/gc_every_toy/. Run after `make demo`, about 35 minutes.
 #
-# On the CPU first, as speed_pairs.sh and speed_profile_camera.sh say (.gpu4/flower_gaussian, .gpu4/mcmc.json,
-# .gpu3/jpeg_mouse, .gpu3/mcmc.json); the quality part reads llff_flower from $GPU_DIR/bench/data (made by
+# On the CPU first, as speed_pairs.sh and speed_profile_camera.sh say (.gpu4/flower_gaussian and
+# .gpu3/jpeg_mouse; `--preset mcmc` gives both methods the mcmc preset); the quality part reads llff_flower from $GPU_DIR/bench/data (made by
 # scripts/gpu_prepare.sh), as confirm.sh does. Then on a lent GPU machine, carrying .whl, .gpu3 and .gpu4:
 #   PART=speed KS="1 2 4" bash tools/campaigns/gc_every.sh
 #   PART=quality KS=4 TL=540 bash scripts/gpu_run.sh bash tools/campaigns/gc_every.sh
@@ -49,7 +49,7 @@ elif [ "${PART:-speed}" = speed ]; then
         for job in flower_gaussian:.gpu4:1500 flower_gaussian:.gpu4:6000 jpeg_mouse:.gpu3:1500; do
             s=${job%%:*}; rest=${job#*:}; d=${rest%%:*}; w=${rest#*:}
             timeout 560 bash scripts/gpu_run.sh python3 $P --manifest $d/$s/manifest.json --device cuda \
-                --config $d/mcmc.json --jsgs-options "{$R,\"gc_every\":$k}" --warmup $w --steps 100 \
+                --preset mcmc --jsgs-options "{$R,\"gc_every\":$k}" --warmup $w --steps 100 \
                 --pairs 6 --no-fresh --out $OUT/speed_K${k}_${s}_$w.json > $OUT/speed_K${k}_${s}_$w.txt 2>&1
         done
     done

@@ -1,7 +1,7 @@
 # budget probe 2: cap 300k, 10k steps, mcmc preset; clean ceilings, byview variants, schedules, seed 1
 # Its JSGS runs trained with the options' own values over the mcmc settings; the mcmc preset gives JSGS a recipe
 # (jsgs.method.recipes.RECIPES), so to repeat them run them with --preset paper and the mcmc values
-# of .gpu4/mcmc.json in their config files.
+# of the mcmc preset (`jsgs.train.config.PRESETS`) in their config files.
 set -u
 T0=$(date +%s)
 R=/tmp/probe; mkdir -p $R

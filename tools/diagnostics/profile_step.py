@@ -7,9 +7,10 @@ does JSGS add?
         --warmup 600 --steps 50 --jsgs-options '{"speed": {"cuda_graph": false}}' --out profile_step.json
 
 Without ``--manifest`` a synthetic scene is built in a temporary folder, as ``bench_train_overhead.py``
-builds it (``--size``, ``--views``). Every method runs the same settings (``--config`` JSON over the
-defaults; no evaluation, no intermediate checkpoints; ``--jsgs-options`` over ``method_options`` for jsgs)
-from the same seed.
+builds it (``--size``, ``--views``). Every method runs the same settings (``--preset``, default ``paper``;
+``--preset mcmc`` is the equal-budget protocol, gsplat's MCMC recipe with JSGS's recipe for it; ``--config``
+JSON over the preset; no evaluation, no intermediate checkpoints; ``--jsgs-options`` over ``method_options``
+for jsgs) from the same seed.
 
 Per method:
 
@@ -95,7 +96,7 @@ from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
 from jsgs.base.io import write_json_atomic  # noqa: E402
 from jsgs.bench.stats import median_interval  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
-from jsgs.train.config import TrainConfig, load_config_file  # noqa: E402
+from jsgs.train.config import PRESETS, TrainConfig, load_config_file  # noqa: E402
 from jsgs.train.evaluate import synchronize  # noqa: E402
 from jsgs.train.render_view import resolve_device  # noqa: E402
 from jsgs.train.trainer import Trainer, train  # noqa: E402
@@ -682,7 +683,11 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument("--size", default="160x120", help="synthetic scene image size WxH [160x120]")
     ap.add_argument("--views", type=int, default=16, help="synthetic scene views [16]")
     ap.add_argument("--methods", default="gsplat,jsgs", help="comma-separated; the first is the baseline")
-    ap.add_argument("--config", type=Path, help="JSON settings over the defaults, for every method")
+    ap.add_argument(
+        "--preset", default="paper", choices=list(PRESETS),
+        help="the preset every method starts from (mcmc: the equal-budget protocol) [paper]",
+    )  # fmt: skip
+    ap.add_argument("--config", type=Path, help="JSON settings over the preset, for every method")
     ap.add_argument(
         "--jsgs-options",
         type=_json_arg,
@@ -725,13 +730,18 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
+def base_config(args: argparse.Namespace) -> TrainConfig:
+    """The settings every method starts from: ``--preset`` with ``--config`` over it."""
+    preset = TrainConfig.from_preset(args.preset)
+    return load_config_file(args.config, preset) if args.config else preset
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Profile every method; returns the output document (jsgs/schemas/profile_step.schema.json)."""
     if args.threads:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
-    paper = TrainConfig.from_preset("paper")
-    base = load_config_file(args.config, paper) if args.config else paper
+    base = base_config(args)
     methods = args.methods.split(",")
     iterations = args.warmup + args.settle + args.steps + 1
     results: dict[str, dict[str, Any]] = {}
