@@ -66,7 +66,7 @@ Sampling = Literal["4:4:4", "4:2:2", "4:2:0"]
 
 MODES: tuple[str, ...] = ("paper", "float", "exact")
 #: how the coding pass runs: "torch" (the code below) or "triton" (mode "paper" only: the fused kernels of
-#: :mod:`jsgs.kernels._triton_jo`, equal up to float rounding; other modes run the torch code)
+#: :mod:`jsgs.kernels._triton_jo` where they can run, equal up to float rounding; else the torch code)
 KERNELS: tuple[str, ...] = ("torch", "triton")
 
 
@@ -174,8 +174,9 @@ def jpeg_observe(
         sampling: ``"4:4:4"``, ``"4:2:2"`` (h2v1) or ``"4:2:0"`` (h2v2), as read from the file; one per call.
         mode: ``"exact"``, ``"float"`` or ``"paper"`` (module docstring).
         kernel: ``"torch"`` or ``"triton"``: in mode "paper" the coding pass as two fused Triton kernels
-            (forward, backward; :func:`jsgs.kernels._triton_jo.paper_code`), which need CUDA tensors (or
-            ``TRITON_INTERPRET=1`` on CPU) and Triton; the other modes ignore it.
+            (forward, backward; :func:`jsgs.kernels._triton_jo.paper_code`) where they can run (Triton and
+            float32 CUDA tensors, or ``TRITON_INTERPRET=1`` on CPU: ``fused_jo_runs``), else the torch code;
+            the other modes ignore it.
     Returns:
         ``(B, 3, H, W)`` decoded RGB in [0, 1], same dtype as ``rgb``. In modes "exact" and "float" the
         values are exactly ``k / 255`` for integers k; in "exact" k equals libjpeg-turbo's decode of
@@ -195,11 +196,7 @@ def jpeg_observe(
     if fused:
         from jsgs.kernels._triton_jo import fused_jo_runs
 
-        if not fused_jo_runs(rgb):
-            raise ValueError(
-                f"kernel 'triton' needs Triton and float32/float64 CUDA tensors, got {rgb.dtype} on "
-                f"{rgb.device.type}"
-            )
+        fused = fused_jo_runs(rgb)
     b, _, height, width = rgb.shape
     h, v = SAMPLING_FACTORS[sampling]
     tab_y = as_tables(luma_table, b, rgb.dtype, rgb.device)

@@ -17,12 +17,14 @@ kernel is one launch per plane group (the luma plane, the two chroma planes) wit
 and outputs allocated by torch, so a CUDA graph records it like any other op. The 64 x 64 products run with
 ``input_precision="ieee"`` (no TF32): float32 stays float32 as in the twin.
 
-Triton is optional: without it (or off CUDA, unless ``TRITON_INTERPRET=1`` runs the kernels on CPU tensors
-with Triton's interpreter, which the tests use) :func:`fused_jo_runs` is False and JO runs the twin.
+Triton is optional: without it, off CUDA (unless ``TRITON_INTERPRET=1`` runs the kernels on CPU tensors
+with Triton's interpreter, which the tests use) or for other dtypes than float32 on CUDA,
+:func:`fused_jo_runs` is False and JO and DS run the torch code.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import os
@@ -54,11 +56,15 @@ def interpreting() -> bool:
 
 
 def fused_jo_runs(x: Tensor) -> bool:
-    """Whether the fused kernels can run on ``x``: Triton imports and ``x`` is a CUDA tensor (or a CPU
-    tensor under Triton's interpreter), float32 or float64."""
-    if triton is None or x.dtype not in (torch.float32, torch.float64):
+    """Whether the fused kernels can run on ``x``: Triton imports and ``x`` is a float32 CUDA tensor, or a
+    float32 or float64 CPU tensor under Triton's interpreter (float64 there checks the kernels' arithmetic
+    against float64 torch; on CUDA ``tl.dot`` in float64 depends on the Triton version and the GPU, and
+    training renders float32)."""
+    if triton is None:
         return False
-    return x.is_cuda or (interpreting() and x.device.type == "cpu")
+    if x.is_cuda:
+        return x.dtype == torch.float32 and not interpreting()
+    return interpreting() and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
 
 
 @functools.cache
@@ -182,6 +188,11 @@ if triton is not None:
             tl.store(gx_ptr + x_off + c * gs_c, tl.load(w_ptr + c) * g_y, mask=valid)
 
 
+def _on(device: torch.device) -> contextlib.AbstractContextManager[Any]:
+    """Launch on ``device`` (Triton launches on the current CUDA device, which may be another)."""
+    return torch.cuda.device(device) if device.type == "cuda" else contextlib.nullcontext()
+
+
 def _grid_args(planes: Tensor, bn: int) -> tuple[tuple[int], tuple[int, int, int, int]]:
     b, c, h, w = planes.shape
     nb = (h // 8) * (w // 8)
@@ -195,10 +206,11 @@ def paper_code_forward(
     strides), ``tables`` ``(B, 64)`` contiguous in ``planes``' dtype -> decoded ``(B, C, H, W)``."""
     out = torch.empty(planes.shape, dtype=planes.dtype, device=planes.device)
     grid, (n, nb, nbx, c) = _grid_args(planes, blocks_per_program)
-    _paper_forward[grid](
-        planes, tables, _kron(planes.dtype, planes.device), out, n, nb, nbx, c,
-        *planes.stride(), *out.stride(), BN=blocks_per_program,
-    )  # fmt: skip
+    with _on(planes.device):
+        _paper_forward[grid](
+            planes, tables, _kron(planes.dtype, planes.device), out, n, nb, nbx, c,
+            *planes.stride(), *out.stride(), BN=blocks_per_program,
+        )  # fmt: skip
     return out
 
 
@@ -209,10 +221,11 @@ def paper_code_backward(
     the forward's ``out``."""
     grad_x = torch.empty(out.shape, dtype=out.dtype, device=out.device)
     grid, (n, nb, nbx, c) = _grid_args(planes, blocks_per_program)
-    _paper_backward[grid](
-        planes, tables, _kron(planes.dtype, planes.device), out, grad, grad_x, n, nb, nbx, c,
-        *planes.stride(), *out.stride(), *grad.stride(), BN=blocks_per_program,
-    )  # fmt: skip
+    with _on(planes.device):
+        _paper_backward[grid](
+            planes, tables, _kron(planes.dtype, planes.device), out, grad, grad_x, n, nb, nbx, c,
+            *planes.stride(), *out.stride(), *grad.stride(), BN=blocks_per_program,
+        )  # fmt: skip
     return grad_x
 
 
@@ -269,10 +282,11 @@ class _DsDelta(torch.autograd.Function):
         delta = torch.empty((b, nby, nbx, 8, 8), dtype=obs.dtype, device=obs.device)
         n = b * nby * nbx
         bn = BLOCKS_PER_PROGRAM
-        _ds_delta_forward[(triton.cdiv(n, bn),)](
-            obs, target, _luma_weights(obs.dtype, obs.device), _kron(obs.dtype, obs.device), delta, n,
-            nby * nbx, nbx, *obs.stride(), *target.stride(), BN=bn,
-        )  # fmt: skip
+        with _on(obs.device):
+            _ds_delta_forward[(triton.cdiv(n, bn),)](
+                obs, target, _luma_weights(obs.dtype, obs.device), _kron(obs.dtype, obs.device), delta, n,
+                nby * nbx, nbx, *obs.stride(), *target.stride(), BN=bn,
+            )  # fmt: skip
         ctx.shape = obs.shape
         return delta
 
@@ -286,10 +300,11 @@ class _DsDelta(torch.autograd.Function):
         grad_obs = torch.zeros(ctx.shape, dtype=grad.dtype, device=grad.device)
         n = b * nby * nbx
         bn = BLOCKS_PER_PROGRAM
-        _ds_delta_backward[(triton.cdiv(n, bn),)](
-            grad, _luma_weights(grad.dtype, grad.device), _kron(grad.dtype, grad.device), grad_obs, n,
-            nby * nbx, nbx, *grad_obs.stride(), BN=bn,
-        )  # fmt: skip
+        with _on(grad.device):
+            _ds_delta_backward[(triton.cdiv(n, bn),)](
+                grad, _luma_weights(grad.dtype, grad.device), _kron(grad.dtype, grad.device), grad_obs, n,
+                nby * nbx, nbx, *grad_obs.stride(), BN=bn,
+            )  # fmt: skip
         return grad_obs, None
 
 
