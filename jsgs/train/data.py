@@ -188,11 +188,18 @@ def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Training
         )
 
     if cfg.scene.normalize_world:
-        c2w, xyz_n, transform = normalize_world(c2w, xyz)
-        if not (np.isfinite(transform).all() and np.isfinite(c2w).all()):
+        try:
+            with np.errstate(all="ignore"):  # what overflows is refused just below
+                c2w, xyz_n, transform = normalize_world(c2w, xyz)
+            ok = np.isfinite(transform).all() and np.isfinite(c2w).all()
+        except ValueError as e:  # numpy's LinAlgError included
+            ok, why = False, str(e)
+        else:
+            why = "degenerate cameras"
+        if not ok:
             raise JsgsError(
-                f"{where}: world normalisation failed (degenerate cameras); "
-                "set scene.normalize_world to false"
+                f"{where}: world normalisation failed: {why}; set scene.normalize_world to false to train "
+                "in the manifest's own units"
             )
     else:
         xyz_n, transform = xyz, np.eye(4)

@@ -5,7 +5,8 @@ camera axes) onto +z, (2) moves the median of the cameras' closest points to the
 axes onto the origin, (3) scales the median camera distance to 1; then (4) rotates the point cloud's principal
 axes onto x, y, z (largest variance first) and (5) flips z when the points' median height lies above their
 mean (gsplat's "upside down" fix). Ported in float64 numpy so that the trainer does not need gsplat's
-example code (which imports pycolmap, OpenCV and imageio).
+example code (which imports pycolmap, OpenCV and imageio). One difference: when the mean up is exactly camera
++y, step (1) is half a turn about x, where gsplat's matrix is a mirror (the model could not be exported).
 """
 
 from __future__ import annotations
@@ -20,7 +21,10 @@ def similarity_from_cameras(c2w: np.ndarray, strict_scaling: bool = False) -> np
 
     ups = np.sum(R * np.array([0, -1.0, 0]), axis=-1)
     world_up = np.mean(ups, axis=0)
-    world_up /= np.linalg.norm(world_up)
+    norm = np.linalg.norm(world_up)
+    if not norm > 0:
+        raise ValueError("the cameras' up directions cancel out: their mean is zero")
+    world_up = world_up / norm
 
     up_camspace = np.array([0.0, -1.0, 0.0])
     c = (up_camspace * world_up).sum()
@@ -34,8 +38,8 @@ def similarity_from_cameras(c2w: np.ndarray, strict_scaling: bool = False) -> np
     )
     if c > -1:
         R_align = np.eye(3) + skew + (skew @ skew) * 1 / (1 + c)
-    else:
-        R_align = np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    else:  # the mean up is exactly camera +y: half a turn about x (gsplat's diag(-1, 1, 1) is a mirror)
+        R_align = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
 
     R = R_align @ R
     fwds = np.sum(R * np.array([0, 0.0, 1.0]), axis=-1)
@@ -50,7 +54,11 @@ def similarity_from_cameras(c2w: np.ndarray, strict_scaling: bool = False) -> np
     transform[:3, :3] = R_align
 
     scale_fn = np.max if strict_scaling else np.median
-    scale = 1.0 / scale_fn(np.linalg.norm(t + translate, axis=-1))
+    distance = scale_fn(np.linalg.norm(t + translate, axis=-1))
+    if not distance > 0:
+        how = "largest" if strict_scaling else "median"
+        raise ValueError(f"most cameras sit at their common focus point: their {how} distance from it is 0")
+    scale = 1.0 / distance
     transform[:3, :] *= scale
     return transform
 
@@ -100,7 +108,8 @@ def normalize_world(camtoworlds: np.ndarray, points: np.ndarray) -> tuple[np.nda
     """gsplat Parser's ``normalize=True`` branch. camtoworlds: N x 4 x 4, points: P x 3 (float64).
 
     Returns (camtoworlds', points', T) with T the 4x4 world-to-normalised similarity. With fewer than 3
-    points the principal-axes and flip steps are skipped (there is no covariance to align)."""
+    points the principal-axes and flip steps are skipped (there is no covariance to align). ValueError
+    (saying why) when the cameras leave the up direction or the scale undefined."""
     T1 = similarity_from_cameras(camtoworlds)
     camtoworlds = transform_cameras(T1, camtoworlds)
     points = transform_points(T1, points)

@@ -890,3 +890,68 @@ def test_children_die_with_their_parent(tmp_path: Path) -> None:
     else:
         os.kill(child, 9)
         pytest.fail("the child outlived its killed parent")
+
+
+def _poses(rotations: list[np.ndarray], centres: list[np.ndarray]) -> np.ndarray:
+    c2w = np.tile(np.eye(4), (len(centres), 1, 1))
+    for i, (R, c) in enumerate(zip(rotations, centres, strict=True)):  # R world-to-camera
+        c2w[i, :3, :3], c2w[i, :3, 3] = R.T, c
+    return c2w
+
+
+def test_normalisation_of_upright_cameras_is_a_rotation() -> None:
+    """Every camera upright in a y-up world: the mean up is exactly camera +y, and the alignment is half a
+    turn (det +1, the up onto camera up), not gsplat's mirror for that case; images are kept."""
+    from jsgs.train.normalize import similarity_from_cameras
+
+    R = np.diag([1.0, -1.0, -1.0])  # looks along world -z, camera -y (up) is world +y
+    c2w = _poses([R] * 5, [np.array([0.4 * i - 1.0, 0.1 * i, 4.0 + 0.2 * i]) for i in range(5)])
+    T = similarity_from_cameras(c2w)
+    s = np.cbrt(np.linalg.det(T[:3, :3]))
+    assert s > 0 and np.allclose(T[:3, :3] @ [0.0, 1.0, 0.0] / s, [0.0, -1.0, 0.0])
+    pts = np.random.default_rng(0).normal(size=(30, 3))
+    c2w_n, pts_n, T = normalize_world(c2w, pts)
+    assert np.linalg.det(T[:3, :3]) > 0
+    for a, b in zip(c2w, c2w_n, strict=True):
+        pa = (np.linalg.inv(a) @ np.c_[pts, np.ones(len(pts))].T)[:3]
+        pb = (np.linalg.inv(b) @ np.c_[pts_n, np.ones(len(pts))].T)[:3]
+        assert np.allclose(pa[:2] / pa[2], pb[:2] / pb[2], atol=1e-9) and np.linalg.det(b[:3, :3]) > 0
+
+
+def _cancelling_ups(doc: dict[str, Any]) -> str:
+    R = np.eye(3)
+    for i, v in enumerate(doc["views"]):  # every other camera rolled by half a turn: the ups cancel
+        Ri = np.diag([-1.0, -1.0, 1.0]) @ R if i % 2 else R
+        v["R"], v["t"] = Ri.tolist(), (-Ri @ np.array([0.5 * i, 0.0, -4.0])).tolist()
+    return "the cameras' up directions cancel out: their mean is zero"
+
+
+def _most_on_focus(doc: dict[str, Any]) -> str:
+    for i, v in enumerate(doc["views"]):  # four at the origin, the rest behind it on the common axis
+        v["R"], v["t"] = np.eye(3).tolist(), [0.0, 0.0, float(max(0, i - 3))]
+    return "most cameras sit at their common focus point: their median distance from it is 0"
+
+
+@pytest.mark.parametrize("edit", [_cancelling_ups, _most_on_focus])
+def test_degenerate_cameras_give_one_line_and_no_warning(scene: Path, tmp_path: Path, edit: Any) -> None:
+    import shutil
+    import warnings
+
+    from _train_scene import edit_manifest
+    from click.testing import CliRunner
+
+    from jsgs.cli import main
+
+    shutil.copytree(scene.parent, tmp_path / "s")
+    manifest = tmp_path / "s" / scene.name
+    why: list[str] = []
+    edit_manifest(manifest, lambda d: why.append(edit(d)))
+    args = ["train", str(manifest), "--out", str(tmp_path / "run"), "--iterations", "2", "--device", "cpu"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = CliRunner().invoke(main, args)
+    assert [str(w.message) for w in caught] == []  # numpy's divide / invalid-value warnings were printed
+    assert r.exit_code == 1 and r.output == (
+        f"error: {manifest}: world normalisation failed: {why[0]}; set scene.normalize_world to false to "
+        "train in the manifest's own units\n"
+    )
