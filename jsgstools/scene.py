@@ -626,8 +626,15 @@ def read_marker(out: Path) -> str | None:
     return doc.get("tool") if isinstance(doc, dict) and isinstance(doc.get("tool"), str) else None
 
 
-#: the output folders prepared inside the current call of a tool decorated with :func:`removes_partial_output`
-_PREPARED: ContextVar[list[tuple[Path, tuple[str, ...], bool]] | None] = ContextVar("_PREPARED", default=None)
+#: the hidden folder inside OUT that holds an earlier output while ``--force`` writes the new one
+EARLIER_PREFIX = ".jsgstools-earlier."
+
+#: the output folders prepared inside the current call of a tool decorated with
+#: :func:`removes_partial_output`: (folder, its entries, whether it kept a marker of the tool, the folder
+#: holding its earlier output or None)
+_PREPARED: ContextVar[list[tuple[Path, tuple[str, ...], bool, Path | None]] | None] = ContextVar(
+    "_PREPARED", default=None
+)
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -635,18 +642,28 @@ F = TypeVar("F", bound=Callable[..., Any])
 def removes_partial_output(func: F) -> F:
     """For a tool that writes its folder through :func:`prepare_output_dir`: when the tool fails (an error,
     a full disk, Ctrl-C, SIGTERM), what it wrote there is removed again: its own entries (which
-    :func:`prepare_output_dir` found absent or cleared) and the marker file when the folder had none, so a
-    failed command leaves no half-made dataset, nor a marker that would later claim a folder for the tool."""
+    :func:`prepare_output_dir` found absent or moved aside) and the marker file when the folder had none, so
+    a failed command leaves no half-made dataset, nor a marker that would later claim a folder for the tool;
+    an earlier output that ``--force`` moved aside is put back. When the tool succeeds, that earlier output
+    is removed."""
+    import shutil
 
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         token = _PREPARED.set([])
         try:
-            return func(*args, **kwargs)
+            result = func(*args, **kwargs)
         except BaseException:
-            for out, owned, had_marker in _PREPARED.get() or []:
+            for out, owned, had_marker, earlier in _PREPARED.get() or []:
                 _remove_written(out, owned + (() if had_marker else (MARKER,)))
+                if earlier is not None:
+                    _put_back(earlier, out)
             raise
+        else:
+            for *_, earlier in _PREPARED.get() or []:
+                if earlier is not None:
+                    shutil.rmtree(earlier, ignore_errors=True)
+            return result
         finally:
             _PREPARED.reset(token)
 
@@ -667,16 +684,31 @@ def _remove_written(out: Path, names: tuple[str, ...]) -> None:
             pass  # best effort: the failure being reported matters more
 
 
+def _put_back(earlier: Path, out: Path) -> None:
+    """Move the entries :func:`prepare_output_dir` moved into ``earlier`` back into ``out`` (best effort:
+    what cannot move stays in ``earlier``)."""
+    try:
+        for p in sorted(earlier.iterdir()):
+            if not os.path.lexists(out / p.name):
+                os.rename(p, out / p.name)
+        earlier.rmdir()
+    except OSError:
+        pass  # the failure being reported matters more; the earlier output is still in ``earlier``
+
+
 def prepare_output_dir(
     out: Path, force: bool, owned: tuple[str, ...], protect: Path | None = None, tool: str = "compress"
 ) -> None:
     """Make ``out`` ready for ``jsgstools <tool>``'s output: refuse a non-empty folder unless ``force``; with
     ``force`` only a folder the same tool made (its marker file :data:`MARKER`) is accepted, and only the
-    entries the tool writes (``owned``, relative names) are removed, so nothing stale survives and nothing
-    else is touched. ``protect`` (the input scene) must neither contain ``out`` nor lie inside it. Writes the
-    marker."""
+    entries the tool writes (``owned``, relative names) are replaced, so nothing stale survives and nothing
+    else is touched. In a tool decorated with :func:`removes_partial_output` those entries (and the marker)
+    are first moved into a hidden folder ``OUT/.jsgstools-earlier.XXXXXXXX`` and removed only when the tool
+    succeeds (put back when it fails; one that a killed call left is replaced with them). ``protect`` (the
+    input scene) must neither contain ``out`` nor lie inside it. Writes the marker."""
     import datetime
     import shutil
+    import tempfile
 
     import jsgs
     from jsgs.base.io import LOCK_NAME, write_json_atomic
@@ -689,6 +721,7 @@ def prepare_output_dir(
             raise JsgsError(f"{out}: is inside the input scene {protect}; the tools never write into a scene")
         if a in b.parents:
             raise JsgsError(f"{out}: contains the input scene {protect}; choose another output folder")
+    prepared, earlier = _PREPARED.get(), None
     if out.is_dir() and any(p.name not in (LOCK_NAME, MARKER) for p in out.iterdir()):
         if not force:
             raise JsgsError(f"{out}: folder is not empty (use --force to replace its contents)")
@@ -699,16 +732,27 @@ def prepare_output_dir(
                 f"{out}: {what}; --force replaces only a folder that jsgstools {tool} made (choose an empty "
                 "or new folder)"
             )
-        for name in owned:
-            p = out / name
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p)
-            elif p.exists() or p.is_symlink():
-                p.unlink()
+        if prepared is not None:  # moved aside now, removed once the tool has succeeded
+            names = (*owned, MARKER, *(p.name for p in out.iterdir() if p.name.startswith(EARLIER_PREFIX)))
+            try:
+                earlier = Path(tempfile.mkdtemp(prefix=EARLIER_PREFIX, dir=out))
+                for name in names:
+                    if os.path.lexists(out / name):
+                        os.rename(out / name, earlier / name)
+            except OSError as e:
+                if earlier is not None:
+                    _put_back(earlier, out)
+                raise JsgsError(f"{out}: cannot move the earlier output aside ({e.strerror or e})") from None
+        else:
+            for name in owned:
+                p = out / name
+                if p.is_dir() and not p.is_symlink():
+                    shutil.rmtree(p)
+                elif p.exists() or p.is_symlink():
+                    p.unlink()
     out.mkdir(parents=True, exist_ok=True)
-    prepared = _PREPARED.get()
     if prepared is not None:
-        prepared.append((out, owned, read_marker(out) == tool))
+        prepared.append((out, owned, read_marker(out) == tool, earlier))
     now = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     write_json_atomic(out / MARKER, {"tool": tool, "jsgstools_version": jsgs.__version__, "created": now})
 

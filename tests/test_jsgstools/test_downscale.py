@@ -110,3 +110,41 @@ def test_a_failure_leaves_nothing(odd_scene: Path, tmp_path: Path, monkeypatch: 
     with pytest.raises(OSError, match="disk full"):
         downscale(odd_scene, out)
     assert not out.exists() or not any(out.iterdir())
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_force_keeps_the_earlier_output_until_the_new_one_is_complete(
+    odd_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import jsgstools.scene
+    from jsgstools.scene import EARLIER_PREFIX
+
+    out = tmp_path / "half"
+    downscale(odd_scene, out)
+    (out / "notes.txt").write_text("mine")  # not the tool's: never moved
+    (out / "images" / "stale.png").write_bytes(b"earlier")  # in the earlier output only
+    before = _tree(out)
+    write_model = jsgstools.scene.write_model_atomic
+
+    def interrupted(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(jsgstools.scene, "write_model_atomic", interrupted)
+    with pytest.raises(KeyboardInterrupt):  # Ctrl-C after the new images were written
+        downscale(odd_scene, out, force=True)
+    assert _tree(out) == before and not [p for p in out.iterdir() if p.name.startswith(EARLIER_PREFIX)]
+    # a call killed before it could put the earlier output back leaves it aside: the next --force replaces it
+    (out / f"{EARLIER_PREFIX}killed").mkdir()
+    (out / f"{EARLIER_PREFIX}killed" / "downscale.json").write_text("{}")
+    monkeypatch.setattr(jsgstools.scene, "write_model_atomic", write_model)
+    downscale(odd_scene, out, force=True)
+    after = _tree(out)
+    names = [".jsgstools.json", "downscale.json", "images", "notes.txt", "sparse"]
+    assert sorted(p.name for p in out.iterdir()) == names
+    assert after["notes.txt"] == b"mine" and "images/stale.png" not in after
+    assert {k: v for k, v in before.items() if k.startswith(("images/", "sparse/"))} == {
+        k: v for k, v in after.items() if k.startswith(("images/", "sparse/"))
+    } | {"images/stale.png": b"earlier"}  # the same pixels and model again
