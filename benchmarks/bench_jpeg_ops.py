@@ -177,19 +177,20 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
     target = torch.rand(1, 3, height, width, generator=gen).to(device)
     weight = torch.randn(1, 3, height, width, generator=gen).to(device)
     luma, chroma = (torch.tensor(t, dtype=torch.float32, device=device) for t in ijg_tables(args.quality))
-    out = {}
-    for kernel in ("torch", "triton"):
-        x = rgb.clone().requires_grad_()
-        obs = jpeg_observe(x, luma, chroma, args.sampling, "paper", kernel=kernel)
-        (grad,) = torch.autograd.grad((obs * weight).sum(), x)
-        out[kernel] = (obs.detach(), grad)
-    d_obs = 255 * (out["triton"][0] - out["torch"][0]).abs()
-    d_grad = (out["triton"][1] - out["torch"][1]).abs()
-    share = 100 * float((d_obs > 0.01).float().mean())
-    largest = float(out["torch"][1].abs().max())
-    print(f"\n{width}x{height}, q={args.quality}, {args.sampling}: max |fused - twin| of JO "
-          f"{float(d_obs.max()):.2e} (8-bit units; pixels > 0.01: {share:.4f} %), of its gradient "
-          f"{float(d_grad.max()):.2e} (largest gradient {largest:.2e})")
+    print(f"\n{width}x{height}, q={args.quality}, {args.sampling}")
+    for mode in ("paper", "float"):
+        out = {}
+        for kernel in ("torch", "triton"):
+            x = rgb.clone().requires_grad_()
+            obs = jpeg_observe(x, luma, chroma, args.sampling, mode, kernel=kernel)
+            (grad,) = torch.autograd.grad((obs * weight).sum(), x)
+            out[kernel] = (obs.detach(), grad)
+        d_obs = 255 * (out["triton"][0] - out["torch"][0]).abs()
+        d_grad = (out["triton"][1] - out["torch"][1]).abs()
+        share = 100 * float((d_obs > 0.01).float().mean())
+        largest = float(out["torch"][1].abs().max())
+        print(f"mode {mode}: max |fused - twin| of JO {float(d_obs.max()):.2e} (8-bit units; pixels > 0.01: "
+              f"{share:.4f} %), of its gradient {float(d_grad.max()):.2e} (largest gradient {largest:.2e})")
     deltas = [dct_supervision(rgb, target, luma, kernel=k).delta for k in ("torch", "triton")]
     print(f"max |fused - twin| of DS's Delta {float((deltas[1] - deltas[0]).abs().max()):.2e} (largest "
           f"{float(deltas[0].abs().max()):.2e})")
@@ -205,10 +206,10 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
 
         return run
 
-    def jo(kernel: str) -> Callable[[], object]:
+    def jo(kernel: str, mode: str = "paper") -> Callable[[], object]:
         def run() -> None:
             x = rgb.clone().requires_grad_()
-            y = jpeg_observe(x, luma, chroma, args.sampling, "paper", kernel=kernel)
+            y = jpeg_observe(x, luma, chroma, args.sampling, mode, kernel=kernel)
             torch.autograd.grad(y, x, weight)
 
         return run
@@ -221,7 +222,12 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
 
         return run
 
-    rows = [("coding pass (3 planes), fwd + bwd", coding), ("JO, fwd + bwd", jo), ("DS, fwd + bwd", ds)]
+    rows = [
+        ("coding pass (3 planes, mode paper), fwd + bwd", coding),
+        ("JO (mode paper), fwd + bwd", jo),
+        ("JO (mode float), fwd + bwd", lambda k: jo(k, "float")),
+        ("DS, fwd + bwd", ds),
+    ]
     if device.type == "cuda":
         settings = dict(mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3,
                         eps_loss=1e-6, eps_block=1e-6)

@@ -65,8 +65,9 @@ Mode = Literal["paper", "float", "exact"]
 Sampling = Literal["4:4:4", "4:2:2", "4:2:0"]
 
 MODES: tuple[str, ...] = ("paper", "float", "exact")
-#: how the coding pass runs: "torch" (the code below) or "triton" (mode "paper" only: the fused kernels of
-#: :mod:`jsgs.kernels._triton_jo` where they can run, equal up to float rounding; else the torch code)
+#: how the coding pass runs: "torch" (the code below) or "triton" (modes "paper" and "float": the fused
+#: kernels of :mod:`jsgs.kernels._triton_jo` where they can run, equal up to float rounding; else the torch
+#: code)
 KERNELS: tuple[str, ...] = ("torch", "triton")
 
 
@@ -173,10 +174,11 @@ def jpeg_observe(
         chroma_table: the same for Cb and Cr.
         sampling: ``"4:4:4"``, ``"4:2:2"`` (h2v1) or ``"4:2:0"`` (h2v2), as read from the file; one per call.
         mode: ``"exact"``, ``"float"`` or ``"paper"`` (module docstring).
-        kernel: ``"torch"`` or ``"triton"``: in mode "paper" the coding pass as two fused Triton kernels
-            (forward, backward; :func:`jsgs.kernels._triton_jo.paper_code`) where they can run (Triton and
-            float32 CUDA tensors, or ``TRITON_INTERPRET=1`` on CPU: ``fused_jo_runs``), else the torch code;
-            the other modes ignore it.
+        kernel: ``"torch"`` or ``"triton"``: in modes "paper" and "float" the coding pass as two fused
+            Triton kernels (forward, backward; :func:`jsgs.kernels._triton_jo.paper_code`,
+            :func:`jsgs.kernels._triton_jo.float_code`) where they can run (Triton and float32 CUDA tensors,
+            or ``TRITON_INTERPRET=1`` on CPU: ``fused_jo_runs``), else the torch code; mode "exact" ignores
+            it.
     Returns:
         ``(B, 3, H, W)`` decoded RGB in [0, 1], same dtype as ``rgb``. In modes "exact" and "float" the
         values are exactly ``k / 255`` for integers k; in "exact" k equals libjpeg-turbo's decode of
@@ -192,7 +194,7 @@ def jpeg_observe(
         raise ValueError(f"rgb must be (B, 3, H, W), got {tuple(rgb.shape)}")
     if not rgb.is_floating_point():
         rgb = rgb.float()
-    fused = kernel == "triton" and mode == "paper"
+    fused = kernel == "triton" and mode != "exact"
     if fused:
         from jsgs.kernels._triton_jo import fused_jo_runs
 
@@ -224,10 +226,11 @@ def jpeg_observe(
 
     # Every block of the three planes through the coding pass, each with its plane's table.
     if fused:
-        from jsgs.kernels._triton_jo import paper_code
+        from jsgs.kernels._triton_jo import float_code, paper_code
 
-        luma = paper_code(luma, tab_y)[..., :height, :width]
-        chroma = paper_code(chroma, tab_c)[..., :ch, :cw]
+        code = paper_code if mode == "paper" else float_code
+        luma = code(luma, tab_y)[..., :height, :width]
+        chroma = code(chroma, tab_c)[..., :ch, :cw]
     else:
         luma, chroma = _code_planes(luma, chroma, tab_y, tab_c, mode)
         luma, chroma = luma[..., :height, :width], chroma[..., :ch, :cw]

@@ -14,8 +14,9 @@ Gaussian Controller   ``csrc/controller.cu``               :func:`fro_from_probe
                       (:func:`fro_from_probe_grad_fused`)
 MCMC relocation       gsplat's ``relocation`` and          :func:`compute_relocation`,
                       ``quat_scale_to_covar_preci``        :func:`quat_scale_to_covar` (:func:`cpu_twins`)
-JO's coding pass      Triton: ``_triton_jo.py``            ``jsgs.jpeg.observe._code_blocks`` (mode
-(mode "paper")        (``paper_code``, optional)           "paper")
+JO's coding pass      Triton: ``_triton_jo.py``            ``jsgs.jpeg.observe._code_blocks`` (modes
+(modes "paper" and    (``paper_code``, ``float_code``,     "paper" and "float")
+"float")              optional)
 DS's Delta            Triton: ``_triton_jo.py``            ``jsgs.jpeg.supervision._delta``
                       (``ds_delta``, optional)             (kernel "torch")
 ====================  ===================================  ===========================================

@@ -1,9 +1,10 @@
-"""The coding pass of the JPEG observation operator (JO, :mod:`jsgs.jpeg.observe`, mode "paper") as two
-Triton kernels, one forward and one backward, each reading the padded planes where they lie; and DS's
-Delta (:mod:`jsgs.jpeg.supervision`) as one kernel each way (:func:`ds_delta`).
+"""The coding pass of the JPEG observation operator (JO, :mod:`jsgs.jpeg.observe`, modes "paper" and
+"float") as two Triton kernels each, one forward and one backward, reading the padded planes where they
+lie; and DS's Delta (:mod:`jsgs.jpeg.supervision`) as one kernel each way (:func:`ds_delta`).
 
-Per 8x8 block of a plane, with ``K = kron(D, D)`` (``D`` the orthonormal DCT-II matrix) acting on the
-row-major 64-vector of the block and ``Q`` the block's quantisation table (its view's, per plane group)::
+Mode "paper" (:func:`paper_code`), per 8x8 block of a plane, with ``K = kron(D, D)`` (``D`` the
+orthonormal DCT-II matrix) acting on the row-major 64-vector of the block and ``Q`` the block's quantisation
+table (its view's, per plane group)::
 
     c = K (x - 128);  z = c / Q;  deq = Q (round(z) + (z - round z)^3);  out = clamp(K^T deq + 128, 0, 255)
 
@@ -12,7 +13,12 @@ the chain's transpose with the elementwise soft-round derivative ``3 (z - round 
 (gradient strictly inside (0, 255), as ``hardtanh``): ``g_x = K^T (3 (z - round z)^2 K (mask g))``. It
 recomputes ``z`` from the saved input instead of storing it.
 
-The torch twin is ``jsgs.jpeg.observe._code_blocks`` (mode "paper"), the reference of the tests. Each
+Mode "float" (:func:`float_code`): libjpeg's islow forward DCT (two 64 x 64 integer-matrix products, each
+followed by its rounding shift, as :func:`jsgs.jpeg.dct.fdct_islow` in the working dtype) and quantizer,
+the float IDCT, +128, clamp and rounding; the backward is the float chain's with the soft-round derivative
+at the quantizer, evaluated at the islow coefficients (the modes' shared backward).
+
+The torch twin is ``jsgs.jpeg.observe._code_blocks``, the reference of the tests. Each
 kernel is one launch per plane group (the luma plane, the two chroma planes) with no host synchronisation
 and outputs allocated by torch, so a CUDA graph records it like any other op. The 64 x 64 products run with
 ``input_precision="ieee"`` (no TF32): float32 stays float32 as in the twin.
@@ -153,6 +159,63 @@ if triton is not None:
         tl.store(gx_ptr + o_off, g_x, mask=valid)
 
     @triton.jit
+    def _islow_levels(x, q, m_ptr, v_ptr, e):  # type: ignore[no-untyped-def]
+        """libjpeg's islow forward DCT of level-shifted blocks ``x`` ``[BN, 64]`` (two 64 x 64 products, each
+        followed by its rounding shift) and its quantizer: ``(t, level)``."""
+        r1 = tl.load(m_ptr + e[:, None] * 64 + e[None, :])
+        r2 = tl.load(m_ptr + 4096 + e[:, None] * 64 + e[None, :])
+        y = tl.dot(x, r1, input_precision="ieee")
+        y = tl.floor((y + tl.load(v_ptr + e)[None, :]) / tl.load(v_ptr + 64 + e)[None, :])
+        t = tl.dot(y, r2, input_precision="ieee")
+        t = tl.floor((t + tl.load(v_ptr + 128 + e)[None, :]) / tl.load(v_ptr + 192 + e)[None, :])
+        q8 = 8.0 * q
+        a = tl.floor((tl.abs(t) + q8 / 2) / q8)
+        return t, tl.where(t < 0, -a, a)
+
+    @triton.jit
+    def _float_forward(  # type: ignore[no-untyped-def]
+        x_ptr, q_ptr, m_ptr, v_ptr, out_ptr, n_blocks, nb, nbx, planes,
+        xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, BN: tl.constexpr,
+    ):  # fmt: skip
+        n = tl.program_id(0) * BN + tl.arange(0, BN)
+        e = tl.arange(0, 64)
+        valid = (n < n_blocks)[:, None]
+        x_off, view = _block_offsets(n, e, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w)
+        o_off, _ = _block_offsets(n, e, nb, nbx, planes, os_b, os_c, os_h, os_w)
+        k = tl.load(m_ptr + 8192 + e[:, None] * 64 + e[None, :])
+        x = tl.load(x_ptr + x_off, mask=valid, other=128.0)
+        q = tl.load(q_ptr + view.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=1.0)
+        _, level = _islow_levels(x - 128.0, q, m_ptr, v_ptr, e)
+        o = tl.dot(level * q, k, input_precision="ieee") + 128.0
+        out = tl.floor(tl.minimum(tl.maximum(o, 0.0), 255.0) + 0.5)
+        tl.store(out_ptr + o_off, out, mask=valid)
+
+    @triton.jit
+    def _float_backward(  # type: ignore[no-untyped-def]
+        x_ptr, q_ptr, m_ptr, v_ptr, g_ptr, gx_ptr, n_blocks, nb, nbx, planes,
+        xs_b, xs_c, xs_h, xs_w, gs_b, gs_c, gs_h, gs_w, os_b, os_c, os_h, os_w, BN: tl.constexpr,
+    ):  # fmt: skip
+        n = tl.program_id(0) * BN + tl.arange(0, BN)
+        e = tl.arange(0, 64)
+        valid = (n < n_blocks)[:, None]
+        x_off, view = _block_offsets(n, e, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w)
+        g_off, _ = _block_offsets(n, e, nb, nbx, planes, gs_b, gs_c, gs_h, gs_w)
+        o_off, _ = _block_offsets(n, e, nb, nbx, planes, os_b, os_c, os_h, os_w)
+        k = tl.load(m_ptr + 8192 + e[:, None] * 64 + e[None, :])
+        kt = tl.load(m_ptr + 8192 + e[None, :] * 64 + e[:, None])
+        x = tl.load(x_ptr + x_off, mask=valid, other=128.0)
+        q = tl.load(q_ptr + view.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=1.0)
+        g = tl.load(g_ptr + g_off, mask=valid, other=0.0)
+        t, level = _islow_levels(x - 128.0, q, m_ptr, v_ptr, e)
+        o = tl.dot(level * q, k, input_precision="ieee") + 128.0
+        g = tl.where((o > 0.0) & (o < 255.0), g, 0.0)  # the clamp passes strictly inside; rounding: 1
+        z = t / (8.0 * q)
+        f = z - _round_half_away(z)
+        g_t = (tl.dot(g, kt, input_precision="ieee") * q) * (3.0 * f * f) / (8.0 * q)
+        g_x = tl.dot(8.0 * g_t, k, input_precision="ieee")
+        tl.store(gx_ptr + o_off, g_x, mask=valid)
+
+    @triton.jit
     def _ds_delta_forward(  # type: ignore[no-untyped-def]
         o_ptr, t_ptr, w_ptr, k_ptr, d_ptr, n_blocks, nb, nbx,
         os_b, os_c, os_h, os_w, ts_b, ts_c, ts_h, ts_w, BN: tl.constexpr,
@@ -259,6 +322,75 @@ def paper_code(planes: Tensor, tables: Tensor) -> Tensor:
         )
     q = tables.detach().to(planes.dtype).reshape(b, 64).contiguous()
     return _PaperCode.apply(planes, q)
+
+
+# --- JO's coding pass, mode "float" ---------------------------------------------------------------------
+
+
+@functools.cache
+def _islow_constants(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The float-mode kernels' constants: ``(3, 64, 64)`` right-hand matrices of the islow row pass, its
+    column pass (``jsgs.jpeg.dct``'s integer matrices acting on row-major 64-vectors) and ``kron(D, D)``;
+    ``(4, 64)`` the passes' rounding offsets and divisors per coefficient."""
+    from jsgs.jpeg.dct import _islow_np
+
+    c = _islow_np()
+    eye = np.eye(8)
+    dct = _kron(torch.float64, torch.device("cpu")).numpy()
+    mats = np.stack([np.kron(eye, c["f1"]).T, np.kron(c["f2"], eye).T, dct])
+    vecs = np.stack([np.tile(c["f1_off"], 8), np.tile(c["f1_div"], 8), np.repeat(c["f2_off"], 8),
+                     np.repeat(c["f2_div"], 8)])  # fmt: skip
+    return (torch.tensor(mats, dtype=dtype, device=device).contiguous(),
+            torch.tensor(vecs, dtype=dtype, device=device).contiguous())  # fmt: skip
+
+
+class _FloatCode(torch.autograd.Function):
+    """The coding pass of mode "float" on padded planes of integer samples, differentiable in the planes."""
+
+    @staticmethod
+    def forward(ctx: Any, planes: Tensor, tables: Tensor) -> Tensor:  # type: ignore[override]
+        out = torch.empty(planes.shape, dtype=planes.dtype, device=planes.device)
+        mats, vecs = _islow_constants(planes.dtype, planes.device)
+        grid, (n, nb, nbx, c) = _grid_args(planes, BLOCKS_PER_PROGRAM)
+        with _on(planes.device):
+            _float_forward[grid](
+                planes, tables, mats, vecs, out, n, nb, nbx, c, *planes.stride(), *out.stride(),
+                BN=BLOCKS_PER_PROGRAM,
+            )  # fmt: skip
+        ctx.save_for_backward(planes, tables)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        planes, tables = ctx.saved_tensors
+        grad_x = torch.empty(planes.shape, dtype=grad.dtype, device=grad.device)
+        mats, vecs = _islow_constants(planes.dtype, planes.device)
+        grid, (n, nb, nbx, c) = _grid_args(planes, BLOCKS_PER_PROGRAM)
+        with _on(planes.device):
+            _float_backward[grid](
+                planes, tables, mats, vecs, grad, grad_x, n, nb, nbx, c, *planes.stride(), *grad.stride(),
+                *grad_x.stride(), BN=BLOCKS_PER_PROGRAM,
+            )  # fmt: skip
+        return grad_x, None
+
+
+def float_code(planes: Tensor, tables: Tensor) -> Tensor:
+    """Mode "float"'s coding pass of ``planes`` ``(B, C, H, W)`` (integer samples 0..255, H, W multiples
+    of 8) with ``tables`` ``(B, 8, 8)``: libjpeg's islow forward DCT in the working dtype (its two rounding
+    shifts), libjpeg's quantizer, the float IDCT, +128, clamp, rounding to integers; the gradient of the
+    float stages with the soft-round derivative at the quantizer (``jsgs.jpeg.observe``'s module doc).
+    Equal to ``_code_blocks(..., "float")`` up to float rounding (the islow sums in float32 may round
+    differently where they pass 2^24, which moves a rare coefficient by one unit, as the twin itself
+    warns). Needs :func:`fused_jo_runs`."""
+    b, _, h, w = planes.shape
+    if h % 8 or w % 8 or tables.shape != (b, 8, 8):
+        raise ValueError(
+            f"float_code: planes must be (B, C, 8m, 8n) and tables (B, 8, 8), got {tuple(planes.shape)}, "
+            f"{tuple(tables.shape)}"
+        )
+    q = tables.detach().to(planes.dtype).reshape(b, 64).contiguous()
+    return _FloatCode.apply(planes, q)
 
 
 # --- DS's block DCT ---------------------------------------------------------------------------------------

@@ -49,10 +49,11 @@ class JsgsSpeed:
     )
     fused_jo: bool | Literal["auto"] = setting(
         False,
-        "JO's coding pass in jpeg_mode paper (per 8x8 block: DCT, soft quantisation, IDCT, clamp) as two "
+        "JO's coding pass in jpeg_mode paper or float (per 8x8 block: DCT, quantisation, IDCT, clamp) as two "
         "fused Triton kernels, forward and backward, and DS's Delta as one kernel each way "
         "(jsgs/kernels/_triton_jo.py), instead of a few dozen torch kernels: true needs CUDA, Triton and "
-        "jpeg_mode paper; auto: on where those hold and compile is off; false: the torch code (its twin).",
+        "jpeg_mode paper or float; auto: on where those hold and compile is off; false: the torch code (its "
+        "twin).",
     )
 
 
@@ -155,10 +156,10 @@ class JsgsOptions:
                 f"{where}: method_options.speed.cuda_graph and method_options.speed.compile "
                 f"({self.speed.compile}) cannot be combined yet; use one of them"
             )
-        if self.speed.fused_jo is True and (self.speed.compile != "off" or self.jpeg_mode != "paper"):
+        if self.speed.fused_jo is True and (self.speed.compile != "off" or self.jpeg_mode == "exact"):
             raise JsgsError(
-                f"{where}: method_options.speed.fused_jo covers jpeg_mode paper without compile (got "
-                f"jpeg_mode {self.jpeg_mode}, compile {self.speed.compile}); set it to false or \"auto\""
+                f"{where}: method_options.speed.fused_jo covers jpeg_mode paper and float without compile "
+                f"(got jpeg_mode {self.jpeg_mode}, compile {self.speed.compile}); set it to false or \"auto\""
             )
         if self.base_ramp_steps and not self.base_by_view:
             raise JsgsError(
@@ -201,7 +202,7 @@ def use_fused_jo(opts: JsgsOptions, device: torch.device) -> bool:
     s = opts.speed
     if s.fused_jo == "auto":
         return (
-            device.type == "cuda" and triton_available() and opts.jpeg_mode == "paper" and s.compile == "off"
+            device.type == "cuda" and triton_available() and opts.jpeg_mode != "exact" and s.compile == "off"
         )
     if s.fused_jo and device.type != "cuda":
         raise JsgsError(
