@@ -128,13 +128,16 @@ def rasterize(
             the distortion's Jacobian). The gsplat backend projects with the reference's torch projection
             (differentiable; gsplat's own ``with_ut`` projection is not) and composites with gsplat's tile
             intersection and rasterisation kernels: the same image as the reference backend.
-        distributed: gsplat's ``rasterization(..., distributed=True)`` (gsplat backend, packed, no extra
-            channels, no distortion, no absgrad): ``means`` ... are this process's shard of the Gaussians and
-            ``viewmats``/``Ks`` its own cameras; every process of the torch.distributed group calls it
-            together, each Gaussian is projected on its owner for every process's cameras and sent to the
-            process that renders the camera, and the backward sends the gradients back to the owners.
-            ``info``'s projection keys ("means2d", "radii", "gaussian_ids", "camera_ids") are the owner's
-            (cameras numbered over all processes), as gsplat's strategies expect.
+        distributed: gsplat's ``rasterization(..., distributed=True)`` (gsplat backend, non-packed, no
+            extra channels, no distortion, no absgrad): ``means`` ... are this process's shard of the
+            Gaussians and ``viewmats``/``Ks`` its own cameras; every process of the torch.distributed group
+            calls it together, each Gaussian is projected on its owner for every process's cameras and sent
+            to the process that renders the camera, and the backward sends the gradients back to the
+            owners. ``info``'s projection keys ("means2d", "radii": [C_all, N_shard, ...], cameras by
+            rank) are the owner's; "n_cameras" is this process's C. The packed layout is refused: gsplat
+            1.5.3's packed distributed path tiles with the image ids of the projection (numbered over every
+            process's cameras, one per Gaussian *sent*) instead of those received, which reads past their
+            end and renders with the wrong Gaussians.
 
     Returns:
         render_colors [C, H, W, D(+1 with depth)], render_alphas [C, H, W, 1], info: gsplat's meta keys
@@ -196,10 +199,10 @@ def _check_layout(
             raise ValueError(f"distortion must be [C, 4] with C={C}; got {tuple(distortion.shape)}")
         if packed:
             raise ValueError("lens distortion renders in the non-packed layout only (packed=False)")
-    if distributed and (which != "gsplat" or not packed or extra is not None or distortion is not None
+    if distributed and (which != "gsplat" or packed or extra is not None or distortion is not None
                         or absgrad):
         raise ValueError(
-            "distributed rasterisation is gsplat's: backend gsplat, packed, without extra channels, lens "
+            "distributed rasterisation is gsplat's: backend gsplat, non-packed, without extra channels, lens "
             "distortion or absgrad"
         )
 

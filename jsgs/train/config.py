@@ -959,7 +959,7 @@ def _derived_schema() -> dict[str, Any]:
             "exchange": {
                 "enum": ["gsplat", "torch"],
                 "description": "On several processes, how a view reaches the other shards' "
-                "Gaussians (gsplat: rasterization(..., packed=True, distributed=True); torch: the "
+                "Gaussians (gsplat: rasterization(..., distributed=True), non-packed; torch: the "
                 "shards gathered on every process, the gradients all-reduced back to their owners).",
             },
             "notes": {"type": "array", "items": {"type": "string"}},

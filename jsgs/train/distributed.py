@@ -12,16 +12,18 @@ How a step is shared (gsplat's simple_trainer with ``world_size``):
 - each step draws ``world_size`` views from the shared sampler, rank r renders the r-th, from every
   Gaussian, and computes that view's loss with the method's per-view terms (JSGS's JO, DS and Gaussian
   Controller) on that process;
-- the exchange: on CUDA, gsplat's ``rasterization(..., packed=True, distributed=True)`` projects each shard
-  on its owner for every process's camera, sends the projected Gaussians to the process that renders the
-  camera and, in the backward, the gradients back to the owners; where that cannot render the run's views
+- the exchange: on CUDA, gsplat's ``rasterization(..., distributed=True)`` (non-packed: gsplat 1.5.3's
+  packed distributed path tiles with the wrong image ids, :func:`jsgs.render.rasterize`) projects each
+  shard on its owner for every process's camera, sends the projected Gaussians to the process that renders
+  the camera and, in the backward, the gradients back to the owners; where that cannot render the run's views
   (the reference rasterizer, a method's extra channels, lens distortion, absgrad) the torch exchange does
   the same with whole parameters: every shard is gathered on every process (:func:`gather_gaussians`), each
   process's view's gradients over all of them are all-reduced and each owner keeps its rows
   (:func:`reduce_gradients`; gloo has no reduce-scatter). Either way a Gaussian's gradient is the mean over
   the step's views and the learning rates follow gsplat's batch rule for ``world_size`` views;
 - per-Gaussian statistics reach the owner: DefaultStrategy's screen-space gradient sums, counts and radii
-  (gsplat's projection runs on the owner; the torch exchange reduces them, :func:`share_strategy_statistics`)
+  (gsplat's projection runs on the owner, for every process's camera: :func:`per_camera_statistics`; the
+  torch exchange reduces them, :func:`share_strategy_statistics`)
   and the Gaussian Controller's (it runs on the view's process, over the gathered Gaussians, and its
   gradients travel back with the others);
 - the strategies run per shard: DefaultStrategy densifies and prunes each shard on its own statistics;
@@ -361,7 +363,7 @@ def share_strategy_statistics(
     (``info`` of the whole set), into a fresh state; they are summed (radii: the maximum) over the
     processes and each process adds its own rows (``rows()``, this step's) to its running state. (gsplat's
     ``distributed=True`` needs none of this: its projection, whose screen-space gradients the strategy
-    reads, runs on the owner.) MCMCStrategy keeps no per-view statistics."""
+    reads, runs on the owner; :func:`per_camera_statistics`.) MCMCStrategy keeps no per-view statistics."""
     if not world.enabled or strategy.type != "default":
         return
     gs = strategy.gsplat
@@ -395,6 +397,37 @@ def share_strategy_statistics(
             if state["radii"] is None:
                 state["radii"] = torch.zeros(n, device=device)
             state["radii"] = torch.maximum(state["radii"], radii[start:stop])
+
+    gs._update_state = update_state
+
+
+class _Grad:
+    """A screen-space gradient as DefaultStrategy reads it (``info[key].grad``)."""
+
+    def __init__(self, grad: Tensor) -> None:
+        self.grad = grad
+
+
+def per_camera_statistics(strategy: Any, world: World) -> None:
+    """gsplat's exchange: DefaultStrategy's statistics of the step's views from the owner's projection
+    (``info["means2d"]``, ``info["radii"]``: [world_size, N_shard, ...], one row per process's camera), one
+    camera at a time, as one process adds them view after view. (In one call the largest radii of a
+    Gaussian seen by several cameras would be kept by whichever duplicate index wins gsplat's scatter, not
+    the largest.) Each row's gradient is one view's loss's, as on one process (``n_cameras`` is 1: each
+    process renders one camera). MCMCStrategy keeps no per-view statistics."""
+    if not world.enabled or strategy.type != "default":
+        return
+    gs = strategy.gsplat
+    own_update = gs._update_state
+
+    def update_state(params: Any, state: dict[str, Any], info: dict[str, Any], packed: bool = False) -> None:
+        grad = info[gs.key_for_gradient].grad
+        if packed or grad is None or grad.dim() != 3:
+            own_update(params, state, info, packed=packed)
+            return
+        for c in range(grad.shape[0]):
+            one = {**info, gs.key_for_gradient: _Grad(grad[c : c + 1]), "radii": info["radii"][c : c + 1]}
+            own_update(params, state, one, packed=False)
 
     gs._update_state = update_state
 

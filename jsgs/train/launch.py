@@ -14,6 +14,7 @@ stopped" of the ones that followed it) and exits non-zero.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -60,12 +61,38 @@ class _Rank:
                 print(line, file=sys.stderr, flush=True)
 
     def message(self) -> str | None:
-        """This process's one-line error without ``error:``, or the last line it wrote (a traceback's)."""
+        """This process's one-line error without ``error:``, or the error its last lines tell
+        (:func:`crash_line`)."""
         self.thread.join(timeout=5.0)
         if self.errors:
             return self.errors[-1].removeprefix("error:").strip()
-        tail = [ln for ln in self.lines if ln.strip()]
-        return tail[-1].strip() if tail else None
+        return crash_line(list(self.lines))
+
+
+#: lines of a crash report that name no error: C++ stack frames and CUDA's advice
+_NOISE = re.compile(
+    r"^(frame #\d+:|Exception raised from |CUDA kernel errors might be |For debugging consider |"
+    r"Compile with `TORCH_USE_CUDA_DSA`|Search for `cudaErrorIllegalAddress`|\[rank\d+\]:\[W)"
+)
+#: a Python exception's last line ("RuntimeError: ...", "torch.OutOfMemoryError: ...")
+_PY_ERROR = re.compile(r"^([A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit))(: |$)")
+
+
+def crash_line(lines: list[str]) -> str | None:
+    """The error a process's last output lines tell: the message of an uncaught C++ exception
+    (``what():  ...``), else a Python traceback's last exception line, else the last line that is not a
+    C++ stack frame or CUDA's debugging advice; None when it wrote nothing."""
+    text = [ln.strip() for ln in lines if ln.strip()]
+    whats = [ln.split("what():", 1)[1].strip() for ln in text if "what():" in ln]
+    if whats and whats[-1]:
+        return whats[-1]
+    errors = [ln for ln in text if _PY_ERROR.match(ln)]
+    if errors:
+        return errors[-1]
+    kept = [ln for ln in text if not _NOISE.match(ln)]
+    if kept:
+        return kept[-1]
+    return text[-1] if text else None
 
 
 def _pick_error(failed: list[_Rank]) -> str:

@@ -65,8 +65,9 @@ def render_view(
     ``extra_features`` ([N, E] per-Gaussian features, optional) are the rasterizer's extra channels,
     composited in the same pass as RGB (``rasterize(..., extra=...)``). ``extra_kwargs`` go to ``rasterize``
     as they are. ``distortion`` [1, 4]: the camera's lens distortion (reference backend only).
-    ``distributed``: ``splats`` are this process's shard and the render is gsplat's distributed one, packed
-    (every process calls it together; :func:`jsgs.render.rasterize`)."""
+    ``distributed``: ``splats`` are this process's shard and the render is gsplat's distributed one,
+    non-packed whatever ``render.packed`` says (every process calls it together; :func:`jsgs.render.rasterize`
+    says why not packed)."""
     from jsgs.render import rasterize
 
     p = activated(splats)
@@ -78,7 +79,7 @@ def render_view(
         backend=backend,
     )
     if distributed:
-        kwargs.update(distributed=True, packed=True)
+        kwargs.update(distributed=True, packed=False)
     if extra_kwargs:
         kwargs.update(extra_kwargs)
     if distortion is not None:

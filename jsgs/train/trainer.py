@@ -650,6 +650,8 @@ class Trainer:
         self.exchange = self._exchange_kind(cfg)
         if self.exchange == "torch":
             dd.share_strategy_statistics(self.strategy, self.world, lambda: self._exchange_rows())
+        elif self.exchange == "gsplat":
+            dd.per_camera_statistics(self.strategy, self.world)
         if self.world.enabled and self.strategy.cap_max is not None:
             # one global budget: each process grows its shard to its share
             self.strategy.gsplat.cap_max = dd.shard_cap(self.strategy.cap_max, self.world)
@@ -990,7 +992,7 @@ class Trainer:
                     step,
                     r.info,
                     lr=self.scheduler.get_last_lr()[0],
-                    packed=cfg.render.packed or self.exchange == "gsplat",
+                    packed=cfg.render.packed and self.exchange != "gsplat",
                 )
         self._exchange = None  # (the strategy's statistics read its rows)
         result = StepResult(

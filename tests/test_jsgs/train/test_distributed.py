@@ -335,6 +335,43 @@ def test_sharded_gradients_and_statistics_reduce_to_their_owners(tmp_path: Path)
     mp.spawn(_reductions_worker, args=(str(tmp_path / "store"),), nprocs=2, join=True)
 
 
+def test_gsplat_exchange_statistics_add_camera_by_camera() -> None:
+    """gsplat's exchange hands the owner its Gaussians' projection for every process's camera ([C, N, ...]
+    in one ``info``): DefaultStrategy's statistics from it are those of the cameras added one view at a
+    time, as on one process (the largest radii too, where one call's duplicate indices would keep either)."""
+    import torch
+
+    from jsgs.train import distributed as dd
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.strategy import Densifier
+
+    cfg = TrainConfig.from_preset("paper", device="cpu")
+    cfg.strategy.refine_scale2d_stop_iter = 100
+    g = torch.Generator().manual_seed(3)
+    n = 40
+    radii = (torch.rand(3, n, 2, generator=g) * 9).int()
+    radii[0, :5] = 0
+    means2d = torch.zeros(3, n, 2, requires_grad=True)
+    means2d.grad = torch.randn(3, n, 2, generator=g)
+    params = {"means": torch.zeros(n, 3)}
+    info = {"width": 64, "height": 48, "n_cameras": 1, "radii": radii, "gaussian_ids": None,
+            "means2d": means2d}  # fmt: skip
+    shared = Densifier(cfg.strategy)
+    dd.per_camera_statistics(shared, dd.World(0, 3, 0))
+    state = shared.initialize_state(scene_scale=1.0)
+    shared.gsplat._update_state(params, state, info, packed=False)
+    alone = Densifier(cfg.strategy)
+    ref = alone.initialize_state(scene_scale=1.0)
+    for c in range(3):
+        view = torch.zeros(1, n, 2, requires_grad=True)
+        view.grad = means2d.grad[c : c + 1].clone()
+        one = {**info, "radii": radii[c : c + 1], "means2d": view}
+        alone.gsplat._update_state(params, ref, one, packed=False)
+    assert ref["count"].max() == 3 and ref["radii"].sum() > 0
+    for key in ("grad2d", "count", "radii"):
+        assert torch.allclose(state[key], ref[key]), key
+
+
 def test_checkpoint_shards_merge_and_split_back() -> None:
     """A checkpoint gathered from two shards has one process's layout (rows concatenated by rank) and gives
     each process back exactly its rows, Adam moments, statistics and generators; row counts that do not
@@ -411,6 +448,39 @@ def test_launch_options_refused_in_one_line(tmp_path: Path, args: list[str], exp
     assert not (tmp_path / "run").exists()
 
 
+def test_a_crashed_process_is_named_by_its_error() -> None:
+    """The launcher's line for a process that died without its own ``error:`` line is the error its output
+    tells (a C++ exception's ``what()``, a traceback's exception), not a stack frame."""
+    from jsgs.train.launch import crash_line
+
+    abort = [
+        "terminate called after throwing an instance of 'c10::Error'",
+        "  what():  CUDA error: an illegal memory access was encountered",
+        "CUDA kernel errors might be asynchronously reported at some other API call, so the stacktrace below "
+        "might be incorrect.",
+        "For debugging consider passing CUDA_LAUNCH_BLOCKING=1",
+        "Compile with `TORCH_USE_CUDA_DSA` to enable device-side assertions.",
+        "",
+        "Exception raised from c10_cuda_check_implementation at /pytorch/c10/cuda/CUDAException.cpp:42",
+        "frame #0: c10::Error::Error(c10::SourceLocation, std::string) + 0x98 (0x7f in libc10.so)",
+        "frame #4: <unknown function> + 0x129ecc (0x7f in /lib/x86_64-linux-gnu/libc.so.6)",
+    ]
+    assert crash_line(abort) == "CUDA error: an illegal memory access was encountered"
+    traceback = [
+        "Traceback (most recent call last):",
+        '  File "x.py", line 3, in <module>',
+        "    raise ValueError('boom')",
+        "torch.OutOfMemoryError: CUDA out of memory. Tried to allocate 2.00 GiB",
+        "For debugging consider passing CUDA_LAUNCH_BLOCKING=1",
+        "frame #1: <unknown function> + 0x129ecc (0x7f in /lib/x86_64-linux-gnu/libc.so.6)",
+    ]
+    assert crash_line(traceback) == "torch.OutOfMemoryError: CUDA out of memory. Tried to allocate 2.00 GiB"
+    assert crash_line(["Segmentation fault", "frame #2: <unknown function> + 0x1 (0x7f in x.so)"]) == (
+        "Segmentation fault"
+    )
+    assert crash_line([]) is None
+
+
 def test_gpus_without_gpus_is_one_line(tmp_path: Path) -> None:
     import torch
     from click.testing import CliRunner
@@ -426,8 +496,8 @@ def test_gpus_without_gpus_is_one_line(tmp_path: Path) -> None:
 
 def _gsplat_exchange_worker(rank: int, store: str) -> None:
     """One of two GPUs, each owning every other Gaussian and rendering view ``rank`` through gsplat's
-    ``distributed=True`` rasterisation; rank 0 then renders both views alone (packed, every Gaussian in
-    the shards' order) and compares the gradients and DefaultStrategy's statistics each owner received."""
+    ``distributed=True`` rasterisation (non-packed); rank 0 then renders both views alone (every Gaussian
+    in the shards' order) and compares the gradients and DefaultStrategy's statistics each owner received."""
     import numpy as np
     import torch
     import torch.distributed as dist
@@ -462,14 +532,18 @@ def _gsplat_exchange_worker(rank: int, store: str) -> None:
 
     def one_view(splats: Any, strategy: Densifier, state: dict, i: int, spread: bool) -> None:
         r = render_view(splats, cams[i], K, 64, 48, 0, cfg, "gsplat", distributed=spread)
+        if spread:  # the owner's projection, for both processes' cameras
+            assert r.info["means2d"].shape == (2, splats["means"].shape[0], 2)
         strategy.step_pre_backward(splats, {}, state, 0, r.info)
         (r.rgb - target).abs().mean().backward()
-        strategy.gsplat._update_state(splats, state, r.info, packed=True)
+        strategy.gsplat._update_state(splats, state, r.info, packed=False)
 
     shared = Densifier(cfg.strategy)
+    dd.per_camera_statistics(shared, world)
     state = shared.initialize_state(scene_scale=1.0)
-    cfg.render.packed = True
+    cfg.render.packed = True  # refused by gsplat's distributed path: the render is non-packed anyway
     one_view(shard, shared, state, rank, True)
+    cfg.render.packed = False
     params = [shard[n] for n in PARAM_NAMES]
     assert dd.reduce_gradients(world, params, True) == 2
     mine = {"grads": [p.grad for p in params], "state": {k: state[k] for k in ("grad2d", "count", "radii")}}
@@ -501,7 +575,7 @@ def _gsplat_exchange_worker(rank: int, store: str) -> None:
 
 @pytest.mark.gpu
 def test_gsplat_exchange_sends_gradients_and_statistics_to_their_owners(tmp_path: Path) -> None:
-    """Two GPUs, gsplat's ``rasterization(..., packed=True, distributed=True)``: the gradients and
+    """Two GPUs, gsplat's ``rasterization(..., distributed=True)``: the gradients and
     DefaultStrategy's statistics each shard receives are its rows of one GPU's after both views."""
     import torch
     import torch.multiprocessing as mp
