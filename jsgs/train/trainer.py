@@ -748,8 +748,9 @@ class Trainer:
     def _exchange_kind(self, cfg: TrainConfig) -> str:
         """How each process's view reaches the other processes' Gaussians (``self.exchange``): gsplat's
         distributed rasterisation where it can render the run's views (gsplat backend, pinhole cameras, no
-        method extra channels, no absgrad), else the torch exchange (gather the shards, reduce the
-        gradients)."""
+        method extra channels, no absgrad, one image size: each process projects its shard for every
+        process's camera with its own view's width and height), else the torch exchange (gather the
+        shards, reduce the gradients)."""
         if not self.world.enabled:
             return "none"
         if (
@@ -757,6 +758,7 @@ class Trainer:
             and not (self.hook is not None and self.hook.renders_extra())
             and not cfg.strategy.absgrad
             and all(v.distortion is None for v in self.train_views)
+            and len({(v.width, v.height) for v in self.train_views}) == 1
         ):
             return "gsplat"
         return "torch"

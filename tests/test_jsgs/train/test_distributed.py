@@ -372,6 +372,31 @@ def test_gsplat_exchange_statistics_add_camera_by_camera() -> None:
         assert torch.allclose(state[key], ref[key]), key
 
 
+def test_gsplat_exchange_only_where_it_renders_every_view() -> None:
+    """gsplat's exchange projects every process's camera with the calling process's image size and renders
+    without extra channels, distortion or absgrad: anything else takes the torch exchange."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from jsgs.train import distributed as dd
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.trainer import Trainer
+
+    cfg = TrainConfig.from_preset("paper", device="cpu")
+
+    def kind(sizes: list[tuple[int, int]], backend: str = "gsplat", world: int = 2, **view: object) -> str:
+        views = [SimpleNamespace(width=w, height=h, distortion=view.get("distortion")) for w, h in sizes]
+        t = SimpleNamespace(world=dd.World(0, world, 0), backend=backend, hook=None, train_views=views)
+        return Trainer._exchange_kind(t, cfg)  # type: ignore[arg-type]
+
+    assert kind([(64, 48), (64, 48)]) == "gsplat"
+    assert kind([(64, 48), (48, 64)]) == "torch"
+    assert kind([(64, 48)], backend="torch") == "torch"
+    assert kind([(64, 48)], distortion=torch.zeros(4)) == "torch"
+    assert kind([(64, 48)], world=1) == "none"
+
+
 def test_checkpoint_shards_merge_and_split_back() -> None:
     """A checkpoint gathered from two shards has one process's layout (rows concatenated by rank) and gives
     each process back exactly its rows, Adam moments, statistics and generators; row counts that do not
