@@ -266,11 +266,13 @@ def write_manifest(doc: dict[str, Any], out: str | Path) -> None:
 
 def _is_manifest(path: Path) -> bool:
     """Whether ``path`` holds a manifest this tool wrote (a JSON object with ``format`` jsgs-manifest)."""
+    from jsgs.base.io import read_regular_bytes
+
     try:
         if path.stat().st_size > 512 * 2**20:
             return False
-        doc = json.loads(path.read_bytes())
-    except (OSError, ValueError, RecursionError):
+        doc = json.loads(read_regular_bytes(path))  # a FIFO is refused at once, never waited on
+    except (OSError, ValueError, RecursionError, JsgsError):
         return False
     return isinstance(doc, dict) and doc.get("format") == "jsgs-manifest"
 

@@ -619,9 +619,11 @@ def read_marker(out: Path) -> str | None:
     """The tool that made ``out`` (from its marker file), or None."""
     import json
 
+    from jsgs.base.io import read_regular_text
+
     try:
-        doc = json.loads((out / MARKER).read_text())
-    except (OSError, ValueError):
+        doc = json.loads(read_regular_text(out / MARKER))  # a FIFO is refused at once, never waited on
+    except (OSError, ValueError, RecursionError, JsgsError):
         return None
     return doc.get("tool") if isinstance(doc, dict) and isinstance(doc.get("tool"), str) else None
 

@@ -6,6 +6,7 @@ one line instead of a black video or a traceback, and a FIFO named like an input
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -373,3 +374,43 @@ def test_every_entry_the_trainer_writes_is_protected() -> None:
     from jsgs.train.trainer import RUN_ENTRIES
 
     assert set(RUN_ENTRIES) | {LOCK_NAME, "viewer_cameras.json"} <= set(RUN_OWNED)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_force_never_waits_on_a_fifo_named_like_an_earlier_output(
+    run: Path, synth_scene: Path, tmp_path: Path
+) -> None:
+    """--force reads the earlier output to see whether the tool made it: a FIFO there is refused at once."""
+    out, again = tmp_path / "out", tmp_path / "again"
+    out.mkdir()
+    (out / "x").write_text("")
+    again.mkdir()
+    manifest = json.loads((run / "config.json").read_text())["manifest"]["path"]
+    fifos = (tmp_path / "m.json", out / ".jsgstools.json", again / "config.json")
+    for p in fifos:
+        os.mkfifo(p)  # nobody writes them: a reader that opened one would wait forever
+    cases = (
+        (tools_main, ["manifest", str(synth_scene), "--out", str(tmp_path / "m.json"), "--force"],
+         "is not a jsgs manifest"),
+        (tools_main, ["downscale", str(synth_scene), "--out", str(out), "--force"], "not made by jsgstools"),
+        (jsgs_main, ["train", manifest, "--out", str(again), "--force", "--device", "cpu"],
+         "this folder holds none"),
+        (jsgs_main, ["export", str(again), "--out", str(tmp_path / "x.ply")],
+         f"{again / 'config.json'}: is a FIFO (named pipe), not a regular file"),
+    )  # fmt: skip
+    results: list[object] = []
+
+    def invoke() -> None:
+        results.extend(CliRunner().invoke(cli, args) for cli, args, _ in cases)
+
+    t = threading.Thread(target=invoke, daemon=True)
+    t.start()
+    t.join(120)  # the commands take seconds; a reader waiting on a FIFO never returns
+    if t.is_alive():
+        for p in fifos:  # let the waiting reader go before failing
+            with contextlib.suppress(OSError):
+                os.close(os.open(p, os.O_WRONLY | os.O_NONBLOCK))
+        t.join(30)
+        pytest.fail(f"a command waited on a FIFO (after {len(results)} of {len(cases)} commands)")
+    for r, (_, _, needle) in zip(results, cases, strict=True):
+        assert needle in _one_line(r.output, r.exit_code), r.output  # type: ignore[attr-defined]

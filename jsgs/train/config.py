@@ -756,12 +756,14 @@ def read_run_config(run: str | Path) -> RunConfig:
     """``RUN/config.json`` of the run folder ``run``, the one reader of it: the document validated against the
     schema and its settings read (:func:`recorded_settings`) and checked. JsgsError (one line) when ``run``
     holds none, or one that is not a run's or does not validate."""
+    from jsgs.base.io import not_regular
     from jsgs.base.run_files import RunPaths
 
     run = Path(run)
     path = RunPaths(run).config
     if not path.is_file():
-        raise JsgsError(f"{run}: not a run folder (no config.json)")
+        why = not_regular(path)
+        raise JsgsError(f"{path}: {why}" if why else f"{run}: not a run folder (no config.json)")
     doc = read_config_document(path)
     if not is_run_config(doc):
         raise JsgsError(f"{path}: not the config.json of a jsgs train run (no format)")
@@ -771,12 +773,13 @@ def read_run_config(run: str | Path) -> RunConfig:
 def holds_run_config(run: str | Path) -> bool:
     """Whether the folder ``run`` holds the ``config.json`` of a run (its ``format``), however damaged the
     rest (``jsgs train --force`` replaces only such a folder's outputs)."""
+    from jsgs.base.io import read_regular_text
     from jsgs.base.run_files import RunPaths
 
     path = RunPaths(Path(run)).config
-    try:
-        return bool(json.loads(path.read_text()).get("format") == RUN_CONFIG_FORMAT)
-    except (OSError, ValueError, AttributeError, RecursionError):
+    try:  # a FIFO named config.json is refused at once, never waited on
+        return bool(json.loads(read_regular_text(path)).get("format") == RUN_CONFIG_FORMAT)
+    except (OSError, ValueError, AttributeError, RecursionError, JsgsError):
         return False
 
 

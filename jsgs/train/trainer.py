@@ -1358,11 +1358,13 @@ class Trainer:
 
     def _complete_on_disk(self) -> bool:
         """Whether RUN holds the model and metrics.json says ``complete``."""
+        from jsgs.base.io import read_regular_text
+
         if not self.paths.ply.is_file():
             return False
         try:
-            return json.loads(self.paths.metrics.read_text()).get("status") == "complete"
-        except (OSError, ValueError, AttributeError):
+            return json.loads(read_regular_text(self.paths.metrics)).get("status") == "complete"
+        except (OSError, ValueError, AttributeError, JsgsError):
             return False
 
 
