@@ -251,21 +251,21 @@ def _blocks_per_program(
     planes: torch.Tensor, tab: torch.Tensor, grad: torch.Tensor, args: argparse.Namespace,
     device: torch.device,
 ) -> None:
-    """The coding pass's two kernels alone, per choice of 8x8 blocks per Triton program."""
-    from jsgs.kernels._triton_jo import BLOCKS_PER_PROGRAM, paper_code_backward, paper_code_forward
+    """Mode paper's two coding-pass kernels alone, per (8x8 blocks per Triton program, warps)."""
+    from jsgs.kernels._triton_jo import BLOCKS_PER_PROGRAM, WARPS, paper_code_backward, paper_code_forward
 
     q = tab.reshape(1, 64).contiguous()
     cells = []
-    for bn in (16, 32, 64):
-        out = paper_code_forward(planes, q, bn)
+    for bn, warps in ((16, 4), (16, 8), (32, 4), (32, 8), (64, 8)):
+        out = paper_code_forward(planes, q, bn, warps)
 
-        def run(bn: int = bn, out: torch.Tensor = out) -> None:
-            paper_code_forward(planes, q, bn)
-            paper_code_backward(planes, q, out, grad, bn)
+        def run(bn: int = bn, warps: int = warps, out: torch.Tensor = out) -> None:
+            paper_code_forward(planes, q, bn, warps)
+            paper_code_backward(planes, q, out, grad, bn, warps)
 
-        cells.append(f"{bn}: {_loop_ms(run, device, args.repeats, args.warmup):.3f} ms")
-    print(f"coding pass kernels alone (fwd + bwd) by blocks per program (used: {BLOCKS_PER_PROGRAM}): "
-          + ", ".join(cells))
+        cells.append(f"{bn}/{warps}: {_loop_ms(run, device, args.repeats, args.warmup):.3f} ms")
+    print(f"mode paper's coding-pass kernels alone (fwd + bwd), by blocks per program / warps (used: "
+          f"{BLOCKS_PER_PROGRAM}/{WARPS}): " + ", ".join(cells))
 
 
 def _twin_code(planes: torch.Tensor, tables: torch.Tensor) -> torch.Tensor:

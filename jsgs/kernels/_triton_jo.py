@@ -47,8 +47,13 @@ except ImportError:  # pragma: no cover - depends on the environment
     triton = None
     tl = None
 
-#: 8x8 blocks per Triton program (the M dimension of its 64 x 64 products)
-BLOCKS_PER_PROGRAM = 32
+#: 8x8 blocks per Triton program (the M dimension of its 64 x 64 products) and warps per program, for JO's
+#: coding pass and for DS. Chosen from ptxas's report for sm_90 (triton 3.6): the coding-pass kernels keep
+#: their operands in registers without spilling at 16 blocks and 8 warps (at 32 blocks and 4 warps they use
+#: 255 registers and spill), DS's at 32 and 8. ``benchmarks/bench_jpeg_ops.py --fused-jo`` times the choices.
+BLOCKS_PER_PROGRAM = 16
+WARPS = 8
+DS_BLOCKS_PER_PROGRAM = 32
 
 
 def triton_available() -> bool:
@@ -263,7 +268,7 @@ def _grid_args(planes: Tensor, bn: int) -> tuple[tuple[int], tuple[int, int, int
 
 
 def paper_code_forward(
-    planes: Tensor, tables: Tensor, blocks_per_program: int = BLOCKS_PER_PROGRAM
+    planes: Tensor, tables: Tensor, blocks_per_program: int = BLOCKS_PER_PROGRAM, warps: int = WARPS
 ) -> Tensor:
     """The forward kernel alone (no autograd): ``planes`` ``(B, C, H, W)`` (H, W multiples of 8, any
     strides), ``tables`` ``(B, 64)`` contiguous in ``planes``' dtype -> decoded ``(B, C, H, W)``."""
@@ -272,13 +277,14 @@ def paper_code_forward(
     with _on(planes.device):
         _paper_forward[grid](
             planes, tables, _kron(planes.dtype, planes.device), out, n, nb, nbx, c,
-            *planes.stride(), *out.stride(), BN=blocks_per_program,
+            *planes.stride(), *out.stride(), BN=blocks_per_program, num_warps=warps,
         )  # fmt: skip
     return out
 
 
 def paper_code_backward(
-    planes: Tensor, tables: Tensor, out: Tensor, grad: Tensor, blocks_per_program: int = BLOCKS_PER_PROGRAM
+    planes: Tensor, tables: Tensor, out: Tensor, grad: Tensor, blocks_per_program: int = BLOCKS_PER_PROGRAM,
+    warps: int = WARPS,
 ) -> Tensor:
     """The backward kernel alone: the gradient with respect to ``planes`` of ``sum(grad * forward)``, given
     the forward's ``out``."""
@@ -287,7 +293,7 @@ def paper_code_backward(
     with _on(planes.device):
         _paper_backward[grid](
             planes, tables, _kron(planes.dtype, planes.device), out, grad, grad_x, n, nb, nbx, c,
-            *planes.stride(), *out.stride(), *grad.stride(), BN=blocks_per_program,
+            *planes.stride(), *out.stride(), *grad.stride(), BN=blocks_per_program, num_warps=warps,
         )  # fmt: skip
     return grad_x
 
@@ -355,7 +361,7 @@ class _FloatCode(torch.autograd.Function):
         with _on(planes.device):
             _float_forward[grid](
                 planes, tables, mats, vecs, out, n, nb, nbx, c, *planes.stride(), *out.stride(),
-                BN=BLOCKS_PER_PROGRAM,
+                BN=BLOCKS_PER_PROGRAM, num_warps=WARPS,
             )  # fmt: skip
         ctx.save_for_backward(planes, tables)
         return out
@@ -370,7 +376,7 @@ class _FloatCode(torch.autograd.Function):
         with _on(planes.device):
             _float_backward[grid](
                 planes, tables, mats, vecs, grad, grad_x, n, nb, nbx, c, *planes.stride(), *grad.stride(),
-                *grad_x.stride(), BN=BLOCKS_PER_PROGRAM,
+                *grad_x.stride(), BN=BLOCKS_PER_PROGRAM, num_warps=WARPS,
             )  # fmt: skip
         return grad_x, None
 
@@ -413,11 +419,11 @@ class _DsDelta(torch.autograd.Function):
         nby, nbx = h // 8, w // 8
         delta = torch.empty((b, nby, nbx, 8, 8), dtype=obs.dtype, device=obs.device)
         n = b * nby * nbx
-        bn = BLOCKS_PER_PROGRAM
+        bn = DS_BLOCKS_PER_PROGRAM
         with _on(obs.device):
             _ds_delta_forward[(triton.cdiv(n, bn),)](
                 obs, target, _luma_weights(obs.dtype, obs.device), _kron(obs.dtype, obs.device), delta, n,
-                nby * nbx, nbx, *obs.stride(), *target.stride(), BN=bn,
+                nby * nbx, nbx, *obs.stride(), *target.stride(), BN=bn, num_warps=WARPS,
             )  # fmt: skip
         ctx.shape = obs.shape
         return delta
@@ -431,11 +437,11 @@ class _DsDelta(torch.autograd.Function):
         # pixels outside the valid blocks get no gradient: zeros, then the kernel writes the blocks
         grad_obs = torch.zeros(ctx.shape, dtype=grad.dtype, device=grad.device)
         n = b * nby * nbx
-        bn = BLOCKS_PER_PROGRAM
+        bn = DS_BLOCKS_PER_PROGRAM
         with _on(grad.device):
             _ds_delta_backward[(triton.cdiv(n, bn),)](
                 grad, _luma_weights(grad.dtype, grad.device), _kron(grad.dtype, grad.device), grad_obs, n,
-                nby * nbx, nbx, *grad_obs.stride(), BN=bn,
+                nby * nbx, nbx, *grad_obs.stride(), BN=bn, num_warps=WARPS,
             )  # fmt: skip
         return grad_obs, None
 

@@ -280,6 +280,32 @@ def test_fused_jo_setting() -> None:
     assert not use_fused_jo(parse_options({"jpeg_mode": "exact", "speed": {"fused_jo": "auto"}}), cuda)
 
 
+@pytest.mark.slow
+@pytest.mark.skipif(
+    not triton_available() or interpreting(), reason="needs Triton, without TRITON_INTERPRET (compiles only)"
+)
+@pytest.mark.parametrize(
+    "name",
+    ["_paper_forward", "_paper_backward", "_float_forward", "_float_backward", "_ds_delta_forward",
+     "_ds_delta_backward"],
+)  # fmt: skip
+def test_kernels_compile_for_sm90(name: str) -> None:
+    """Each kernel compiles to a cubin for an H100 (sm_90) with the launch settings it runs with, on any
+    machine (Triton ships ptxas): what the interpreter cannot check (layouts, dot lowering, shared memory)."""
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    fn = getattr(_triton_jo, name)
+    signature = {a: "*fp32" if a.endswith("_ptr") else "i32" for a in fn.arg_names}
+    signature["BN"] = "constexpr"
+    bn = _triton_jo.DS_BLOCKS_PER_PROGRAM if "ds" in name else _triton_jo.BLOCKS_PER_PROGRAM
+    src = ASTSource(fn=fn, signature=signature, constexprs={"BN": bn})
+    kernel = _triton_jo.triton.compile(
+        src, target=GPUTarget("cuda", 90, 32), options={"num_warps": _triton_jo.WARPS}
+    )
+    assert kernel.asm["cubin"] and "tf32" not in kernel.asm["ptx"]  # float32 products, no TF32
+
+
 # --- CUDA -----------------------------------------------------------------------------------------------
 
 
