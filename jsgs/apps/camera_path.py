@@ -158,8 +158,8 @@ def scaled_K(K: np.ndarray, width: int, height: int, new_width: int, new_height:
 
 def _poses(values: Any, where: str) -> np.ndarray:
     """(N, 4, 4) camera-to-world matrices read from a file: finite, positions within
-    ±:data:`jsgs.base.limits.MAX_COORDINATE`, rotations that are rotations; JsgsError naming the first that is
-    not."""
+    ±:data:`jsgs.base.limits.MAX_COORDINATE`, rotations that are rotations, last rows 0 0 0 1; JsgsError
+    naming the first that is not."""
     from jsgs.base.limits import check_coordinates
 
     c2w = np.asarray(values, dtype=np.float64).reshape(-1, 4, 4)
@@ -167,6 +167,8 @@ def _poses(values: Any, where: str) -> np.ndarray:
     for i, R in enumerate(c2w[:, :3, :3]):
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
             raise JsgsError(f"{where}/{i}: not a camera pose (its rotation is not a rotation)")
+        if np.abs(c2w[i, 3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+            raise JsgsError(f"{where}/{i}: not a camera pose (its last row is not 0 0 0 1)")
     return c2w
 
 

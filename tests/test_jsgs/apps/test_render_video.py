@@ -123,9 +123,16 @@ def test_test_views_beside_references_and_viewer_cameras(run: Path, tmp_path: Pa
 
 
 def test_render_errors_are_one_line(run: Path, tmp_path: Path) -> None:
+    from jsgs.apps.camera_path import CameraPath
     from jsgs.cli import main
 
+    K = np.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
+    doc = CameraPath(np.repeat(np.eye(4)[None], 2, 0), K, 32, 24, "interpolate").to_json(30.0)
+    doc["camtoworld"][1][3] = [0.0, 0.0, 0.0, 0.0]  # not invertible
+    (tmp_path / "flat.json").write_text(json.dumps(doc))
     for args, needle in (
+        (["--out", str(tmp_path / "x.mp4"), "--path", str(tmp_path / "flat.json")],
+         "flat.json: camtoworld/1: not a camera pose (its last row is not 0 0 0 1)"),  # fmt: skip
         (["--out", str(tmp_path / "x.mp4"), "--size", "big"], "--size 'big'"),
         (["--out", str(tmp_path / "x.txt")], "give a video"),
         (["--out", str(tmp_path / "x.mp4"), "--path", str(tmp_path / "none.json")], "no such file"),
