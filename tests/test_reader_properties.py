@@ -323,4 +323,4 @@ def test_ply_mutations(tmp_path_factory: pytest.TempPathFactory, data: bytes) ->
     event("read")
     n = len(arrays["means"])
     assert n > 0 and all(np.isfinite(a).all() and len(a) == n for a in arrays.values())
-    assert (np.linalg.norm(arrays["quats"], axis=1) > 0).all()
+    assert (np.abs(arrays["quats"].astype(np.float64)).sum(axis=1) > 0).all()  # float32 squares overflow
