@@ -391,6 +391,13 @@ def test_cuda_graph_replays_the_fused_chain() -> None:
         tables = torch.randint(1, 100, (2, 8, 8), generator=g).float().cuda()
         got = graphed(x, y, tables, "4:2:0")
         (grad_graph,) = torch.autograd.grad(got.weighted, x)
+        # the same kernels eagerly: the replay computes what they compute
+        same, grad_same, _, obs_same = terms_with_gradient(
+            x, y, tables, weights=weights, sampling="4:2:0", jo_kernel="triton", **settings
+        )
+        torch.testing.assert_close(got.values, same[1:], rtol=1e-6, atol=1e-7)
+        torch.testing.assert_close(got.obs, obs_same, rtol=0, atol=1e-6)
+        torch.testing.assert_close(grad_graph, grad_same, rtol=1e-5, atol=1e-8)
         values, grad_eager, r, obs = terms_with_gradient(
             x, y, tables, weights=weights, sampling="4:2:0", jo_kernel="torch", **settings
         )
