@@ -243,6 +243,31 @@ def test_ds_falls_back_where_the_kernel_cannot_run(monkeypatch: pytest.MonkeyPat
                        dct_supervision(obs, target, table).delta)  # fmt: skip
 
 
+@needs_interpreter
+@pytest.mark.parametrize("twice", [False, True])
+def test_jpeg_terms_with_triton_match_torch(twice: bool) -> None:
+    # the method's chain (JO, L_obs, DS; a view compressed twice runs JO twice) with jo_kernel "triton"
+    from jsgs.method.image_terms import terms_with_gradient
+
+    g = torch.Generator().manual_seed(19)
+    x = torch.rand(1, 3, 29, 43, generator=g, dtype=torch.float64).requires_grad_()
+    y = torch.rand(1, 3, 29, 43, generator=g, dtype=torch.float64)
+    tables = torch.randint(1, 90, (2, 8, 8), generator=g).double()
+    first = torch.randint(20, 120, (2, 8, 8), generator=g).double() if twice else None
+    settings = dict(
+        mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
+        eps_block=1e-6, first=first,
+    )  # fmt: skip
+    w = (0.2, 0.02, 0.03)
+    out = [
+        terms_with_gradient(x, y, tables, weights=w, sampling="4:2:0", jo_kernel=k, **settings)
+        for k in ("triton", "torch")
+    ]
+    for a, b in zip(*out, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+    assert out[1][1].abs().max() > 0
+
+
 def test_mode_exact_ignores_the_kernel() -> None:
     g = torch.Generator().manual_seed(8)
     rgb = torch.rand(1, 3, 19, 21, generator=g)
