@@ -208,18 +208,18 @@ def check_frames_folder(out: Path) -> None:
 def _write_frames(
     out: Path, images: Iterator[np.ndarray], doc: dict[str, Any]
 ) -> tuple[int, tuple[int, ...]]:
-    """Each image to ``frame_NNNNN.png`` as it comes (atomically), then ``cameras.json``. An existing empty
-    ``out`` is written in place (a failure removes what this call wrote); otherwise the frames go to a
-    temporary sibling folder that replaces ``out`` only when complete (:func:`jsgs.base.io.atomic_folder`):
-    earlier frames (--force, :func:`check_frames_folder`) are removed only then, and a failed or interrupted
-    call leaves them as they were."""
+    """Each image to ``frame_NNNNN.png`` as it comes (atomically), then ``cameras.json``, into a temporary
+    sibling folder that replaces ``out`` only when complete (:func:`jsgs.base.io.atomic_folder`): earlier
+    frames (--force, :func:`check_frames_folder`) are removed only then, and a failed or interrupted call
+    leaves them as they were (a killed one leaves a hidden ``.NAME.*.part`` folder beside ``out``). A link
+    to an empty folder is written through, in place (a failure removes what this call wrote)."""
     from contextlib import nullcontext
 
     from PIL import Image
 
     from jsgs.base.io import atomic_folder, write_json_atomic, write_with_atomic
 
-    in_place = out.is_dir() and not any(out.iterdir())
+    in_place = out.is_symlink()  # to an empty folder: render_run refuses a link to a non-empty one
     written: list[Path] = []
     shape: tuple[int, ...] = (0, 0)
     with nullcontext(out) if in_place else atomic_folder(out) as work:

@@ -224,3 +224,18 @@ def test_atomic_folder_swaps_in_only_a_finished_folder(tmp_path: Path) -> None:
         (work / "new").write_text("new")
     assert not link.is_symlink() and (link / "new").exists() and (target / "t").read_text() == "t"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "out", "target"]
+
+
+def test_frames_into_an_empty_folder_or_a_link_to_one(run: Path, tmp_path: Path) -> None:
+    from jsgs.apps.render_video import render_run
+
+    empty, target, link = tmp_path / "empty", tmp_path / "target", tmp_path / "link"
+    empty.mkdir()
+    target.mkdir()
+    link.symlink_to(target, target_is_directory=True)
+    for out in (empty, link):
+        render_run(run, out, "spiral", 2, device="cpu", progress=False)
+    want = ["cameras.json", "frame_00000.png", "frame_00001.png"]
+    assert sorted(p.name for p in empty.iterdir()) == want and not empty.is_symlink()
+    assert link.is_symlink() and sorted(p.name for p in target.iterdir()) == want
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "link", "target"]
