@@ -168,6 +168,9 @@ def _loop_ms(fn: Callable[[], object], device: torch.device, n: int, warmup: int
     return start.elapsed_time(end) / n
 
 
+KERNEL_PAIR = ("torch", "triton")
+
+
 def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: torch.device) -> None:
     from jsgs.kernels._triton_jo import paper_code
     from jsgs.method.graphed import GraphedImageTerms
@@ -242,7 +245,11 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
     print("| what | twin (ms) | fused (ms) | saved (ms) |")
     print("|---|---|---|---|")
     for name, make in rows:
-        t_twin, t_fused = (_loop_ms(make(k), device, args.repeats, args.warmup) for k in ("torch", "triton"))
+        try:
+            t_twin, t_fused = (_loop_ms(make(k), device, args.repeats, args.warmup) for k in KERNEL_PAIR)
+        except Exception as exc:  # noqa: BLE001 - one failed row (e.g. a graph that did not record) says why
+            print(f"| {name} | failed: {' '.join(str(exc).split())[:200]} | | |", flush=True)
+            continue
         print(f"| {name} | {t_twin:.3f} | {t_fused:.3f} | {t_twin - t_fused:.3f} |", flush=True)
     _blocks_per_program(planes, tab, p_grad, args, device)
 
