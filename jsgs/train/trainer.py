@@ -652,6 +652,13 @@ class Trainer:
             dd.share_strategy_statistics(self.strategy, self.world, lambda: self._exchange_rows())
         elif self.exchange == "gsplat":
             dd.per_camera_statistics(self.strategy, self.world)
+        sizes = {(v.width, v.height) for v in self.train_views}
+        if self.exchange == "torch" and self.backend == "gsplat" and len(sizes) > 1:
+            self.say(
+                f"note: the training views have {len(sizes)} image sizes: the processes exchange the "
+                "Gaussians with torch (gsplat's distributed rasterisation projects every process's camera at "
+                "one size)"
+            )
         if self.world.enabled and self.strategy.cap_max is not None:
             # one global budget: each process grows its shard to its share
             self.strategy.gsplat.cap_max = dd.shard_cap(self.strategy.cap_max, self.world)
