@@ -114,6 +114,11 @@ def _average_pose(c2ws: np.ndarray) -> np.ndarray:
 
 def orbit(c2ws: np.ndarray, frames: int, kind: str) -> np.ndarray:
     """``spiral`` or ``ellipse`` frames around the cameras' focus point (see the module docstring)."""
+    if not np.linalg.norm(c2ws[:, :3, 2].mean(axis=0)) > 1e-6:  # the average camera would look nowhere
+        raise JsgsError(
+            f"--path {kind}: the training cameras look all around (their mean viewing direction is zero); "
+            f"{kind} circles a forward-facing capture: use --path interpolate or a camera path file"
+        )
     avg = _average_pose(c2ws)
     focus = focus_point(c2ws)
     local = (c2ws[:, :3, 3] - avg[:3, 3]) @ avg[:3, :3]  # camera positions in the average camera's axes

@@ -48,6 +48,24 @@ def test_orbits_look_at_the_focus_point() -> None:
         assert len({tuple(np.round(c[:3, 3], 6)) for c in path}) == 10  # it moves
 
 
+def test_orbits_refuse_cameras_that_look_all_around() -> None:
+    """Four cameras on a ring looking inward: the mean viewing direction is exactly zero, so the average
+    camera has no direction; one line instead of numpy's divide warning and a path of NaN."""
+    import warnings
+
+    from jsgs.base.errors import JsgsError
+
+    ring = np.stack([look_at(np.array(p, float), np.zeros(3), np.array([0.0, 1.0, 0.0]))
+                     for p in ([4, 0, 0], [0, 0, 4], [-4, 0, 0], [0, 0, -4])])  # fmt: skip
+    assert not ring[:, :3, 2].sum(axis=0).any()
+    for kind in ("spiral", "ellipse"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(JsgsError, match=f"--path {kind}: the training cameras look all around"):
+                orbit(ring, 5, kind)
+    assert np.isfinite(interpolate(ring, 5)).all()  # the other path still works
+
+
 def test_scaled_intrinsics_keep_the_field_of_view() -> None:
     K = np.array([[30.0, 0, 16.0], [0, 30.0, 12.0], [0, 0, 1]])
     K2 = scaled_K(K, 32, 24, 64, 48)
