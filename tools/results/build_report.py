@@ -29,6 +29,7 @@ import json
 import sys
 from pathlib import Path
 
+from jsgs.base.io import write_bytes_atomic
 from jsgs.bench.budget import common_steps
 from jsgs.bench.markdown import write_report
 from jsgs.bench.results import read_csv, write_csv
@@ -88,7 +89,7 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
     rows.sort(key=lambda r: (*key(r), int(r["step"])))
     target.mkdir(parents=True, exist_ok=True)
     write_csv(rows, csv)
-    cfg.write_text(json.dumps(dict(sorted(configs.items())), indent=1) + "\n")
+    write_bytes_atomic(cfg, (json.dumps(dict(sorted(configs.items())), indent=1) + "\n").encode())
     header = [
         f"Every equal-budget run of `{target.name}` (`jsgs bench --strategy mcmc`), gathered from the GPU "
         "calls that ran them by `tools/results/build_report.py`; every run's settings and versions in "
