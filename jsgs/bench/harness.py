@@ -153,12 +153,12 @@ def _default_lpips_weights() -> str | None:
 
 
 def _read_config(path: str | Path | None) -> Any:
-    if path is None:
-        return None
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, ValueError) as e:
-        raise JsgsError(f"{path}: cannot read the config: {e}") from None
+    """The JSON of a settings file given to every run (``--config``, ``--jsgs-config``), read as
+    ``jsgs train`` reads one (:func:`jsgs.base.limits.read_json`: a regular file, no NaN, bounded nesting;
+    one line)."""
+    from jsgs.base.limits import read_json
+
+    return None if path is None else read_json(path, "a settings file")
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

@@ -4,8 +4,11 @@ arithmetic with its noise rule on hand-made numbers."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
+import os
+import threading
 from pathlib import Path
 
 import pytest
@@ -405,3 +408,41 @@ def test_time_limit_must_be_positive(tmp_path: Path) -> None:
             scenes=[str(tmp_path / "scene")], out=tmp_path / "out", schedules=["gaussian"], fixed=[],
             methods=["gsplat"], seeds=[0], iterations=10, time_limit=-1.0,
         ))  # fmt: skip
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_bad_settings_files_are_one_line_before_anything_is_written(
+    synth_scene: Path, tmp_path: Path
+) -> None:
+    """--config and --jsgs-config are read as jsgs train reads a settings file: a FIFO is refused at once
+    (never waited on), deep nesting and NaN in one line, not a traceback."""
+    from jsgs.cli import main
+
+    fifo, deep, nan = tmp_path / "fifo.json", tmp_path / "deep.json", tmp_path / "nan.json"
+    os.mkfifo(fifo)  # nobody writes it: a reader that opened it would wait forever
+    deep.write_text("[" * 100_000 + "]" * 100_000)
+    nan.write_text('{"seed": NaN}')
+    out = tmp_path / "results"
+    cases = [(option, path, needle) for option in ("--config", "--jsgs-config")
+             for path, needle in ((deep, "nested deeper than 64 levels"), (nan, "not a finite number"),
+                                  (fifo, "is a FIFO (named pipe), not a regular file"))]  # fmt: skip
+    outputs: list[tuple[int, str]] = []
+
+    def invoke() -> None:
+        for option, path, _ in cases:
+            args = ["bench", str(synth_scene), "--out", str(out), option, str(path), "--device", "cpu",
+                    "--report-only", "--quiet"]  # fmt: skip
+            r = CliRunner().invoke(main, args)
+            outputs.append((r.exit_code, r.output))
+
+    t = threading.Thread(target=invoke, daemon=True)
+    t.start()
+    t.join(120)  # seconds each; a reader waiting on the FIFO would never return
+    if t.is_alive():
+        with contextlib.suppress(OSError):
+            os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))  # let it go before failing
+        pytest.fail(f"a settings file that is a FIFO was waited on ({len(outputs)} of {len(cases)} done)")
+    for (code, output), (_, path, needle) in zip(outputs, cases, strict=True):
+        assert code == 1 and output.startswith(f"error: {path}: ") and needle in output, output
+        assert output.count("\n") == 1, output
+    assert not out.exists()
