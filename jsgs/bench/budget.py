@@ -420,7 +420,8 @@ def write_budget_plots(rep: BudgetReport, outdir: Path) -> list[Path]:
             else:
                 ax.xaxis.set_major_locator(MaxNLocator(nbins=6))
             ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: count_label(v)))
-        axes[0, 0].legend(fontsize=7)
+        if axes[0, 0].get_legend_handles_labels()[0]:  # none for an empty panel (matplotlib warns)
+            axes[0, 0].legend(fontsize=7)
         fig.suptitle(f"{sc}: step {rep.scene_step_label(sc)} at each Gaussian budget (means over seeds)")
         fig.tight_layout()
         path = outdir / f"{sc}_budgets.png"

@@ -269,7 +269,8 @@ def write_plots(rows: list[dict[str, Any]], outdir: Path) -> list[Path]:
             ax.set_xlabel("training time (s)")
             ax.set_ylabel(label)
             ax.grid(alpha=0.3)
-        axes[0].legend(fontsize=7)
+        if axes[0].get_legend_handles_labels()[0]:  # none for an empty panel (matplotlib warns)
+            axes[0].legend(fontsize=7)
         fig.suptitle(f"{sc}: test metrics against training time (means over seeds; faint: JSGS's ends)")
         fig.tight_layout()
         path = outdir / f"{sc}_time.png"

@@ -74,7 +74,8 @@ def write_plots(
             ax.grid(alpha=0.3)
         for ax in axes[1]:  # 300k, 1.1M rather than matplotlib's 0.3 … 1.1 with "1e6" in the corner
             ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: count_label(v)))
-        axes[0, 0].legend(fontsize=7)
+        if axes[0, 0].get_legend_handles_labels()[0]:  # none for an empty panel (matplotlib warns)
+            axes[0, 0].legend(fontsize=7)
         fig.suptitle(f"{sc}: test metrics at each evaluation step (means over seeds)")
         fig.tight_layout()
         path = outdir / f"{sc}.png"
