@@ -262,15 +262,18 @@ def _blocks_per_program(
     from jsgs.kernels._triton_jo import BLOCKS_PER_PROGRAM, WARPS, paper_code_backward, paper_code_forward
 
     q = tab.reshape(1, 64).contiguous()
+    reference = _twin_code(planes, tab).detach()
     cells = []
     for bn, warps in ((16, 4), (16, 8), (32, 4), (32, 8), (64, 8)):
         out = paper_code_forward(planes, q, bn, warps)
+        err = float((out - reference).abs().max())  # 8-bit units, as the planes
 
         def run(bn: int = bn, warps: int = warps, out: torch.Tensor = out) -> None:
             paper_code_forward(planes, q, bn, warps)
             paper_code_backward(planes, q, out, grad, bn, warps)
 
-        cells.append(f"{bn}/{warps}: {_loop_ms(run, device, args.repeats, args.warmup):.3f} ms")
+        ms = _loop_ms(run, device, args.repeats, args.warmup)
+        cells.append(f"{bn}/{warps}: {ms:.3f} ms (max |fused - twin| {err:.1e})")
     print(f"mode paper's coding-pass kernels alone (fwd + bwd), by blocks per program / warps (used: "
           f"{BLOCKS_PER_PROGRAM}/{WARPS}): " + ", ".join(cells))
 

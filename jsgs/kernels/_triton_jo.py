@@ -16,7 +16,10 @@ recomputes ``z`` from the saved input instead of storing it.
 Mode "float" (:func:`float_code`): libjpeg's islow forward DCT (two 64 x 64 integer-matrix products, each
 followed by its rounding shift, as :func:`jsgs.jpeg.dct.fdct_islow` in the working dtype) and quantizer,
 the float IDCT, +128, clamp and rounding; the backward is the float chain's with the soft-round derivative
-at the quantizer, evaluated at the islow coefficients (the modes' shared backward).
+at the quantizer, evaluated at the islow coefficients (the modes' shared backward). Its divisions are
+correctly rounded (:func:`_div_ieee`), as torch's: the quantizer's ties are exact in the twin. Training does
+not run these kernels on CUDA (``method_options.speed.fused_jo``): with Triton's approximate division they
+disagreed with the twin there, and the correctly rounded version has not run on a GPU yet.
 
 The torch twin is ``jsgs.jpeg.observe._code_blocks``, the reference of the tests. Each
 kernel is one launch per plane group (the luma plane, the two chroma planes) with no host synchronisation
@@ -47,13 +50,19 @@ except ImportError:  # pragma: no cover - depends on the environment
     triton = None
     tl = None
 
-#: 8x8 blocks per Triton program (the M dimension of its 64 x 64 products) and warps per program, for JO's
-#: coding pass and for DS. Chosen from ptxas's report for sm_90 (triton 3.6): the coding-pass kernels keep
-#: their operands in registers without spilling at 16 blocks and 8 warps (at 32 blocks and 4 warps they use
-#: 255 registers and spill), DS's at 32 and 8. ``benchmarks/bench_jpeg_ops.py --fused-jo`` times the choices.
-BLOCKS_PER_PROGRAM = 16
-WARPS = 8
+#: 8x8 blocks per Triton program (the M dimension of its 64 x 64 products) and warps per program of mode
+#: paper's coding pass, chosen by ``benchmarks/bench_jpeg_ops.py --fused-jo`` (both kernels, fwd + bwd, on an
+#: H200, triton 3.6): at 1440x1920 16/4 0.515 ms, 16/8 0.816, 32/4 0.604, 32/8 0.523, 64/8 0.722; at 504x378
+#: 16/4 0.122, 16/8 0.117, 32/4 0.104, 32/8 0.150, 64/8 0.116. Of the settings no slower than 16/8 at both
+#: sizes (32/4, 64/8; 16/4 and 32/8 are faster at 1440x1920 only) 32/4 is the faster at both, though ptxas
+#: reports it spilling registers on sm_90 where 16/8 does not.
+BLOCKS_PER_PROGRAM = 32
+WARPS = 4
+#: The same for mode float's coding pass (ptxas: no spills on sm_90) and for DS.
+FLOAT_BLOCKS_PER_PROGRAM = 16
+FLOAT_WARPS = 8
 DS_BLOCKS_PER_PROGRAM = 32
+DS_WARPS = 8
 
 
 def triton_available() -> bool:
@@ -164,17 +173,29 @@ if triton is not None:
         tl.store(gx_ptr + o_off, g_x, mask=valid)
 
     @triton.jit
+    def _div_ieee(a, b):  # type: ignore[no-untyped-def]
+        """``a / b`` correctly rounded, as torch divides. Triton's ``/`` on float32 compiles to the
+        approximate ``div.full.f32`` (up to 2 ulp), which the interpreter does not show: ``8Q / 8Q`` may come
+        out just below 1, and a floor after it drops a level (that made mode float's fused quantizer disagree
+        with the twin on an H200: up to 29 8-bit units on 2 % of the pixels). float64's ``/`` is IEEE."""
+        if a.dtype == tl.float32:
+            return tl.math.div_rn(a, b)
+        else:
+            return a / b
+
+    @triton.jit
     def _islow_levels(x, q, m_ptr, v_ptr, e):  # type: ignore[no-untyped-def]
         """libjpeg's islow forward DCT of level-shifted blocks ``x`` ``[BN, 64]`` (two 64 x 64 products, each
-        followed by its rounding shift) and its quantizer: ``(t, level)``."""
+        followed by its rounding shift) and its quantizer: ``(t, level)``, the twin's divisions rounded as
+        torch rounds them (:func:`_div_ieee`)."""
         r1 = tl.load(m_ptr + e[:, None] * 64 + e[None, :])
         r2 = tl.load(m_ptr + 4096 + e[:, None] * 64 + e[None, :])
         y = tl.dot(x, r1, input_precision="ieee")
-        y = tl.floor((y + tl.load(v_ptr + e)[None, :]) / tl.load(v_ptr + 64 + e)[None, :])
+        y = tl.floor(_div_ieee(y + tl.load(v_ptr + e)[None, :], tl.load(v_ptr + 64 + e)[None, :]))
         t = tl.dot(y, r2, input_precision="ieee")
-        t = tl.floor((t + tl.load(v_ptr + 128 + e)[None, :]) / tl.load(v_ptr + 192 + e)[None, :])
+        t = tl.floor(_div_ieee(t + tl.load(v_ptr + 128 + e)[None, :], tl.load(v_ptr + 192 + e)[None, :]))
         q8 = 8.0 * q
-        a = tl.floor((tl.abs(t) + q8 / 2) / q8)
+        a = tl.floor(_div_ieee(tl.abs(t) + q8 * 0.5, q8))
         return t, tl.where(t < 0, -a, a)
 
     @triton.jit
@@ -214,9 +235,9 @@ if triton is not None:
         t, level = _islow_levels(x - 128.0, q, m_ptr, v_ptr, e)
         o = tl.dot(level * q, k, input_precision="ieee") + 128.0
         g = tl.where((o > 0.0) & (o < 255.0), g, 0.0)  # the clamp passes strictly inside; rounding: 1
-        z = t / (8.0 * q)
+        z = _div_ieee(t, 8.0 * q)
         f = z - _round_half_away(z)
-        g_t = (tl.dot(g, kt, input_precision="ieee") * q) * (3.0 * f * f) / (8.0 * q)
+        g_t = _div_ieee((tl.dot(g, kt, input_precision="ieee") * q) * (3.0 * f * f), 8.0 * q)
         g_x = tl.dot(8.0 * g_t, k, input_precision="ieee")
         tl.store(gx_ptr + o_off, g_x, mask=valid)
 
@@ -357,11 +378,11 @@ class _FloatCode(torch.autograd.Function):
     def forward(ctx: Any, planes: Tensor, tables: Tensor) -> Tensor:  # type: ignore[override]
         out = torch.empty(planes.shape, dtype=planes.dtype, device=planes.device)
         mats, vecs = _islow_constants(planes.dtype, planes.device)
-        grid, (n, nb, nbx, c) = _grid_args(planes, BLOCKS_PER_PROGRAM)
+        grid, (n, nb, nbx, c) = _grid_args(planes, FLOAT_BLOCKS_PER_PROGRAM)
         with _on(planes.device):
             _float_forward[grid](
                 planes, tables, mats, vecs, out, n, nb, nbx, c, *planes.stride(), *out.stride(),
-                BN=BLOCKS_PER_PROGRAM, num_warps=WARPS,
+                BN=FLOAT_BLOCKS_PER_PROGRAM, num_warps=FLOAT_WARPS,
             )  # fmt: skip
         ctx.save_for_backward(planes, tables)
         return out
@@ -372,11 +393,11 @@ class _FloatCode(torch.autograd.Function):
         planes, tables = ctx.saved_tensors
         grad_x = torch.empty(planes.shape, dtype=grad.dtype, device=grad.device)
         mats, vecs = _islow_constants(planes.dtype, planes.device)
-        grid, (n, nb, nbx, c) = _grid_args(planes, BLOCKS_PER_PROGRAM)
+        grid, (n, nb, nbx, c) = _grid_args(planes, FLOAT_BLOCKS_PER_PROGRAM)
         with _on(planes.device):
             _float_backward[grid](
                 planes, tables, mats, vecs, grad, grad_x, n, nb, nbx, c, *planes.stride(), *grad.stride(),
-                *grad_x.stride(), BN=BLOCKS_PER_PROGRAM, num_warps=WARPS,
+                *grad_x.stride(), BN=FLOAT_BLOCKS_PER_PROGRAM, num_warps=FLOAT_WARPS,
             )  # fmt: skip
         return grad_x, None
 
@@ -423,7 +444,7 @@ class _DsDelta(torch.autograd.Function):
         with _on(obs.device):
             _ds_delta_forward[(triton.cdiv(n, bn),)](
                 obs, target, _luma_weights(obs.dtype, obs.device), _kron(obs.dtype, obs.device), delta, n,
-                nby * nbx, nbx, *obs.stride(), *target.stride(), BN=bn, num_warps=WARPS,
+                nby * nbx, nbx, *obs.stride(), *target.stride(), BN=bn, num_warps=DS_WARPS,
             )  # fmt: skip
         ctx.shape = obs.shape
         return delta
@@ -441,7 +462,7 @@ class _DsDelta(torch.autograd.Function):
         with _on(grad.device):
             _ds_delta_backward[(triton.cdiv(n, bn),)](
                 grad, _luma_weights(grad.dtype, grad.device), _kron(grad.dtype, grad.device), grad_obs, n,
-                nby * nbx, nbx, *grad_obs.stride(), BN=bn, num_warps=WARPS,
+                nby * nbx, nbx, *grad_obs.stride(), BN=bn, num_warps=DS_WARPS,
             )  # fmt: skip
         return grad_obs, None
 

@@ -18,6 +18,9 @@ the blocks may hold one. DS's Delta has no rounding: float64 within 1e-12, float
 
 from __future__ import annotations
 
+import re
+from typing import Any
+
 import pytest
 import torch
 
@@ -289,20 +292,28 @@ def test_kernel_choice_is_checked(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_fused_jo_setting() -> None:
     cpu = torch.device("cpu")
-    assert parse_options({}).speed.fused_jo is False
-    assert not use_fused_jo(parse_options({}), cpu)
-    assert not use_fused_jo(parse_options({"speed": {"fused_jo": "auto"}}), cpu)
+    assert parse_options({}).speed.fused_jo == "auto"
+    assert not use_fused_jo(parse_options({}), cpu)  # the CPU runs the torch code, whatever is installed
+    assert not use_fused_jo(parse_options({"speed": {"fused_jo": False}}), cpu)
     with pytest.raises(JsgsError, match="fused_jo needs a CUDA device"):
         use_fused_jo(parse_options({"speed": {"fused_jo": True}}), cpu)
     for other in ({"jpeg_mode": "exact"}, {"speed": {"compile": "inductor"}}):
         raw = {**other, "speed": {**other.get("speed", {}), "fused_jo": True}}
-        with pytest.raises(JsgsError, match="fused_jo covers jpeg_mode paper and float without compile"):
+        with pytest.raises(JsgsError, match="fused_jo covers jpeg_mode paper without compile"):
             parse_options(raw)
-    assert parse_options({"jpeg_mode": "float", "speed": {"fused_jo": True}}).speed.fused_jo is True
+    with pytest.raises(JsgsError, match="fused jpeg_mode float path disagreed with the torch twin on CUDA"):
+        parse_options({"jpeg_mode": "float", "speed": {"fused_jo": True}})
     cuda = torch.device("cuda")
-    auto = parse_options({"speed": {"fused_jo": "auto"}})
-    assert use_fused_jo(auto, cuda) == triton_available()
-    assert not use_fused_jo(parse_options({"jpeg_mode": "exact", "speed": {"fused_jo": "auto"}}), cuda)
+    assert use_fused_jo(parse_options({}), cuda) == triton_available()  # the default on a GPU
+    if triton_available():
+        assert use_fused_jo(parse_options({"speed": {"fused_jo": True}}), cuda)
+    else:
+        with pytest.raises(JsgsError, match="fused_jo needs Triton"):
+            use_fused_jo(parse_options({"speed": {"fused_jo": True}}), cuda)
+    # auto: the torch code where the kernels are not shown right (mode float on CUDA) or do not apply
+    for raw in ({"jpeg_mode": "float"}, {"jpeg_mode": "exact"}, {"speed": {"compile": "inductor"}},
+                {"speed": {"fused_jo": False}}):  # fmt: skip
+        assert not use_fused_jo(parse_options(raw), cuda), raw
 
 
 @pytest.mark.slow
@@ -317,18 +328,39 @@ def test_fused_jo_setting() -> None:
 def test_kernels_compile_for_sm90(name: str) -> None:
     """Each kernel compiles to a cubin for an H100 (sm_90) with the launch settings it runs with, on any
     machine (Triton ships ptxas): what the interpreter cannot check (layouts, dot lowering, shared memory)."""
+    kernel = _compile_sm90(name)
+    assert kernel.asm["cubin"] and "tf32" not in kernel.asm["ptx"]  # float32 products, no TF32
+
+
+def _compile_sm90(name: str) -> Any:
+    """Kernel ``name`` compiled for sm_90 with the launch settings it runs with (Triton ships ptxas)."""
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
     fn = getattr(_triton_jo, name)
     signature = {a: "*fp32" if a.endswith("_ptr") else "i32" for a in fn.arg_names}
     signature["BN"] = "constexpr"
-    bn = _triton_jo.DS_BLOCKS_PER_PROGRAM if "ds" in name else _triton_jo.BLOCKS_PER_PROGRAM
+    prefix = "DS_" if "_ds_" in name else "FLOAT_" if "_float_" in name else ""
+    bn, warps = (getattr(_triton_jo, prefix + k) for k in ("BLOCKS_PER_PROGRAM", "WARPS"))
     src = ASTSource(fn=fn, signature=signature, constexprs={"BN": bn})
-    kernel = _triton_jo.triton.compile(
-        src, target=GPUTarget("cuda", 90, 32), options={"num_warps": _triton_jo.WARPS}
-    )
-    assert kernel.asm["cubin"] and "tf32" not in kernel.asm["ptx"]  # float32 products, no TF32
+    return _triton_jo.triton.compile(src, target=GPUTarget("cuda", 90, 32), options={"num_warps": warps})
+
+
+@pytest.mark.skipif(
+    not triton_available() or interpreting(), reason="needs Triton, without TRITON_INTERPRET (compiles only)"
+)
+@pytest.mark.parametrize("name", ["_float_forward", "_float_backward"])
+def test_float_kernels_divide_as_torch_on_cuda(name: str) -> None:
+    """Mode float floors quotients that sit exactly on integers (the islow shifts, the quantizer's ties
+    ``(|t| + 4Q) / 8Q``): the interpreter divides as numpy (correctly rounded) and cannot show it, but
+    Triton's ``/`` compiles float32 to ``div.full.f32`` (within 2 ulp), which drops a level below such a tie.
+    On an H200 those kernels disagreed with the twin by up to 29 / 28 8-bit units on 2.08 % / 2.44 % of the
+    pixels (1920x1440 / 504x378, q50), none at 53x37; the twin with ``x * (1 / y)`` at the quantizer
+    instead of ``x / y`` reproduces that (29 / 28 units, 1.5 % / 1.9 %, none at 53x37). The kernels'
+    PTX for sm_90 holds only correctly rounded float divisions."""
+    ptx = _compile_sm90(name).asm["ptx"]
+    assert "div.rn.f32" in ptx
+    assert not re.search(r"\b(div\.full|div\.approx|rcp\.approx)\.", ptx)
 
 
 # --- CUDA -----------------------------------------------------------------------------------------------
@@ -352,10 +384,25 @@ def test_cuda_matches_twin(kind: str) -> None:
         assert value[1] <= 2e-3 and value[2] <= 0.01 and grad[1] <= 2e-3 and grad[2] <= 0.01
 
 
+#: mode float on CUDA, as measured on an H200 (torch 2.11, triton 3.6) with the kernels' float32 divisions
+#: compiled to Triton's approximate ``div.full.f32``: see test_float_kernels_divide_as_torch_on_cuda
+FLOAT_ON_CUDA = pytest.mark.xfail(
+    strict=True,
+    reason="mode float's fused kernels disagreed with the twin on CUDA (H200: max 29 / 28 8-bit units, "
+    "2.08 % / 2.44 % of the pixels > 0.01 at 1920x1440 / 504x378, gradient max 0.70 / 0.45), from Triton's "
+    "approximate float32 division at the quantizer's ties; they now divide correctly rounded (_div_ieee), "
+    "not yet run on a GPU. An XPASS here shows the fix: drop this mark and let fused_jo take mode float.",
+)
+
+
 @cuda_triton
 @pytest.mark.gpu
-@pytest.mark.parametrize("mode", ["paper", "float"])
-@pytest.mark.parametrize(("height", "width"), [(1440, 1920), (378, 504), (37, 53)])
+@pytest.mark.parametrize(
+    ("mode", "height", "width"),
+    [("paper", 1440, 1920), ("paper", 378, 504), ("paper", 37, 53),
+     pytest.param("float", 1440, 1920, marks=FLOAT_ON_CUDA),
+     pytest.param("float", 378, 504, marks=FLOAT_ON_CUDA), ("float", 37, 53)],
+)  # fmt: skip
 def test_cuda_jpeg_observe_matches_twin(mode: str, height: int, width: int) -> None:
     g = torch.Generator().manual_seed(13)
     rgb = torch.rand(1, 3, height, width, generator=g).cuda()

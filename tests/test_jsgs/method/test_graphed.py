@@ -430,12 +430,14 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
         return JsgsHook(opts, tables, device=cuda).describe()
 
     assert described()["cuda_graph_gc"] is True
+    # JO's fused kernels: by default (auto) where Triton imports, in mode paper (checked, not run, for a CUDA
+    # device); mode float and fused_jo false run the torch code
+    fused = "triton" if triton_available() else "torch"
     assert described(cuda_graph_gc=False) == {
         "cuda_graph": True, "cuda_graph_gc": False, "gc_kernel": "torch", "gc_route": "deferred",
-        "jo_kernel": "torch", "jpeg_mode": "paper",
+        "jo_kernel": fused, "jpeg_mode": "paper",
     }  # fmt: skip
-    # JO's fused kernels: off by default; auto where Triton imports (checked, not run, for a CUDA device)
-    assert described(fused_jo="auto")["jo_kernel"] == ("triton" if triton_available() else "torch")
+    assert described(jpeg_mode="float")["jo_kernel"] == described(fused_jo=False)["jo_kernel"] == "torch"
     assert described(gc_pooling="now")["cuda_graph_gc"] is False
     assert described(cuda_graph=False)["cuda_graph_gc"] is False
     if torch.cuda.is_available():  # the default on a GPU: the fused kernels, which need no graph
