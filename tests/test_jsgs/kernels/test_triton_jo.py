@@ -160,6 +160,34 @@ def test_float_mode_matches_twin(kind: str, dtype: torch.dtype) -> None:
 
 
 @needs_interpreter
+def test_float_mode_survives_approximate_division(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On CUDA Triton's ``/`` on float32 is approximate (``div.full.f32``); ``tl.math.div_rn`` is not. Under
+    the interpreter with ``/`` made approximate (``x * (1 / y)``, each rounded to float32), mode float's
+    kernels still give the twin's samples exactly; with every division approximate (the kernels as they
+    were when the H200 measured them disagreeing) they do not, and mode paper's kernels (which use ``/``)
+    show that the patch reaches the kernels."""
+    import numpy as np
+    from triton.runtime.interpreter import InterpreterBuilder
+
+    def approx(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.multiply(a, np.divide(np.ones_like(b), b))
+
+    def approximate(name: str) -> None:
+        monkeypatch.setattr(InterpreterBuilder, name, lambda self, lhs, rhs: self.binary_op(lhs, rhs, approx))
+
+    g = torch.Generator().manual_seed(17)
+    x = torch.randint(0, 256, (2, 2, 16, 24), generator=g).float()
+    tables = _tables("q50", 2, torch.Generator().manual_seed(18)).float()
+    reference, paper = twin_float(x, tables), paper_code(x, tables)
+    assert torch.equal(float_code(x, tables), reference)
+    approximate("create_fdiv")  # as on CUDA
+    assert not torch.equal(paper_code(x, tables), paper)
+    assert torch.equal(float_code(x, tables), reference)
+    approximate("create_precise_divf")  # every division approximate: levels drop at the quantizer's ties
+    assert int((float_code(x, tables) != reference).sum()) > 10
+
+
+@needs_interpreter
 def test_gradcheck_float64() -> None:
     g = torch.Generator().manual_seed(6)
     x = (torch.rand(2, 1, 8, 16, generator=g, dtype=torch.float64) * 200.0 + 20.0).requires_grad_()
