@@ -519,9 +519,92 @@ def test_gpus_without_gpus_is_one_line(tmp_path: Path) -> None:
     assert "GPU(s)" in _one_error((r.exit_code, r.output))
 
 
-def _gsplat_exchange_worker(rank: int, store: str) -> None:
-    """One of two GPUs, each owning every other Gaussian and rendering view ``rank`` through gsplat's
-    ``distributed=True`` rasterisation (non-packed); rank 0 then renders both views alone (every Gaussian
+def _gsplat_ops_in_torch() -> None:
+    """gsplat 1.5.3's ``rasterization`` on the CPU: its CUDA ops replaced by gsplat's own torch versions
+    (``gsplat.cuda._torch_impl``; the non-packed, pinhole, classic layout jsgs uses), and jsgs's gsplat
+    backend let through on CPU tensors; its gather of the shards' sizes (``all_gather_int32``, CUDA only)
+    made with gloo. The rest of ``rasterization``, its ``distributed=True`` path included (the cameras'
+    all-gather, the owner's SH colours, the all-to-alls and their backward), is gsplat's own, on gloo."""
+    import gsplat.rendering as gr
+    import torch
+    from gsplat.cuda import _torch_impl as ti
+
+    import jsgs.render.backend as jb
+
+    def projection(means: Any, covars: Any, quats: Any, scales: Any, viewmats: Any, Ks: Any, width: int,
+                   height: int, eps2d: float = 0.3, packed: bool = False, near_plane: float = 0.01,
+                   far_plane: float = 1e10, radius_clip: float = 0.0, calc_compensations: bool = False,
+                   camera_model: str = "pinhole", **_: Any) -> Any:  # fmt: skip
+        assert not packed and radius_clip == 0.0 and covars is None
+        covars, _ = ti._quat_scale_to_covar_preci(quats, scales, compute_preci=False, triu=False)
+        return ti._fully_fused_projection(
+            means, covars, viewmats, Ks, width, height, eps2d, near_plane, far_plane, calc_compensations,
+            camera_model,
+        )  # fmt: skip
+
+    def isect_tiles(means2d: Any, radii: Any, depths: Any, tile_size: int, tile_width: int,
+                    tile_height: int, packed: bool = False, **_: Any) -> Any:  # fmt: skip
+        assert not packed
+        return ti._isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
+
+    def rasterize_to_pixels(means2d: Any, conics: Any, colors: Any, opacities: Any, width: int, height: int,
+                            tile_size: int, isect_offsets: Any, flatten_ids: Any, backgrounds: Any = None,
+                            packed: bool = False, absgrad: bool = False) -> Any:  # fmt: skip
+        """Each tile's Gaussians front to back (isect_tiles' order), alpha = min(0.999, o·exp(-σ)) where
+        at least 1/255, over the background (``_torch_impl``'s own needs a CUDA op and nerfacc)."""
+        assert not packed and not absgrad
+        I, N = means2d.shape[:2]
+        ends = torch.cat([isect_offsets.flatten()[1:], torch.tensor([len(flatten_ids)])]).tolist()
+        starts = isect_offsets.flatten().tolist()
+        ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+        pix = torch.stack([xs, ys], -1).float() + 0.5
+        img = means2d.new_zeros(I, height, width, colors.shape[-1])
+        trans = means2d.new_ones(I, height, width, 1)
+        th, tw = isect_offsets.shape[1:]
+        for k, (a, b) in enumerate(zip(starts, ends, strict=True)):
+            if a == b:
+                continue
+            i, ty, tx = k // (th * tw), (k // tw) % th, k % tw
+            rows = slice(ty * tile_size, (ty + 1) * tile_size)
+            cols = slice(tx * tile_size, (tx + 1) * tile_size)
+            ids = flatten_ids[a:b].long() % N
+            d = pix[rows, cols][:, :, None, :] - means2d[i, ids]  # [h, w, K, 2]
+            c = conics[i, ids]
+            dx, dy = d[..., 0], d[..., 1]
+            sigma = 0.5 * (c[:, 0] * dx**2 + c[:, 2] * dy**2) + c[:, 1] * dx * dy
+            alpha = torch.clamp_max(opacities[i, ids] * torch.exp(-sigma), 0.999)
+            alpha = torch.where((sigma >= 0) & (alpha >= 1 / 255), alpha, torch.zeros_like(alpha))
+            t = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1 - alpha], -1), -1)
+            img[i, rows, cols] = ((alpha * t[..., :-1])[..., None] * colors[i, ids]).sum(-2)
+            trans[i, rows, cols] = t[..., -1:]
+        if backgrounds is not None:
+            img = img + trans * backgrounds[:, None, None, :]
+        return img, 1 - trans
+
+    def spherical_harmonics(degree: int, dirs: Any, coeffs: Any, masks: Any = None) -> Any:
+        colors = ti._spherical_harmonics(degree, dirs, coeffs)
+        return colors if masks is None else colors * masks[..., None]  # unseen: 0, as the kernel leaves them
+
+    def all_gather_int32(world_size: int, value: int, device: Any = None) -> list[int]:
+        import torch.distributed as dist
+
+        out = [torch.zeros(1, dtype=torch.int32) for _ in range(world_size)]
+        dist.all_gather(out, torch.tensor([value], dtype=torch.int32))
+        return [int(t.item()) for t in out]
+
+    gr.all_gather_int32 = all_gather_int32
+    gr.fully_fused_projection = projection
+    gr.isect_tiles = isect_tiles
+    gr.isect_offset_encode = ti._isect_offset_encode
+    gr.rasterize_to_pixels = rasterize_to_pixels
+    gr.spherical_harmonics = spherical_harmonics
+    jb.resolve_backend = lambda backend, device: backend
+
+
+def _gsplat_exchange_worker(rank: int, store: str, cuda: bool) -> None:
+    """One of two processes (GPUs with NCCL, or the CPU with gloo and :func:`_gsplat_ops_in_torch`), each
+    owning every other Gaussian and rendering view ``rank`` through gsplat's ``distributed=True``
+    rasterisation (non-packed), colours of SH degree 3; rank 0 then renders both views alone (every Gaussian
     in the shards' order) and compares the gradients and DefaultStrategy's statistics each owner received."""
     import numpy as np
     import torch
@@ -534,17 +617,25 @@ def _gsplat_exchange_worker(rank: int, store: str) -> None:
     from jsgs.train.render_view import render_view
     from jsgs.train.strategy import Densifier
 
-    torch.cuda.set_device(rank)
-    device = torch.device("cuda", rank)
-    dist.init_process_group("nccl", init_method=f"file://{store}", rank=rank, world_size=2)
+    if cuda:
+        torch.cuda.set_device(rank)
+        device = torch.device("cuda", rank)
+    else:
+        _gsplat_ops_in_torch()
+        device = torch.device("cpu")
+    backend = "nccl" if cuda else "gloo"
+    dist.init_process_group(backend, init_method=f"file://{store}", rank=rank, world_size=2)
     world = dd.World(rank, 2, rank)
-    cfg = TrainConfig.from_preset("paper", device="cuda")
+    cfg = TrainConfig.from_preset("paper", device=device.type)
     cfg.strategy.refine_scale2d_stop_iter = 100
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(1)
-    points, colors = torch.rand(301, 3, generator=g) - 0.5, torch.rand(301, 3, generator=g)
+    n = 301 if cuda else 300  # shards of unequal sizes, where the all-to-all allows them (gloo's does not)
+    points, colors = torch.rand(n, 3, generator=g) - 0.5, torch.rand(n, 3, generator=g)
     full = init_splats(points, colors, cfg, 1.0, device)
-    rows = dd.shard_rows(301, world).to(device)
+    # view-dependent colours (SH degree 3), which the owner evaluates along each process's camera's directions
+    full["shN"].data.copy_(0.3 * torch.randn(full["shN"].shape, generator=g).to(device))
+    rows = dd.shard_rows(n, world).to(device)
     shard = torch.nn.ParameterDict({n: torch.nn.Parameter(full[n].data[rows].clone()) for n in PARAM_NAMES})
     cams = []
     for a in (0.3, 2.1):
@@ -556,7 +647,7 @@ def _gsplat_exchange_worker(rank: int, store: str) -> None:
     target = torch.rand(1, 48, 64, 3, generator=g).to(device)
 
     def one_view(splats: Any, strategy: Densifier, state: dict, i: int, spread: bool) -> None:
-        r = render_view(splats, cams[i], K, 64, 48, 0, cfg, "gsplat", distributed=spread)
+        r = render_view(splats, cams[i], K, 64, 48, cfg.render.sh_degree, cfg, "gsplat", distributed=spread)
         if spread:  # the owner's projection, for both processes' cameras
             assert r.info["means2d"].shape == (2, splats["means"].shape[0], 2)
         strategy.step_pre_backward(splats, {}, state, 0, r.info)
@@ -575,7 +666,7 @@ def _gsplat_exchange_worker(rank: int, store: str) -> None:
     parts = dd.gather_to_main(world, mine)
     if rank == 0:
         assert parts is not None
-        order = torch.cat([torch.arange(0, 301, 2), torch.arange(1, 301, 2)]).to(device)
+        order = torch.cat([torch.arange(0, n, 2), torch.arange(1, n, 2)]).to(device)
         alone_splats = torch.nn.ParameterDict(
             {n: torch.nn.Parameter(full[n].data[order].clone()) for n in PARAM_NAMES}
         )
@@ -595,7 +686,10 @@ def _gsplat_exchange_worker(rank: int, store: str) -> None:
             got = torch.cat([parts[0]["state"][key], parts[1]["state"][key]])
             assert torch.allclose(got, ref[key].cpu(), rtol=1e-3, atol=1e-7), key
     dist.barrier()
-    dist.destroy_process_group()
+    if cuda:
+        dist.destroy_process_group()
+    else:  # gloo: see _reductions_worker
+        os._exit(0)
 
 
 @pytest.mark.gpu
@@ -608,28 +702,56 @@ def test_gsplat_exchange_sends_gradients_and_statistics_to_their_owners(tmp_path
     if torch.cuda.device_count() < 2:
         pytest.skip("needs two GPUs")
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-    mp.spawn(_gsplat_exchange_worker, args=(str(tmp_path / "store"),), nprocs=2, join=True)
+    mp.spawn(_gsplat_exchange_worker, args=(str(tmp_path / "store"), True), nprocs=2, join=True)
+
+
+def test_gsplat_exchange_on_the_cpu_sends_gradients_and_statistics_to_their_owners(tmp_path: Path) -> None:
+    """The same on the CPU: gsplat's ``distributed=True`` path itself (the owner's projection and SH
+    colours for every process's camera, the all-to-alls and their backward) over gloo, with gsplat's torch
+    versions of its CUDA ops: each shard's gradients and statistics are its rows of one process's."""
+    import torch.multiprocessing as mp
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    mp.spawn(_gsplat_exchange_worker, args=(str(tmp_path / "store"), False), nprocs=2, join=True)
 
 
 @pytest.mark.gpu
 def test_two_gpus_train_with_gsplats_exchange(scene: Path, tmp_path: Path) -> None:
-    """`jsgs train --gpus 2` with the gsplat baseline: gsplat's exchange, one run folder, the test PSNR within
-    1 dB of one GPU's at equal views seen; JSGS (the Gaussian Controller) takes the torch exchange."""
+    """`jsgs train --gpus 2` with the gsplat baseline: gsplat's exchange, one run folder, and the test PSNR
+    within 0.2 dB of the torch exchange's on the same two GPUs at the same 200 steps (the same views in the
+    same order, the same rasterizer, gradients that agree: the test above), both having learnt more than
+    1 dB; the SH degree rises every 50 steps, so view-dependent colours (evaluated on each Gaussian's owner
+    for every process's camera) are trained too. JSGS (the Gaussian Controller) takes the torch exchange.
+
+    Not compared with one GPU at equal views seen: on this scene, 400 steps against 2 x 200, the batch of two
+    views lands 2.0 dB lower with either exchange (gsplat's on GPUs, the torch exchange on the CPU), where
+    the PSNR still climbs about 3 dB per 100 steps (docs/performance.md)."""
     import torch
 
     if torch.cuda.device_count() < 2:
         pytest.skip("needs two GPUs")
-    cfg = tmp_path / "cuda.json"
-    cfg.write_text(json.dumps({"eval": {"fps_passes": 1, "fps_warmup": 0}}))
-    one, two, jsgs_two = tmp_path / "one", tmp_path / "two", tmp_path / "jsgs"
-    common = ["--preset", "paper", "--config", str(cfg), "--device", "cuda"]
-    _ok(_train(scene, one, *common, "--iterations", "400", "--eval-at", "400"))
-    gpus = ["--gpus", "2"]
-    _ok(_train(scene, two, *common, "--iterations", "200", "--eval-at", "200", *gpus))
-    _ok(_train(scene, jsgs_two, *common, "--iterations", "20", "--eval-at", "20", "--method", "jsgs", *gpus))
-    m1 = json.loads((one / "metrics.json").read_text())
+    settings: dict[str, Any] = {
+        "eval": {"fps_passes": 1, "fps_warmup": 0},
+        "render": {"sh_degree_interval": 50},
+    }
+    cfg, cfg_torch = tmp_path / "cuda.json", tmp_path / "cuda_torch.json"
+    cfg.write_text(json.dumps(settings))
+    # absgrad takes the torch exchange and changes nothing else here: it is read by DefaultStrategy's
+    # refinement, which --preset paper starts at step 500
+    cfg_torch.write_text(json.dumps({**settings, "strategy": {"absgrad": True}}))
+    two, torch_two, jsgs_two = tmp_path / "two", tmp_path / "torch", tmp_path / "jsgs"
+    common = ["--preset", "paper", "--device", "cuda", "--gpus", "2"]
+    steps = ["--iterations", "200", "--eval-at", "20,200"]
+    _ok(_train(scene, two, *common, "--config", str(cfg), *steps))
+    _ok(_train(scene, torch_two, *common, "--config", str(cfg_torch), *steps))
+    jsgs_args = ["--config", str(cfg), "--iterations", "20", "--eval-at", "20", "--method", "jsgs"]
+    _ok(_train(scene, jsgs_two, *common, *jsgs_args))
     m2 = json.loads((two / "metrics.json").read_text())
     c2 = json.loads((two / "config.json").read_text())
     assert (m2["world_size"], c2["derived"]["exchange"]) == (2, "gsplat")
+    assert json.loads((torch_two / "config.json").read_text())["derived"]["exchange"] == "torch"
     assert json.loads((jsgs_two / "config.json").read_text())["derived"]["exchange"] == "torch"
-    assert abs(m1["evals"][-1]["psnr"] - m2["evals"][-1]["psnr"]) < 1.0
+    mt = json.loads((torch_two / "metrics.json").read_text())
+    (early_g, psnr_g), (early_t, psnr_t) = ((m["evals"][0]["psnr"], m["evals"][1]["psnr"]) for m in (m2, mt))
+    assert psnr_g - early_g > 1.0 and psnr_t - early_t > 1.0, (early_g, psnr_g, early_t, psnr_t)
+    assert abs(psnr_g - psnr_t) < 0.2, (psnr_g, psnr_t)
