@@ -1,5 +1,6 @@
 """tools/diagnostics/op_sources.py on a tiny synthetic scene on the CPU: JSGS's JO and DS parts exist and
-the baseline has none, JSGS counts more ops, and the table prints."""
+the baseline has none, JSGS counts more ops, and the tables print (with ``--products``, JO's colour maps as
+matrix products over all 48 x 32 pixels)."""
 
 from __future__ import annotations
 
@@ -23,6 +24,10 @@ def test_parts_of_a_tiny_window(capsys: Any) -> None:
         assert ("JO" in parts and "DS" in parts) == (method == "jsgs")
         assert "rasteriser" in parts and "trainer" in parts
     assert counts["jsgs"] > counts["gsplat"]
-    assert ops.main(["--size", "48x32", "--views", "6", "--warmup", "3", "--steps", "1", "--detail"]) == 0
+    assert ops.main(["--size", "48x32", "--views", "6", "--warmup", "3", "--steps", "1", "--detail",
+                     "--products"]) == 0  # fmt: skip
     printed = capsys.readouterr().out
     assert "| part (forward and backward) | aten ops per step |" in printed and "| JO |" in printed
+    # rgb -> YCbCr and YCbCr -> RGB, [H W, 3] x [3, 3] with the offset; DS's Y8 of observation and target
+    assert "| JO | aten::addmm | [[3], [1536, 3], [3, 3]] | 2.0 |" in printed
+    assert "| DS | aten::mm | [[1536, 3], [3, 1]] | 2.0 |" in printed
