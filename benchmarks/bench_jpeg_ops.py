@@ -14,7 +14,8 @@ Fused JO (``--fused-jo``): mode "paper"'s coding pass as the Triton kernels of `
 against the torch twin, at ``--sizes`` (default 1440x1920 and 504x378, width x height): the largest
 difference of JO's output and gradient, and the time of the coding pass alone, of JO, and (CUDA) of the
 whole JO + L_obs + DS chain with its gradient replayed as one CUDA graph (what a training step runs), each
-twin vs fused.
+twin vs fused; then JO's two colour conversions (``addmm``) vs their elementwise kernel
+(``method_options.speed.fused_color``): alone, inside the fused JO, and in the graph.
 
 Fidelity: PSNR of each mode's output against Pillow's (libjpeg-turbo's) decode of Pillow's encode, on
 photographs from ../shared/scenes, per quality and sampling; for mode "exact" also the share of bit-exact
@@ -37,6 +38,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb  # noqa: E402
 from jsgs.jpeg.losses import photometric_loss  # noqa: E402
 from jsgs.jpeg.observe import MODES, jpeg_observe  # noqa: E402
 from jsgs.jpeg.supervision import dct_supervision  # noqa: E402
@@ -172,7 +174,7 @@ KERNEL_PAIR = ("torch", "triton")
 
 
 def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: torch.device) -> None:
-    from jsgs.kernels._triton_jo import paper_code
+    from jsgs.kernels._triton_jo import color_convert, paper_code
     from jsgs.method.graphed import GraphedImageTerms
 
     gen = torch.Generator().manual_seed(0)
@@ -197,6 +199,10 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
     deltas = [dct_supervision(rgb, target, luma, kernel=k).delta for k in ("torch", "triton")]
     print(f"max |fused - twin| of DS's Delta {float((deltas[1] - deltas[0]).abs().max()):.2e} (largest "
           f"{float(deltas[0].abs().max()):.2e})")
+    x255 = 255 * rgb
+    for name, twin_map in (("rgb2ycc", rgb_to_ycbcr), ("ycc2rgb", ycbcr_to_rgb)):
+        err = float((color_convert(x255, name) - twin_map(x255)).abs().max())
+        print(f"max |kernel - addmm| of colour map {name}: {err:.2e} (8-bit units)")
     planes = (255 * torch.rand(1, 3, 8 * (height // 8), 8 * (width // 8), generator=gen)).to(device)
     tab = luma.expand(1, 8, 8)
     p_grad = torch.randn_like(planes)
@@ -242,6 +248,49 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
             return lambda: terms(x, target, tables, args.sampling)
 
         rows.append(("JO + L_obs + DS + gradient, one CUDA graph replay", graphed))
+    def colour(kernel: str) -> Callable[[], object]:
+        def run() -> None:
+            x = x255.clone().requires_grad_()
+            if kernel == "triton":
+                y = color_convert(color_convert(x, "rgb2ycc"), "ycc2rgb")
+            else:
+                y = ycbcr_to_rgb(rgb_to_ycbcr(x))
+            torch.autograd.grad(y, x, weight)
+
+        return run
+
+    def jo_colour(kernel: str) -> Callable[[], object]:
+        def run() -> None:
+            x = rgb.clone().requires_grad_()
+            y = jpeg_observe(x, luma, chroma, args.sampling, "paper", kernel="triton", color_kernel=kernel)
+            torch.autograd.grad(y, x, weight)
+
+        return run
+
+    colour_rows = [
+        ("colour maps alone (RGB->YCbCr->RGB), addmm vs kernel, fwd + bwd", colour),
+        ("fused JO (mode paper), colour by addmm vs kernel, fwd + bwd", jo_colour),
+    ]
+    if device.type == "cuda":
+
+        def graphed_colour(kernel: str) -> Callable[[], object]:
+            terms = GraphedImageTerms(
+                weights=(0.2, 0.02, 0.03), jo_kernel="triton", color_kernel=kernel, **settings
+            )
+            x = rgb.clone().requires_grad_()
+            return lambda: terms(x, target, tables, args.sampling)
+
+        colour_rows.append(("fused chain as one CUDA graph, colour by addmm vs kernel", graphed_colour))
+    _time_rows(rows, device, args)
+    _time_rows(colour_rows, device, args)
+    _blocks_per_program(planes, tab, p_grad, args, device)
+
+
+def _time_rows(
+    rows: list[tuple[str, Callable[[str], Callable[[], object]]]], device: torch.device,
+    args: argparse.Namespace,
+) -> None:
+    """One markdown table: each row's function made with the torch and the Triton kernel, timed."""
     print("| what | twin (ms) | fused (ms) | saved (ms) |")
     print("|---|---|---|---|")
     for name, make in rows:
@@ -251,7 +300,6 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
             print(f"| {name} | failed: {' '.join(str(exc).split())[:200]} | | |", flush=True)
             continue
         print(f"| {name} | {t_twin:.3f} | {t_fused:.3f} | {t_twin - t_fused:.3f} |", flush=True)
-    _blocks_per_program(planes, tab, p_grad, args, device)
 
 
 def _blocks_per_program(

@@ -48,6 +48,7 @@ static, so ``torch.compile`` can trace the whole operator.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -163,6 +164,7 @@ def jpeg_observe(
     sampling: str = "4:2:0",
     mode: str = "paper",
     kernel: str = "torch",
+    color_kernel: str = "torch",
 ) -> Tensor:
     """The JPEG observation of a rendered image, ``C_JPEG(rgb; T^Y, T^C)`` (paper eq. jpeg_operator).
 
@@ -179,6 +181,10 @@ def jpeg_observe(
             :func:`jsgs.kernels._triton_jo.float_code`) where they can run (Triton and float32 CUDA tensors,
             or ``TRITON_INTERPRET=1`` on CPU: ``fused_jo_runs``), else the torch code; mode "exact" ignores
             it.
+        color_kernel: ``"torch"`` or ``"triton"``: where the fused coding pass runs (``kernel`` "triton"),
+            the two colour conversions as one elementwise Triton kernel each way
+            (:func:`jsgs.kernels._triton_jo.color_convert`) instead of :mod:`jsgs.jpeg.color`'s matrix
+            product; ignored elsewhere.
     Returns:
         ``(B, 3, H, W)`` decoded RGB in [0, 1], same dtype as ``rgb``. In modes "exact" and "float" the
         values are exactly ``k / 255`` for integers k; in "exact" k equals libjpeg-turbo's decode of
@@ -190,6 +196,8 @@ def jpeg_observe(
         raise ValueError(f"sampling must be one of {tuple(SAMPLING_FACTORS)}, got {sampling!r}")
     if kernel not in KERNELS:
         raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    if color_kernel not in KERNELS:
+        raise ValueError(f"color_kernel must be one of {KERNELS}, got {color_kernel!r}")
     if rgb.dim() != 4 or rgb.shape[1] != 3:
         raise ValueError(f"rgb must be (B, 3, H, W), got {tuple(rgb.shape)}")
     if not rgb.is_floating_point():
@@ -199,6 +207,11 @@ def jpeg_observe(
         from jsgs.kernels._triton_jo import fused_jo_runs
 
         fused = fused_jo_runs(rgb)
+    to_ycc, to_rgb = rgb_to_ycbcr, ycbcr_to_rgb
+    if fused and color_kernel == "triton":
+        from jsgs.kernels._triton_jo import color_convert
+
+        to_ycc, to_rgb = partial(color_convert, name="rgb2ycc"), partial(color_convert, name="ycc2rgb")
     b, _, height, width = rgb.shape
     h, v = SAMPLING_FACTORS[sampling]
     tab_y = as_tables(luma_table, b, rgb.dtype, rgb.device)
@@ -208,7 +221,7 @@ def jpeg_observe(
     x = 255.0 * rgb.clamp(0.0, 1.0)
     if integer:
         x = round_ste(x)  # the encoder sees 8-bit samples
-    ycc = rgb_to_ycbcr(x)
+    ycc = to_ycc(x)
     if integer:
         ycc = _through(rgb_to_ycbcr_libjpeg(x), ycc)
 
@@ -242,7 +255,7 @@ def jpeg_observe(
     chroma = chroma[..., :height, :width]
 
     ycc = torch.cat([luma, chroma], dim=1)
-    out = _clamp_255(ycbcr_to_rgb(ycc))
+    out = _clamp_255(to_rgb(ycc))
     if integer:
         out = _through(ycbcr_to_rgb_libjpeg(ycc), out)
     return out / 255.0

@@ -481,3 +481,99 @@ def ds_delta(observation: Tensor, target: Tensor) -> Tensor:
     if observation.shape[-2] < 8 or observation.shape[-1] < 8 or target.requires_grad:
         raise ValueError("ds_delta needs images of at least 8 x 8 and a target that needs no gradient")
     return _DsDelta.apply(observation, target.to(observation.dtype))
+
+
+# --- JO's colour conversions ------------------------------------------------------------------------------
+
+#: pixels per Triton program and warps per program of the colour kernel (an elementwise map: not tuned on a
+#: GPU yet, ``benchmarks/bench_jpeg_ops.py --fused-jo`` times it)
+COLOR_BLOCK = 1024
+COLOR_WARPS = 4
+
+if triton is not None:
+
+    @triton.jit
+    def _color_affine(  # type: ignore[no-untyped-def]
+        x_ptr, c_ptr, out_ptr, hw, width, xs_b, xs_c, xs_h, xs_w, os_b, os_c,
+        BLOCK: tl.constexpr, FLAT: tl.constexpr, OFFSET: tl.constexpr,
+    ):  # fmt: skip
+        """``out[b, j, p] = sum_i M[j, i] x[b, i, p] (+ off[j])`` for the pixels ``p`` of one program and
+        view ``b``: ``c_ptr`` holds ``M`` row-major then ``off`` (12 values); ``x`` (B, 3, H, W) any strides
+        (``FLAT``: each plane's H x W is contiguous), ``out`` (B, 3, H, W) with contiguous planes. Products
+        and sums only: no division, so CUDA's float32 needs no correctly rounded variant."""
+        p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        view = tl.program_id(1).to(tl.int64)
+        valid = p < hw
+        if FLAT:
+            x_off = view * xs_b + p.to(tl.int64)
+        else:
+            x_off = view * xs_b + (p // width).to(tl.int64) * xs_h + (p % width).to(tl.int64) * xs_w
+        x0 = tl.load(x_ptr + x_off, mask=valid, other=0.0)
+        x1 = tl.load(x_ptr + x_off + xs_c, mask=valid, other=0.0)
+        x2 = tl.load(x_ptr + x_off + 2 * xs_c, mask=valid, other=0.0)
+        o_off = view * os_b + p.to(tl.int64)
+        for j in tl.static_range(3):
+            m = c_ptr + 3 * j
+            y = tl.load(m) * x0 + tl.load(m + 1) * x1 + tl.load(m + 2) * x2
+            if OFFSET:
+                y += tl.load(c_ptr + 9 + j)
+            tl.store(out_ptr + o_off + j * os_c, y, mask=valid)
+
+
+@functools.cache
+def _color_coefficients(name: str, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The colour map ``name`` of :mod:`jsgs.jpeg.color` (``"rgb2ycc"`` or ``"ycc2rgb"``) as the kernel's
+    12 values, forward (``M`` row-major, ``off``) and backward (``M^T`` row-major, zeros), built from the
+    same cached matrices as the torch code and cached per device (no copy inside a graph)."""
+    from jsgs.jpeg.color import _affine
+
+    mt, off = _affine(name, dtype, device)  # M^T, off
+    forward = torch.cat([mt.t().reshape(9), off]).contiguous()
+    backward = torch.cat([mt.reshape(9), torch.zeros_like(off)]).contiguous()
+    return forward, backward
+
+
+def color_affine_forward(x: Tensor, coefficients: Tensor, offset: bool = True) -> Tensor:
+    """The colour kernel alone (no autograd): ``x`` ``(B, 3, H, W)`` any strides, ``coefficients`` (12,)
+    in ``x``'s dtype -> ``(B, 3, H, W)`` contiguous, ``M x (+ off)`` per pixel."""
+    b, _, h, w = x.shape
+    out = torch.empty((b, 3, h, w), dtype=x.dtype, device=x.device)
+    hw = h * w
+    if hw == 0 or b == 0:
+        return out
+    flat = x.stride(3) == 1 and x.stride(2) == w
+    with _on(x.device):
+        _color_affine[(triton.cdiv(hw, COLOR_BLOCK), b)](
+            x, coefficients, out, hw, w, *x.stride(), out.stride(0), out.stride(1), BLOCK=COLOR_BLOCK,
+            FLAT=flat, OFFSET=offset, num_warps=COLOR_WARPS,
+        )  # fmt: skip
+    return out
+
+
+class _ColorAffine(torch.autograd.Function):
+    """An affine colour map of ``(B, 3, H, W)`` images, differentiable in the image (a linear map: the
+    backward is the transposed matrix, same kernel, no offset; nothing saved)."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, name: str) -> Tensor:  # type: ignore[override]
+        forward, _ = _color_coefficients(name, x.dtype, x.device)
+        ctx.name = name
+        return color_affine_forward(x, forward)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        _, backward = _color_coefficients(ctx.name, grad.dtype, grad.device)
+        return color_affine_forward(grad, backward, offset=False), None
+
+
+def color_convert(x: Tensor, name: str) -> Tensor:
+    """:func:`jsgs.jpeg.color.rgb_to_ycbcr` (``name`` ``"rgb2ycc"``) or :func:`jsgs.jpeg.color.ycbcr_to_rgb`
+    (``"ycc2rgb"``) of ``x`` ``(B, 3, H, W)`` as one elementwise kernel each way instead of a matrix product
+    of ``[B H W, 3] x [3, 3]`` (cuBLAS tiles a dimension of 3 poorly); equal to the torch code up to float
+    rounding (the order of the three products and the offset). Contiguous output planes. Needs
+    :func:`fused_jo_runs`."""
+    if name not in ("rgb2ycc", "ycc2rgb") or x.dim() != 4 or x.shape[1] != 3:
+        raise ValueError(f"color_convert: x must be (B, 3, H, W) and name rgb2ycc or ycc2rgb, got "
+                         f"{tuple(x.shape)}, {name!r}")  # fmt: skip
+    return _ColorAffine.apply(x, name)

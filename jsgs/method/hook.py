@@ -71,7 +71,7 @@ from jsgs.method.image_terms import (
     view_tables,
     warn_eager_fallback,
 )
-from jsgs.method.options import JsgsOptions, parse_options, use_cuda_graph, use_fused_jo
+from jsgs.method.options import JsgsOptions, parse_options, use_cuda_graph, use_fused_color, use_fused_jo
 from jsgs.train.hook import HookOutput, LossHook, StepContext
 from jsgs.train.profiler import Profiler
 
@@ -126,8 +126,9 @@ class JsgsHook(LossHook):
 
         # what fixes the JO / L_obs / DS chain (jsgs.method.image_terms.jpeg_terms), in both routes
         self.jo_kernel = "triton" if options.jo and use_fused_jo(options, self.device) else "torch"
+        self.color_kernel = "triton" if use_fused_color(options, self.device) else "torch"
         self._jpeg_settings = image_term_settings(
-            options, ssim_lambda, ssim_padding, ssim_kernel, self.jo_kernel
+            options, ssim_lambda, ssim_padding, ssim_kernel, self.jo_kernel, self.color_kernel
         )
         self._jpeg_functions = {
             "observe": maybe_compile(jpeg_observe, options.speed.compile),
@@ -154,6 +155,7 @@ class JsgsHook(LossHook):
 
     def describe(self) -> dict[str, Any]:
         out: dict[str, Any] = {
+            "color_kernel": self.color_kernel,
             "cuda_graph": self.cuda_graph,
             "cuda_graph_gc": self._gc_graphed is not None,
             "gc_kernel": "cuda" if self._gc_fused else "torch",
@@ -416,6 +418,7 @@ def make_jsgs_hook(cfg: TrainConfig, scene: TrainingScene, device: torch.device)
         )
     use_cuda_graph(opts, device)  # their errors before the tables are built
     use_fused_jo(opts, device)
+    use_fused_color(opts, device)
     noise = opts.base_noise if opts.base_by_view else "tables"  # the estimate reads every view: only if used
     t0 = time.perf_counter()
     blocks = opts.base_by_view and opts.base_block_ref > 0

@@ -43,6 +43,7 @@ def jpeg_terms(
     ssim_padding: str,
     ssim_kernel: str = "auto",
     jo_kernel: str = "torch",
+    color_kernel: str = "torch",
     ds: bool,
     gc: bool,
     eps_sm: float,
@@ -61,7 +62,8 @@ def jpeg_terms(
         x: ``(1, 3, H, W)`` the rendering; y: ``(1, 3, H, W)`` the decoded training JPEG, in [0, 1].
         luma, chroma: ``(8, 8)`` the view's tables. The settings: as
             :class:`jsgs.method.options.JsgsOptions`; ``jo_kernel``: JO's and DS's ``kernel`` ("torch" or
-            "triton": :func:`jsgs.jpeg.observe.jpeg_observe`, :func:`jsgs.jpeg.supervision.dct_supervision`).
+            "triton": :func:`jsgs.jpeg.observe.jpeg_observe`, :func:`jsgs.jpeg.supervision.dct_supervision`);
+            ``color_kernel``: JO's ``color_kernel`` ("torch" or "triton").
         observe, photometric, supervise: the three functions (the hook passes torch.compile'd ones);
         phase: a profiler's ``phase(name)`` context ("jo" around JO and L_obs, "ds" around DS);
         first: ``(2, 8, 8)`` effective tables of a view compressed twice: JO quantizes with them first, then
@@ -72,10 +74,12 @@ def jpeg_terms(
         The observation ``(1, 3, H, W)``, L_obs (0-dim) and the DS terms (None without DS and GC; with GC
         alone they are computed on the detached observation, so no graph runs through DS).
     """
+    # the default colour kernel is not passed: observe functions without that argument (tests') still work
+    kernels = {"kernel": jo_kernel} | ({"color_kernel": color_kernel} if color_kernel != "torch" else {})
     with phase("jo"):
         if first is not None:
-            x = observe(x, first[0], first[1], sampling, mode, kernel=jo_kernel)
-        obs = observe(x, luma, chroma, sampling, mode, kernel=jo_kernel)
+            x = observe(x, first[0], first[1], sampling, mode, **kernels)
+        obs = observe(x, luma, chroma, sampling, mode, **kernels)
         l_obs = photometric(obs, y, ssim_lambda, padding=ssim_padding, ssim_kernel=ssim_kernel)
     if not (ds or gc):
         return obs, l_obs, None
@@ -125,15 +129,16 @@ def terms_with_gradient(
 
 
 def image_term_settings(
-    options: JsgsOptions, ssim_lambda: float, ssim_padding: str, ssim_kernel: str, jo_kernel: str = "torch"
+    options: JsgsOptions, ssim_lambda: float, ssim_padding: str, ssim_kernel: str, jo_kernel: str = "torch",
+    color_kernel: str = "torch",
 ) -> dict[str, Any]:
     """The settings that fix the JO / L_obs / DS chain (:func:`jpeg_terms` and its graph): the method's
     options plus the trainer's photometric-loss settings (``loss.ssim_lambda``, ``loss.ssim_padding``,
-    ``speed.ssim_kernel``) and JO's kernel (``method_options.speed.fused_jo`` resolved: "torch" or
-    "triton")."""
+    ``speed.ssim_kernel``) and JO's kernels (``method_options.speed.fused_jo`` and ``fused_color``
+    resolved: "torch" or "triton")."""
     return dict(
         mode=options.jpeg_mode, ssim_lambda=ssim_lambda, ssim_padding=ssim_padding, ssim_kernel=ssim_kernel,
-        jo_kernel=jo_kernel,
+        jo_kernel=jo_kernel, color_kernel=color_kernel,
         ds=options.ds, gc=options.gc, eps_sm=options.eps_sm, eps_loss=options.eps_dct_loss,
         eps_block=options.eps_dct_block,
     )  # fmt: skip

@@ -56,6 +56,14 @@ class JsgsSpeed:
         "code elsewhere; true needs those; false: the torch code (its twin). jpeg_mode float runs the torch "
         "code (its fused kernels disagreed with the twin on CUDA; their fix has not run on a GPU yet).",
     )
+    fused_color: bool | Literal["auto"] = setting(
+        False,
+        "Where fused_jo runs: JO's two colour conversions (RGB to YCbCr and back) as one elementwise Triton "
+        "kernel each way (jsgs/kernels/_triton_jo.py) instead of a [H*W x 3] x [3 x 3] matrix product, which "
+        "cuBLAS runs slowly (about 0.6 ms less per step at 1440x1920 estimated, not measured): true needs "
+        "fused_jo to run; auto: on where it runs; false: the torch code. Default false: tested on the CPU "
+        "under Triton's interpreter only, not yet run or timed on a GPU.",
+    )
 
 
 @dataclass
@@ -222,6 +230,23 @@ def use_fused_jo(opts: JsgsOptions, device: torch.device) -> bool:
             'false or "auto"'
         )
     return bool(s.fused_jo)
+
+
+def use_fused_color(opts: JsgsOptions, device: torch.device) -> bool:
+    """Whether JO's colour conversions run as the fused Triton kernel on ``device``
+    (``method_options.speed.fused_color`` resolved: only with the fused coding pass); JsgsError (one line)
+    for ``true`` where that does not run."""
+    s = opts.speed
+    if s.fused_color is False:
+        return False
+    fused_jo = opts.jo and use_fused_jo(opts, device)
+    if s.fused_color is True and not fused_jo:
+        raise JsgsError(
+            "config: method jsgs: method_options.speed.fused_color runs with the fused JO kernels only "
+            f'(fused_jo {s.fused_jo} does not run here: {device.type}, jpeg_mode {opts.jpeg_mode}); set it '
+            'to false or "auto"'
+        )
+    return fused_jo
 
 
 def parse_options(raw: dict[str, Any], where: str = "config") -> JsgsOptions:

@@ -992,7 +992,8 @@ def _derived_schema() -> dict[str, Any]:
             "method": {
                 "type": "object",
                 "description": "What the method resolved from its options for this run (JSGS: "
-                "cuda_graph, cuda_graph_gc, gc_kernel, gc_route, jo_kernel, jpeg_mode; with base_by_view, "
+                "color_kernel, cuda_graph, cuda_graph_gc, gc_kernel, gc_route, jo_kernel, jpeg_mode; with "
+                "base_by_view, "
                 "base_by_view: each JPEG training view's noise_variance and ℓ_ph weight by name).",
             },
         },

@@ -351,26 +351,37 @@ def test_fused_jo_setting() -> None:
 @pytest.mark.parametrize(
     "name",
     ["_paper_forward", "_paper_backward", "_float_forward", "_float_backward", "_ds_delta_forward",
-     "_ds_delta_backward"],
+     "_ds_delta_backward", "_color_affine", "_color_affine:strided"],
 )  # fmt: skip
 def test_kernels_compile_for_sm90(name: str) -> None:
     """Each kernel compiles to a cubin for an H100 (sm_90) with the launch settings it runs with, on any
     machine (Triton ships ptxas): what the interpreter cannot check (layouts, dot lowering, shared memory)."""
     kernel = _compile_sm90(name)
     assert kernel.asm["cubin"] and "tf32" not in kernel.asm["ptx"]  # float32 products, no TF32
+    if name.startswith("_color_"):  # an affine map: products and sums, no float division at all
+        assert not re.search(r"\b(div|rcp)\.[a-z.]*f32", kernel.asm["ptx"])
 
 
 def _compile_sm90(name: str) -> Any:
-    """Kernel ``name`` compiled for sm_90 with the launch settings it runs with (Triton ships ptxas)."""
+    """Kernel ``name`` compiled for sm_90 with the launch settings it runs with (Triton ships ptxas);
+    ``_color_affine`` as the forward on contiguous planes runs it, ``_color_affine:strided`` as the backward
+    on a strided gradient."""
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
+    name, _, variant = name.partition(":")
     fn = getattr(_triton_jo, name)
     signature = {a: "*fp32" if a.endswith("_ptr") else "i32" for a in fn.arg_names}
-    signature["BN"] = "constexpr"
-    prefix = "DS_" if "_ds_" in name else "FLOAT_" if "_float_" in name else ""
-    bn, warps = (getattr(_triton_jo, prefix + k) for k in ("BLOCKS_PER_PROGRAM", "WARPS"))
-    src = ASTSource(fn=fn, signature=signature, constexprs={"BN": bn})
+    if name == "_color_affine":
+        flat = variant != "strided"
+        constexprs = {"BLOCK": _triton_jo.COLOR_BLOCK, "FLAT": flat, "OFFSET": flat}
+        warps = _triton_jo.COLOR_WARPS
+    else:
+        prefix = "DS_" if "_ds_" in name else "FLOAT_" if "_float_" in name else ""
+        bn, warps = (getattr(_triton_jo, prefix + k) for k in ("BLOCKS_PER_PROGRAM", "WARPS"))
+        constexprs = {"BN": bn}
+    signature |= dict.fromkeys(constexprs, "constexpr")
+    src = ASTSource(fn=fn, signature=signature, constexprs=constexprs)
     return _triton_jo.triton.compile(src, target=GPUTarget("cuda", 90, 32), options={"num_warps": warps})
 
 

@@ -264,7 +264,7 @@ def target_for(view: TrainingView) -> torch.Tensor:
     return torch.tensor(ref_pillow_jpeg(img, j.luma_table, j.chroma_table, j.sampling), dtype=D)[None]
 
 
-SPEED_KEYS = ("compile", "cuda_graph", "cuda_graph_gc", "gc_kernel", "fused_jo")
+SPEED_KEYS = ("compile", "cuda_graph", "cuda_graph_gc", "gc_kernel", "fused_jo", "fused_color")
 
 
 def jsgs_options(**options: Any) -> dict[str, Any]:
@@ -607,8 +607,8 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
     assert settings["method_options"] == {"jpeg_mode": "float"}
     # what "auto" and the routes resolved to on this device
     resolved = {
-        "cuda_graph": False, "cuda_graph_gc": False, "gc_kernel": "torch", "gc_route": "deferred",
-        "jo_kernel": "torch", "jpeg_mode": "float",
+        "color_kernel": "torch", "cuda_graph": False, "cuda_graph_gc": False, "gc_kernel": "torch",
+        "gc_route": "deferred", "jo_kernel": "torch", "jpeg_mode": "float",
     }  # fmt: skip
     assert run_config["derived"]["method"] == resolved
     assert "--jpeg-mode float" in json.loads((run / "config.json").read_text())["command"]
