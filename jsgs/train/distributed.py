@@ -134,10 +134,14 @@ def start(world: World, use_cuda: bool) -> None:
                 "start at most that many processes per machine"
             )
         torch.cuda.set_device(world.local_rank)
+    # on CUDA the group is bound to this process's GPU (its barriers and collectives use it, and torch
+    # does not have to guess it)
+    device_id = torch.device("cuda", world.local_rank) if use_cuda else None
     try:
         dist.init_process_group(
-            backend="nccl" if use_cuda else "gloo", rank=world.rank, world_size=world.size, timeout=TIMEOUT
-        )
+            backend="nccl" if use_cuda else "gloo", rank=world.rank, world_size=world.size, timeout=TIMEOUT,
+            device_id=device_id,
+        )  # fmt: skip
     except (RuntimeError, ValueError) as e:
         raise JsgsError(f"cannot join the run's other processes ({_first_line(e)})") from None
 
@@ -249,15 +253,23 @@ def _dist() -> Any:
     return dist
 
 
+def _all_gather_tensor(out: Tensor, tensor: Tensor) -> None:
+    """Every process's ``tensor`` (of one size) into ``out``, concatenated by rank along the first dimension:
+    one collective (torch ≥ 2.13's ``all_gather_single``; ``all_gather_into_tensor`` before it)."""
+    dist = _dist()
+    gather_single = getattr(dist, "all_gather_single", None) or dist.all_gather_into_tensor
+    gather_single(out, tensor)
+
+
 def gather_sizes(world: World, n: int, device: torch.device) -> list[int]:
     """Every process's number of Gaussians, by rank."""
     if not world.enabled:
         return [n]
     mine = torch.tensor([n], dtype=torch.int64, device=device)
-    out = [torch.zeros_like(mine) for _ in range(world.size)]
+    out = mine.new_empty(world.size)
     with collective("the Gaussians' exchange"):
-        _dist().all_gather(out, mine)
-    return [int(t.item()) for t in out]
+        _all_gather_tensor(out, mine)
+    return out.tolist()  # one host read
 
 
 def gather_rows(world: World, tensors: Sequence[Tensor], sizes: Sequence[int]) -> list[Tensor]:
@@ -271,10 +283,12 @@ def gather_rows(world: World, tensors: Sequence[Tensor], sizes: Sequence[int]) -
     rows = max(sizes)
     if n < rows:
         flat = torch.cat([flat, flat.new_zeros(rows - n, flat.shape[1])])
-    out = [torch.empty_like(flat) for _ in range(world.size)]
+    out = flat.new_empty(world.size * rows, flat.shape[1])
     with collective("the Gaussians' exchange"):
-        _dist().all_gather(out, flat.contiguous())
-    full = torch.cat([o[:s] for o, s in zip(out, sizes, strict=True)])
+        _all_gather_tensor(out, flat.contiguous())
+    if rows * world.size != sum(sizes):  # the padding's rows out
+        out = torch.cat([o[:s] for o, s in zip(out.split(rows), sizes, strict=True)])
+    full = out
     parts = full.split(widths, dim=1)
     return [
         p.reshape(-1, *t.shape[1:]).to(t.dtype).contiguous() for p, t in zip(parts, tensors, strict=True)
@@ -312,47 +326,101 @@ def gather_gaussians(world: World, shard: torch.nn.ParameterDict, names: Sequenc
 
 def reduce_gradients(
     world: World, shard: Sequence[Tensor], rendered: bool, exchange: Exchange | None = None
-) -> int:
+) -> bool:
     """Each shard's gradient (``shard``: in the order of ``exchange.names``), the mean over the step's
-    ``world_size`` views; returns how many processes' views reached a Gaussian (``rendered``: this one's).
+    ``world_size`` views; returns whether some process's view reached a Gaussian (``rendered``: this
+    one's).
 
     With the torch ``exchange`` the gradients of the gathered set (one view's each) are summed over the
-    processes, with the count, in one all-reduce, and each process keeps its own rows (gloo has no
-    reduce-scatter: all-reduce, then slice); when no process rendered anything the gradients stay None, as
-    on one process. Without it (gsplat's ``distributed=True`` rasterisation, where every process runs the
-    backward: its all-to-all is a collective) the shards' gradients already hold every view's
-    contribution, summed by gsplat's all-to-all backward: they are divided, and nothing travels."""
+    processes, with the count of the views that rendered, in one all-reduce, and each process keeps its own
+    rows (gloo has no reduce-scatter: all-reduce, then slice); when no process rendered anything the
+    gradients stay None, as on one process. The count is read on the host (a wait for the all-reduce) only
+    by a process whose own view rendered nothing: one whose view did knows the count is not 0. Without it
+    (gsplat's ``distributed=True`` rasterisation, where every process runs the backward: its all-to-all is
+    a collective) the shards' gradients already hold every view's contribution, summed by gsplat's
+    all-to-all backward: they are divided, and nothing travels."""
     if not world.enabled:
-        return int(rendered)
+        return rendered
     if exchange is None:
         for p in shard:
             if p.grad is not None:
                 p.grad.div_(world.size)
-        return world.size
+        return True
     full = [exchange.params[n] for n in exchange.names]
     flat = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1).float() for p in full]
     count = torch.full((1,), float(rendered), device=shard[0].device)
     buf = torch.cat([*flat, count])
     with collective("the gradient all-reduce"):
         _dist().all_reduce(buf)
-    n_rendered = int(round(buf[-1].item()))
-    if n_rendered == 0:
+    if not rendered and int(round(buf[-1].item())) == 0:
         for p in shard:
             p.grad = None
-        return 0
+        return False
     start, stop = exchange.rows
     offset = 0
     for p, q in zip(full, shard, strict=True):
         g = buf[offset : offset + p.numel()].view_as(p)
         q.grad = (g[start:stop] / world.size).to(q.dtype).contiguous()
         offset += p.numel()
-    return n_rendered
+    return True
 
 
 def stop_request(signals: Sequence[str | None]) -> str | None:
     """The stop every process makes after this step: the first signal some process received ("SIGTERM to
     rank 1", from every process's ``signals`` by rank, which every process gathers), else None."""
     return next((f"{s} to rank {r}" for r, s in enumerate(signals) if s is not None), None)
+
+
+class StepGather:
+    """Every process's values of a step on every process (the logged values, the finiteness norms, the stop
+    signals, the shard sizes): one all-gather of a fixed-size float64 row per process, on the step's device
+    (NCCL gathers on the GPU; the host reads the result once, which is the step's one host read), no pickling.
+
+    A row is ``[layout, length, *host values, *device values, padding]``. ``layout`` (a hashable, picklable
+    description of what the values are, e.g. their names) travels as its index in a table every process
+    holds alike; a layout not in it yet (the first step, a process whose view logs another statistic) is
+    sent once, by an object gather that every process makes in the same step, seeing the same rows. The
+    row's length grows (for every process alike, with a second all-gather in that step) when a process's
+    values outgrow it. float64 holds float32 values and integers below 2**53 exactly."""
+
+    def __init__(self, world: World, capacity: int = 64) -> None:
+        self.world = world
+        self.capacity = capacity
+        self.layouts: dict[Any, int] = {}  # the same on every process: extended only after a collective
+        self.table: list[Any] = []
+
+    def __call__(
+        self, layout: Any, host: Sequence[float], values: Tensor
+    ) -> list[tuple[Any, list[float]]]:
+        """Every process's (layout, host values followed by ``values``), by rank."""
+        index = self.layouts.get(layout, -1)
+        values = values.detach().reshape(-1).to(torch.float64)
+        length = len(host) + values.numel()
+        head = torch.tensor([float(index), float(length), *host], dtype=torch.float64, device=values.device)
+        rows = self._gather(torch.cat([head, values]))
+        longest = max(int(r[1]) for r in rows)
+        if longest > self.capacity:  # every process sees it: all of them gather again, longer
+            self.capacity = longest
+            rows = self._gather(torch.cat([head, values]))
+        if any(r[0] < 0 for r in rows):
+            layouts = gather(self.world, layout)
+            for lay in layouts:
+                if lay not in self.layouts:
+                    self.layouts[lay] = len(self.table)
+                    self.table.append(lay)
+        else:
+            layouts = [self.table[int(r[0])] for r in rows]
+        return [(lay, r[2 : 2 + int(r[1])]) for lay, r in zip(layouts, rows, strict=True)]
+
+    def _gather(self, row: Tensor) -> list[list[float]]:
+        width = 2 + self.capacity
+        row = row[:width]
+        if row.numel() < width:
+            row = torch.cat([row, row.new_zeros(width - row.numel())])
+        out = row.new_empty(self.world.size * width)
+        with collective("a training step"):
+            _all_gather_tensor(out, row)
+        return out.view(self.world.size, width).tolist()
 
 
 def share_strategy_statistics(

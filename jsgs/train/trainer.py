@@ -484,6 +484,8 @@ class Trainer:
         self.sizes: list[int] = []  # every process's number of Gaussians (as of the last step)
         self._signal: str | None = None
         self._stop_everywhere: str | None = None
+        self._step_gather: dd.StepGather | None = None  # several processes: the step's values, shared
+        self._view_names: dict[int, str] = {}
 
     # -- events ---------------------------------------------------------------------------------------
     def fire(self, event: str, *args: Any) -> None:
@@ -976,22 +978,18 @@ class Trainer:
                 o.step()
                 o.zero_grad(set_to_none=True)
             self.scheduler.step()
-        packed_vals = packed.tolist()
-        term_v = packed_vals[1 : 1 + len(names)]
-        # Summed from the term values read *after* the backward: a method may fill a term's value during
-        # the backward (JSGS's deferred L_fro), which the pre-backward total cannot include.
-        loss_v = packed_vals[0] if self.hook is None else _weighted_sum(names, term_v, weights)
-        stat_v = packed_vals[1 + len(names) : 1 + len(names) + len(stats)]
-        norm_v = packed_vals[1 + len(names) + len(stats) :]
-        grad_v, param_v = norm_v[: len(grad_names)], norm_v[len(grad_names) :]
-        views = [(view.name, loss_v, term_v, stats)]
         if self.world.enabled:  # every process's values on every process: all of them stop alike on a NaN
-            views = self._gather_step_values(
-                step, view.name, names, loss_v, term_v, stats, stat_v, grad_names, grad_v, param_v
+            views = self._gather_step_values(step, view, names, weights, stats, grad_names, packed)
+            _, loss_v, term_v, logged = views[self.world.rank]
+            stat_v = list(logged.values())
+        else:
+            loss_v, term_v, stat_v, grad_v, param_v = self._read_step_values(
+                packed.tolist(), names, weights, len(stats), len(grad_names)
             )
-        _finite_check(
-            step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_v, param_v, self.last_checkpoint
-        )
+            _finite_check(
+                step, [*names, "loss"], [*term_v, loss_v], grad_names, grad_v, param_v, self.last_checkpoint
+            )
+            views = [(view.name, loss_v, term_v, stats)]
         with profiler.phase("densify"):
             if not empty:  # the strategies read the screen-space gradients this step does not have
                 self.strategy.step_post_backward(
@@ -1099,7 +1097,7 @@ class Trainer:
                 )
             # the mean over the step's views of each Gaussian's gradient, on its owner
             params = [self.splats[n] for n in PARAM_NAMES]
-            empty = dd.reduce_gradients(self.world, params, not empty, self._exchange) == 0
+            empty = not dd.reduce_gradients(self.world, params, not empty, self._exchange)
         return empty
 
     def _pack_step_values(
@@ -1132,26 +1130,56 @@ class Trainer:
         )
         return grad_names, packed
 
+    def _read_step_values(
+        self, values: list[float], names: list[str], weights: dict[str, float], n_stats: int, n_grads: int
+    ) -> tuple[float, list[float], list[float], list[float], list[float]]:
+        """One process's loss, terms, statistics, gradient norms and parameter norms from its
+        :meth:`_pack_step_values` read on the host (``weights``: its loss's)."""
+        term_v = values[1 : 1 + len(names)]
+        # Summed from the term values read *after* the backward: a method may fill a term's value during
+        # the backward (JSGS's deferred L_fro), which the pre-backward total cannot include.
+        loss_v = values[0] if self.hook is None else _weighted_sum(names, term_v, weights)
+        stat_v = values[1 + len(names) : 1 + len(names) + n_stats]
+        norm_v = values[1 + len(names) + n_stats :]
+        return loss_v, term_v, stat_v, norm_v[:n_grads], norm_v[n_grads:]
+
     def _gather_step_values(
-        self, step: int, view_name: str, names: list[str], loss_v: float, term_v: list[float],
-        stats: dict[str, Any], stat_v: list[float], grad_names: list[str], grad_v: list[float],
-        param_v: list[float],
-    ) -> list[tuple[Any, ...]]:  # fmt: skip
-        """Several processes: every process's logged values on every process, each checked for NaN/Inf (all
+        self, step: int, view: TrainingView, names: list[str], weights: dict[str, float],
+        stats: dict[str, Any], grad_names: list[str], packed: Tensor,
+    ) -> list[tuple[str, float, list[float], dict[str, float]]]:  # fmt: skip
+        """Several processes: every process's logged values on every process (``packed``, each process's
+        :meth:`_pack_step_values`, with its view, loss weights, stop signal and Gaussian count: one
+        all-gather of a tensor, :class:`jsgs.train.distributed.StepGather`), each checked for NaN/Inf (all
         of them stop alike), a stop signal that reached any of them shared, every process's Gaussian count
         noted; each process's (view name, loss, terms, stats)."""
-        splats = self.splats
-        logged = dict(zip(stats, stat_v, strict=True))
-        n_own = int(splats["means"].shape[0])
-        mine = (view_name, loss_v, term_v, logged, grad_names, grad_v, param_v, n_own, self._signal)
-        everyone = dd.gather(self.world, mine)
+        import signal
+
+        if self._step_gather is None:
+            self._step_gather = dd.StepGather(self.world)
+            self._view_names = {v.index: v.name for v in self.train_views}
+        layout = (tuple(names), tuple(stats), tuple(grad_names))
+        code = signal.Signals[self._signal].value if self._signal is not None else 0
+        host = [float(view.index), float(code), float(self.splats["means"].shape[0])]
+        host += [float(weights.get(n, 0.0)) for n in names]
+        everyone = []
+        for (v_names, v_stats, v_grads), row in self._step_gather(layout, host, packed):
+            v_names = list(v_names)
+            n_host = 3 + len(v_names)
+            v_weights = dict(zip(v_names, row[3:n_host], strict=True))
+            values = self._read_step_values(row[n_host:], v_names, v_weights, len(v_stats), len(v_grads))
+            everyone.append((row[:3], v_names, v_stats, v_grads, values))
         # a signal reached some process: all of them stop after this same step
-        self._stop_everywhere = dd.stop_request([v[8] for v in everyone])
-        for _, v_loss, v_terms, _, g_names, g_v, p_v, _, _ in everyone:
+        self._stop_everywhere = dd.stop_request(
+            [signal.Signals(int(h[1])).name if h[1] else None for h, *_ in everyone]
+        )
+        for _, v_names, _, v_grads, (v_loss, v_terms, _, g_v, p_v) in everyone:
             v_values = [*v_terms, v_loss]
-            _finite_check(step, [*names, "loss"], v_values, g_names, g_v, p_v, self.last_checkpoint)
-        self.sizes = [v[7] for v in everyone]
-        return [v[:4] for v in everyone]
+            _finite_check(step, [*v_names, "loss"], v_values, list(v_grads), g_v, p_v, self.last_checkpoint)
+        self.sizes = [int(h[2]) for h, *_ in everyone]
+        return [
+            (self._view_names[int(h[0])], v_loss, v_terms, dict(zip(v_stats, v_stat, strict=True)))
+            for h, _, v_stats, _, (v_loss, v_terms, v_stat, _, _) in everyone
+        ]
 
     def training_seconds(self) -> float:
         """Seconds spent training so far, the step in progress included (evaluations and checkpoints do not

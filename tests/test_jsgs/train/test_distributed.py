@@ -294,7 +294,7 @@ def _reductions_worker(rank: int, store: str) -> None:
     assert ex.sizes == [16, 15] and ex.rows == ((0, 16) if rank == 0 else (16, 31))
     one_view(ex.params, shared, state, rank)
     params = [shard[n] for n in PARAM_NAMES]
-    assert dd.reduce_gradients(world, params, True, ex) == 2
+    assert dd.reduce_gradients(world, params, True, ex)
     mine = {"grads": [p.grad for p in params], "state": {k: state[k] for k in ("grad2d", "count", "radii")}}
     parts = dd.gather_to_main(world, mine)
     if rank == 0:  # both views on one process, every Gaussian in the gathered order
@@ -318,6 +318,29 @@ def _reductions_worker(rank: int, store: str) -> None:
         for key in ("grad2d", "count", "radii"):
             got = torch.cat([parts[0]["state"][key], parts[1]["state"][key]])
             assert torch.allclose(got, ref[key], rtol=1e-5, atol=1e-9), key
+    # a step where only rank 0's view rendered keeps the gradients everywhere; one where none did, none
+    for rendered, anywhere in ((rank == 0, True), (False, False)):
+        ex = dd.gather_gaussians(world, shard, PARAM_NAMES)
+        if rendered:
+            ex.params["means"].sum().backward()
+        for p in params:
+            p.grad = None
+        assert dd.reduce_gradients(world, params, rendered, ex) is anywhere
+        assert all((p.grad is not None) is anywhere for p in params)
+    # the step's values: one all-gather of a tensor; a layout not seen before sent once as an object, a row
+    # longer than the capacity gathered again, longer, on both processes
+    sent: list = []
+    object_gather = dd.gather
+    dd.gather = lambda w, obj: sent.append(obj) or object_gather(w, obj)  # type: ignore[assignment]
+    values = dd.StepGather(world, capacity=4)
+    lay = ("a",) if rank == 0 else ("b", "c")
+    for n in (3, 3, 6 * rank + 1):
+        got = values(lay, [float(rank)], torch.arange(float(n)) + 10 * rank)
+        assert got[rank] == (lay, [float(rank), *(torch.arange(float(n)) + 10 * rank).tolist()])
+        assert got[1 - rank][0] == (("a",) if rank == 1 else ("b", "c"))
+    assert sent == [lay] and values.capacity == 8 and values.table == [("a",), ("b", "c")]
+    assert got[0][1] == [0.0, 0.0] and got[1][1] == [1.0, *range(10, 17)]
+    dd.gather = object_gather  # type: ignore[assignment]
     # both processes leave together, then skip the interpreter's teardown: with gloo's threads alive a
     # process aborts there now and then ("terminate called without an active exception": 3 in 45 runs on 2
     # cores, with or without destroy_process_group; none in 25 runs that leave this way)
