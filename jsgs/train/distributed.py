@@ -30,8 +30,9 @@ How a step is shared (gsplat's simple_trainer with ``world_size``):
   MCMCStrategy's global budget ``cap_max`` is split into shares (:func:`shard_cap`), each shard relocating
   and growing within its own, so the run's count never exceeds the budget;
 - the logged values, the finiteness of every process's terms, gradients and parameters and the stop signals
-  (Ctrl-C, SIGTERM) are gathered to every process once per step, after the optimizer's step is queued (a
-  NaN or a signal anywhere stops all of them alike, after the same step);
+  (Ctrl-C, SIGTERM) are gathered to every process once per step, after the optimizer's step is queued, in
+  one all-gather of a tensor (:class:`StepGather`; a NaN or a signal anywhere stops all of them alike, after
+  the same step);
 - rank 0 alone evaluates, writes the run folder (config.json, metrics.json, checkpoints, renders, PLY) and
   holds its lock: at each checkpoint point the shards (Gaussians, Adam moments, strategy sums, every
   process's generators) are gathered to it (:func:`merge_shards`) and written as one checkpoint in one
@@ -265,7 +266,7 @@ def gather_sizes(world: World, n: int, device: torch.device) -> list[int]:
     """Every process's number of Gaussians, by rank."""
     if not world.enabled:
         return [n]
-    mine = torch.tensor([n], dtype=torch.int64, device=device)
+    mine = torch.full((1,), n, dtype=torch.int64, device=device)  # a fill: no host-to-device copy, no wait
     out = mine.new_empty(world.size)
     with collective("the Gaussians' exchange"):
         _all_gather_tensor(out, mine)
@@ -389,14 +390,16 @@ class StepGather:
         self.layouts: dict[Any, int] = {}  # the same on every process: extended only after a collective
         self.table: list[Any] = []
 
-    def __call__(
-        self, layout: Any, host: Sequence[float], values: Tensor
-    ) -> list[tuple[Any, list[float]]]:
+    def __call__(self, layout: Any, host: Sequence[float], values: Tensor) -> list[tuple[Any, list[float]]]:
         """Every process's (layout, host values followed by ``values``), by rank."""
         index = self.layouts.get(layout, -1)
         values = values.detach().reshape(-1).to(torch.float64)
         length = len(host) + values.numel()
-        head = torch.tensor([float(index), float(length), *host], dtype=torch.float64, device=values.device)
+        # from pinned memory, without waiting: a blocking host-to-device copy waits for the device's queue
+        device = values.device
+        head = torch.tensor(
+            [float(index), float(length), *host], dtype=torch.float64, pin_memory=device.type == "cuda"
+        ).to(device, non_blocking=True)
         rows = self._gather(torch.cat([head, values]))
         longest = max(int(r[1]) for r in rows)
         if longest > self.capacity:  # every process sees it: all of them gather again, longer
