@@ -357,8 +357,8 @@ def _check_strategy(value: Any, fresh: Mapping[str, Any], n: int) -> None:
         if t is None:
             if v is not None:
                 v = _finite_tensor(v, where)
-                if v.dim() != 1 or v.shape[0] != n or not v.is_floating_point():
-                    raise _Bad(where, f"expected a float vector of the {n} Gaussians")
+                if v.dim() != 1 or v.shape[0] != n or v.dtype != torch.float32:
+                    raise _Bad(where, f"expected a float32 vector of the {n} Gaussians")
         else:
             _like(v, t, where)
 

@@ -109,6 +109,22 @@ def _read_as_resume_does(trainer: Trainer, path: Path) -> None:
     validate(trainer.metrics_doc("running", trainer.start_step + 1), "metrics", "metrics.json")
 
 
+def test_strategy_sums_of_another_dtype_are_one_line(resumable: tuple[Trainer, Path, dict[str, Any]]) -> None:
+    """DefaultStrategy's per-Gaussian sums in float64 (or int) are refused in one line, not passed on to
+    gsplat's ``index_add_`` (a RuntimeError traceback); the fuzz test above found the float64 case."""
+    trainer, path, doc = resumable
+    sums = [k for k, v in doc["strategy"].items() if isinstance(v, torch.Tensor) and v.dim() == 1]
+    assert sums, "the fixture's strategy has per-Gaussian sums"
+    for k in sums:
+        for cast in (torch.float64, torch.int64):
+            d = copy.deepcopy(doc)
+            d["strategy"][k] = d["strategy"][k].to(cast)
+            torch.save(d, path)
+            with pytest.raises(JsgsError, match=rf"strategy\.{k}: .*float32") as e:
+                _read_as_resume_does(trainer, path)
+            assert "\n" not in str(e.value)
+
+
 def test_the_unharmed_checkpoint_resumes(resumable: tuple[Trainer, Path, dict[str, Any]]) -> None:
     trainer, path, doc = resumable
     ckpt.save_checkpoint(path, {k: v for k, v in doc.items() if k not in ("format", "format_version")})
