@@ -43,7 +43,12 @@ SCHEDULE_HELP = (
     help="Multiplier on every texture's period (0.1..100; 4 gives detail a few hundred Gaussians can learn).",
 )
 @click.option(
-    "--force", is_flag=True, help="Replace images/ and sparse/ of an earlier synth in OUT (.jsgstools.json)."
+    "--force",
+    is_flag=True,
+    help=(
+        "Replace images/ and sparse/ of an earlier synth in OUT (.jsgstools.json) once the new ones are "
+        "complete."
+    ),
 )
 @user_errors
 def synth_cmd(
@@ -117,7 +122,10 @@ def synth_cmd(
 @click.option(
     "--force",
     is_flag=True,
-    help="Replace the outputs of an earlier compress in DIR (its .jsgstools.json); other files are kept.",
+    help=(
+        "Replace the outputs of an earlier compress in DIR (its .jsgstools.json) once the new ones are "
+        "complete; other files are kept."
+    ),
 )
 @click.option("--jobs", type=WORKERS, default=None, help="Worker processes [default: all cores].")
 @click.option(
@@ -322,7 +330,12 @@ def manifest_cmd(scene: Path, out: Path, test_every: int | None, analyze: bool, 
     help="Divide width and height by this.",
 )  # fmt: skip
 @click.option(
-    "--force", is_flag=True, help="Replace the outputs of an earlier downscale in DIR (its .jsgstools.json)."
+    "--force",
+    is_flag=True,
+    help=(
+        "Replace the outputs of an earlier downscale in DIR (its .jsgstools.json) once the new ones are "
+        "complete."
+    ),
 )
 @user_errors
 def downscale_cmd(scene: Path, out: Path, factor: str, force: bool) -> None:

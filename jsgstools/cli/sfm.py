@@ -37,7 +37,11 @@ _THREADS, _SEED = click.IntRange(-1, 4096), click.IntRange(0, 2**31 - 1)
 @click.option("--threads", type=_THREADS, default=-1, help="CPU threads [default: all cores].")
 @click.option("--link", is_flag=True, help="Hard-link the photos into SCENE/images instead of copying them.")
 @click.option("--seed", type=_SEED, default=0, show_default=True, help="Seed of the mapper.")
-@click.option("--force", is_flag=True, help="Replace an earlier sfm output in SCENE (its .jsgstools.json).")
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Replace an earlier sfm output in SCENE (its .jsgstools.json) once the new one is complete.",
+)
 @user_errors
 def sfm_command(
     photos: Path, out: Path, matcher: str, camera_model: str, per_photo: bool, max_image_size: int,
