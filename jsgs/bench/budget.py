@@ -242,7 +242,7 @@ class BudgetReport:
         return _table(header, body, 4) if body else ["No budget has both gsplat and JSGS runs."]
 
     def targets(self) -> list[str]:
-        """Per budget: the issue's targets over every scene × schedule × seed pair, met or not."""
+        """Per budget: the project's targets over every scene × schedule × seed pair, met or not."""
         budgets = sorted({b for _, _, b in self.keys}, key=order)
         header = [
             "Budget", "pairs", "LPIPS lower (target ≥ 90 %)", "mean ΔLPIPS % (target ≤ −25 %)",
