@@ -157,6 +157,20 @@ def _code_planes(
     return unblockify(luma_d.reshape(luma_b.shape)), unblockify(chroma_d.reshape(chroma_b.shape))
 
 
+def _check_arguments(rgb: Tensor, sampling: str, mode: str, kernel: str, color_kernel: str) -> None:
+    """:func:`jpeg_observe`'s argument checks (ValueError naming the argument)."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if sampling not in SAMPLING_FACTORS:
+        raise ValueError(f"sampling must be one of {tuple(SAMPLING_FACTORS)}, got {sampling!r}")
+    if kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    if color_kernel not in KERNELS:
+        raise ValueError(f"color_kernel must be one of {KERNELS}, got {color_kernel!r}")
+    if rgb.dim() != 4 or rgb.shape[1] != 3:
+        raise ValueError(f"rgb must be (B, 3, H, W), got {tuple(rgb.shape)}")
+
+
 def jpeg_observe(
     rgb: Tensor,
     luma_table: Tensor | np.ndarray,
@@ -190,16 +204,7 @@ def jpeg_observe(
         values are exactly ``k / 255`` for integers k; in "exact" k equals libjpeg-turbo's decode of
         libjpeg-turbo's encode.
     """
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    if sampling not in SAMPLING_FACTORS:
-        raise ValueError(f"sampling must be one of {tuple(SAMPLING_FACTORS)}, got {sampling!r}")
-    if kernel not in KERNELS:
-        raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
-    if color_kernel not in KERNELS:
-        raise ValueError(f"color_kernel must be one of {KERNELS}, got {color_kernel!r}")
-    if rgb.dim() != 4 or rgb.shape[1] != 3:
-        raise ValueError(f"rgb must be (B, 3, H, W), got {tuple(rgb.shape)}")
+    _check_arguments(rgb, sampling, mode, kernel, color_kernel)
     if not rgb.is_floating_point():
         rgb = rgb.float()
     fused = kernel == "triton" and mode != "exact"
