@@ -23,7 +23,8 @@ How a step is shared (gsplat's simple_trainer with ``world_size``):
   the step's views and the learning rates follow gsplat's batch rule for ``world_size`` views;
 - per-Gaussian statistics reach the owner: DefaultStrategy's screen-space gradient sums, counts and radii
   (gsplat's projection runs on the owner, for every process's camera: :func:`per_camera_statistics`; the
-  torch exchange reduces them, :func:`share_strategy_statistics`)
+  torch exchange sums them in the gradients' all-reduce, the radii's maximum in one of its own:
+  :func:`share_strategy_statistics`)
   and the Gaussian Controller's (it runs on the view's process, over the gathered Gaussians, and its
   gradients travel back with the others);
 - the strategies run per shard: DefaultStrategy densifies and prunes each shard on its own statistics;
@@ -326,15 +327,21 @@ def gather_gaussians(world: World, shard: torch.nn.ParameterDict, names: Sequenc
 
 
 def reduce_gradients(
-    world: World, shard: Sequence[Tensor], rendered: bool, exchange: Exchange | None = None
+    world: World,
+    shard: Sequence[Tensor],
+    rendered: bool,
+    exchange: Exchange | None = None,
+    also: Tensor | None = None,
 ) -> bool:
     """Each shard's gradient (``shard``: in the order of ``exchange.names``), the mean over the step's
     ``world_size`` views; returns whether some process's view reached a Gaussian (``rendered``: this
     one's).
 
     With the torch ``exchange`` the gradients of the gathered set (one view's each) are summed over the
-    processes, with the count of the views that rendered, in one all-reduce, and each process keeps its own
-    rows (gloo has no reduce-scatter: all-reduce, then slice); when no process rendered anything the
+    processes, with the count of the views that rendered and ``also`` (a float32 tensor of the step, summed
+    in place: the strategy's statistics, :func:`share_strategy_statistics`), in one all-reduce, and each
+    process keeps its own rows (gloo has no reduce-scatter: all-reduce, then slice); when no process
+    rendered anything the
     gradients stay None, as on one process. The count is read on the host (a wait for the all-reduce) only
     by a process whose own view rendered nothing: one whose view did knows the count is not 0. Without it
     (gsplat's ``distributed=True`` rasterisation, where every process runs the backward: its all-to-all is
@@ -350,9 +357,13 @@ def reduce_gradients(
     full = [exchange.params[n] for n in exchange.names]
     flat = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1).float() for p in full]
     count = torch.full((1,), float(rendered), device=shard[0].device)
-    buf = torch.cat([*flat, count])
+    riders = [] if also is None else [also.reshape(-1)]
+    buf = torch.cat([*flat, *riders, count])
     with collective("the gradient all-reduce"):
         _dist().all_reduce(buf)
+    if also is not None:
+        end = buf.numel() - 1
+        also.copy_(buf[end - also.numel() : end].view_as(also))
     if not rendered and int(round(buf[-1].item())) == 0:
         for p in shard:
             p.grad = None
@@ -428,33 +439,57 @@ class StepGather:
 
 def share_strategy_statistics(
     strategy: Any, world: World, rows: Callable[[], tuple[int, int]]
-) -> None:
+) -> Callable[[dict[str, Any], bool, int], Tensor | None]:
     """The torch exchange: DefaultStrategy's per-Gaussian statistics of the step's views, kept by the
     Gaussians' owners. Each process computes its view's contributions as gsplat does, over the gathered set
     (``info`` of the whole set), into a fresh state; they are summed (radii: the maximum) over the
     processes and each process adds its own rows (``rows()``, this step's) to its running state. (gsplat's
     ``distributed=True`` needs none of this: its projection, whose screen-space gradients the strategy
-    reads, runs on the owner; :func:`per_camera_statistics`.) MCMCStrategy keeps no per-view statistics."""
+    reads, runs on the owner; :func:`per_camera_statistics`.) MCMCStrategy keeps no per-view statistics.
+
+    Returns ``fold(info, packed, step)``: called after the step's backward, it computes the view's sums and
+    counts and returns them (None in a step where the strategy reads none) for :func:`reduce_gradients`'
+    ``also``, which sums them with the gradients in the same all-reduce; the strategy's update of that
+    ``info`` then reads them instead of making an all-reduce of its own (the radii's maximum still does)."""
     if not world.enabled or strategy.type != "default":
-        return
+        return lambda info, packed, step: None
     gs = strategy.gsplat
     own_update = gs._update_state
+    folded: dict[str, Any] = {}  # the step's info, its fresh statistics and their sums
 
-    def update_state(params: Any, state: dict[str, Any], info: dict[str, Any], packed: bool = False) -> None:
-        dist = _dist()
+    def fresh_statistics(info: dict[str, Any], packed: bool) -> tuple[dict[str, Any], Tensor]:
         n_full = int(info["means2d"].shape[-2])
-        device = info["means2d"].device
         fresh: dict[str, Any] = {"grad2d": None, "count": None, "radii": None}
         grad_key = info.get(gs.key_for_gradient)
         if grad_key is not None and grad_key.grad is not None:
             own_update({"means": torch.empty(n_full, 0)}, fresh, info, packed=packed)
-        zeros = torch.zeros(n_full, device=device)
+        zeros = torch.zeros(n_full, device=info["means2d"].device)
+        if fresh["radii"] is None:
+            fresh["radii"] = zeros.clone()
         sums = torch.stack([
             fresh["grad2d"] if fresh["grad2d"] is not None else zeros,
             fresh["count"] if fresh["count"] is not None else zeros,
         ])  # fmt: skip
-        with collective("the strategy's statistics"):
-            dist.all_reduce(sums)
+        return fresh, sums
+
+    def fold(info: dict[str, Any], packed: bool, step: int) -> Tensor | None:
+        folded.clear()
+        if step >= gs.refine_stop_iter:  # (the strategy updates nothing: gsplat's step_post_backward)
+            return None
+        fresh, sums = fresh_statistics(info, packed)
+        folded.update(info=info, fresh=fresh, sums=sums)
+        return sums
+
+    def update_state(params: Any, state: dict[str, Any], info: dict[str, Any], packed: bool = False) -> None:
+        dist = _dist()
+        if folded.get("info") is info:  # summed with the step's gradients
+            fresh, sums = folded["fresh"], folded["sums"]
+            folded.clear()
+        else:
+            fresh, sums = fresh_statistics(info, packed)
+            with collective("the strategy's statistics"):
+                dist.all_reduce(sums)
+        device = sums.device
         start, stop = rows()
         n = stop - start
         for i, key in enumerate(("grad2d", "count")):
@@ -462,7 +497,7 @@ def share_strategy_statistics(
                 state[key] = torch.zeros(n, device=device)
             state[key] += sums[i, start:stop]
         if gs.refine_scale2d_stop_iter > 0:
-            radii = fresh["radii"] if fresh["radii"] is not None else zeros.clone()
+            radii = fresh["radii"]
             with collective("the strategy's statistics"):
                 dist.all_reduce(radii, op=dist.ReduceOp.MAX)
             if state["radii"] is None:
@@ -470,6 +505,7 @@ def share_strategy_statistics(
             state["radii"] = torch.maximum(state["radii"], radii[start:stop])
 
     gs._update_state = update_state
+    return fold
 
 
 class _Grad:

@@ -480,6 +480,8 @@ class Trainer:
         #: distributed rasterisation) or "torch" (gathered; jsgs.train.distributed)
         self.exchange = "none"
         self._exchange: dd.Exchange | None = None
+        #: the torch exchange: the step's strategy statistics for the gradients' all-reduce (distributed.py)
+        self._fold_statistics: Callable[[dict[str, Any], int], Tensor | None] | None = None
         self._gathered: dict[str, Any] | None = None  # the shards gathered on rank 0 at a checkpoint point
         self.sizes: list[int] = []  # every process's number of Gaussians (as of the last step)
         self._signal: str | None = None
@@ -651,7 +653,8 @@ class Trainer:
         self.strategy = Densifier(cfg.strategy)
         self.exchange = self._exchange_kind(cfg)
         if self.exchange == "torch":
-            dd.share_strategy_statistics(self.strategy, self.world, lambda: self._exchange_rows())
+            fold = dd.share_strategy_statistics(self.strategy, self.world, lambda: self._exchange_rows())
+            self._fold_statistics = lambda info, step: fold(info, cfg.render.packed, step)
         elif self.exchange == "gsplat":
             dd.per_camera_statistics(self.strategy, self.world)
         sizes = {(v.width, v.height) for v in self.train_views}
@@ -970,7 +973,7 @@ class Trainer:
                 )
                 stats, folded, folded_loss = self._hook_terms(ctx, cfg, terms, weights)
         loss = weighted_loss(terms, weights, folded, folded_loss)
-        empty = self._backward(step, view, loss, stats)
+        empty = self._backward(step, view, loss, stats, r.info)
         names = list(terms)
         grad_names, packed = self._pack_step_values(loss, terms, names, stats)
         with profiler.phase("optimizer"):
@@ -1071,10 +1074,13 @@ class Trainer:
             weights["photometric"] *= hout.base_scale
         return dict(hout.stats), hout.folded, hout.folded_loss
 
-    def _backward(self, step: int, view: TrainingView, loss: Tensor, stats: dict[str, Any]) -> bool:
+    def _backward(
+        self, step: int, view: TrainingView, loss: Tensor, stats: dict[str, Any], info: dict[str, Any]
+    ) -> bool:
         """The backward of ``loss`` (on several processes, each Gaussian's gradient then averaged over the
-        step's views on its owner); whether no gradient reached any Gaussian (an empty view: counted in
-        ``stats``, noted once per view)."""
+        step's views on its owner, with the strategy's statistics of ``info`` in the same all-reduce);
+        whether no gradient reached any Gaussian (an empty view: counted in ``stats``, noted once per
+        view)."""
         # a view that sees no Gaussian (a camera looking away, everything culled) renders a constant: no
         # gradient reaches any parameter, so the step only logs itself
         empty = not loss.requires_grad
@@ -1097,7 +1103,9 @@ class Trainer:
                 )
             # the mean over the step's views of each Gaussian's gradient, on its owner
             params = [self.splats[n] for n in PARAM_NAMES]
-            empty = not dd.reduce_gradients(self.world, params, not empty, self._exchange)
+            fold = self._fold_statistics
+            also = fold(info, step) if fold is not None else None
+            empty = not dd.reduce_gradients(self.world, params, not empty, self._exchange, also)
         return empty
 
     def _pack_step_values(
