@@ -122,7 +122,7 @@ def build_manifest(
     ``test_every``: None = the compress record's value, or 8 for a scene without one; a value that contradicts
     the record is an error (the split of a compressed scene is fixed: its test views were not compressed).
     ``producer``: given by ``compress``; otherwise this tool's own."""
-    from .validate import orientation_warning, require_valid
+    from .validate import orientation_warning, require_valid, world_warning
 
     scene_dir, out = Path(scene_dir), Path(out)
     record = read_record(scene_dir)
@@ -130,8 +130,9 @@ def build_manifest(
     report = require_valid(scene_dir, allow=("camera_model",))
     scene = report.scene
     assert scene is not None
-    if say is not None and (w := orientation_warning(scene)) is not None:
-        say(w)
+    for w in (orientation_warning(scene), world_warning(scene)):
+        if say is not None and w is not None:
+            say(w)
     base = out.parent
     test_every, split = _split(scene_dir, scene, record, test_every)
     views = [_view_doc(scene, v, scene_dir, base, split[v.name], analyze) for v in scene.views]

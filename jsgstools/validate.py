@@ -19,7 +19,8 @@ encoding, ``manifest`` records the distortion as is, and the trainer renders SIM
 views on the photos' own grid;
 images in the model without a pose (ignored by every tool); a camera that sees none of the points3D; image
 files the model does not use (photos SfM could not register); other models under ``sparse/``; all cameras at
-one position (the trainer then needs ``scene.normalize_world`` false).
+one position, or whose up directions cancel out, or most of which sit at their common focus point
+(:func:`jsgs.base.world.normalization_refusal`; the trainer then needs ``scene.normalize_world`` false).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ import numpy as np
 
 from jsgs.base.errors import JsgsError
 from jsgs.base.limits import COINCIDENT_CAMERAS, MAX_COORDINATE
+from jsgs.base.world import normalization_refusal
 
 from .scene import (
     JPEG_FORMATS,
@@ -238,7 +240,7 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
     if analyze:
         report.warnings += _double_compression_warnings(scene)
     report.warnings += _left_out_warnings(scene)
-    if (w := _coincident_cameras_warning(scene)) is not None:
+    if (w := world_warning(scene)) is not None:
         report.warnings.append(w)
     _check_points(scene, report)
     return report
@@ -406,6 +408,12 @@ def _left_out_warnings(scene: ColmapScene) -> list[str]:
     return out
 
 
+def world_warning(scene: ColmapScene) -> str | None:
+    """Cameras that the trainer's world normalisation refuses (at one position, up directions that cancel
+    out, most at their focus point), in one line naming the model, else None."""
+    return _coincident_cameras_warning(scene) or _normalization_warning(scene)
+
+
 def _coincident_cameras_warning(scene: ColmapScene) -> str | None:
     """Cameras at one position: the trainer's world normalisation has no extent to scale by."""
     centres = [-v.R.T @ v.t for v in scene.views if finite(v.R) and _in_range(v.t)]
@@ -418,6 +426,23 @@ def _coincident_cameras_warning(scene: ColmapScene) -> str | None:
                 "the scene unless scene.normalize_world is false"
             )
     return None
+
+
+def _normalization_warning(scene: ColmapScene) -> str | None:
+    """Cameras that leave the trainer's world normalisation undefined (up directions that cancel out, most
+    cameras at their focus point): the reason the trainer gives, for the poses it would compute."""
+    w2c = [np.block([[v.R, v.t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]) for v in scene.views
+           if finite(v.R) and _in_range(v.t)]  # fmt: skip
+    if not w2c:
+        return None
+    with np.errstate(all="ignore"):
+        why = normalization_refusal(np.stack([np.linalg.inv(m) for m in w2c]))
+    if why is None:
+        return None
+    return (
+        f"{scene.rel(scene.model_dir)}: {why}: jsgs train refuses the scene unless scene.normalize_world is "
+        "false"
+    )
 
 
 def _check_points(scene: ColmapScene, report: ValidationReport) -> None:

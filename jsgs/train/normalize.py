@@ -13,52 +13,24 @@ from __future__ import annotations
 
 import numpy as np
 
+from jsgs.base.world import focus_offsets, normalization_refusal, up_alignment
+
 
 def similarity_from_cameras(c2w: np.ndarray, strict_scaling: bool = False) -> np.ndarray:
-    """Steps (1)-(3). c2w: N x 4 x 4 camera-to-world (OpenCV axes). Returns the 4x4 transform."""
-    t = c2w[:, :3, 3]
-    R = c2w[:, :3, :3]
-
-    ups = np.sum(R * np.array([0, -1.0, 0]), axis=-1)
-    world_up = np.mean(ups, axis=0)
-    norm = np.linalg.norm(world_up)
-    if not norm > 0:
-        raise ValueError("the cameras' up directions cancel out: their mean is zero")
-    world_up = world_up / norm
-
-    up_camspace = np.array([0.0, -1.0, 0.0])
-    c = (up_camspace * world_up).sum()
-    cross = np.cross(world_up, up_camspace)
-    skew = np.array(
-        [
-            [0.0, -cross[2], cross[1]],
-            [cross[2], 0.0, -cross[0]],
-            [-cross[1], cross[0], 0.0],
-        ]
-    )
-    if c > -1:
-        R_align = np.eye(3) + skew + (skew @ skew) * 1 / (1 + c)
-    else:  # the mean up is exactly camera +y: half a turn about x (gsplat's diag(-1, 1, 1) is a mirror)
-        R_align = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
-
-    R = R_align @ R
-    fwds = np.sum(R * np.array([0, 0.0, 1.0]), axis=-1)
-    t = (R_align @ t[..., None])[..., 0]
-
-    # gsplat's center_method="focus"
-    nearest = t + (fwds * -t).sum(-1)[:, None] * fwds
-    translate = -np.median(nearest, axis=0)
+    """Steps (1)-(3). c2w: N x 4 x 4 camera-to-world (OpenCV axes). Returns the 4x4 transform. ValueError
+    with :func:`jsgs.base.world.normalization_refusal`'s reason when the up or the scale is undefined."""
+    if (why := normalization_refusal(c2w, strict_scaling)) is not None:
+        raise ValueError(why)
+    R_align = up_alignment(c2w)
+    assert R_align is not None  # normalization_refusal said so
+    translate, offsets = focus_offsets(c2w, R_align)
 
     transform = np.eye(4)
     transform[:3, 3] = translate
     transform[:3, :3] = R_align
 
     scale_fn = np.max if strict_scaling else np.median
-    distance = scale_fn(np.linalg.norm(t + translate, axis=-1))
-    if not distance > 0:
-        how = "largest" if strict_scaling else "median"
-        raise ValueError(f"most cameras sit at their common focus point: their {how} distance from it is 0")
-    scale = 1.0 / distance
+    scale = 1.0 / scale_fn(np.linalg.norm(offsets, axis=-1))
     transform[:3, :] *= scale
     return transform
 

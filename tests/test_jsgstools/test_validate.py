@@ -131,6 +131,53 @@ def test_nan_pose(synth_scene: Path, tmp_path: Path) -> None:
     assert "image 'view_001.png' has a non-finite pose" in out
 
 
+def _cancelling_ups(i: int) -> tuple[np.ndarray, np.ndarray]:
+    R = np.diag([-1.0, -1.0, 1.0]) if i % 2 else np.eye(3)  # every other camera rolled by half a turn
+    return R, -R @ np.array([0.5 * i, 0.0, -4.0])
+
+
+def _most_on_focus(i: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.eye(3), np.array([0.0, 0.0, float(max(0, i - 7))])  # 8 of 12 at the origin, 4 behind it
+
+
+@pytest.mark.parametrize(
+    ("pose", "why"),
+    [(_cancelling_ups, "the cameras' up directions cancel out: their mean is zero"),
+     (_most_on_focus, "most cameras sit at their common focus point: their median distance from it is 0")],
+    ids=["cancelling ups", "most on focus"],
+)  # fmt: skip
+def test_cameras_the_normalisation_refuses_are_a_warning(
+    synth_scene: Path, tmp_path: Path, pose: Callable[[int], tuple[np.ndarray, np.ndarray]], why: str
+) -> None:
+    """validate and manifest warn with the trainer's own reason, which the trainer's normalisation gives for
+    the manifest's poses."""
+    import pycolmap
+
+    from jsgs.base.manifest import load_manifest
+    from jsgs.train.normalize import normalize_world
+
+    def edit(rec):  # type: ignore[no-untyped-def]
+        for i, iid in enumerate(sorted(rec.images)):
+            R, t = pose(i)
+            rec.frames[rec.images[iid].frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R), t)
+
+    code, out = _run(synth_scene)
+    assert code == 0 and "normalize_world" not in out, out
+    scene = _copy(synth_scene, tmp_path / "s")
+    _edit_model(scene, edit)
+    line = f"{scene / 'sparse' / '0'}: {why}: jsgs train refuses the scene unless scene.normalize_world is "
+    line += "false"
+    code, out = _run(scene)
+    assert code == 0 and f"warning: {line}" in out.splitlines() and "one position" not in out, out
+    r = CliRunner().invoke(main, ["manifest", str(scene), "--out", str(tmp_path / "m.json")])
+    assert r.exit_code == 0 and f"warning: {line}" in r.output.splitlines(), r.output
+    views = load_manifest(tmp_path / "m.json").views
+    c2w = np.stack([np.linalg.inv(v.world_to_camera) for v in views])
+    with pytest.raises(ValueError) as e:
+        normalize_world(c2w, np.zeros((0, 3)))
+    assert str(e.value) == why
+
+
 def test_duplicate_names(synth_scene: Path, tmp_path: Path) -> None:
     def edit(rec):  # type: ignore[no-untyped-def]
         rec.images[3].name = "view_001.png"
