@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from jsgs.base.errors import JsgsError
-from jsgs.base.limits import COINCIDENT_CAMERAS, MAX_COORDINATE
-from jsgs.base.world import normalization_refusal
+from jsgs.base.limits import MAX_COORDINATE
+from jsgs.base.world import cameras_coincide, normalization_refusal
 
 from .scene import (
     JPEG_FORMATS,
@@ -411,32 +411,18 @@ def _left_out_warnings(scene: ColmapScene) -> list[str]:
 def world_warning(scene: ColmapScene) -> str | None:
     """Cameras that the trainer's world normalisation refuses (at one position, up directions that cancel
     out, most at their focus point), in one line naming the model, else None."""
-    return _coincident_cameras_warning(scene) or _normalization_warning(scene)
-
-
-def _coincident_cameras_warning(scene: ColmapScene) -> str | None:
-    """Cameras at one position: the trainer's world normalisation has no extent to scale by."""
-    centres = [-v.R.T @ v.t for v in scene.views if finite(v.R) and _in_range(v.t)]
-    if len(centres) > 1:
-        c = np.array(centres)
-        spread = float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())
-        if spread <= COINCIDENT_CAMERAS * max(1.0, float(np.abs(c).max())):
-            return (
-                f"{scene.rel(scene.model_dir)}: all {len(c)} cameras are at one position: jsgs train refuses "
-                "the scene unless scene.normalize_world is false"
-            )
-    return None
-
-
-def _normalization_warning(scene: ColmapScene) -> str | None:
-    """Cameras that leave the trainer's world normalisation undefined (up directions that cancel out, most
-    cameras at their focus point): the reason the trainer gives, for the poses it would compute."""
     w2c = [np.block([[v.R, v.t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]) for v in scene.views
            if finite(v.R) and _in_range(v.t)]  # fmt: skip
     if not w2c:
         return None
     with np.errstate(all="ignore"):
-        why = normalization_refusal(np.stack([np.linalg.inv(m) for m in w2c]))
+        c2w = np.stack([np.linalg.inv(m) for m in w2c])  # the poses the trainer computes
+        if len(c2w) > 1 and cameras_coincide(c2w):
+            return (
+                f"{scene.rel(scene.model_dir)}: all {len(c2w)} cameras are at one position: jsgs train "
+                "refuses the scene unless scene.normalize_world is false"
+            )
+        why = normalization_refusal(c2w)
     if why is None:
         return None
     return (

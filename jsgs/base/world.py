@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from jsgs.base.limits import COINCIDENT_CAMERAS
+
 #: the cameras' mean up direction is zero: there is no "up" to rotate onto +z
 CANCELLING_UPS = "the cameras' up directions cancel out: their mean is zero"
 
@@ -66,3 +68,15 @@ def normalization_refusal(c2w: np.ndarray, strict_scaling: bool = False) -> str 
     if not distance > 0:
         return focus_refusal(strict_scaling)
     return None
+
+
+def camera_extent(c2w: np.ndarray) -> float:
+    """gsplat Parser.scene_scale: the largest distance of a camera centre from the centres' mean."""
+    centres = c2w[:, :3, 3]
+    return float(np.max(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
+
+
+def cameras_coincide(c2w: np.ndarray) -> bool:
+    """Every camera at one position (their extent within :data:`COINCIDENT_CAMERAS` of the coordinates'
+    size): the normalisation has no distance to scale by."""
+    return camera_extent(c2w) <= COINCIDENT_CAMERAS * max(1.0, float(np.abs(c2w[:, :3, 3]).max()))

@@ -21,10 +21,11 @@ from torch import Tensor
 
 from jsgs.base.camera import Camera
 from jsgs.base.errors import JsgsError
-from jsgs.base.limits import COINCIDENT_CAMERAS, MAX_POINT_DISTANCE, MIN_VIEW_SIDE
+from jsgs.base.limits import MAX_POINT_DISTANCE, MIN_VIEW_SIDE
 from jsgs.base.manifest import JpegState, Manifest, ManifestView
+from jsgs.base.world import camera_extent, cameras_coincide
 from jsgs.train.config import TrainConfig
-from jsgs.train.normalize import camera_extent, normalize_world
+from jsgs.train.normalize import normalize_world
 
 #: the distorted COLMAP camera models the trainer renders (reference rasterizer: OpenCV's radial-tangential)
 DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -172,7 +173,7 @@ def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Training
     c2w = np.stack([np.linalg.inv(v.world_to_camera) for v in manifest.views])
     centres = c2w[:, :3, 3]
     spread = camera_extent(c2w)
-    coincident = spread <= COINCIDENT_CAMERAS * max(1.0, float(np.abs(centres).max()))
+    coincident = cameras_coincide(c2w)
     if coincident and cfg.scene.normalize_world:
         at = ", ".join(f"{x:g}" for x in centres[0])
         raise JsgsError(

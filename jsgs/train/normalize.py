@@ -98,7 +98,3 @@ def normalize_world(camtoworlds: np.ndarray, points: np.ndarray) -> tuple[np.nda
     return camtoworlds, points, transform
 
 
-def camera_extent(camtoworlds: np.ndarray) -> float:
-    """gsplat Parser.scene_scale: the largest distance of a camera centre from the centres' mean."""
-    centres = camtoworlds[:, :3, 3]
-    return float(np.max(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
