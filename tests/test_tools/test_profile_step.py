@@ -41,10 +41,13 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
     assert header in printed
     assert "jsgs − gsplat: top 5 kernels by extra" in printed
     assert "jsgs: Python functions by self time (cProfile" in printed
+    assert "| syncs/step | peak allocated MiB | peak reserved MiB | #Gaussians |" in printed
+    assert "; peak memory: CUDA only" in printed
 
     doc = json.loads(out.read_text())
     validate(doc, "profile_step", str(out))
     assert doc["format"] == "jsgs-profile-step" and doc["steps"] == 2 and doc["warmup"] == 3
+    assert doc["format_version"] == 2
     res = doc["results"]
     assert list(res) == ["gsplat", "jsgs"]
     for r in res.values():
@@ -55,6 +58,9 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
         assert min(r["wall_ms_per_step"], r["wall_ms_per_step_profiled"], r["wall_ms_per_step_fresh"]) > 0
         assert r["graph_launches_per_step"] == 0  # CPU: no graphs, and no device-only numbers
         assert r["device_kernel_ms_per_step"] is None and r["syncs_per_step"] is None
+        # peak memory: CUDA only, recorded as null (present, not invented)
+        assert r["peak_memory_allocated_bytes"] is None and r["peak_memory_reserved_bytes"] is None
+        assert "peak_memory_allocated_bytes" in r and "peak_memory_reserved_bytes" in r
         assert 0 < len(r["kernels"]) <= 5
         assert r["num_gaussians"] == r["num_gaussians_profiled"]  # both copies trained the same Gaussians
     # JSGS adds ops to the baseline's step
@@ -194,6 +200,12 @@ def test_pairs_interleave_and_report_medians(tmp_path: Path, capsys: Any) -> Non
     walls = {m: r["paired_wall_ms_per_step"] for m, r in doc["results"].items()}
     # --no-fresh: no run from step 0, so no such column value
     assert not any("wall_ms_per_step_fresh" in r for r in doc["results"].values())
+    for r in doc["results"].values():  # CPU: no peak memory per window, recorded as null
+        assert r["paired_peak_memory_allocated_bytes"] is None
+        assert r["paired_peak_memory_reserved_bytes"] is None
+        assert r["peak_memory_allocated_bytes"] is None
+    assert "peak_memory" in doc["pairs"] and doc["pairs"]["peak_memory"] is None
+    assert "peak memory of the windows: CUDA only" in printed
     assert all(len(v) == 3 and min(v) > 0 for v in walls.values())
     pairs = doc["pairs"]
     assert pairs["count"] == 3 and list(pairs["ratio"]) == ["jsgs"]
@@ -225,3 +237,109 @@ def test_preset_mcmc_is_the_equal_budget_protocol(tmp_path: Path) -> None:
     over = tmp_path / "over.json"
     over.write_text(json.dumps({"strategy": {"cap_max": 1234}}))
     assert ps.base_config(ps.parse_args(["--preset", "mcmc", "--config", str(over)])).strategy.cap_max == 1234
+
+
+def test_pairs_doc_on_hand_made_numbers(capsys: Any) -> None:
+    """The pairs summary from given windows: medians, the median of the per-round ratios and its interval,
+    for the wall times and for both peak memory figures, and the tables printed from them."""
+    import jsonschema
+
+    from jsgs.schemas import load_schema
+
+    order = ps.pair_order(["gsplat", "jsgs"], 5)
+    walls = {"gsplat": [10.0, 12.0, 11.0, 9.0, 10.0], "jsgs": [13.0, 12.0, 16.5, 9.9, 12.0]}
+    mib = 2**20
+    alloc = {"gsplat": [100, 110, 105, 100, 120], "jsgs": [108, 121, 105, 130, 126]}
+    reserved = {"gsplat": [200, 200, 220, 200, 210], "jsgs": [220, 230, 220, 200, 252]}
+    peaks = {m: {"allocated": [v * mib for v in alloc[m]], "reserved": [v * mib for v in reserved[m]]}
+             for m in walls}  # fmt: skip
+    doc = ps.pairs_doc(order, walls, peaks)
+    assert doc["count"] == 5 and doc["order"] == order
+    assert doc["median_ms_per_step"] == {"gsplat": 10.0, "jsgs": 12.0}
+    # per round 1.3, 1.0, 1.5, 1.1, 1.2: the median 1.2 (not 12.0 / 10.0 of the medians by chance alone)
+    t = doc["ratio"]["jsgs"]
+    assert t["per_pair"] == pytest.approx([1.3, 1.0, 1.5, 1.1, 1.2]) and t["median"] == pytest.approx(1.2)
+    assert t["interval"] == pytest.approx([1.0, 1.5]) and t["interval_coverage"] == pytest.approx(1 - 2 / 32)
+    a = doc["peak_memory"]["allocated"]
+    assert a["median_bytes"] == {"gsplat": 105 * mib, "jsgs": 121 * mib}
+    # per round 1.08, 1.1, 1.0, 1.3, 1.05: the median 1.08, the medians' ratio 121/105 = 1.152 would differ
+    assert a["ratio"]["jsgs"]["per_pair"] == pytest.approx([1.08, 1.1, 1.0, 1.3, 1.05])
+    assert a["ratio"]["jsgs"]["median"] == pytest.approx(1.08)
+    assert a["ratio"]["jsgs"]["interval"] == pytest.approx([1.0, 1.3])
+    r = doc["peak_memory"]["reserved"]
+    assert r["median_bytes"] == {"gsplat": 200 * mib, "jsgs": 220 * mib}
+    assert r["ratio"]["jsgs"]["median"] == pytest.approx(1.1)
+    assert list(doc["ratio"]) == list(a["ratio"]) == ["jsgs"]  # no ratio of the baseline to itself
+
+    # one method without peaks (the CPU): no peak memory summary at all, the times unchanged
+    cpu = ps.pairs_doc(order, walls, {"gsplat": None, "jsgs": None})
+    assert cpu["peak_memory"] is None and cpu["ratio"] == doc["ratio"]
+
+    # the printed tables and the schema, on a document around it
+    results = {
+        m: {"paired_wall_ms_per_step": walls[m],
+            **{f"paired_peak_memory_{k}_bytes": peaks[m][k] for k in ps.MEMORY_KINDS}}
+        for m in walls
+    }  # fmt: skip
+    ps.print_pairs({"results": results, "pairs": doc})
+    printed = capsys.readouterr().out
+    assert "| gsplat | allocated | 100.0, 110.0, 105.0, 100.0, 120.0 | 105.0 | 1 |  |" in printed
+    jsgs_alloc = "| jsgs | allocated | 108.0, 121.0, 105.0, 130.0, 126.0 | 121.0 | 1.080 |"
+    assert f"{jsgs_alloc} 1.000–1.300 (93.8 %) |" in printed
+    assert "| jsgs | reserved | 220.0, 230.0, 220.0, 200.0, 252.0 | 220.0 | 1.100 |" in printed
+    assert "| jsgs | 13.00, 12.00, 16.50, 9.90, 12.00 | 12.00 | 1.200 | 1.000–1.500 (93.8 %) |" in printed
+    # the schema's pairs object takes both
+    schema = load_schema("profile_step")
+    pairs_schema = {"$defs": schema["$defs"], **schema["properties"]["pairs"]}
+    for d in (doc, cpu):
+        jsonschema.Draft202012Validator(pairs_schema).validate(d)
+
+
+def test_step_window_reads_peak_memory_over_the_window(monkeypatch: Any) -> None:
+    """On CUDA the window resets the peak statistics after the synchronisation that opens it and reads both
+    peaks after the one that closes it; on the CPU there is no peak (None). torch.cuda stood in for (CI has
+    no GPU)."""
+    calls: list[str] = []
+    monkeypatch.setattr(ps, "synchronize", lambda d: calls.append(f"sync {d.type}"))
+    monkeypatch.setattr(torch.cuda, "reset_peak_memory_stats", lambda d=None: calls.append("reset"))
+    monkeypatch.setattr(torch.cuda, "max_memory_allocated", lambda d=None: calls.append("alloc") or 300)
+    monkeypatch.setattr(torch.cuda, "max_memory_reserved", lambda d=None: calls.append("reserved") or 512)
+    win = ps.StepWindow(torch.device("cuda"), settle=2, steps=3)
+    for _ in range(2):
+        win()
+    assert calls == []  # the settling steps: nothing reset, nothing read
+    win()
+    assert calls == ["sync cuda", "reset"]
+    for _ in range(3):
+        win()
+    assert calls == ["sync cuda", "reset", "sync cuda", "alloc", "reserved"]
+    assert win.peak_memory() == {"allocated": 300, "reserved": 512}
+
+    cpu = ps.StepWindow(torch.device("cpu"), settle=1, steps=1)
+    for _ in range(3):
+        cpu()
+    assert cpu.peak_memory() is None
+    assert calls[-2:] == ["sync cpu", "sync cpu"]  # no torch.cuda call on the CPU
+    with pytest.raises(ps.JsgsError, match="the measured window was not reached"):
+        ps.StepWindow(torch.device("cuda"), settle=1, steps=1).peak_memory()
+
+
+def test_schema_requires_peak_memory_from_version_2() -> None:
+    """Version 2 documents must carry the peak memory (null allowed: the CPU); the stored version 1 files
+    (without it) still validate."""
+    from jsgs.schemas import validate
+
+    root = Path(__file__).resolve().parents[2]
+    old = json.loads((root / "docs/results/speed/equal_budget/flower_1500.json").read_text())
+    assert old["format_version"] == 1 and "peak_memory_allocated_bytes" not in old["results"]["jsgs"]
+    validate(old, "profile_step", "flower_1500.json")
+    new = json.loads(json.dumps(old)) | {"format_version": 2}
+    new["pairs"]["peak_memory"] = None
+    with pytest.raises(ps.JsgsError, match="'peak_memory_allocated_bytes' is a required property"):
+        validate(new, "profile_step", "new.json")
+    for r in new["results"].values():
+        r["peak_memory_allocated_bytes"] = r["peak_memory_reserved_bytes"] = None
+    validate(new, "profile_step", "new.json")
+    del new["pairs"]["peak_memory"]
+    with pytest.raises(ps.JsgsError, match="at pairs: 'peak_memory' is a required property"):
+        validate(new, "profile_step", "new.json")

@@ -50,7 +50,11 @@ Columns (per training step, averaged over the window):
   CUDA runtime calls, and on the CPU the arithmetic itself), from the profiled run: compare it with the
   profiled wall time, the rest of which is Python (and, on a GPU, waiting in syncs counts as op time);
 - syncs/step: host-device synchronisations (``cudaStreamSynchronize``, ``cudaDeviceSynchronize``,
-  ``cudaEventSynchronize``, blocking ``cudaMemcpy``; not the one that closes the window); CUDA only.
+  ``cudaEventSynchronize``, blocking ``cudaMemcpy``; not the one that closes the window); CUDA only;
+- peak allocated / reserved MiB: the plain copy's peak device memory over the window,
+  ``torch.cuda.max_memory_allocated`` (tensors) and ``max_memory_reserved`` (the caching allocator's
+  segments), their statistics reset at the window's start (so: what the device held then, and the window's
+  own highs; the JSON has bytes). CUDA only: null on the CPU, where there is no such number.
 
 With ``--pairs K``, after every method is profiled, each method's checkpoint is resumed K more times, plain,
 interleaved in alternating order (baseline first, then last, ...: gsplat, jsgs, jsgs, gsplat, gsplat, jsgs
@@ -58,7 +62,8 @@ for K = 3), so that drift of the machine falls on both: the K wall times per met
 median over the K pairs of each method's time over the baseline's in the same pair (the ratio to quote),
 with a distribution-free interval for that median (two order statistics of the K ratios, at least 95 %
 from 6 pairs on; below that (min, max) and its coverage, e.g. 93.8 % for 5 pairs:
-:func:`jsgs.bench.stats.median_interval`).
+:func:`jsgs.bench.stats.median_interval`). On CUDA the same for each window's peak allocated and reserved
+memory: the K peaks per method, their median, and the median ratio to the baseline's with its interval.
 
 Then, for every method against the first (normally jsgs − gsplat), the ``--top`` kernels by extra device
 time per step and by extra host launches per step. Kernels replayed from a CUDA graph count as runs, not as
@@ -102,7 +107,9 @@ from jsgs.train.render_view import resolve_device  # noqa: E402
 from jsgs.train.trainer import Trainer, train  # noqa: E402
 
 FORMAT = "jsgs-profile-step"
-FORMAT_VERSION = 1
+#: The peak device memory figures of a window (:meth:`StepWindow.peak_memory`), in the order printed.
+MEMORY_KINDS = ("allocated", "reserved")
+FORMAT_VERSION = 2
 #: The profiler annotation around the synchronisation that closes the window (not the steps' own work).
 WINDOW_END = "profile_step: window end"
 
@@ -157,7 +164,9 @@ def _quiet(_: str) -> None:
 class StepWindow:
     """Called at the start of every step of a resumed segment of ``settle + steps + 1`` steps: synchronises
     the device and reads the clock at the start of step ``settle`` and of step ``settle + steps``, and steps
-    the torch profiler (if any) at every call, whose schedule records exactly the steps in between."""
+    the torch profiler (if any) at every call, whose schedule records exactly the steps in between. On CUDA
+    it also resets the device's peak memory statistics at the window's start and reads them at its end
+    (:meth:`peak_memory`)."""
 
     def __init__(
         self, device: torch.device, settle: int, steps: int, prof: torch.profiler.profile | None = None
@@ -169,12 +178,17 @@ class StepWindow:
         self.calls = 0
         self.t0: float | None = None
         self.t1: float | None = None
+        self.peak_allocated: int | None = None
+        self.peak_reserved: int | None = None
 
     def __call__(self) -> None:
         i = self.calls
         self.calls += 1
+        cuda = self.device.type == "cuda"
         if i == self.settle:
             synchronize(self.device)  # before the recording starts: the wait is not in the trace
+            if cuda:  # the peak from here on: what the device holds now, then the window's own highs
+                torch.cuda.reset_peak_memory_stats(self.device)
             if self.prof is not None:
                 self.prof.step()
             self.t0 = time.perf_counter()
@@ -182,6 +196,9 @@ class StepWindow:
             with torch.profiler.record_function(WINDOW_END):  # recorded: window_stats leaves it out
                 synchronize(self.device)
             self.t1 = time.perf_counter()
+            if cuda:
+                self.peak_allocated = int(torch.cuda.max_memory_allocated(self.device))
+                self.peak_reserved = int(torch.cuda.max_memory_reserved(self.device))
             if self.prof is not None:
                 self.prof.step()
         elif self.prof is not None:
@@ -194,6 +211,15 @@ class StepWindow:
                 f"(expected {self.settle + self.steps + 1}, once per step)"
             )
         return 1000.0 * (self.t1 - self.t0) / self.steps
+
+    def peak_memory(self) -> dict[str, int] | None:
+        """The window's peak device memory in bytes, ``{"allocated": ..., "reserved": ...}``: torch's
+        ``max_memory_allocated`` (tensors) and ``max_memory_reserved`` (the caching allocator's segments)
+        since the window's start, read at its end; None on the CPU (CUDA only)."""
+        self.ms_per_step()  # the window was reached (else one line)
+        if self.peak_allocated is None or self.peak_reserved is None:
+            return None
+        return {"allocated": self.peak_allocated, "reserved": self.peak_reserved}
 
     @staticmethod
     def schedule(settle: int, steps: int) -> Callable[[int], Any]:
@@ -448,6 +474,7 @@ def profile_method(
     clock = StepWindow(device, settle, steps)
     doc = train(manifest, plain, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(clock)])
     wall = clock.ms_per_step()
+    peak = clock.peak_memory()
 
     # the same window timed inside a run from step 0 (no resume): a check that resuming does not change
     # the step
@@ -495,6 +522,7 @@ def profile_method(
         "device_busy_percent": None if device_ms is None else 100.0 * device_ms / wall,
         "host_op_ms_per_step": stats.host_us / 1000.0 / steps,
         "syncs_per_step": None if stats.syncs is None else stats.syncs / steps,
+        **{f"peak_memory_{k}_bytes": None if peak is None else peak[k] for k in MEMORY_KINDS},
         "num_gaussians": int(doc["num_gaussians"]),
         "num_gaussians_profiled": int(pdoc["num_gaussians"]),
         "device_name": doc["device_name"],
@@ -525,15 +553,51 @@ def _ratio_doc(per_pair: list[float]) -> dict[str, Any]:
             "interval_coverage": cov}  # fmt: skip
 
 
+def _ratios(values: dict[str, list[float]]) -> dict[str, dict[str, Any]]:
+    """:func:`_ratio_doc` of each method but the first: its values over the first method's, round by round."""
+    base, *others = values
+    return {m: _ratio_doc([a / b for a, b in zip(values[m], values[base], strict=True)]) for m in others}
+
+
+#: A method's peak memory over the rounds: kind (:data:`MEMORY_KINDS`) -> bytes per round; None on the CPU.
+Peaks = dict[str, list[int]] | None
+
+
+def pairs_doc(
+    order: list[list[str]], walls: dict[str, list[float]], peaks: dict[str, Peaks]
+) -> dict[str, Any]:
+    """The document's ``pairs`` object from each method's wall times (ms/step) and peak memory per round
+    (``walls`` and ``peaks`` by method, the baseline first): the medians, and the median over the rounds of
+    each method's figure over the baseline's in the same round, with its interval. ``peak_memory`` is None
+    unless every method has its peaks (CUDA only)."""
+    memory = None
+    if all(p is not None for p in peaks.values()):
+        memory = {
+            k: {
+                "median_bytes": {m: statistics.median(p[k]) for m, p in peaks.items() if p is not None},
+                "ratio": _ratios({m: [float(b) for b in p[k]] for m, p in peaks.items() if p is not None}),
+            }
+            for k in MEMORY_KINDS
+        }
+    return {
+        "count": len(order),
+        "order": order,
+        "median_ms_per_step": {m: statistics.median(v) for m, v in walls.items()},
+        "ratio": _ratios(walls),
+        "peak_memory": memory,
+    }
+
+
 def interleaved_windows(
     manifest: Path, work: Path, methods: Sequence[str], device: torch.device, settle: int, steps: int,
     pairs: int,
-) -> tuple[dict[str, list[float]], dict[str, Any]]:  # fmt: skip
+) -> tuple[dict[str, list[float]], dict[str, Peaks], dict[str, Any]]:  # fmt: skip
     """``pairs`` more plain windows per method, each resumed from ``work/METHOD/warm`` (left by
-    :func:`profile_method`), in :func:`pair_order`: ``({method: [ms/step per round]}, the document's
-    ``pairs`` object)``. The ratios are each method's ms/step over the first method's in the same round."""
+    :func:`profile_method`), in :func:`pair_order`: ``({method: [ms/step per round]}, {method: its peak
+    memory per round (None on the CPU)}, the document's ``pairs`` object)`` (:func:`pairs_doc`)."""
     order = pair_order(methods, pairs)
     walls: dict[str, list[float]] = {m: [] for m in methods}
+    rounds: dict[str, list[dict[str, int] | None]] = {m: [] for m in methods}
     for i, round_ in enumerate(order):
         for m in round_:
             copy = work / m / f"pair{i}"
@@ -541,16 +605,13 @@ def interleaved_windows(
             clock = StepWindow(device, settle, steps)
             train(manifest, copy, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(clock)])
             walls[m].append(clock.ms_per_step())
+            rounds[m].append(clock.peak_memory())
             shutil.rmtree(copy)
-    base = methods[0]
-    ratios = {m: [a / b for a, b in zip(walls[m], walls[base], strict=True)] for m in methods[1:]}
-    doc = {
-        "count": pairs,
-        "order": order,
-        "median_ms_per_step": {m: statistics.median(v) for m, v in walls.items()},
-        "ratio": {m: _ratio_doc(r) for m, r in ratios.items()},
-    }
-    return walls, doc
+    peaks: dict[str, Peaks] = {}
+    for m, per_round in rounds.items():
+        known = [r for r in per_round if r is not None]
+        peaks[m] = {k: [r[k] for r in known] for k in MEMORY_KINDS} if len(known) == pairs else None
+    return walls, peaks, pairs_doc(order, walls, peaks)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -559,6 +620,15 @@ def interleaved_windows(
 
 def _cell(x: float | None, fmt: str = ".2f") -> str:
     return "–" if x is None else format(x, fmt)
+
+
+def _mib(n: float | None) -> float | None:
+    return None if n is None else n / 2**20
+
+
+def _interval(q: dict[str, Any]) -> str:
+    """A ratio document's interval and coverage, as printed."""
+    return f"{q['interval'][0]:.3f}–{q['interval'][1]:.3f} ({100 * q['interval_coverage']:.1f} %)"
 
 
 def _name(n: str, width: int = 60) -> str:
@@ -577,15 +647,15 @@ def print_report(doc: dict[str, Any]) -> None:
     print(
         f"scene {doc['manifest']}: {doc['warmup']} warm-up steps, {doc['settle']} settling steps, "
         f"{doc['steps']} measured steps"
-        + ("" if cuda else "; CPU: kernels are aten ops, their time is host time")
+        + ("" if cuda else "; CPU: kernels are aten ops, their time is host time; peak memory: CUDA only")
     )
     print()
     print(
         "| method | wall ms/step (unprofiled) | the same, run not resumed | wall ms/step (profiled) | "
         "kernel launches/step | graph launches/step | device kernel ms/step | device busy % | "
-        "host op ms/step | syncs/step | #Gaussians |"
+        "host op ms/step | syncs/step | peak allocated MiB | peak reserved MiB | #Gaussians |"
     )
-    print("|---|" + "---:|" * 10)
+    print("|---|" + "---:|" * 12)
     for m, r in res.items():
         cells = [
             _cell(r["wall_ms_per_step"]),
@@ -597,6 +667,7 @@ def print_report(doc: dict[str, Any]) -> None:
             _cell(r["device_busy_percent"], ".1f"),
             _cell(r["host_op_ms_per_step"]),
             _cell(r["syncs_per_step"], ".1f"),
+            *(_cell(_mib(r[f"peak_memory_{k}_bytes"]), ".1f") for k in MEMORY_KINDS),
             str(r["num_gaussians"]),
         ]
         print(f"| {m} | " + " | ".join(cells) + " |")
@@ -647,9 +718,32 @@ def print_pairs(doc: dict[str, Any]) -> None:
         ratio, interval = "1", ""
         if m != base:
             q = pairs["ratio"][m]
-            ratio = f"{q['median']:.3f}"
-            interval = f"{q['interval'][0]:.3f}–{q['interval'][1]:.3f} ({100 * q['interval_coverage']:.1f} %)"
+            ratio, interval = f"{q['median']:.3f}", _interval(q)
         print(f"| {m} | {each} | {pairs['median_ms_per_step'][m]:.2f} | {ratio} | {interval} |")
+    memory = pairs["peak_memory"]
+    print()
+    if memory is None:
+        print("peak memory of the windows: CUDA only")
+        return
+    print(
+        "peak device memory of each window (torch.cuda.max_memory_allocated / max_memory_reserved since the "
+        "window's start)"
+    )
+    print()
+    print(
+        f"| method | memory | MiB, each window | median | median over the pairs of peak ÷ {base}'s | "
+        "its interval (coverage) |"
+    )
+    print("|---|---|---|---:|---:|---|")
+    for k in MEMORY_KINDS:
+        for m, r in doc["results"].items():
+            each = ", ".join(f"{v / 2**20:.1f}" for v in r[f"paired_peak_memory_{k}_bytes"])
+            ratio, interval = "1", ""
+            if m != base:
+                q = memory[k]["ratio"][m]
+                ratio, interval = f"{q['median']:.3f}", _interval(q)
+            median = memory[k]["median_bytes"][m] / 2**20
+            print(f"| {m} | {k} | {each} | {median:.1f} | {ratio} | {interval} |")
 
 
 def print_python(doc: dict[str, Any]) -> None:
@@ -776,11 +870,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             results[m]["kernels"] = kernel_rows(stats[m].kernels, args.steps, args.top)
         pairs = None
         if args.pairs > 0:
-            walls, pairs = interleaved_windows(
+            walls, peaks, pairs = interleaved_windows(
                 manifest, work, methods, device, args.settle, args.steps, args.pairs
             )
             for m in methods:
                 results[m]["paired_wall_ms_per_step"] = walls[m]
+                for k in MEMORY_KINDS:
+                    p = peaks[m]
+                    results[m][f"paired_peak_memory_{k}_bytes"] = None if p is None else p[k]
     baseline = methods[0]
     differences = {}
     for m in methods[1:]:
