@@ -9,7 +9,8 @@ from __future__ import annotations
 import math
 import os
 import re
-from collections.abc import Iterator
+import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -80,6 +81,7 @@ def render_run(
     device: str = "auto",
     progress: bool = True,
     force: bool = False,
+    say: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Render ``run`` along ``path`` into ``out`` (a video for a video suffix, else a folder of PNG frames)
     and write the camera path JSON beside it; returns ``{"frames", "out", "cameras", "width", "height"}``.
@@ -88,11 +90,14 @@ def render_run(
     one frame whatever the path's length. The video goes through a temporary file of an unpredictable name
     in its folder (:func:`jsgs.base.io.atomic_path`); a failure leaves neither it nor any frame of this call.
     The run's own files are never written (:func:`jsgs.base.run_files.refuse_run_files`), and a model that
-    would draw nothing (no Gaussians, a non-finite value, a zero rotation) is refused."""
+    would draw nothing (no Gaussians, a non-finite value, a zero rotation) is refused. What a killed render
+    into the same folder left beside it is dealt with first (:func:`jsgs.base.io.clear_folder_leftovers`),
+    one line to ``say`` (stderr by default) each."""
     from tqdm import tqdm
 
     from jsgs.apps.camera_path import KINDS, CameraPath, build_path, read_path, scaled_K
     from jsgs.apps.viewer import load_run_model, render_rgb
+    from jsgs.base.io import clear_folder_leftovers
     from jsgs.base.run_files import refuse_run_files
     from jsgs.schemas import validate
     from jsgs.train.data import load_image
@@ -108,6 +113,9 @@ def render_run(
     refuse_run_files(run, (out, cameras), "render writes only new files (choose another --out)")
     if video and out.is_dir():
         raise JsgsError(f"{out}: is a folder; give a video file name")
+    if not video:
+        for line in clear_folder_leftovers(out):
+            (say or (lambda s: print(s, file=sys.stderr)))(line)
     if video and (os.path.lexists(out) or os.path.lexists(cameras)) and not force:
         raise JsgsError(f"{out}: exists (use --force to replace it)")
     if not video and (os.path.lexists(out) and not out.is_dir()):
@@ -211,7 +219,8 @@ def _write_frames(
     """Each image to ``frame_NNNNN.png`` as it comes (atomically), then ``cameras.json``, into a temporary
     sibling folder that replaces ``out`` only when complete (:func:`jsgs.base.io.atomic_folder`): earlier
     frames (--force, :func:`check_frames_folder`) are removed only then, and a failed or interrupted call
-    leaves them as they were (a killed one leaves a hidden ``.NAME.*.part`` folder beside ``out``). A link
+    leaves them as they were (a killed one leaves a hidden ``.NAME.*.part`` folder beside ``out``, which the
+    next render removes). A link
     to an empty folder is written through, in place (a failure removes what this call wrote)."""
     from contextlib import nullcontext
 
@@ -222,7 +231,7 @@ def _write_frames(
     in_place = out.is_symlink()  # to an empty folder: render_run refuses a link to a non-empty one
     written: list[Path] = []
     shape: tuple[int, ...] = (0, 0)
-    with nullcontext(out) if in_place else atomic_folder(out) as work:
+    with nullcontext(out) if in_place else atomic_folder(out, "jsgs render") as work:
         try:
             for i, img in enumerate(images):
 

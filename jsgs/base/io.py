@@ -57,14 +57,23 @@ def atomic_path(final: str | os.PathLike[str]) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+#: the marker inside a temporary folder of :func:`atomic_folder` (``.NAME.XXXXXXXX.part``, and the earlier
+#: folder moved aside, ``.NAME.XXXXXXXX.old``): the writer that made it (:func:`writer_record`), so that a
+#: leftover of a killed writer is known as ours (:func:`clear_folder_leftovers`)
+PART_MARKER = ".jsgs-part.json"
+
+
 @contextmanager
-def atomic_folder(final: str | os.PathLike[str]) -> Iterator[Path]:
+def atomic_folder(final: str | os.PathLike[str], what: str = "a jsgs command") -> Iterator[Path]:
     """Yield a new empty folder ``.NAME.XXXXXXXX.part`` beside ``final`` (same parent, so the renames stay on
     one file system); when the block succeeds it takes ``final``'s place: an existing ``final`` is first
     moved aside (``.NAME.XXXXXXXX.old``), put back if the rename fails, and removed only once the new folder
     is in place. When the block fails (an error, Ctrl-C) the temporary folder is removed and ``final`` is
     untouched. A link at ``final`` is replaced, never followed. The caller decides whether ``final`` may be
-    replaced at all (only what the tool made)."""
+    replaced at all (only what the tool made). Both temporary folders hold :data:`PART_MARKER` naming their
+    writer (``what``, its PID, host and start time) while they exist, so what a killed writer left is
+    recognised and removed by the next writer (:func:`clear_folder_leftovers`); the marker leaves the new
+    folder just before it is renamed onto ``final``."""
     import shutil
 
     from jsgs.base.errors import JsgsError
@@ -73,13 +82,20 @@ def atomic_folder(final: str | os.PathLike[str]) -> Iterator[Path]:
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".part", dir=final.parent))
-        os.chmod(work, 0o777 & ~_umask())  # mkdtemp makes 0700; give what mkdir would
     except OSError as e:
         raise JsgsError(f"{final}: cannot write ({e.strerror or e})") from None
     try:
+        record = {"for": final.name, **writer_record(what)}
+        write_json_atomic(work / PART_MARKER, record)
+        os.chmod(work, 0o777 & ~_umask())  # mkdtemp makes 0700; give what mkdir would
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    try:
         yield work
         try:
-            _swap_in(work, final)
+            (work / PART_MARKER).unlink(missing_ok=True)
+            _swap_in(work, final, record)
         except OSError as e:
             raise JsgsError(f"{final}: cannot replace it ({e.strerror or e})") from None
     finally:
@@ -87,10 +103,9 @@ def atomic_folder(final: str | os.PathLike[str]) -> Iterator[Path]:
             shutil.rmtree(work, ignore_errors=True)
 
 
-def _swap_in(work: Path, final: Path) -> None:
-    """Rename ``work`` onto ``final`` (see :func:`atomic_folder`)."""
-    import shutil
-
+def _swap_in(work: Path, final: Path, record: dict[str, Any]) -> None:
+    """Rename ``work`` onto ``final`` (see :func:`atomic_folder`); a folder moved aside holds ``record`` as
+    its :data:`PART_MARKER` until it is gone."""
     if not os.path.lexists(final):
         os.rename(work, final)
         return
@@ -107,14 +122,82 @@ def _swap_in(work: Path, final: Path) -> None:
         aside.rmdir() if folder else aside.unlink()
         raise
     try:
+        if folder:
+            write_json_atomic(aside / PART_MARKER, record)
         os.rename(work, final)
     except BaseException:
+        if folder:
+            (aside / PART_MARKER).unlink(missing_ok=True)
         os.replace(aside, final)
         raise
     if folder:
-        shutil.rmtree(aside, ignore_errors=True)
+        _remove_marked(aside)
     else:
         aside.unlink()
+
+
+def _remove_marked(folder: Path) -> None:
+    """Remove ``folder`` and what it holds, its :data:`PART_MARKER` last (a writer killed meanwhile leaves a
+    folder that is still known as ours); links inside are removed, never followed."""
+    import shutil
+
+    for p in folder.iterdir():
+        if p.name == PART_MARKER:
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+    (folder / PART_MARKER).unlink(missing_ok=True)
+    folder.rmdir()
+
+
+def clear_folder_leftovers(final: str | os.PathLike[str]) -> list[str]:
+    """Deal with the temporary folders :func:`atomic_folder` left beside ``final`` (``.NAME.XXXXXXXX.part``
+    and ``.NAME.XXXXXXXX.old``: a writer killed mid-write, SIGKILL or power loss) before writing ``final``
+    again; returns one line for each, to print. Only a real folder holding our :data:`PART_MARKER` for
+    ``final`` whose writer no longer runs (its PID is gone from this host, or belongs to a process that
+    started at another time) is touched: a ``.part`` folder is removed, and so is an ``.old`` one when
+    ``final`` exists (the swap had finished); an ``.old`` one without ``final`` (killed mid-swap) is put back
+    as ``final``, so the earlier output is as it was. Anything else (no marker, a writer that still runs or
+    runs on another host, a link) is left alone with a warning naming it."""
+    final = Path(final)
+    pattern = re.compile(rf"\.{re.escape(final.name)}\.[A-Za-z0-9_]+\.(part|old)")
+    if not final.parent.is_dir():
+        return []
+    lines = []
+    for p in sorted(final.parent.iterdir()):
+        m = pattern.fullmatch(p.name)
+        if m is None:
+            continue
+        who = read_writer(p / PART_MARKER) if p.is_dir() and not p.is_symlink() else None
+        if who is None or who.doc.get("for") != final.name:
+            lines.append(
+                f"warning: {p}: left beside {final.name} by an interrupted write, but it holds no "
+                f"{PART_MARKER} of jsgs for it; left alone (remove it yourself once it is not needed)"
+            )
+        elif not who.gone():
+            lines.append(f"warning: {p}: {who.what} ({who.where()}) is still writing it; left alone")
+        else:
+            lines.append(_clear_leftover(p, m[1], final, who))
+    return lines
+
+
+def _clear_leftover(p: Path, kind: str, final: Path, who: Writer) -> str:
+    """Remove (or put back) one leftover of a writer that is gone (:func:`clear_folder_leftovers`)."""
+    try:
+        if kind == "old" and not os.path.lexists(final):
+            (p / PART_MARKER).unlink()
+            os.rename(p, final)
+            return (
+                f"note: {final}: put back from {p.name}, which {who.what} ({who.where()}, no longer running) "
+                "had moved aside and not yet replaced"
+            )
+        _remove_marked(p)
+    except OSError as e:
+        return f"warning: {p}: could not remove it ({e.strerror or e}); left by {who.what} ({who.where()})"
+    what = "unfinished output" if kind == "part" else "earlier output it was replacing"
+    return f"note: removed {p}, the {what} of {who.what} ({who.where()}, no longer running)"
 
 
 def atomic_leftovers(folder: str | os.PathLike[str], final_name: str) -> list[Path]:
@@ -228,15 +311,63 @@ def refuse_non_regular(path: str | os.PathLike[str]) -> None:
         raise JsgsError(f"{os.fspath(path)}: is {_kind(st.st_mode)}, not a regular file")
 
 
+def writer_record(what: str) -> dict[str, Any]:
+    """Who writes: this process's PID, host name and start time (:func:`_start_time`) and ``what`` it does;
+    the output lock and :func:`atomic_folder`'s marker hold it, and :func:`read_writer` reads it back."""
+    import socket
+
+    return {"pid": os.getpid(), "host": socket.gethostname(), "start": _start_time(os.getpid()), "what": what}
+
+
+class Writer:
+    """A :func:`writer_record` read back (:func:`read_writer`)."""
+
+    def __init__(self, doc: dict[str, Any]) -> None:
+        self.doc = doc
+        self.pid: int = doc["pid"]
+        self.what = " ".join(str(doc.get("what", "another process")).split())  # one line
+        start, host = doc.get("start"), doc.get("host")
+        self.start = start if type(start) is int else None
+        self.host = host if isinstance(host, str) else None  # None: recorded without it (this host)
+
+    def elsewhere(self) -> bool:
+        """Whether it runs (or ran) on another host, where its PID says nothing here."""
+        import socket
+
+        return self.host is not None and self.host != socket.gethostname()
+
+    def gone(self) -> bool:
+        """Whether it no longer runs: a PID of this host that is gone, or now belongs to another process."""
+        return not self.elsewhere() and not _alive(self.pid, self.start)
+
+    def where(self) -> str:
+        return f"PID {self.pid} on host {self.host}" if self.elsewhere() else f"PID {self.pid}"
+
+
+def read_writer(path: str | os.PathLike[str]) -> Writer | None:
+    """The writer recorded in the lock or marker file at ``path``; None when it is absent, not a regular
+    file (a link included) or no such record (a writer killed between creating and filling it)."""
+    from jsgs.base.errors import JsgsError
+
+    try:
+        if os.path.islink(path):
+            return None
+        doc = json.loads(read_regular_text(path))
+        return Writer(doc) if isinstance(doc, dict) and type(doc.get("pid")) is int else None
+    except (OSError, ValueError, RecursionError, JsgsError):
+        return None
+
+
 LOCK_NAME = ".jsgs.lock"
 
 
 class OutputLock:
-    """One writer per output folder: ``FOLDER/.jsgs.lock`` holds the writer's PID and what it is doing,
-    created exclusively (``O_EXCL``) and removed by :meth:`release`. A second writer gets a one-line
-    JsgsError naming the holder; a lock whose PID no longer runs on this machine (a killed writer) is taken
-    over, and so is one whose PID now belongs to another process (the lock records its writer's start time
-    where ``/proc`` gives it, so a PID reused after a crash does not keep the folder locked)."""
+    """One writer per output folder: ``FOLDER/.jsgs.lock`` holds the writer (:func:`writer_record`: its PID,
+    host, start time and what it is doing), created exclusively (``O_EXCL``) and removed by
+    :meth:`release`. A second writer gets a one-line JsgsError naming the holder; a lock whose PID no longer
+    runs on this machine (a killed writer) is taken over, and so is one whose PID now belongs to another
+    process (the lock records its writer's start time where ``/proc`` gives it, so a PID reused after a
+    crash does not keep the folder locked). A lock of another host is never taken over."""
 
     def __init__(self, folder: str | os.PathLike[str], what: str) -> None:
         from jsgs.base.errors import JsgsError
@@ -247,15 +378,15 @@ class OutputLock:
         # a folder made only to hold the lock goes again with it when the writer wrote nothing
         self.created = not self.path.parent.exists()
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        record = json.dumps({"pid": os.getpid(), "what": what, "start": _start_time(os.getpid())}) + "\n"
+        record = json.dumps(writer_record(what)) + "\n"
         for _ in range(2):
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
-                holder = _lock_holder(self.path)
-                if holder is not None and holder[0] != os.getpid() and _alive(holder[0], holder[2]):
+                w = read_writer(self.path)
+                if w is not None and (w.elsewhere() or w.pid != os.getpid()) and not w.gone():
                     raise JsgsError(
-                        f"{self.path.parent}: in use by {holder[1]} (PID {holder[0]}); wait for it to end or "
+                        f"{self.path.parent}: in use by {w.what} ({w.where()}); wait for it to end or "
                         f"stop it (a lock left by a killed writer is taken over: {self.path})"
                     ) from None
                 self.path.unlink(missing_ok=True)  # stale: its writer is gone
@@ -266,8 +397,8 @@ class OutputLock:
         raise JsgsError(f"{self.path}: could not take the output lock (another writer keeps taking it)")
 
     def release(self) -> None:
-        holder = _lock_holder(self.path)
-        if holder is not None and holder[0] == os.getpid():
+        holder = read_writer(self.path)
+        if holder is not None and holder.pid == os.getpid() and not holder.elsewhere():
             self.path.unlink(missing_ok=True)
             if self.created:
                 try:
@@ -280,19 +411,6 @@ class OutputLock:
 
     def __exit__(self, *exc: object) -> None:
         self.release()
-
-
-def _lock_holder(path: Path) -> tuple[int, str, int | None] | None:
-    """(PID, what it does, its start time or None) of a lock file; None when unreadable (a writer killed
-    between creating and filling it)."""
-    from jsgs.base.errors import JsgsError
-
-    try:
-        doc = json.loads(read_regular_text(path))
-        start = doc.get("start")
-        return int(doc["pid"]), str(doc.get("what", "another process")), start if type(start) is int else None
-    except (OSError, ValueError, KeyError, TypeError, AttributeError, JsgsError):
-        return None
 
 
 def _start_time(pid: int) -> int | None:

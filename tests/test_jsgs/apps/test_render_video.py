@@ -257,3 +257,109 @@ def test_frames_into_an_empty_folder_or_a_link_to_one(run: Path, tmp_path: Path)
     assert sorted(p.name for p in empty.iterdir()) == want and not empty.is_symlink()
     assert link.is_symlink() and sorted(p.name for p in target.iterdir()) == want
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "link", "target"]
+
+
+def _plant(folder: Path, marker: dict[str, object] | None, content: str = "frame") -> Path:
+    from jsgs.base.io import PART_MARKER
+
+    folder.mkdir()
+    (folder / "frame_00000.png").write_text(content)
+    if marker is not None:
+        (folder / PART_MARKER).write_text(json.dumps(marker))
+    return folder
+
+
+def test_leftovers_of_a_killed_render_are_removed_only_when_ours_and_gone(tmp_path: Path) -> None:
+    """Beside ``frames``: a ``.part`` folder whose writer is gone (removed), one whose writer runs, one of
+    another host, one without our marker, one whose marker names another folder, a link to a marked folder
+    (all left alone, one warning each); an ``.old`` folder of a gone writer is removed while ``frames``
+    exists, and put back as ``frames`` when a swap was cut short."""
+    import os
+    import socket
+
+    from jsgs.base.io import PART_MARKER, _start_time, clear_folder_leftovers
+
+    host = socket.gethostname()
+    dead = {"for": "frames", "pid": 2**22 + 12345, "host": host, "start": 1, "what": "jsgs render"}
+    live = {**dead, "pid": os.getppid(), "start": _start_time(os.getppid())}
+    final = tmp_path / "frames"
+    gone = _plant(tmp_path / ".frames.aaaa1111.part", dead)
+    running = _plant(tmp_path / ".frames.bbbb2222.part", live)
+    remote = _plant(tmp_path / ".frames.cccc3333.part", {**dead, "host": host + "-elsewhere"})
+    bare = _plant(tmp_path / ".frames.dddd4444.part", None)
+    other = _plant(tmp_path / ".frames.eeee5555.part", {**dead, "for": "other"})
+    target = _plant(tmp_path / "target", dead, "keep")
+    link = tmp_path / ".frames.ffff6666.part"
+    link.symlink_to(target, target_is_directory=True)
+    old = _plant(tmp_path / ".frames.gggg7777.old", dead, "earlier")
+    unrelated = _plant(tmp_path / ".framesx.hhhh8888.part", dead)  # another output's
+    lines = clear_folder_leftovers(final)
+    assert len(lines) == 7 and all("\n" not in s for s in lines), lines
+    assert not gone.exists() and not old.exists()
+    assert sorted(p.name for p in final.iterdir()) == ["frame_00000.png"]  # no frames: the .old came back
+    assert (final / "frame_00000.png").read_text() == "earlier"
+    assert [s.split(",")[0] for s in lines if s.startswith("note")] == [
+        f"note: removed {gone}", f"note: {final}: put back from {old.name}"]  # fmt: skip
+    for kept in (running, remote, bare, other):
+        assert (kept / "frame_00000.png").read_text() == "frame"
+        assert sum(str(kept) in s and s.startswith("warning: ") for s in lines) == 1, (kept, lines)
+    assert link.is_symlink() and (target / "frame_00000.png").read_text() == "keep"
+    assert (target / PART_MARKER).exists() and unrelated.exists()
+    assert f"(PID {os.getppid()}) is still writing it" in next(s for s in lines if str(running) in s)
+    assert f"on host {host}-elsewhere" in next(s for s in lines if str(remote) in s)
+    assert "holds no .jsgs-part.json" in next(s for s in lines if str(bare) in s)
+    # once frames exists, an .old folder of a gone writer is the output a finished swap was removing
+    old = _plant(tmp_path / ".frames.iiii9999.old", dead)
+    lines = clear_folder_leftovers(final)
+    assert not old.exists() and (final / "frame_00000.png").read_text() == "earlier"
+    assert [s for s in lines if not s.startswith("warning: ")] == [
+        f"note: removed {old}, the earlier output it was replacing of jsgs render (PID {2**22 + 12345}, no "
+        "longer running)"]  # fmt: skip
+
+
+def test_render_removes_what_a_killed_render_left(run: Path, tmp_path: Path) -> None:
+    """A process killed (SIGKILL) inside atomic_folder leaves its marked ``.part`` folder; the next jsgs
+    render into the same folder removes it with a note and warns about an unmarked one, which it keeps."""
+    import signal
+    import subprocess
+    import sys
+
+    from jsgs.base.io import PART_MARKER
+    from jsgs.cli import main
+
+    out = tmp_path / "frames"
+    code = (
+        "import os, signal, sys\nfrom jsgs.base.io import atomic_folder\n"
+        "with atomic_folder(sys.argv[1], 'jsgs render') as work:\n"
+        "    (work / 'frame_00000.png').write_bytes(b'half')\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    assert subprocess.run([sys.executable, "-c", code, str(out)]).returncode == -signal.SIGKILL
+    (killed,) = _siblings(out)
+    assert json.loads((tmp_path / killed / PART_MARKER).read_text())["what"] == "jsgs render"
+    stranger = _plant(tmp_path / ".frames.zzzz0000.part", None, "someone's")
+    r = CliRunner().invoke(main, ["render", str(run), "--out", str(out), "--frames", "2", "--device", "cpu"])
+    assert r.exit_code == 0, r.output
+    assert f"note: removed {tmp_path / killed}, the unfinished output of jsgs render (PID " in r.output
+    assert f"warning: {stranger}: left beside frames" in r.output
+    assert _siblings(out) == [stranger.name] and (stranger / "frame_00000.png").read_text() == "someone's"
+    assert sorted(p.name for p in out.iterdir()) == ["cameras.json", "frame_00000.png", "frame_00001.png"]
+
+
+def test_a_lock_of_another_host_is_never_taken_over(tmp_path: Path) -> None:
+    """The output lock holds the same writer record as atomic_folder's marker: a PID recorded on another
+    host says nothing here, so that lock is refused (naming the host) where a dead PID of this host's is
+    taken over."""
+    import socket
+
+    from jsgs.base.errors import JsgsError
+    from jsgs.base.io import LOCK_NAME, OutputLock
+
+    dead = {"pid": 2**22 + 12345, "what": "jsgs train (into run)", "host": socket.gethostname() + "-b"}
+    (tmp_path / LOCK_NAME).write_text(json.dumps(dead))
+    with pytest.raises(JsgsError, match=rf"in use by jsgs train \(into run\) \(PID {dead['pid']} on host "):
+        OutputLock(tmp_path, "jsgs render")
+    (tmp_path / LOCK_NAME).write_text(json.dumps({**dead, "host": socket.gethostname()}))
+    with OutputLock(tmp_path, "jsgs render"):
+        assert json.loads((tmp_path / LOCK_NAME).read_text())["what"] == "jsgs render"
+    assert not (tmp_path / LOCK_NAME).exists()
