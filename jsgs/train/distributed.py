@@ -27,7 +27,8 @@ How a step is shared (gsplat's simple_trainer with ``world_size``):
   :func:`share_strategy_statistics`)
   and the Gaussian Controller's (it runs on the view's process, over the gathered Gaussians, and its
   gradients travel back with the others);
-- the strategies run per shard: DefaultStrategy densifies and prunes each shard on its own statistics;
+- the strategies run per shard: DefaultStrategy densifies and prunes each shard on its own statistics,
+  never to zero (:func:`keep_a_gaussian_per_shard`; neither exchange takes an empty shard);
   MCMCStrategy's global budget ``cap_max`` is split into shares (:func:`shard_cap`), each shard relocating
   and growing within its own, so the run's count never exceeds the budget;
 - the logged values, the finiteness of every process's terms, gradients and parameters and the stop signals
@@ -238,10 +239,45 @@ def scale_optimizers(optimizers: dict[str, torch.optim.Optimizer], batch: int) -
 PER_GAUSSIAN_STATE = ("grad2d", "count", "radii")
 
 
-def shard_rows(n: int, world: World) -> Tensor:
+def shard_rows(n: int, world: World, where: str) -> Tensor:
     """The rows of ``n`` initial Gaussians this process owns: ``rank``, ``rank + size``, ... (gsplat's
-    simple_trainer: ``points[world_rank::world_size]``)."""
+    simple_trainer: ``points[world_rank::world_size]``), at least one on every process; fewer Gaussians than
+    processes is a JsgsError naming ``where`` (a shard without Gaussians breaks both exchanges: gsplat
+    1.5.3's distributed rasterisation and the torch exchange's gather, and never grows)."""
+    if n < world.size:
+        raise JsgsError(
+            f"{where}: {n} initial Gaussian(s) cannot be shared by {world.size} processes (each needs at "
+            f"least one); train on at most {n} process(es), or start from more points"
+        )
     return torch.arange(n)[world.rank :: world.size]
+
+
+def keep_a_gaussian_per_shard(strategy: Any, world: World) -> None:
+    """DefaultStrategy on several processes prunes each shard on its own: a prune that would remove every
+    Gaussian of this process's shard keeps its most opaque one (gsplat's pruning otherwise as it is), so
+    no shard ever becomes empty (:func:`shard_rows`). That Gaussian's opacity is below ``prune_opa``
+    (0.005 by default) or it is too large: it may grow again like any other. MCMCStrategy never removes
+    Gaussians."""
+    if not world.enabled or strategy.type != "default":
+        return
+    import gsplat.strategy.default as gsd
+
+    gs, own_prune, own_remove = strategy.gsplat, strategy.gsplat._prune_gs, gsd.remove
+
+    def remove(params: Any, optimizers: Any, state: Any, mask: Tensor) -> None:
+        if mask.numel() > 0 and bool(mask.all()):
+            mask = mask.clone()
+            mask[torch.argmax(params["opacities"].detach().flatten())] = False
+        own_remove(params=params, optimizers=optimizers, state=state, mask=mask)
+
+    def prune_gs(params: Any, optimizers: Any, state: dict[str, Any], step: int) -> int:
+        gsd.remove = remove  # gsplat's _prune_gs calls its module's remove; for this call only
+        try:
+            return own_prune(params, optimizers, state, step)
+        finally:
+            gsd.remove = own_remove
+
+    gs._prune_gs = prune_gs
 
 
 def shard_cap(cap: int, world: World) -> int:
@@ -598,14 +634,14 @@ def split_checkpoint(doc: dict[str, Any], world: World, path: str) -> dict[str, 
     if (
         not isinstance(sizes, list)
         or len(sizes) != world.size
-        or not all(isinstance(s, int) and s >= 0 for s in sizes)
+        or not all(isinstance(s, int) and s >= 1 for s in sizes)
         or sum(sizes) != n
         or not isinstance(ranks, list)
         or len(ranks) != world.size
     ):
         raise JsgsError(
-            f"{path}: unusable checkpoint: shards: not the row counts of {world.size} processes' Gaussians "
-            f"({n} in the file)"
+            f"{path}: unusable checkpoint: shards: not the row counts of {world.size} processes' Gaussians, "
+            f"at least one each ({n} in the file)"
         )
     start = sum(sizes[: world.rank])
     stop = start + sizes[world.rank]

@@ -657,6 +657,7 @@ class Trainer:
             self._fold_statistics = lambda info, step: fold(info, cfg.render.packed, step)
         elif self.exchange == "gsplat":
             dd.per_camera_statistics(self.strategy, self.world)
+        dd.keep_a_gaussian_per_shard(self.strategy, self.world)
         sizes = {(v.width, v.height) for v in self.train_views}
         if self.exchange == "torch" and self.backend == "gsplat" and len(sizes) > 1:
             self.say(
@@ -701,7 +702,7 @@ class Trainer:
             )
         initial = int(self.splats["means"].shape[0])
         if self.world.enabled:  # every process made the same Gaussians: each keeps its shard
-            rows = dd.shard_rows(initial, self.world).to(device)
+            rows = dd.shard_rows(initial, self.world, str(scene.manifest_path)).to(device)
             self.splats = torch.nn.ParameterDict(
                 {n: torch.nn.Parameter(self.splats[n].data[rows].contiguous()) for n in PARAM_NAMES}
             )

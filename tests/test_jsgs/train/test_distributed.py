@@ -191,6 +191,32 @@ def test_setup_error_on_one_process_is_one_line(scene: Path, tmp_path: Path) -> 
     assert _files(out) == ["mine.txt"]
 
 
+@pytest.mark.slow
+def test_fewer_initial_gaussians_than_processes_is_one_line(scene: Path, tmp_path: Path) -> None:
+    """Four initial Gaussians (the fewest the initialisation takes) for five processes: every process stops
+    at setup, with one line naming the manifest (a process without Gaussians could take part in neither
+    exchange); nothing is written."""
+    settings = tmp_path / "four_points.json"
+    settings.write_text(json.dumps({"device": "cpu", "init": {"type": "random", "num_points": 4}}))
+    out = tmp_path / "run"
+    line = _one_error(_train(scene, out, "--config", str(settings), "--iterations", "4", processes=5))
+    assert f"{scene}: 4 initial Gaussian(s) cannot be shared by 5 processes" in line, line
+    assert "train on at most 4 process(es)" in line and not (out / "config.json").exists()
+
+
+@pytest.mark.slow
+def test_a_prune_of_every_gaussian_leaves_one_per_process(scene: Path, tmp_path: Path) -> None:
+    """DefaultStrategy told to prune every Gaussian (prune_opa 0.999) on two processes: each shard keeps
+    its most opaque one, and the run trains on, evaluates and writes its model with two Gaussians."""
+    cfg = _settings(tmp_path, refine_start_iter=2, refine_every=2, prune_opa=0.999)
+    out = tmp_path / "run"
+    _ok(_train(scene, out, "--preset", "paper", "--config", str(cfg), "--iterations", "6", "--eval-at", "6",
+               processes=2))  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "complete" and metrics["num_gaussians"] == 2
+    assert metrics["evals"][0]["num_gaussians"] == 2
+
+
 def _children(pid: int) -> list[int]:
     path = Path(f"/proc/{pid}/task/{pid}/children")
     return [int(x) for x in path.read_text().split()] if path.exists() else []
@@ -269,7 +295,7 @@ def _reductions_worker(rank: int, store: str) -> None:
     g = torch.Generator().manual_seed(1)
     full = init_splats(torch.rand(31, 3, generator=g) - 0.5, torch.rand(31, 3, generator=g), cfg, 1.0,
                        torch.device("cpu"))  # fmt: skip
-    rows = dd.shard_rows(31, world)
+    rows = dd.shard_rows(31, world, "test")
     shard = torch.nn.ParameterDict({n: torch.nn.Parameter(full[n].data[rows].clone()) for n in PARAM_NAMES})
     cams = []
     for a in (0.3, 2.1):
@@ -472,6 +498,8 @@ def test_checkpoint_shards_merge_and_split_back() -> None:
         assert back["strategy"]["radii"] is None and back["rng"] is p["rng"]
     with pytest.raises(JsgsError, match=r"ck\.pt: .*shards"):
         dd.split_checkpoint({**doc, "shards": [4, 4]}, dd.World(0, 2, 0), "ck.pt")
+    with pytest.raises(JsgsError, match=r"ck\.pt: .*shards: .* at least one each \(7 in the file\)"):
+        dd.split_checkpoint({**doc, "shards": [7, 0]}, dd.World(0, 2, 0), "ck.pt")  # an empty shard
     with pytest.raises(JsgsError, match="3 processes"):
         dd.split_checkpoint(doc, dd.World(0, 3, 0), "ck.pt")
 
@@ -484,14 +512,80 @@ def test_a_signal_to_any_process_stops_all_after_the_step() -> None:
 
 
 def test_budget_shares_sum_to_the_budget() -> None:
+    """The budget's shares sum to it; the initial Gaussians' shards fit in them, at least one Gaussian each,
+    and fewer Gaussians than processes is one line."""
+    import torch
+
+    from jsgs.base.errors import JsgsError
     from jsgs.train import distributed as dd
 
-    for cap in (0, 1, 59, 60, 61, 1_000_000):
+    for cap in (0, 1, 2, 59, 60, 61, 1_000_000):
         for size in (1, 2, 3, 8):
             shares = [dd.shard_cap(cap, dd.World(r, size, r)) for r in range(size)]
             assert sum(shares) == cap and max(shares) - min(shares) <= 1
-            rows = [len(dd.shard_rows(cap, dd.World(r, size, r))) for r in range(size)]
-            assert all(n <= s for n, s in zip(rows, shares, strict=True))
+            if cap < size:
+                for r in range(size):
+                    with pytest.raises(JsgsError) as e:
+                        dd.shard_rows(cap, dd.World(r, size, r), "scene/manifest.json")
+                    assert str(e.value) == (
+                        f"scene/manifest.json: {cap} initial Gaussian(s) cannot be shared by {size} "
+                        f"processes (each needs at least one); train on at most {cap} process(es), or start "
+                        "from more points"
+                    )
+                continue
+            rows = [dd.shard_rows(cap, dd.World(r, size, r), "test") for r in range(size)]
+            assert all(1 <= len(n) <= s for n, s in zip(rows, shares, strict=True))
+            assert sorted(torch.cat(rows).tolist()) == list(range(cap))
+
+
+def test_pruning_never_empties_a_shard() -> None:
+    """DefaultStrategy's pruning on several processes: a prune of every Gaussian of the shard keeps the most
+    opaque one, with its Adam moments and statistics; any other prune is gsplat's own, row for row."""
+    import gsplat.strategy.default as gsd
+    import torch
+
+    from jsgs.train import distributed as dd
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.strategy import Densifier
+
+    def shard(opacities: list[float]) -> tuple[torch.nn.ParameterDict, dict[str, Any]]:
+        n = len(opacities)
+        params = torch.nn.ParameterDict({
+            "means": torch.nn.Parameter(torch.arange(3.0 * n).reshape(n, 3)),
+            "scales": torch.nn.Parameter(torch.full((n, 3), -3.0)),
+            "opacities": torch.nn.Parameter(torch.logit(torch.tensor(opacities))),
+        })  # fmt: skip
+        optimizers = {k: torch.optim.Adam([p], lr=0.1) for k, p in params.items()}
+        for p in params.values():
+            p.sum().backward()
+        for o in optimizers.values():
+            o.step()
+        return params, optimizers
+
+    cfg = TrainConfig.from_preset("paper", device="cpu").strategy
+    for opacities in ([0.001, 0.004, 0.002], [0.001, 0.5, 0.002, 0.9], [0.3, 0.6]):
+        got, want = Densifier(cfg), Densifier(cfg)
+        dd.keep_a_gaussian_per_shard(got, dd.World(0, 2, 0))
+        results = []
+        for strategy in (got, want):
+            params, optimizers = shard(opacities)
+            state = strategy.initialize_state(scene_scale=1.0)
+            state["grad2d"], state["count"] = torch.arange(len(opacities)) + 1.0, torch.ones(len(opacities))
+            before = params["means"].data.clone()
+            strategy.gsplat._prune_gs(params, optimizers, state, 100)
+            results.append((params, optimizers["means"].state_dict()["state"][0]["exp_avg"], state["grad2d"]))
+        assert gsd.remove.__module__ == "gsplat.strategy.ops"  # the patch lasts one call
+        (params, moments, grad2d), (ref, ref_moments, ref_grad2d) = results
+        if all(o < cfg.prune_opa for o in opacities):  # gsplat would prune them all: the most opaque stays
+            assert ref["means"].shape[0] == 0 and params["means"].shape[0] == 1
+            assert torch.equal(params["means"].data, before[1:2])
+            assert moments.shape == (1, 3) and grad2d.tolist() == [2.0]
+        else:
+            assert torch.equal(params["means"].data, ref["means"].data) and params["means"].shape[0] > 0
+            assert torch.equal(moments, ref_moments) and torch.equal(grad2d, ref_grad2d)
+    one = Densifier(cfg)  # one process: gsplat's strategy untouched
+    dd.keep_a_gaussian_per_shard(one, dd.World(0, 1, 0))
+    assert "_prune_gs" not in vars(one.gsplat)
 
 
 @pytest.mark.parametrize(
@@ -675,7 +769,7 @@ def _gsplat_exchange_worker(rank: int, store: str, cuda: bool) -> None:
     full = init_splats(points, colors, cfg, 1.0, device)
     # view-dependent colours (SH degree 3), which the owner evaluates along each process's camera's directions
     full["shN"].data.copy_(0.3 * torch.randn(full["shN"].shape, generator=g).to(device))
-    rows = dd.shard_rows(n, world).to(device)
+    rows = dd.shard_rows(n, world, "test").to(device)
     shard = torch.nn.ParameterDict({n: torch.nn.Parameter(full[n].data[rows].clone()) for n in PARAM_NAMES})
     cams = []
     for a in (0.3, 2.1):
