@@ -122,7 +122,7 @@ def build_manifest(
     ``test_every``: None = the compress record's value, or 8 for a scene without one; a value that contradicts
     the record is an error (the split of a compressed scene is fixed: its test views were not compressed).
     ``producer``: given by ``compress``; otherwise this tool's own."""
-    from .validate import orientation_warning, require_valid, world_warning
+    from .validate import orientation_warning, require_valid, split_warning, world_warning
 
     scene_dir, out = Path(scene_dir), Path(out)
     record = read_record(scene_dir)
@@ -135,6 +135,9 @@ def build_manifest(
             say(w)
     base = out.parent
     test_every, split = _split(scene_dir, scene, record, test_every)
+    n_train = sum(s == "train" for s in split.values())
+    if say is not None and (w := split_warning(str(out), len(scene.views), n_train, test_every)) is not None:
+        say(w)
     views = [_view_doc(scene, v, scene_dir, base, split[v.name], analyze) for v in scene.views]
     if record is not None:
         scene_info = _recorded_scene_info(record, test_every)

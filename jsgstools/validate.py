@@ -33,7 +33,7 @@ import numpy as np
 
 from jsgs.base.errors import JsgsError
 from jsgs.base.limits import MAX_COORDINATE
-from jsgs.base.world import cameras_coincide, normalization_refusal
+from jsgs.base.world import coincidence, normalization_refusal
 
 from .scene import (
     JPEG_FORMATS,
@@ -217,11 +217,14 @@ def _decode_error(path: Path) -> str | None:
     return None
 
 
-def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False) -> ValidationReport:
+def validate_scene(
+    root: str | Path, decode: bool = False, analyze: bool = False, test_every: int | None = None
+) -> ValidationReport:
     """Load ``root`` and check everything listed in the module docstring. Never raises for a bad scene.
     ``decode``: also decode every registered image (:func:`jsgs.base.images.read_rgb8`, what ``compress`` and
     the trainer do), so a truncated file or one over the pixel limit is reported here first. ``analyze``:
-    warn about JPEG views compressed twice (:mod:`jsgstools.dqt.analysis`)."""
+    warn about JPEG views compressed twice (:mod:`jsgstools.dqt.analysis`). ``test_every``: warn when that
+    split would leave no training view."""
     root = Path(root)
     report = ValidationReport(root=root, scene=None)
     try:
@@ -241,6 +244,8 @@ def validate_scene(root: str | Path, decode: bool = False, analyze: bool = False
         report.warnings += _double_compression_warnings(scene)
     report.warnings += _left_out_warnings(scene)
     if (w := world_warning(scene)) is not None:
+        report.warnings.append(w)
+    if test_every is not None and (w := _split_warning(scene, test_every)) is not None:
         report.warnings.append(w)
     _check_points(scene, report)
     return report
@@ -409,26 +414,49 @@ def _left_out_warnings(scene: ColmapScene) -> list[str]:
 
 
 def world_warning(scene: ColmapScene) -> str | None:
-    """Cameras that the trainer's world normalisation refuses (at one position, up directions that cancel
-    out, most at their focus point), in one line naming the model, else None."""
+    """Cameras that the trainer's world normalisation refuses (only one, all at one position, up directions
+    that cancel out, most at their focus point), in one line naming the model, else None."""
     w2c = [np.block([[v.R, v.t[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]]) for v in scene.views
            if finite(v.R) and _in_range(v.t)]  # fmt: skip
     if not w2c:
         return None
     with np.errstate(all="ignore"):
         c2w = np.stack([np.linalg.inv(m) for m in w2c])  # the poses the trainer computes
-        if len(c2w) > 1 and cameras_coincide(c2w):
-            return (
-                f"{scene.rel(scene.model_dir)}: all {len(c2w)} cameras are at one position: jsgs train "
-                "refuses the scene unless scene.normalize_world is false"
-            )
-        why = normalization_refusal(c2w)
+        lone = len(c2w) == 1 < len(scene.views)  # the others' poses are broken: problems of their own
+        why = (None if lone else coincidence(c2w)) or normalization_refusal(c2w)
     if why is None:
         return None
     return (
         f"{scene.rel(scene.model_dir)}: {why}: jsgs train refuses the scene unless scene.normalize_world is "
         "false"
     )
+
+
+def split_warning(where: str, n_views: int, n_train: int, test_every: int) -> str | None:
+    """One line when a split leaves no training view (one view, or ``--test-every 1``): jsgs train refuses
+    such a manifest; else None."""
+    if n_train > 0 or n_views == 0:
+        return None
+    return (
+        f"{where}: no training views: with test every {test_every}, all {n_views} view(s) are test views; "
+        "jsgs train needs at least one (--test-every 0 makes every view a training view)"
+    )
+
+
+def _split_warning(scene: ColmapScene, test_every: int) -> str | None:
+    """:func:`split_warning` for the split ``jsgstools manifest --test-every`` would make (a compressed
+    scene's: its record's, which ``_check_record`` checks)."""
+    import json
+
+    n = len(scene.views)
+    try:
+        rec = json.loads((scene.root / "compress.json").read_text())
+        n_train, test_every = sum(v["split"] == "train" for v in rec["views"]), rec["settings"]["test_every"]
+    except FileNotFoundError:
+        n_train = n - (len(range(0, n, test_every)) if test_every > 0 else 0)
+    except (OSError, ValueError, KeyError, TypeError, RecursionError):
+        return None  # a problem of its own
+    return split_warning(scene.rel(scene.model_dir), n, n_train, test_every)
 
 
 def _check_points(scene: ColmapScene, report: ValidationReport) -> None:

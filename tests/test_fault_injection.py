@@ -531,6 +531,44 @@ def test_coincident_colmap_cameras_are_named_by_validate(synth_scene: Path, tmp_
     assert r.exit_code == 0 and "cameras are at one position" in r.output, r.output
 
 
+def test_a_single_camera_is_named_by_validate_manifest_and_train(
+    synth_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One registered camera: validate and manifest warn that jsgs train refuses it (no camera distance for
+    the world's normalisation) and, with the default split, that no view trains; jsgs train says either in
+    one line, and trains with scene.normalize_world false."""
+    import pycolmap
+
+    scene = tmp_path / "scene"
+    shutil.copytree(synth_scene, scene)
+    rec = pycolmap.Reconstruction(str(scene / "sparse/0"))
+    for iid in sorted(rec.images)[1:]:
+        (scene / "images" / rec.images[iid].name).unlink()
+        rec.deregister_frame(rec.images[iid].frame_id)
+    rec.write_binary(str(scene / "sparse/0"))
+    lone = "warning: scene/sparse/0: only one camera: jsgs train refuses the scene unless scene.normalize"
+    no_train = "no training views: with test every 8, all 1 view(s) are test views; jsgs train needs at least"
+    monkeypatch.chdir(tmp_path)  # the messages name the scene as given
+    r = CliRunner().invoke(tools_main, ["validate", "scene"])
+    assert r.exit_code == 0 and lone in r.output and f"scene/sparse/0: {no_train}" in r.output, r.output
+    r = CliRunner().invoke(tools_main, ["validate", "scene", "--test-every", "0"])
+    assert r.exit_code == 0 and lone in r.output and "no training views" not in r.output, r.output
+    for every, name in (("8", "m8.json"), ("0", "m0.json")):
+        r = CliRunner().invoke(tools_main, ["manifest", "scene", "--out", name, "--test-every", every])
+        assert r.exit_code == 0 and lone in r.output, r.output
+        assert (f"warning: {name}: {no_train}" in r.output) == (every == "8"), r.output
+    train = ["train", "--iterations", "2", "--eval-at", "2", "--device", "cpu", "--quiet"]
+    for name, needle in (("m8.json", "error: m8.json: no training views (every view has split 'test')"),
+                         ("m0.json", "error: m0.json: only one camera (")):  # fmt: skip
+        r = CliRunner().invoke(jsgs_main, [*train, name, "--out", f"run_{name}"])
+        _check_one_line(r.output, r.exit_code)
+        assert needle in r.output, r.output
+    assert "set scene.normalize_world to false to train in the manifest's own units" in r.output
+    Path("flat.json").write_text(json.dumps({"scene": {"normalize_world": False}}))
+    r = CliRunner().invoke(jsgs_main, [*train, "m0.json", "--out", "run", "--config", "flat.json"])
+    assert r.exit_code == 0 and "note: only one camera: camera extent 0 replaced by 1" in r.output, r.output
+
+
 # PLY files: a model that cannot be rendered gets one line from every reader (export, render, view)
 
 

@@ -80,3 +80,13 @@ def cameras_coincide(c2w: np.ndarray) -> bool:
     """Every camera at one position (their extent within :data:`COINCIDENT_CAMERAS` of the coordinates'
     size): the normalisation has no distance to scale by."""
     return camera_extent(c2w) <= COINCIDENT_CAMERAS * max(1.0, float(np.abs(c2w[:, :3, 3]).max()))
+
+
+def coincidence(c2w: np.ndarray) -> str | None:
+    """Why the cameras give the normalisation no distance to scale by, in words (``"only one camera"``, or
+    ``"all N cameras are at one position"``: :func:`cameras_coincide`), else None."""
+    if len(c2w) == 1:
+        return "only one camera"
+    if cameras_coincide(c2w):
+        return f"all {len(c2w)} cameras are at one position"
+    return None

@@ -23,7 +23,7 @@ from jsgs.base.camera import Camera
 from jsgs.base.errors import JsgsError
 from jsgs.base.limits import MAX_POINT_DISTANCE, MIN_VIEW_SIDE
 from jsgs.base.manifest import JpegState, Manifest, ManifestView
-from jsgs.base.world import camera_extent, cameras_coincide
+from jsgs.base.world import camera_extent, coincidence
 from jsgs.train.config import TrainConfig
 from jsgs.train.normalize import normalize_world
 
@@ -173,11 +173,11 @@ def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Training
     c2w = np.stack([np.linalg.inv(v.world_to_camera) for v in manifest.views])
     centres = c2w[:, :3, 3]
     spread = camera_extent(c2w)
-    coincident = cameras_coincide(c2w)
+    coincident = coincidence(c2w)
     if coincident and cfg.scene.normalize_world:
         at = ", ".join(f"{x:g}" for x in centres[0])
         raise JsgsError(
-            f"{where}: all {len(c2w)} cameras are at one position ({at}): "
+            f"{where}: {coincident} ({at}): "
             "the world's normalisation (scene.normalize_world) scales by the cameras' distances; set "
             "scene.normalize_world to false to train in the manifest's own units"
         )
@@ -206,7 +206,7 @@ def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Training
         xyz_n, transform = xyz, np.eye(4)
     extent = camera_extent(c2w)
     if coincident or not extent > 1e-12:
-        notes.append("all cameras at one position: camera extent 0 replaced by 1")
+        notes.append(f"{coincident or 'all cameras at one position'}: camera extent 0 replaced by 1")
         extent = 1.0
     views = [
         TrainingView(i, v.name, v.split, v.image, v.reference, v.jpeg, v.camera, cw, np.linalg.inv(cw))

@@ -232,7 +232,7 @@ def validate_cmd(scene: Path, test_every: int, analyze: bool) -> None:
     problem, one line each, and exits 1."""
     from jsgstools.validate import validate_scene
 
-    report = validate_scene(scene, decode=True, analyze=analyze)
+    report = validate_scene(scene, decode=True, analyze=analyze, test_every=test_every)
     for w in report.warnings:
         click.echo(f"warning: {w}")
     if report.problems:
