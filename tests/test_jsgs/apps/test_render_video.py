@@ -363,3 +363,44 @@ def test_a_lock_of_another_host_is_never_taken_over(tmp_path: Path) -> None:
     with OutputLock(tmp_path, "jsgs render"):
         assert json.loads((tmp_path / LOCK_NAME).read_text())["what"] == "jsgs render"
     assert not (tmp_path / LOCK_NAME).exists()
+
+
+@pytest.mark.parametrize("killed_in", ["the removal of the earlier folder", "the swap"])
+def test_a_swap_killed_midway_leaves_a_marked_earlier_folder(tmp_path: Path, killed_in: str) -> None:
+    """A process killed (SIGKILL) while atomic_folder replaces an earlier folder: killed while removing the
+    earlier folder, that folder is left marked and the next writer removes it (the new one is in place);
+    killed between moving it aside and renaming the new one in, it is put back, and the new folder (its
+    marker already gone: it is about to become ``frames``) is kept with a warning."""
+    import signal
+    import subprocess
+    import sys
+
+    from jsgs.base.io import clear_folder_leftovers
+
+    final = tmp_path / "frames"
+    final.mkdir()
+    (final / "frame_00000.png").write_text("earlier")
+    step = "_remove_marked" if killed_in.startswith("the removal") else "write_json_atomic"
+    code = (
+        "import os, signal, sys\nimport jsgs.base.io as io\nown = io." + step + "\n"
+        "def kill(p, *a):\n"
+        "    if p.name.endswith('.old') or p.parent.name.endswith('.old'):\n"
+        "        if io.write_json_atomic is kill: own(p, *a)\n"
+        "        os.kill(os.getpid(), signal.SIGKILL)\n"
+        "    return own(p, *a)\n"
+        "io." + step + " = kill\n"
+        "with io.atomic_folder(sys.argv[1], 'jsgs render') as work:\n"
+        "    (work / 'frame_00000.png').write_text('new')\n"
+    )
+    assert subprocess.run([sys.executable, "-c", code, str(final)]).returncode == -signal.SIGKILL
+    (left,) = (p for p in tmp_path.iterdir() if p.name.endswith(".old"))
+    new = [p for p in tmp_path.iterdir() if p.name.endswith(".part")]
+    lines = clear_folder_leftovers(final)
+    assert not left.exists() and sorted(s.split(" ")[0] for s in lines) == ["note:"] + ["warning:"] * len(new)
+    assert [p.name for p in final.iterdir()] == ["frame_00000.png"]
+    if killed_in.startswith("the removal"):
+        assert (final / "frame_00000.png").read_text() == "new" and not new
+    else:
+        assert (final / "frame_00000.png").read_text() == "earlier" and len(new) == 1
+        assert (new[0] / "frame_00000.png").read_text() == "new"
+        assert any(s.startswith(f"warning: {new[0]}: ") for s in lines), lines
