@@ -39,6 +39,11 @@ values and gradients (tested), chosen by ``gc_pooling``:
 With ``lambda_fro`` 0 the term is logged only; the ``"now"`` route is used for it (nothing rides in the
 loss).
 
+With ``gc_attribution`` ``"footprint"`` no probe is rendered: r̄ is estimated from each Gaussian's 2D footprint
+over the blocks around its mean, and V_i read from the main backward's conic gradients
+(``jsgs.method.pooling.footprint_sums``), in a hook on ``info["conics"]`` that feeds the estimate to the
+same controller code as the probe's gradient (``jsgs.method.pooling.probe_grad_from_sums``); deferred only.
+
 With ``gc_every`` k > 1 the controller runs on the steps with ``step % k == 0`` only, weighted k·λ_fro there
 (on those steps it is the exact controller with that weight); the other steps render no probe, and their
 ``fro`` term and GC statistics are logged as 0, as on lossless views.
@@ -158,6 +163,7 @@ class JsgsHook(LossHook):
             "color_kernel": self.color_kernel,
             "cuda_graph": self.cuda_graph,
             "cuda_graph_gc": self._gc_graphed is not None,
+            "gc_attribution": self.opts.gc_attribution,
             "gc_kernel": "cuda" if self._gc_fused else "torch",
             "gc_route": self.gc_route,
             "jo_kernel": self.jo_kernel,
@@ -216,12 +222,14 @@ class JsgsHook(LossHook):
         return base_weight(self.opts, tab, step)
 
     def renders_extra(self) -> bool:
+        # the footprint attribution renders no probe but, like it, needs the step's view rendered from every
+        # Gaussian (per-view screen-space values): on several GPUs both take the torch exchange
         return self.opts.gc
 
     def extra_channels(self, step: int, view: TrainingView, splats: torch.nn.ParameterDict) -> Tensor | None:
         """The Gaussian Controller's probe (``jsgs.method.pooling.new_probe``) on the views and steps it runs
         on."""
-        if not (self.gc_at(step) and view.index in self.tables):
+        if not (self.gc_at(step) and view.index in self.tables) or self.opts.gc_attribution != "probe":
             return None
         from jsgs.method.pooling import new_probe
 
@@ -302,7 +310,9 @@ class JsgsHook(LossHook):
         elif o.gc:
             assert r_map is not None
             with self.profiler.phase("gc"):
-                if self.gc_route == "now":
+                if o.gc_attribution == "footprint":
+                    terms["fro"], gc_stats = self._gc_footprint(ctx, r_map)
+                elif self.gc_route == "now":
                     fro, gc_stats = self._gc_now(ctx, r_map)
                     terms["fro"] = fro
                 else:
@@ -367,6 +377,51 @@ class JsgsHook(LossHook):
                 stat_vec.copy_(packed[1:])
 
         ctx.info["extra_features"].register_post_accumulate_grad_hook(on_probe_grad)
+        return term, stat_t
+
+    def _gc_footprint(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """The controller with the footprint attribution: a hook on ``info["conics"]`` reads its gradient
+        in the main backward (V_i: the non-zero rows), estimates the pooled sums
+        (:func:`jsgs.method.pooling.footprint_sums`) and runs :meth:`_controller` on the probe gradient they
+        stand for. The ``fro`` value and the statistics are written in place then, as in the deferred
+        probe route."""
+        from jsgs.method.pooling import footprint_sums, probe_grad_from_sums
+
+        info = ctx.info
+        conics = info["conics"]
+        if not conics.requires_grad:
+            raise JsgsError(
+                "method_options.gc_attribution footprint: the rasteriser's conics have no gradient to read"
+            )
+        term = torch.zeros((), dtype=ctx.render.dtype, device=ctx.render.device)
+        stat_vec = torch.zeros(len(STAT_NAMES), dtype=term.dtype, device=term.device)
+        stat_t = dict(zip(STAT_NAMES, stat_vec.unbind(), strict=True))
+        # detached copies only: the hook lives on the conics, so a closure over a tensor of their graph
+        # would make a reference cycle (see _gc_deferred)
+        m2, con, op = info["means2d"].detach(), conics.detach(), info["opacities"].detach()
+        r = r_map.detach()
+        splats = ctx.splats
+        viewmat, K, w, h = self._camera(ctx)
+        weight = self.fro_weight
+        pending = {"once": True}
+
+        def on_conics_grad(grad: Tensor) -> None:
+            if not pending.pop("once", False):  # a second backward through the same graph
+                return
+            with self.profiler.phase("gc_backward"), torch.no_grad():
+                sums = footprint_sums(r, m2, con, op, (grad != 0).any(dim=-1))
+                params = (splats["opacities"], splats["scales"], splats["means"], splats["quats"])
+                if weight > 0.0:
+                    g = probe_grad_from_sums(sums, op, weight)
+                    packed = self._controller(g, params, viewmat, K, w, h)
+                else:  # λ_fro 0: logged only, nothing to add to the gradients
+                    unit = {**self._gc_settings, "weight": 1.0}
+                    g = probe_grad_from_sums(sums, op)
+                    packed = packed_fro_stats(fro_from_probe_grad(g, *params, viewmat, K, w, h, **unit).terms)
+                term.copy_(packed[0])
+                stat_vec.copy_(packed[1:])
+
+        conics.register_hook(on_conics_grad)
         return term, stat_t
 
     def _controller(

@@ -148,6 +148,14 @@ class JsgsOptions:
         "deferred: the GC pools inside the main backward (no extra pass); now: one extra rasteriser "
         "backward before the loss (L_fro an ordinary autograd term).",
     )
+    gc_attribution: Literal["probe", "footprint"] = setting(
+        "probe",
+        "How the Gaussian Controller attributes the block scores to Gaussians (r̄ and V_i): probe (the "
+        "paper's exact pooling through two extra rendered channels); footprint (no extra channels: each "
+        "Gaussian's 2D footprint integrated over the 8x8 blocks around its mean, transmittance taken as 1, "
+        "V_i from the RGB backward's non-zero conic gradients; jsgs.method.pooling.footprint_sums). "
+        "footprint needs gc_pooling deferred.",
+    )
     speed: JsgsSpeed = setting(
         default_factory=JsgsSpeed, help="Speed settings (same results): compile, CUDA graphs, kernels."
     )
@@ -185,6 +193,11 @@ class JsgsOptions:
             raise JsgsError(
                 f"{where}: method_options.base_block_ref ({self.base_block_ref:g}) scales base_by_view's "
                 "weights, which are off; set base_by_view true or base_block_ref 0"
+            )
+        if self.gc_attribution == "footprint" and self.gc_pooling == "now":
+            raise JsgsError(
+                f"{where}: method_options.gc_attribution footprint reads the main backward's conic "
+                'gradients, so it needs gc_pooling "deferred" (got "now")'
             )
         if not self.jo and (self.ds or self.gc):
             on = " and ".join(n for n, v in (("DS", self.ds), ("GC", self.gc)) if v)

@@ -25,6 +25,20 @@ Three ways to get them, all equal to the pooled sums of ``jsgs.render.bruteforce
     after ``loss.backward()`` — no extra pass at all, for a caller that can apply its r̄-dependent terms
     after the backward (for instance L_fro's closed-form gradient into opacity and scale).
 
+A cheaper estimate, ``method_options.gc_attribution: footprint`` (no probe, no extra channels):
+``footprint_sums`` integrates each Gaussian's screen-space footprint (its 2D mean and conic, a normalised
+2D Gaussian, transmittance taken as 1) over the 3 × 3 blocks of 8 × 8 pixels around its mean, so
+r̄ ≈ Σ_b w_b r_b / Σ_b w_b with w_b the footprint mass in block b (inside the image), and takes the
+contributor set from the ordinary RGB backward: j ∈ V_i ⇔ its conic's gradient is non-zero (a Gaussian that
+composites no pixel gets exactly zero; one that does gets a non-zero sum but for an exact cancellation, which
+the 2D mean's gradient meets for a symmetric footprint under a uniform upstream gradient, and the conic's
+diagonal, an even moment, does not).
+Because r is constant on each block, the estimate is exact for a Gaussian whose contributing pixels lie in
+one block and unoccluded ones in general; it departs from the probe where occlusion hides part of a footprint
+that straddles blocks, and for footprints wider than a block (s̄ ≫ τ_s, which L_fro's exp(−s̄/τ_s) weighs
+little). ``probe_grad_from_sums`` turns such sums into the probe gradient they stand for, so the
+controller's code downstream (eager, graphed, fused CUDA) is the probe's own.
+
 Gradient contamination. Adding Σ_p r(p)·C(p) for a *rendered* channel C to the loss would also push
 gradients into means2d, conics and opacities (∂C/∂α ≠ 0), and DefaultStrategy would densify on r's
 gradient as well as the photometric one. The probe avoids this: its colours are zero, so the extra
@@ -38,6 +52,8 @@ must be divided out of the gradient.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
@@ -189,3 +205,75 @@ def pooled_sums(
     o = op[None, :].expand(C, N).reshape(-1)
     o_safe = torch.where(nu > 0, o, torch.ones_like(o))
     return (s_r / o_safe).reshape(C, N), (nu / o_safe).reshape(C, N), nu.reshape(C, N)
+
+
+#: Pixels per side of a JPEG block (the block scores r_b are constant on these).
+BLOCK = 8
+
+
+def _normal_cdf(x: Tensor) -> Tensor:
+    return 0.5 * (1.0 + torch.erf(x * (1.0 / math.sqrt(2.0))))
+
+
+def _block_fractions(mu: Tensor, sigma: Tensor, size: int) -> tuple[Tensor, Tensor]:
+    """Along one image axis: the block index of each mean [M] (``floor(mu / 8)``, may be off-image) and the
+    fraction of a normal(mu, sigma) inside each of the blocks -1, 0, +1 from it, clipped to [0, size)
+    (partial last block included, blocks outside the image 0), [M, 3]."""
+    b = torch.floor(mu / BLOCK)
+    cells = b[:, None] + torch.tensor([-1.0, 0.0, 1.0], dtype=mu.dtype, device=mu.device)  # [M, 3]
+    lo = (cells * BLOCK).clamp(0.0, float(size))
+    hi = ((cells + 1.0) * BLOCK).clamp(0.0, float(size))
+    s = sigma[:, None]
+    frac = _normal_cdf((hi - mu[:, None]) / s) - _normal_cdf((lo - mu[:, None]) / s)
+    return cells.long(), frac.clamp_min(0.0)
+
+
+@torch.no_grad()
+def footprint_sums(
+    r: Tensor, means2d: Tensor, conics: Tensor, opacities: Tensor, contributes: Tensor
+) -> PooledSums:
+    """The footprint estimate of the pooled sums (module docstring), [C, N] each.
+
+    Args:
+        r: [C, H, W] the block-score map (constant on 8 × 8 blocks; 0 on the rows and columns without one).
+        means2d: [C, N, 2] projected means in pixels (pixel (i, j) has its centre at (j + 0.5, i + 0.5));
+        conics: [C, N, 3] the inverse 2D covariances (a, b, c) the rasteriser used (its blur included).
+        opacities: [C, N] the activated opacities the pass rendered with.
+        contributes: [C, N] bool, the contributor set V_i (from the backward: the conic's gradient is
+            non-zero).
+
+    Returns S_1 = 2π·sqrt(det Σ) (the footprint's unclipped mass, > 0 on contributors), S_r = r̃·S_1 with
+    r̃ = Σ_b w_b r_b / Σ_b w_b (0 where no block of the 3 × 3 lies in the image), and ν = o·S_1; all 0 off
+    V_i.
+    """
+    C, H, W = r.shape
+    dt = means2d.dtype
+    rb = r.detach().to(dt)[:, ::BLOCK, ::BLOCK]  # [C, nby, nbx]: one value per (possibly partial) block
+    nby, nbx = rb.shape[1:]
+    on = contributes
+    # off V_i: a unit footprint at the origin (culled Gaussians may carry zero or non-finite conics)
+    mu = torch.where(on[..., None], means2d.detach(), 0.0)
+    a, b, c = torch.where(on[..., None], conics.detach(), conics.new_tensor([1.0, 0.0, 1.0])).unbind(-1)
+    det = a * c - b * b  # det(Σ⁻¹) > 0
+    mx, my = mu[..., 0].reshape(-1), mu[..., 1].reshape(-1)
+    bx, fx = _block_fractions(mx, torch.sqrt(c / det).reshape(-1), W)  # Σ_xx = c / det(Σ⁻¹)
+    by, fy = _block_fractions(my, torch.sqrt(a / det).reshape(-1), H)
+    w = fy[:, :, None] * fx[:, None, :]  # [C·N, 3, 3] (rows, columns)
+    inside = ((by >= 0) & (by < nby))[:, :, None] & ((bx >= 0) & (bx < nbx))[:, None, :]
+    cam = torch.arange(C, device=r.device).repeat_interleave(means2d.shape[1])
+    rows = cam[:, None] * nby + by.clamp(0, nby - 1)  # [C·N, 3] rows of the flattened [C·nby, nbx] grid
+    flat = rows[:, :, None] * nbx + bx.clamp(0, nbx - 1)[:, None, :]
+    scores = torch.where(inside, rb.reshape(-1)[flat], 0.0)
+    mass = w.sum(dim=(1, 2))
+    r_tilde = (w * scores).sum(dim=(1, 2)) / torch.where(mass > 0, mass, 1.0)
+    s_1 = torch.where(on, (2.0 * math.pi) / torch.sqrt(det), 0.0)
+    return PooledSums(s_r=r_tilde.reshape(C, -1) * s_1, s_1=s_1, nu=opacities.detach().to(dt) * s_1)
+
+
+def probe_grad_from_sums(sums: PooledSums, opacities: Tensor, weight: float = 1.0) -> Tensor:
+    """The probe gradient [C, N, 2] = weight·(o·S_r, ν) that ``sums`` stand for (the inverse of
+    :func:`jsgs.kernels.sums_from_probe_grad`), ``opacities`` [C, N] the activated o the pass rendered with:
+    it feeds the controller (:func:`jsgs.kernels.fro_from_probe_grad` and its fused and graphed twins) as the
+    probe's gradient would."""
+    o = opacities.detach().to(sums.s_r.dtype)
+    return torch.stack([o * sums.s_r, sums.nu], dim=-1) * weight

@@ -607,8 +607,8 @@ def test_cli_train_method_jsgs_end_to_end(compressed_scene: Path, tmp_path: Path
     assert settings["method_options"] == {"jpeg_mode": "float"}
     # what "auto" and the routes resolved to on this device
     resolved = {
-        "color_kernel": "torch", "cuda_graph": False, "cuda_graph_gc": False, "gc_kernel": "torch",
-        "gc_route": "deferred", "jo_kernel": "torch", "jpeg_mode": "float",
+        "color_kernel": "torch", "cuda_graph": False, "cuda_graph_gc": False, "gc_attribution": "probe",
+        "gc_kernel": "torch", "gc_route": "deferred", "jo_kernel": "torch", "jpeg_mode": "float",
     }  # fmt: skip
     assert run_config["derived"]["method"] == resolved
     assert "--jpeg-mode float" in json.loads((run / "config.json").read_text())["command"]
