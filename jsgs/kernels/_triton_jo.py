@@ -104,6 +104,20 @@ def dct_kron(dtype: torch.dtype = torch.float32, device: torch.device | str = "c
 
 
 if triton is not None:
+    # --- helpers, inlined into the kernels that call them ------------------------------------------------
+
+    @triton.jit
+    def _program_range(count, BLOCK: tl.constexpr):  # type: ignore[no-untyped-def]
+        """This program's ``BLOCK`` indices along grid axis 0 and the mask of those below ``count``."""
+        i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        return i, i < count
+
+    @triton.jit
+    def _program_blocks(n_blocks, BN: tl.constexpr):  # type: ignore[no-untyped-def]
+        """The block kernels' prologue: this program's blocks ``n`` (``[BN]``), the 64 elements of a block
+        ``e`` (row-major 8x8) and the mask of the blocks that exist (``[BN, 1]``)."""
+        n, ok = _program_range(n_blocks, BN)
+        return n, tl.arange(0, 64), ok[:, None]
 
     @triton.jit
     def _block_offsets(n, e, nb, nbx, planes, s_b, s_c, s_h, s_w):  # type: ignore[no-untyped-def]
@@ -121,30 +135,82 @@ if triton is not None:
         return base[:, None] + row.to(tl.int64) * s_h + col.to(tl.int64) * s_w, view
 
     @triton.jit
+    def _rows(n, e):  # type: ignore[no-untyped-def]
+        """Element offsets ``[BN, 64]`` of blocks ``n`` in a contiguous (blocks, 64) tensor."""
+        return n.to(tl.int64)[:, None] * 64 + e[None, :]
+
+    @triton.jit
+    def _matrix(ptr, e):  # type: ignore[no-untyped-def]
+        """The row-major 64 x 64 matrix at ``ptr``: ``M[i, j]``."""
+        return tl.load(ptr + e[:, None] * 64 + e[None, :])
+
+    @triton.jit
+    def _matrix_t(ptr, e):  # type: ignore[no-untyped-def]
+        """Its transpose: ``M[j, i]``."""
+        return tl.load(ptr + e[None, :] * 64 + e[:, None])
+
+    @triton.jit
+    def _samples_and_tables(x_ptr, q_ptr, x_off, view, e, valid):  # type: ignore[no-untyped-def]
+        """The blocks' samples at ``x_off`` (128, level zero, past the last block) and the quantisation
+        table of each block's view (``[BN, 64]`` each; ones past the last block)."""
+        x = tl.load(x_ptr + x_off, mask=valid, other=128.0)
+        q = tl.load(q_ptr + view.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=1.0)
+        return x, q
+
+    @triton.jit
+    def _coding_blocks(  # type: ignore[no-untyped-def]
+        n_blocks, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, BN: tl.constexpr
+    ):  # fmt: skip
+        """The coding-pass kernels' prologue (:func:`_program_blocks`): ``(n, e, valid, x_off, view, o_off)``,
+        the blocks' offsets in the planes (strides ``xs_*``), their views, and their offsets in the
+        output-shaped tensor (strides ``os_*``)."""
+        n, e, valid = _program_blocks(n_blocks, BN)
+        x_off, view = _block_offsets(n, e, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w)
+        o_off, _ = _block_offsets(n, e, nb, nbx, planes, os_b, os_c, os_h, os_w)
+        return n, e, valid, x_off, view, o_off
+
+    @triton.jit
+    def _dot(a, b):  # type: ignore[no-untyped-def]
+        """``a @ b`` in the operands' precision (no TF32: float32 stays float32 as in the twin)."""
+        return tl.dot(a, b, input_precision="ieee")
+
+    @triton.jit
+    def _clamp(o):  # type: ignore[no-untyped-def]
+        """``o`` clamped to [0, 255]."""
+        return tl.minimum(tl.maximum(o, 0.0), 255.0)
+
+    @triton.jit
+    def _clamp_passes(g, o):  # type: ignore[no-untyped-def]
+        """The clamp's gradient: ``g`` where ``o`` lies strictly inside (0, 255) (as ``hardtanh``), else 0."""
+        return tl.where((o > 0.0) & (o < 255.0), g, 0.0)
+
+    @triton.jit
     def _round_half_away(z):  # type: ignore[no-untyped-def]
         return tl.where(z >= 0, tl.floor(z + 0.5), -tl.floor(0.5 - z))
+
+    # --- JO's coding pass, mode "paper" --------------------------------------------------------------------
+
+    @triton.jit
+    def _paper_rounding(x, q, kt):  # type: ignore[no-untyped-def]
+        """``(round(z), z - round(z))`` of the blocks' quantised coefficients ``z = K (x - 128) / Q``."""
+        z = _dot(x - 128.0, kt) / q
+        r = _round_half_away(z)
+        return r, z - r
 
     @triton.jit
     def _paper_forward(  # type: ignore[no-untyped-def]
         x_ptr, q_ptr, k_ptr, out_ptr, n_blocks, nb, nbx, planes,
         xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, BN: tl.constexpr,
     ):  # fmt: skip
-        n = tl.program_id(0) * BN + tl.arange(0, BN)
-        e = tl.arange(0, 64)
-        valid = (n < n_blocks)[:, None]
-        x_off, view = _block_offsets(n, e, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w)
-        o_off, _ = _block_offsets(n, e, nb, nbx, planes, os_b, os_c, os_h, os_w)
-        k = tl.load(k_ptr + e[:, None] * 64 + e[None, :])  # K[i, j]
-        kt = tl.load(k_ptr + e[None, :] * 64 + e[:, None])  # K[j, i]
-        x = tl.load(x_ptr + x_off, mask=valid, other=128.0)
-        q = tl.load(q_ptr + view.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=1.0)
-        c = tl.dot(x - 128.0, kt, input_precision="ieee")
-        z = c / q
-        r = _round_half_away(z)
-        f = z - r
+        _, e, valid, x_off, view, o_off = _coding_blocks(
+            n_blocks, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, BN
+        )
+        k = _matrix(k_ptr, e)  # K[i, j]
+        kt = _matrix_t(k_ptr, e)  # K[j, i]
+        x, q = _samples_and_tables(x_ptr, q_ptr, x_off, view, e, valid)
+        r, f = _paper_rounding(x, q, kt)
         deq = q * (r + f * f * f)
-        o = tl.dot(deq, k, input_precision="ieee") + 128.0
-        out = tl.minimum(tl.maximum(o, 0.0), 255.0)
+        out = _clamp(_dot(deq, k) + 128.0)
         tl.store(out_ptr + o_off, out, mask=valid)
 
     @triton.jit
@@ -152,25 +218,23 @@ if triton is not None:
         x_ptr, q_ptr, k_ptr, out_ptr, g_ptr, gx_ptr, n_blocks, nb, nbx, planes,
         xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, gs_b, gs_c, gs_h, gs_w, BN: tl.constexpr,
     ):  # fmt: skip
-        n = tl.program_id(0) * BN + tl.arange(0, BN)
-        e = tl.arange(0, 64)
-        valid = (n < n_blocks)[:, None]
-        x_off, view = _block_offsets(n, e, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w)
-        o_off, _ = _block_offsets(n, e, nb, nbx, planes, os_b, os_c, os_h, os_w)
+        n, e, valid, x_off, view, o_off = _coding_blocks(
+            n_blocks, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, BN
+        )
         g_off, _ = _block_offsets(n, e, nb, nbx, planes, gs_b, gs_c, gs_h, gs_w)
-        k = tl.load(k_ptr + e[:, None] * 64 + e[None, :])
-        kt = tl.load(k_ptr + e[None, :] * 64 + e[:, None])
-        x = tl.load(x_ptr + x_off, mask=valid, other=128.0)
-        q = tl.load(q_ptr + view.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=1.0)
+        k = _matrix(k_ptr, e)
+        kt = _matrix_t(k_ptr, e)
+        x, q = _samples_and_tables(x_ptr, q_ptr, x_off, view, e, valid)
         out = tl.load(out_ptr + o_off, mask=valid, other=0.0)
         g = tl.load(g_ptr + g_off, mask=valid, other=0.0)
-        z = tl.dot(x - 128.0, kt, input_precision="ieee") / q
-        f = z - _round_half_away(z)
-        g = tl.where((out > 0.0) & (out < 255.0), g, 0.0)  # the clamp passes strictly inside
-        g_deq = tl.dot(g, kt, input_precision="ieee")
+        _, f = _paper_rounding(x, q, kt)
+        g = _clamp_passes(g, out)
+        g_deq = _dot(g, kt)
         g_c = (g_deq * q) * (3.0 * f * f) / q
-        g_x = tl.dot(g_c, k, input_precision="ieee")
+        g_x = _dot(g_c, k)
         tl.store(gx_ptr + o_off, g_x, mask=valid)
+
+    # --- JO's coding pass, mode "float" --------------------------------------------------------------------
 
     @triton.jit
     def _div_ieee(a, b):  # type: ignore[no-untyped-def]
@@ -188,32 +252,35 @@ if triton is not None:
         """libjpeg's islow forward DCT of level-shifted blocks ``x`` ``[BN, 64]`` (two 64 x 64 products, each
         followed by its rounding shift) and its quantizer: ``(t, level)``, the twin's divisions rounded as
         torch rounds them (:func:`_div_ieee`)."""
-        r1 = tl.load(m_ptr + e[:, None] * 64 + e[None, :])
-        r2 = tl.load(m_ptr + 4096 + e[:, None] * 64 + e[None, :])
-        y = tl.dot(x, r1, input_precision="ieee")
+        r1 = _matrix(m_ptr, e)
+        r2 = _matrix(m_ptr + 4096, e)
+        y = _dot(x, r1)
         y = tl.floor(_div_ieee(y + tl.load(v_ptr + e)[None, :], tl.load(v_ptr + 64 + e)[None, :]))
-        t = tl.dot(y, r2, input_precision="ieee")
+        t = _dot(y, r2)
         t = tl.floor(_div_ieee(t + tl.load(v_ptr + 128 + e)[None, :], tl.load(v_ptr + 192 + e)[None, :]))
         q8 = 8.0 * q
         a = tl.floor(_div_ieee(tl.abs(t) + q8 * 0.5, q8))
         return t, tl.where(t < 0, -a, a)
 
     @triton.jit
+    def _float_decoded(x, q, m_ptr, v_ptr, e, k):  # type: ignore[no-untyped-def]
+        """``(t, o)``: the blocks' islow coefficients and their quantised levels decoded by the float IDCT,
+        +128 (before the clamp and the rounding)."""
+        t, level = _islow_levels(x - 128.0, q, m_ptr, v_ptr, e)
+        return t, _dot(level * q, k) + 128.0
+
+    @triton.jit
     def _float_forward(  # type: ignore[no-untyped-def]
         x_ptr, q_ptr, m_ptr, v_ptr, out_ptr, n_blocks, nb, nbx, planes,
         xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, BN: tl.constexpr,
     ):  # fmt: skip
-        n = tl.program_id(0) * BN + tl.arange(0, BN)
-        e = tl.arange(0, 64)
-        valid = (n < n_blocks)[:, None]
-        x_off, view = _block_offsets(n, e, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w)
-        o_off, _ = _block_offsets(n, e, nb, nbx, planes, os_b, os_c, os_h, os_w)
-        k = tl.load(m_ptr + 8192 + e[:, None] * 64 + e[None, :])
-        x = tl.load(x_ptr + x_off, mask=valid, other=128.0)
-        q = tl.load(q_ptr + view.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=1.0)
-        _, level = _islow_levels(x - 128.0, q, m_ptr, v_ptr, e)
-        o = tl.dot(level * q, k, input_precision="ieee") + 128.0
-        out = tl.floor(tl.minimum(tl.maximum(o, 0.0), 255.0) + 0.5)
+        _, e, valid, x_off, view, o_off = _coding_blocks(
+            n_blocks, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, BN
+        )
+        k = _matrix(m_ptr + 8192, e)
+        x, q = _samples_and_tables(x_ptr, q_ptr, x_off, view, e, valid)
+        _, o = _float_decoded(x, q, m_ptr, v_ptr, e, k)
+        out = tl.floor(_clamp(o) + 0.5)
         tl.store(out_ptr + o_off, out, mask=valid)
 
     @triton.jit
@@ -221,37 +288,33 @@ if triton is not None:
         x_ptr, q_ptr, m_ptr, v_ptr, g_ptr, gx_ptr, n_blocks, nb, nbx, planes,
         xs_b, xs_c, xs_h, xs_w, gs_b, gs_c, gs_h, gs_w, os_b, os_c, os_h, os_w, BN: tl.constexpr,
     ):  # fmt: skip
-        n = tl.program_id(0) * BN + tl.arange(0, BN)
-        e = tl.arange(0, 64)
-        valid = (n < n_blocks)[:, None]
-        x_off, view = _block_offsets(n, e, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w)
+        n, e, valid, x_off, view, o_off = _coding_blocks(
+            n_blocks, nb, nbx, planes, xs_b, xs_c, xs_h, xs_w, os_b, os_c, os_h, os_w, BN
+        )
         g_off, _ = _block_offsets(n, e, nb, nbx, planes, gs_b, gs_c, gs_h, gs_w)
-        o_off, _ = _block_offsets(n, e, nb, nbx, planes, os_b, os_c, os_h, os_w)
-        k = tl.load(m_ptr + 8192 + e[:, None] * 64 + e[None, :])
-        kt = tl.load(m_ptr + 8192 + e[None, :] * 64 + e[:, None])
-        x = tl.load(x_ptr + x_off, mask=valid, other=128.0)
-        q = tl.load(q_ptr + view.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=1.0)
+        k = _matrix(m_ptr + 8192, e)
+        kt = _matrix_t(m_ptr + 8192, e)
+        x, q = _samples_and_tables(x_ptr, q_ptr, x_off, view, e, valid)
         g = tl.load(g_ptr + g_off, mask=valid, other=0.0)
-        t, level = _islow_levels(x - 128.0, q, m_ptr, v_ptr, e)
-        o = tl.dot(level * q, k, input_precision="ieee") + 128.0
-        g = tl.where((o > 0.0) & (o < 255.0), g, 0.0)  # the clamp passes strictly inside; rounding: 1
+        t, o = _float_decoded(x, q, m_ptr, v_ptr, e, k)
+        g = _clamp_passes(g, o)  # rounding: 1
         z = _div_ieee(t, 8.0 * q)
         f = z - _round_half_away(z)
-        g_t = _div_ieee((tl.dot(g, kt, input_precision="ieee") * q) * (3.0 * f * f), 8.0 * q)
-        g_x = tl.dot(8.0 * g_t, k, input_precision="ieee")
+        g_t = _div_ieee((_dot(g, kt) * q) * (3.0 * f * f), 8.0 * q)
+        g_x = _dot(8.0 * g_t, k)
         tl.store(gx_ptr + o_off, g_x, mask=valid)
+
+    # --- DS's Delta ----------------------------------------------------------------------------------------
 
     @triton.jit
     def _ds_delta_forward(  # type: ignore[no-untyped-def]
         o_ptr, t_ptr, w_ptr, k_ptr, d_ptr, n_blocks, nb, nbx,
         os_b, os_c, os_h, os_w, ts_b, ts_c, ts_h, ts_w, BN: tl.constexpr,
     ):  # fmt: skip
-        n = tl.program_id(0) * BN + tl.arange(0, BN)
-        e = tl.arange(0, 64)
-        valid = (n < n_blocks)[:, None]
+        n, e, valid = _program_blocks(n_blocks, BN)
         o_off, _ = _block_offsets(n, e, nb, nbx, 1, os_b, os_c, os_h, os_w)
         t_off, _ = _block_offsets(n, e, nb, nbx, 1, ts_b, ts_c, ts_h, ts_w)
-        kt = tl.load(k_ptr + e[None, :] * 64 + e[:, None])
+        kt = _matrix_t(k_ptr, e)
         y = tl.zeros((BN, 64), dtype=kt.dtype)
         for c in tl.static_range(3):
             w = tl.load(w_ptr + c)
@@ -259,20 +322,18 @@ if triton is not None:
                 t_ptr + t_off + c * ts_c, mask=valid, other=0.0
             )
             y += w * diff
-        delta = tl.dot(y, kt, input_precision="ieee") / 255.0
-        tl.store(d_ptr + n.to(tl.int64)[:, None] * 64 + e[None, :], delta, mask=valid)
+        delta = _dot(y, kt) / 255.0
+        tl.store(d_ptr + _rows(n, e), delta, mask=valid)
 
     @triton.jit
     def _ds_delta_backward(  # type: ignore[no-untyped-def]
         g_ptr, w_ptr, k_ptr, gx_ptr, n_blocks, nb, nbx, gs_b, gs_c, gs_h, gs_w, BN: tl.constexpr,
     ):  # fmt: skip
-        n = tl.program_id(0) * BN + tl.arange(0, BN)
-        e = tl.arange(0, 64)
-        valid = (n < n_blocks)[:, None]
+        n, e, valid = _program_blocks(n_blocks, BN)
         x_off, _ = _block_offsets(n, e, nb, nbx, 1, gs_b, gs_c, gs_h, gs_w)
-        k = tl.load(k_ptr + e[:, None] * 64 + e[None, :])
-        g = tl.load(g_ptr + n.to(tl.int64)[:, None] * 64 + e[None, :], mask=valid, other=0.0) / 255.0
-        g_y = tl.dot(g, k, input_precision="ieee")
+        k = _matrix(k_ptr, e)
+        g = tl.load(g_ptr + _rows(n, e), mask=valid, other=0.0) / 255.0
+        g_y = _dot(g, k)
         for c in tl.static_range(3):
             tl.store(gx_ptr + x_off + c * gs_c, tl.load(w_ptr + c) * g_y, mask=valid)
 
@@ -501,9 +562,8 @@ if triton is not None:
         view ``b``: ``c_ptr`` holds ``M`` row-major then ``off`` (12 values); ``x`` (B, 3, H, W) any strides
         (``FLAT``: each plane's H x W is contiguous), ``out`` (B, 3, H, W) with contiguous planes. Products
         and sums only: no division, so CUDA's float32 needs no correctly rounded variant."""
-        p = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        p, valid = _program_range(hw, BLOCK)
         view = tl.program_id(1).to(tl.int64)
-        valid = p < hw
         if FLAT:
             x_off = view * xs_b + p.to(tl.int64)
         else:

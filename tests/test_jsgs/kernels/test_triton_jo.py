@@ -23,6 +23,7 @@ from typing import Any
 
 import pytest
 import torch
+from _fused_graph import check_graph_replay
 
 from jsgs.base.errors import JsgsError
 from jsgs.jpeg.dct import blockify, dct_matrix, unblockify
@@ -486,36 +487,4 @@ def test_cuda_ds_matches_twin(height: int, width: int) -> None:
 @cuda_triton
 @pytest.mark.gpu
 def test_cuda_graph_replays_the_fused_chain() -> None:
-    from jsgs.method.graphed import GraphedImageTerms
-    from jsgs.method.image_terms import terms_with_gradient
-
-    settings = dict(
-        mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
-        eps_block=1e-6,
-    )  # fmt: skip
-    weights = (0.2, 0.02, 0.03)
-    graphed = GraphedImageTerms(weights=weights, jo_kernel="triton", **settings)
-    for seed in (14, 15):  # the second view replays the graph recorded for the first
-        g = torch.Generator().manual_seed(seed)
-        x = torch.rand(1, 3, 378, 504, generator=g).cuda().requires_grad_()
-        y = torch.rand(1, 3, 378, 504, generator=g).cuda()
-        tables = torch.randint(1, 100, (2, 8, 8), generator=g).float().cuda()
-        got = graphed(x, y, tables, "4:2:0")
-        (grad_graph,) = torch.autograd.grad(got.weighted, x)
-        # the same kernels eagerly: the replay computes what they compute
-        same, grad_same, _, obs_same = terms_with_gradient(
-            x, y, tables, weights=weights, sampling="4:2:0", jo_kernel="triton", **settings
-        )
-        torch.testing.assert_close(got.values, same[1:], rtol=1e-6, atol=1e-7)
-        torch.testing.assert_close(got.obs, obs_same, rtol=0, atol=1e-6)
-        torch.testing.assert_close(grad_graph, grad_same, rtol=1e-5, atol=1e-8)
-        values, grad_eager, r, obs = terms_with_gradient(
-            x, y, tables, weights=weights, sampling="4:2:0", jo_kernel="torch", **settings
-        )
-        print(f"\ngraph (fused) vs eager (twin), view {seed}: terms {got.values.tolist()} vs "
-              f"{values[1:].tolist()}; max |obs diff| {float((got.obs - obs).abs().max()) * 255:.2e} "
-              f"(8-bit units), max |grad diff| {float((grad_graph - grad_eager).abs().max()):.2e}")
-        torch.testing.assert_close(got.values, values[1:], rtol=1e-4, atol=1e-6)
-        assert float(((got.obs - obs).abs() * 255 > 0.01).double().mean()) < 1e-3
-        off = (grad_graph - grad_eager).abs() > 1e-3 * grad_eager.abs().max()
-        assert float(off.double().mean()) < 1e-3
+    check_graph_replay({"jo_kernel": "triton"}, {"jo_kernel": "torch"}, "graph (fused) vs eager (twin)")
