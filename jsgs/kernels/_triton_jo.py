@@ -87,6 +87,18 @@ def fused_jo_runs(x: Tensor) -> bool:
     return interpreting() and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
 
 
+def _check_runs(name: str, x: Tensor, *others: Tensor) -> None:
+    """ValueError unless the kernels can run on ``x`` (:func:`fused_jo_runs`) and ``others`` lie on its
+    device: a CPU tensor outside the interpreter would reach the CUDA launch, which refuses its host pointer
+    in Triton's words ("Pointer argument (at i) cannot be accessed from Triton (cpu tensor?)")."""
+    where = {t.device for t in (x, *others)}
+    if not fused_jo_runs(x) or len(where) > 1:
+        raise ValueError(
+            f"{name} needs float32 CUDA tensors (or TRITON_INTERPRET=1 and CPU tensors) on one device, got "
+            f"{x.dtype} on {', '.join(sorted(str(d) for d in where))}"
+        )
+
+
 @functools.cache
 def _kron(dtype: torch.dtype, device: torch.device) -> Tensor:
     """``kron(D, D)`` (64 x 64, row-major ``[(v, u), (y, x)]``), built in float64 and cached per device (a
@@ -408,6 +420,7 @@ def paper_code(planes: Tensor, tables: Tensor) -> Tensor:
             f"paper_code: planes must be (B, C, 8m, 8n) and tables (B, 8, 8), got {tuple(planes.shape)}, "
             f"{tuple(tables.shape)}"
         )
+    _check_runs("paper_code", planes, tables)
     q = tables.detach().to(planes.dtype).reshape(b, 64).contiguous()
     return _PaperCode.apply(planes, q)
 
@@ -477,6 +490,7 @@ def float_code(planes: Tensor, tables: Tensor) -> Tensor:
             f"float_code: planes must be (B, C, 8m, 8n) and tables (B, 8, 8), got {tuple(planes.shape)}, "
             f"{tuple(tables.shape)}"
         )
+    _check_runs("float_code", planes, tables)
     q = tables.detach().to(planes.dtype).reshape(b, 64).contiguous()
     return _FloatCode.apply(planes, q)
 
@@ -541,6 +555,7 @@ def ds_delta(observation: Tensor, target: Tensor) -> Tensor:
         )
     if observation.shape[-2] < 8 or observation.shape[-1] < 8 or target.requires_grad:
         raise ValueError("ds_delta needs images of at least 8 x 8 and a target that needs no gradient")
+    _check_runs("ds_delta", observation, target)
     return _DsDelta.apply(observation, target.to(observation.dtype))
 
 
@@ -636,4 +651,5 @@ def color_convert(x: Tensor, name: str) -> Tensor:
     if name not in ("rgb2ycc", "ycc2rgb") or x.dim() != 4 or x.shape[1] != 3:
         raise ValueError(f"color_convert: x must be (B, 3, H, W) and name rgb2ycc or ycc2rgb, got "
                          f"{tuple(x.shape)}, {name!r}")  # fmt: skip
+    _check_runs("color_convert", x)
     return _ColorAffine.apply(x, name)

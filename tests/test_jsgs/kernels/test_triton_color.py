@@ -65,9 +65,10 @@ def _inputs(shape: tuple[int, ...], seed: int, dtype: torch.dtype) -> tuple[torc
 
 def _layouts(x: torch.Tensor) -> dict[str, torch.Tensor]:
     """``x`` (B, 3, H, W) in the layouts JO hands the map: contiguous, channels-last (the torch map's own
-    output), a crop of a bigger image, H and W swapped, and every other view of a batch."""
+    output), a crop of a bigger image, H and W swapped, and every other view of a batch; all on ``x``'s
+    device."""
     b, _, h, w = x.shape
-    big = torch.zeros(2 * b, 3, h + 3, w + 5, dtype=x.dtype)
+    big = torch.zeros(2 * b, 3, h + 3, w + 5, dtype=x.dtype, device=x.device)
     big[::2, :, 1 : h + 1, 2 : w + 2] = x
     return {
         "contiguous": x,
@@ -94,6 +95,14 @@ def test_matches_torch(name: str, shape: tuple[int, ...], dtype: torch.dtype) ->
     if dtype == torch.float32:  # and against float64 torch
         (v1, _), _ = _both(x, name, g)
         torch.testing.assert_close(v1.double(), TORCH[name](x.double()), rtol=0, atol=5e-4)
+
+
+def test_layouts_lie_on_the_input_device() -> None:
+    # the CUDA test hands the kernel every layout of a CUDA tensor: one built on the CPU reached the launch
+    # there ("Pointer argument (at 0) cannot be accessed from Triton (cpu tensor?)"), which no CPU run shows
+    x = torch.zeros(2, 3, 5, 7, device="meta")
+    for layout, xl in _layouts(x).items():
+        assert xl.device == x.device and xl.shape == x.shape, layout
 
 
 @needs_interpreter

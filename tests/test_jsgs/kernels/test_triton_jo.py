@@ -300,6 +300,30 @@ def test_jpeg_terms_with_triton_match_torch(twice: bool) -> None:
     assert out[1][1].abs().max() > 0
 
 
+@pytest.mark.skipif(not triton_available(), reason="needs Triton")
+def test_kernels_refuse_tensors_they_cannot_run_on() -> None:
+    # a CPU tensor outside the interpreter (or float16, or tables on another device) is one ValueError
+    # naming the function, not Triton's pointer error at the CUDA launch
+    from jsgs.kernels._triton_jo import color_convert
+
+    image = torch.rand(1, 3, 16, 16)
+    calls = {  # name: (function, its second tensor)
+        "paper_code": (paper_code, torch.full((1, 8, 8), 16.0)),
+        "float_code": (float_code, torch.full((1, 8, 8), 16.0)),
+        "ds_delta": (ds_delta, torch.rand(1, 3, 16, 16)),
+        "color_convert": (lambda x, _: color_convert(x, "rgb2ycc"), None),
+    }
+    for name, (fn, other) in calls.items():
+        with pytest.raises(ValueError, match=f"{name} needs float32 CUDA tensors"):
+            fn(image.half(), None if other is None else other.half())
+        if other is not None:  # the second tensor on another device
+            with pytest.raises(ValueError, match=f"{name} needs .* on one device, got .* cpu, meta"):
+                fn(image, other.to("meta"))
+        if not interpreting():
+            with pytest.raises(ValueError, match=f"{name} needs float32 CUDA tensors"):
+                fn(image, other)
+
+
 def test_mode_exact_ignores_the_kernel() -> None:
     g = torch.Generator().manual_seed(8)
     rgb = torch.rand(1, 3, 19, 21, generator=g)
