@@ -53,6 +53,7 @@ must be divided out of the gradient.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -211,21 +212,11 @@ def pooled_sums(
 BLOCK = 8
 
 
-def _normal_cdf(x: Tensor) -> Tensor:
-    return 0.5 * (1.0 + torch.erf(x * (1.0 / math.sqrt(2.0))))
-
-
-def _block_fractions(mu: Tensor, sigma: Tensor, size: int) -> tuple[Tensor, Tensor]:
-    """Along one image axis: the block index of each mean [M] (``floor(mu / 8)``, may be off-image) and the
-    fraction of a normal(mu, sigma) inside each of the blocks -1, 0, +1 from it, clipped to [0, size)
-    (partial last block included, blocks outside the image 0), [M, 3]."""
-    b = torch.floor(mu / BLOCK)
-    cells = b[:, None] + torch.tensor([-1.0, 0.0, 1.0], dtype=mu.dtype, device=mu.device)  # [M, 3]
-    lo = (cells * BLOCK).clamp(0.0, float(size))
-    hi = ((cells + 1.0) * BLOCK).clamp(0.0, float(size))
-    s = sigma[:, None]
-    frac = _normal_cdf((hi - mu[:, None]) / s) - _normal_cdf((lo - mu[:, None]) / s)
-    return cells.long(), frac.clamp_min(0.0)
+@functools.cache
+def _limits(width: int, height: int, nbx: int, nby: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """[2, 2]: per axis (x, y) the image size in pixels and the last block index. Once per image size and
+    device: a host-to-device copy inside the backward would stall the GPU queue."""
+    return torch.tensor([[width, nbx - 1], [height, nby - 1]], dtype=dtype, device=device)
 
 
 @torch.no_grad()
@@ -242,32 +233,44 @@ def footprint_sums(
         contributes: [C, N] bool, the contributor set V_i (from the backward: the conic's gradient is
             non-zero).
 
-    Returns S_1 = 2π·sqrt(det Σ) (the footprint's unclipped mass, > 0 on contributors), S_r = r̃·S_1 with
-    r̃ = Σ_b w_b r_b / Σ_b w_b (0 where no block of the 3 × 3 lies in the image), and ν = o·S_1; all 0 off
-    V_i.
+    Per axis, the footprint's marginal is a normal (its mean, σ² = Σ_xx or Σ_yy); its mass in each of the
+    blocks -1, 0, +1 from the mean's is a difference of its CDF at the blocks' edges clipped to the image
+    (a block outside the image gets exactly 0, the partial last block its part), and the 3 × 3 weights are
+    the products of the two axes' masses. Returns S_1 = 2π·sqrt(det Σ) (the footprint's unclipped mass, > 0
+    on contributors), S_r = r̃·S_1 with r̃ = Σ_b w_b r_b / Σ_b w_b (0 where no block of the 3 × 3 lies in
+    the image), and ν = o·S_1; all 0 off V_i. About 40 elementwise kernels, no host synchronisation.
     """
     C, H, W = r.shape
+    N = means2d.shape[1]
     dt = means2d.dtype
     rb = r.detach().to(dt)[:, ::BLOCK, ::BLOCK]  # [C, nby, nbx]: one value per (possibly partial) block
     nby, nbx = rb.shape[1:]
-    on = contributes
-    # off V_i: a unit footprint at the origin (culled Gaussians may carry zero or non-finite conics)
-    mu = torch.where(on[..., None], means2d.detach(), 0.0)
-    a, b, c = torch.where(on[..., None], conics.detach(), conics.new_tensor([1.0, 0.0, 1.0])).unbind(-1)
-    det = a * c - b * b  # det(Σ⁻¹) > 0
-    mx, my = mu[..., 0].reshape(-1), mu[..., 1].reshape(-1)
-    bx, fx = _block_fractions(mx, torch.sqrt(c / det).reshape(-1), W)  # Σ_xx = c / det(Σ⁻¹)
-    by, fy = _block_fractions(my, torch.sqrt(a / det).reshape(-1), H)
-    w = fy[:, :, None] * fx[:, None, :]  # [C·N, 3, 3] (rows, columns)
-    inside = ((by >= 0) & (by < nby))[:, :, None] & ((bx >= 0) & (bx < nbx))[:, None, :]
-    cam = torch.arange(C, device=r.device).repeat_interleave(means2d.shape[1])
-    rows = cam[:, None] * nby + by.clamp(0, nby - 1)  # [C·N, 3] rows of the flattened [C·nby, nbx] grid
-    flat = rows[:, :, None] * nbx + bx.clamp(0, nbx - 1)[:, None, :]
-    scores = torch.where(inside, rb.reshape(-1)[flat], 0.0)
+    lim = _limits(W, H, nbx, nby, dt, r.device)
+    on = contributes.reshape(-1, 1)
+    a, b, c = conics.detach().reshape(-1, 3).unbind(-1)
+    det = a * c - b * b  # det(Σ⁻¹) > 0 on contributors
+    # σ·√2 per axis (Σ_xx = c / det, Σ_yy = a / det); off V_i a finite footprint at the origin (culled
+    # Gaussians may carry zero or non-finite conics), masked out at the end
+    s2 = torch.where(on, torch.stack([c, a], dim=-1) / det[:, None], 0.5).sqrt_().mul_(math.sqrt(2.0))
+    mu = torch.where(on, means2d.detach().reshape(-1, 2), 0.0)  # [M, 2]
+    # per axis the blocks -1, 0, +1, +2 from the mean's (their left edges bound the three blocks): [M, 2, 4]
+    cells = torch.floor(mu / BLOCK)[..., None] + torch.arange(-1, 3, dtype=dt, device=r.device)
+    edges = torch.minimum((cells * BLOCK).clamp_min_(0.0), lim[:, :1])  # clipped to [0, size]
+    cdf = torch.erf((edges - mu[..., None]) / s2[..., None])  # 2·CDF − 1
+    frac = (cdf[..., 1:] - cdf[..., :-1]).mul_(0.5)  # [M, 2, 3]
+    w = frac[:, 1, :, None] * frac[:, 0, None, :]  # [M, 3, 3] (rows, columns)
+    # each block's score; indices clamped into the grid (a block outside the image has weight 0)
+    idx = torch.minimum(cells[..., :3].clamp_min(0.0), lim[:, 1:])
+    flat = idx[:, 1, :, None] * nbx + idx[:, 0, None, :]  # [M, 3, 3]
+    if C > 1:
+        cam = torch.arange(C, dtype=dt, device=r.device)[:, None].expand(C, N).reshape(-1)
+        flat = flat + (cam * (nby * nbx))[:, None, None]
+    scores = rb.reshape(-1)[flat.long()]
     mass = w.sum(dim=(1, 2))
-    r_tilde = (w * scores).sum(dim=(1, 2)) / torch.where(mass > 0, mass, 1.0)
-    s_1 = torch.where(on, (2.0 * math.pi) / torch.sqrt(det), 0.0)
-    return PooledSums(s_r=r_tilde.reshape(C, -1) * s_1, s_1=s_1, nu=opacities.detach().to(dt) * s_1)
+    r_tilde = (w * scores).sum(dim=(1, 2)) / mass.clamp_min(torch.finfo(dt).tiny)
+    on = on[:, 0]
+    s_1 = torch.where(on, (2.0 * math.pi) * det.rsqrt(), 0.0).reshape(C, N)
+    return PooledSums(s_r=r_tilde.reshape(C, N) * s_1, s_1=s_1, nu=opacities.detach().to(dt) * s_1)
 
 
 def probe_grad_from_sums(sums: PooledSums, opacities: Tensor, weight: float = 1.0) -> Tensor:

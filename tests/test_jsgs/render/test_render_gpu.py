@@ -10,7 +10,14 @@ import math
 import pytest
 import torch
 
-from jsgs.method.pooling import new_probe, pool_direct, pool_from_grad, pool_now, probe_objective
+from jsgs.method.pooling import (
+    footprint_sums,
+    new_probe,
+    pool_direct,
+    pool_from_grad,
+    pool_now,
+    probe_objective,
+)
 from jsgs.render import rasterize
 
 pytestmark = [
@@ -61,6 +68,7 @@ def _run(
         render_mode=mode or "RGB", distortion=distortion,
     )  # fmt: skip
     info["means2d"].retain_grad()
+    info["conics"].retain_grad()  # the footprint attribution's V_i
     g = torch.Generator(device="cuda").manual_seed(seed)
     wi = torch.randn(img.shape, generator=g, device="cuda")
     wa = torch.randn(alpha.shape, generator=g, device="cuda")
@@ -164,6 +172,39 @@ def test_pooled_sums_gsplat_probe_match_reference() -> None:
     assert report["contributor sets differ"] < 1e-3
     assert report["nu rel L2"] < 1e-4 and report["rbar rel L2"] < 1e-4
     assert report["pool_now vs grad rbar rel L2"] < 1e-6
+
+
+def _block_scores(n_cameras: int, seed: int = 0) -> torch.Tensor:
+    """[C, H, W] block-constant scores, 0 on the rows and columns without a block (as DS makes them)."""
+    nby, nbx = H // 8, W // 8
+    g = torch.Generator(device="cuda").manual_seed(seed)
+    b = torch.rand(n_cameras, nby, nbx, generator=g, device="cuda") ** 3
+    pix = b.repeat_interleave(8, dim=1).repeat_interleave(8, dim=2)
+    return torch.nn.functional.pad(pix, (0, W - nbx * 8, 0, H - nby * 8))
+
+
+def test_footprint_attribution_on_gsplat_matches_its_probe() -> None:
+    """``gc_attribution: footprint`` on gsplat, the same code as on the CPU: V_i from the conic gradients of
+    gsplat's backward is the probe's contributor set, and r̄ ranks the Gaussians as the probe's does (the CPU
+    reference's figures: tests/test_jsgs/method/test_gc_attribution.py)."""
+    s = _scene(seed=4)
+    r = _block_scores(2)
+    _, _, info, _ = _run(s, "gsplat", probe=True, r=r)
+    exact = pool_from_grad(info)
+    on = (info["conics"].grad != 0).any(-1)
+    est = footprint_sums(r, info["means2d"].detach(), info["conics"], info["opacities"], on)
+    vis = exact.contributors
+    assert int(vis.sum()) > 1000
+    assert (est.contributors != vis).float().mean().item() < 1e-3
+    both = vis & est.contributors
+    a, b = est.rbar()[both].double(), exact.rbar()[both].double()
+    ranks = [x.argsort().argsort().double() for x in (a, b)]
+    print(
+        "\nfootprint vs probe on gsplat: pearson", torch.corrcoef(torch.stack([a, b]))[0, 1].item(),
+        "spearman", torch.corrcoef(torch.stack(ranks))[0, 1].item(),
+    )  # fmt: skip
+    assert torch.corrcoef(torch.stack([a, b]))[0, 1].item() > 0.9  # the reference: 0.987
+    assert torch.corrcoef(torch.stack(ranks))[0, 1].item() > 0.9
 
 
 def test_gsplat_probe_leaves_gradients_alone() -> None:
