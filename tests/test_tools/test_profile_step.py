@@ -41,13 +41,13 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
     assert header in printed
     assert "jsgs − gsplat: top 5 kernels by extra" in printed
     assert "jsgs: Python functions by self time (cProfile" in printed
-    assert "| syncs/step | peak allocated MiB | peak reserved MiB | #Gaussians |" in printed
+    assert "| peak allocated MiB | peak reserved MiB | allocated at the start MiB | #Gaussians |" in printed
     assert "; peak memory: CUDA only" in printed
 
     doc = json.loads(out.read_text())
     validate(doc, "profile_step", str(out))
     assert doc["format"] == "jsgs-profile-step" and doc["steps"] == 2 and doc["warmup"] == 3
-    assert doc["format_version"] == 2
+    assert doc["format_version"] == 3
     res = doc["results"]
     assert list(res) == ["gsplat", "jsgs"]
     for r in res.values():
@@ -61,6 +61,7 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
         # peak memory: CUDA only, recorded as null (present, not invented)
         assert r["peak_memory_allocated_bytes"] is None and r["peak_memory_reserved_bytes"] is None
         assert "peak_memory_allocated_bytes" in r and "peak_memory_reserved_bytes" in r
+        assert r["start_memory_allocated_bytes"] is None and r["start_memory_reserved_bytes"] is None
         assert 0 < len(r["kernels"]) <= 5
         assert r["num_gaussians"] == r["num_gaussians_profiled"]  # both copies trained the same Gaussians
     # JSGS adds ops to the baseline's step
@@ -203,6 +204,8 @@ def test_pairs_interleave_and_report_medians(tmp_path: Path, capsys: Any) -> Non
     for r in doc["results"].values():  # CPU: no peak memory per window, recorded as null
         assert r["paired_peak_memory_allocated_bytes"] is None
         assert r["paired_peak_memory_reserved_bytes"] is None
+        assert r["paired_start_memory_allocated_bytes"] is None
+        assert r["paired_start_memory_reserved_bytes"] is None
         assert r["peak_memory_allocated_bytes"] is None
     assert "peak_memory" in doc["pairs"] and doc["pairs"]["peak_memory"] is None
     assert "peak memory of the windows: CUDA only" in printed
@@ -253,7 +256,12 @@ def test_pairs_doc_on_hand_made_numbers(capsys: Any) -> None:
     reserved = {"gsplat": [200, 200, 220, 200, 210], "jsgs": [220, 230, 220, 200, 252]}
     peaks = {m: {"allocated": [v * mib for v in alloc[m]], "reserved": [v * mib for v in reserved[m]]}
              for m in walls}  # fmt: skip
-    doc = ps.pairs_doc(order, walls, peaks)
+    # what each window's run found on the device: rising by 20 MiB a window (as if runs were left behind)
+    start_alloc = {"gsplat": [0, 60, 80, 140, 160], "jsgs": [20, 40, 100, 120, 180]}
+    start_res = {"gsplat": [50, 50, 50, 50, 50], "jsgs": [50, 50, 50, 50, 50]}
+    starts = {m: {"allocated": [v * mib for v in start_alloc[m]], "reserved": [v * mib for v in start_res[m]]}
+              for m in walls}  # fmt: skip
+    doc = ps.pairs_doc(order, walls, peaks, starts)
     assert doc["count"] == 5 and doc["order"] == order
     assert doc["median_ms_per_step"] == {"gsplat": 10.0, "jsgs": 12.0}
     # per round 1.3, 1.0, 1.5, 1.1, 1.2: the median 1.2 (not 12.0 / 10.0 of the medians by chance alone)
@@ -270,23 +278,37 @@ def test_pairs_doc_on_hand_made_numbers(capsys: Any) -> None:
     assert r["median_bytes"] == {"gsplat": 200 * mib, "jsgs": 220 * mib}
     assert r["ratio"]["jsgs"]["median"] == pytest.approx(1.1)
     assert list(doc["ratio"]) == list(a["ratio"]) == ["jsgs"]  # no ratio of the baseline to itself
+    # the increments (peak - start): gsplat 100, 50, 25, -40, -40; jsgs 88, 81, 5, 10, -54 MiB
+    assert a["start_median_bytes"] == {"gsplat": 80 * mib, "jsgs": 100 * mib}
+    assert a["increment_median_bytes"] == {"gsplat": 25 * mib, "jsgs": 10 * mib}
+    assert a["increment_ratio"] == {}  # a window's peak below its start: no ratio of the increments
+    ri = r["increment_ratio"]["jsgs"]  # reserved: 150, 150, 170, 150, 160 and 170, 180, 170, 150, 202
+    assert ri["per_pair"] == pytest.approx([170 / 150, 180 / 150, 1.0, 1.0, 202 / 160])
+    assert ri["median"] == pytest.approx(170 / 150)
+    assert r["increment_median_bytes"] == {"gsplat": 150 * mib, "jsgs": 170 * mib}
 
     # one method without peaks (the CPU): no peak memory summary at all, the times unchanged
-    cpu = ps.pairs_doc(order, walls, {"gsplat": None, "jsgs": None})
+    cpu = ps.pairs_doc(order, walls, {"gsplat": None, "jsgs": None}, {"gsplat": None, "jsgs": None})
     assert cpu["peak_memory"] is None and cpu["ratio"] == doc["ratio"]
 
     # the printed tables and the schema, on a document around it
     results = {
         m: {"paired_wall_ms_per_step": walls[m],
-            **{f"paired_peak_memory_{k}_bytes": peaks[m][k] for k in ps.MEMORY_KINDS}}
+            **{f"paired_peak_memory_{k}_bytes": peaks[m][k] for k in ps.MEMORY_KINDS},
+            **{f"paired_start_memory_{k}_bytes": starts[m][k] for k in ps.MEMORY_KINDS}}
         for m in walls
     }  # fmt: skip
     ps.print_pairs({"results": results, "pairs": doc})
     printed = capsys.readouterr().out
-    assert "| gsplat | allocated | 100.0, 110.0, 105.0, 100.0, 120.0 | 105.0 | 1 |  |" in printed
-    jsgs_alloc = "| jsgs | allocated | 108.0, 121.0, 105.0, 130.0, 126.0 | 121.0 | 1.080 |"
+    assert "| gsplat | allocated | peak | 100.0, 110.0, 105.0, 100.0, 120.0 | 105.0 | 1 |  |" in printed
+    jsgs_alloc = "| jsgs | allocated | peak | 108.0, 121.0, 105.0, 130.0, 126.0 | 121.0 | 1.080 |"
     assert f"{jsgs_alloc} 1.000–1.300 (93.8 %) |" in printed
-    assert "| jsgs | reserved | 220.0, 230.0, 220.0, 200.0, 252.0 | 220.0 | 1.100 |" in printed
+    assert "| jsgs | allocated | start | 20.0, 40.0, 100.0, 120.0, 180.0 | 100.0 |  |  |" in printed
+    assert "| jsgs | allocated | peak − start | 88.0, 81.0, 5.0, 10.0, -54.0 | 10.0 | – |  |" in printed
+    assert "| jsgs | reserved | peak | 220.0, 230.0, 220.0, 200.0, 252.0 | 220.0 | 1.100 |" in printed
+    assert "| jsgs | reserved | peak − start | 170.0, 180.0, 170.0, 150.0, 202.0 | 170.0 | 1.133 |" in printed
+    gsplat_inc = "| gsplat | reserved | peak − start | 150.0, 150.0, 170.0, 150.0, 160.0 | 150.0 | 1 |  |"
+    assert gsplat_inc in printed
     assert "| jsgs | 13.00, 12.00, 16.50, 9.90, 12.00 | 12.00 | 1.200 | 1.000–1.500 (93.8 %) |" in printed
     # the schema's pairs object takes both
     schema = load_schema("profile_step")
@@ -343,3 +365,127 @@ def test_schema_requires_peak_memory_from_version_2() -> None:
     del new["pairs"]["peak_memory"]
     with pytest.raises(ps.JsgsError, match="at pairs: 'peak_memory' is a required property"):
         validate(new, "profile_step", "new.json")
+
+
+def test_schema_requires_start_memory_from_version_3() -> None:
+    """Version 3 documents must carry the memory at each run's start and, with pairs, the increments; version
+    2 documents (peaks only) still validate."""
+    from jsgs.schemas import validate
+
+    root = Path(__file__).resolve().parents[2]
+    v2 = json.loads((root / "docs/results/speed/equal_budget/flower_1500.json").read_text())
+    v2["format_version"] = 2
+    v2["pairs"]["peak_memory"] = None
+    for r in v2["results"].values():
+        r["peak_memory_allocated_bytes"] = r["peak_memory_reserved_bytes"] = None
+    validate(v2, "profile_step", "v2.json")
+    v3 = json.loads(json.dumps(v2)) | {"format_version": 3}
+    with pytest.raises(ps.JsgsError, match="'start_memory_allocated_bytes' is a required property"):
+        validate(v3, "profile_step", "v3.json")
+    mib = 2**20
+    for r in v3["results"].values():
+        r["start_memory_allocated_bytes"], r["start_memory_reserved_bytes"] = 3 * mib, 4 * mib
+        n = len(r["paired_wall_ms_per_step"])
+        for k in ps.MEMORY_KINDS:
+            r[f"paired_peak_memory_{k}_bytes"] = [100 * mib] * n
+    with pytest.raises(ps.JsgsError, match="'paired_start_memory_allocated_bytes' is a dependency"):
+        validate(v3, "profile_step", "v3.json")
+    for r in v3["results"].values():
+        for k in ps.MEMORY_KINDS:
+            r[f"paired_start_memory_{k}_bytes"] = [mib] * len(r["paired_wall_ms_per_step"])
+    peaks = {"allocated": [100 * mib] * 2, "reserved": [200 * mib] * 2}
+    same = {"gsplat": peaks, "jsgs": peaks}
+    memory = ps.pairs_doc([["gsplat", "jsgs"]] * 2, {"gsplat": [1.0] * 2, "jsgs": [1.0] * 2}, same, same)[
+        "peak_memory"
+    ]
+    assert memory["allocated"]["increment_ratio"] == {}  # increments of 0: no ratio
+    v3["pairs"]["peak_memory"] = memory
+    validate(v3, "profile_step", "v3.json")
+    del v3["pairs"]["peak_memory"]["reserved"]["increment_median_bytes"]
+    with pytest.raises(ps.JsgsError, match="'increment_median_bytes' is a required property"):
+        validate(v3, "profile_step", "v3.json")
+
+
+class _Trainer:
+    """A stand-in for the trainer a callback sees (weak references to it can be taken)."""
+
+
+def test_plain_window_releases_and_reads_memory_on_a_cuda_stand_in(monkeypatch: Any) -> None:
+    """A plain window frees what earlier runs left (cycle collector, synchronisation, empty_cache) before it
+    reads the memory at the run's start, and again after the run; the start is read before the run allocates
+    anything, the peaks at the window's end. torch.cuda and the run stood in for (CI has no GPU)."""
+    calls: list[str] = []
+    held = {"bytes": 7}  # what the stand-in device holds
+    monkeypatch.setattr(ps.gc, "collect", lambda: calls.append("collect") or 0)
+    monkeypatch.setattr(ps, "synchronize", lambda d: calls.append("window sync"))
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda d=None: calls.append("sync"))
+    monkeypatch.setattr(torch.cuda, "empty_cache", lambda: calls.append("empty"))
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda d=None: calls.append("read") or held["bytes"])
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda d=None: held["bytes"] + 1)
+    monkeypatch.setattr(torch.cuda, "reset_peak_memory_stats", lambda d=None: None)
+    monkeypatch.setattr(torch.cuda, "max_memory_allocated", lambda d=None: 300)
+    monkeypatch.setattr(torch.cuda, "max_memory_reserved", lambda d=None: 512)
+
+    def run(manifest: Path, out: Path, *, callbacks: Any, **kw: Any) -> dict[str, Any]:
+        calls.append("train")
+        held["bytes"] = 100  # the run's model and data
+        trainer = _Trainer()
+        for step in range(4):  # settle 1 + steps 2 + 1
+            for cb in callbacks:
+                cb.on_step_begin(trainer, step)
+        return {"num_gaussians": 1}
+
+    monkeypatch.setattr(ps, "train", run)
+    doc, w = ps.plain_window(Path("m.json"), Path("run"), torch.device("cuda"), 1, 2, "jsgs (pair 1)")
+    assert doc == {"num_gaussians": 1}
+    release = ["collect", "sync", "empty"]
+    assert calls == [*release, "read", "train", "window sync", "window sync", *release]
+    assert w.start == {"allocated": 7, "reserved": 8} and w.peak == {"allocated": 300, "reserved": 512}
+    assert w.released and w.ms_per_step >= 0  # the stand-in trainer died with the run
+
+    calls.clear()
+    ps.release_memory(torch.device("cpu"))
+    assert calls == ["collect"] and ps.device_memory(torch.device("cpu")) is None  # no torch.cuda call
+
+
+def test_a_finished_window_leaves_nothing_referenced(tmp_path: Path, monkeypatch: Any, capsys: Any) -> None:
+    """What a window's run held (the trainer, its model, optimisers, data, the JSGS hook) is freed before the
+    next window starts, even where a reference cycle ties it together: here a callback ties the trainer into
+    one and Python's automatic collector is off, so only profile_step's own release can free it. The CPU
+    cannot see CUDA memory; a dead weak reference to the trainer is what it can see. As a control, with the
+    release replaced by nothing the trainer survives and a note line says so."""
+    import gc
+    import shutil
+
+    manifest = ps.build_scene(tmp_path / "synthetic", (48, 32), 6)
+    cfg_file = tmp_path / "tiny.json"
+    cfg_file.write_text(json.dumps(TINY))
+    base = ps.base_config(ps.parse_args(["--config", str(cfg_file)]))
+    cfg = ps.variant_config(base, "jsgs", dict(base.method_options), 3 + 1 + 1 + 1, "cpu")
+    cfg.checkpoint_every = 0
+    warm = tmp_path / "warm"
+    ps.train(manifest, warm, cfg, force=True, stop_at=3, progress=False, log=ps._quiet)
+
+    class Cyclic(ps.StepCallback):
+        def on_step_begin(self, trainer: Any, step: int) -> None:
+            self.held = trainer  # the trainer -> its callbacks -> this -> the trainer
+            super().on_step_begin(trainer, step)
+
+    monkeypatch.setattr(ps, "StepCallback", Cyclic)
+    cpu = torch.device("cpu")
+    gc.collect()
+    gc.disable()
+    try:
+        shutil.copytree(warm, tmp_path / "pair0")
+        _, w = ps.plain_window(manifest, tmp_path / "pair0", cpu, 1, 1, "jsgs (pair 1)")
+        assert w.released and w.ms_per_step > 0 and w.start is None and w.peak is None
+        monkeypatch.setattr(ps, "release_memory", lambda d: None)
+        shutil.copytree(warm, tmp_path / "pair1")
+        _, kept = ps.plain_window(manifest, tmp_path / "pair1", cpu, 1, 1, "jsgs (pair 2)")
+        assert not kept.released
+    finally:
+        gc.enable()
+        gc.collect()
+    err = capsys.readouterr().err
+    assert "note: profile_step: jsgs (pair 2): the run's trainer is still referenced after its window" in err
+    assert "pair 1" not in err

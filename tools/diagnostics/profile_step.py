@@ -53,8 +53,14 @@ Columns (per training step, averaged over the window):
   ``cudaEventSynchronize``, blocking ``cudaMemcpy``; not the one that closes the window); CUDA only;
 - peak allocated / reserved MiB: the plain copy's peak device memory over the window,
   ``torch.cuda.max_memory_allocated`` (tensors) and ``max_memory_reserved`` (the caching allocator's
-  segments), their statistics reset at the window's start (so: what the device held then, and the window's
-  own highs; the JSON has bytes). CUDA only: null on the CPU, where there is no such number.
+  segments), their statistics reset at the window's start (so: what the device held then, the run's model,
+  optimisers and data included, and the window's own highs; the JSON has bytes);
+- allocated at the start MiB: ``torch.cuda.memory_allocated`` when the plain copy's run began (the JSON also
+  has the reserved figure): what earlier runs of this process left on the device, which the peak includes.
+  Every run starts after :func:`release_memory` (Python's cycle collector, a device synchronisation,
+  ``torch.cuda.empty_cache``), so this is the same small baseline for every run unless something of a
+  finished run is still referenced (then a ``note:`` line says so). Peak and start: CUDA only, null on the
+  CPU, where there are no such numbers.
 
 With ``--pairs K``, after every method is profiled, each method's checkpoint is resumed K more times, plain,
 interleaved in alternating order (baseline first, then last, ...: gsplat, jsgs, jsgs, gsplat, gsplat, jsgs
@@ -62,8 +68,10 @@ for K = 3), so that drift of the machine falls on both: the K wall times per met
 median over the K pairs of each method's time over the baseline's in the same pair (the ratio to quote),
 with a distribution-free interval for that median (two order statistics of the K ratios, at least 95 %
 from 6 pairs on; below that (min, max) and its coverage, e.g. 93.8 % for 5 pairs:
-:func:`jsgs.bench.stats.median_interval`). On CUDA the same for each window's peak allocated and reserved
-memory: the K peaks per method, their median, and the median ratio to the baseline's with its interval.
+:func:`jsgs.bench.stats.median_interval`). On CUDA, per window and kind (allocated, reserved), also the
+device memory at the run's start (after :func:`release_memory`), the window's peak, and the peak's increment
+over the start (the window's own memory, whatever earlier windows left): the K values per method, their
+medians, and for the peak and the increment the median ratio to the baseline's with its interval.
 
 Then, for every method against the first (normally jsgs − gsplat), the ``--top`` kernels by extra device
 time per step and by extra host launches per step. Kernels replayed from a CUDA graph count as runs, not as
@@ -74,6 +82,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import gc
 import json
 import math
 import pstats
@@ -82,6 +91,7 @@ import statistics
 import sys
 import tempfile
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from functools import cache
@@ -109,7 +119,7 @@ from jsgs.train.trainer import Trainer, train  # noqa: E402
 FORMAT = "jsgs-profile-step"
 #: The peak device memory figures of a window (:meth:`StepWindow.peak_memory`), in the order printed.
 MEMORY_KINDS = ("allocated", "reserved")
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 #: The profiler annotation around the synchronisation that closes the window (not the steps' own work).
 WINDOW_END = "profile_step: window end"
 
@@ -260,13 +270,82 @@ class PythonWindow(StepWindow):
 
 
 class StepCallback(Callback):
-    """A training callback that calls ``fn`` at the start of every step (a :class:`StepWindow`'s clock)."""
+    """A training callback that calls ``fn`` at the start of every step (a :class:`StepWindow`'s clock).
+    ``trainer``: a weak reference to the trainer it served (None before the first step): dead once the run
+    and everything it held are freed (:func:`plain_window` checks it)."""
 
     def __init__(self, fn: Callable[[], None]) -> None:
         self.fn = fn
+        self.trainer: weakref.ref[Trainer] | None = None
 
     def on_step_begin(self, trainer: Trainer, step: int) -> None:
+        if self.trainer is None:
+            self.trainer = weakref.ref(trainer)
         self.fn()
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Device memory between windows
+
+
+def device_memory(device: torch.device) -> dict[str, int] | None:
+    """What the device holds now, in bytes: ``{"allocated": torch.cuda.memory_allocated (tensors),
+    "reserved": memory_reserved (the caching allocator's segments)}``; None on the CPU (CUDA only)."""
+    if device.type != "cuda":
+        return None
+    return {
+        "allocated": int(torch.cuda.memory_allocated(device)),
+        "reserved": int(torch.cuda.memory_reserved(device)),
+    }
+
+
+def release_memory(device: torch.device) -> None:
+    """Free what finished runs left behind, so that every window starts from the same baseline: Python's
+    cycle collector (a trainer, its model, optimisers, data on the device and the JSGS hook's CUDA graphs
+    with their memory pool are freed at once only where nothing refers to them; a reference cycle keeps
+    them until a collection), then on CUDA a device synchronisation (frees in flight complete) and
+    ``torch.cuda.empty_cache`` (the allocator's free segments, freed graph pools included, go back to the
+    driver, so the reserved figure starts from what is still in use)."""
+    gc.collect()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+        torch.cuda.empty_cache()
+
+
+@dataclass
+class PlainWindow:
+    """One plain (unprofiled) resumed window (:func:`plain_window`): its wall time, what the device held at
+    the run's start after :func:`release_memory` (``start``) and the window's peaks (``peak``), in bytes
+    by :data:`MEMORY_KINDS` (both None on the CPU), and whether the run's trainer was freed after it."""
+
+    ms_per_step: float
+    start: dict[str, int] | None
+    peak: dict[str, int] | None
+    released: bool
+
+
+def plain_window(
+    manifest: Path, run: Path, device: torch.device, settle: int, steps: int, label: str
+) -> tuple[dict[str, Any], PlainWindow]:
+    """Resume the run folder ``run`` for one plain window, between two :func:`release_memory` calls:
+    ``(the run's metrics document, its PlainWindow)``. A trainer still referenced after the second call
+    (its memory would count in the next window's start) is one ``note:`` line on stderr naming ``label``."""
+    release_memory(device)
+    start = device_memory(device)
+    clock = StepWindow(device, settle, steps)
+    callback = StepCallback(clock)
+    doc = train(manifest, run, resume=True, progress=False, log=_quiet, callbacks=[callback])
+    trainer = callback.trainer
+    del callback  # the trainer's own list held it; nothing of the run is referenced from here on
+    release_memory(device)
+    released = trainer is None or trainer() is None
+    if not released:
+        print(
+            f"note: profile_step: {label}: the run's trainer is still referenced after its window; its "
+            "memory counts in the next window's start",
+            file=sys.stderr,
+        )
+    return doc, PlainWindow(clock.ms_per_step(), start, clock.peak_memory(), released)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -466,21 +545,21 @@ def profile_method(
     and its Chrome trace is written there (``tools/diagnostics/trace_gaps.py`` reads it); with ``fresh``
     (default), the window is also timed in a run trained from step 0 (``wall_ms_per_step_fresh``)."""
     warm = work / "warm"
+    release_memory(device)
     train(manifest, warm, cfg, force=True, stop_at=warmup, progress=False, log=_quiet)
     cuda = device.type == "cuda"
 
     plain = work / "plain"
     shutil.copytree(warm, plain)
-    clock = StepWindow(device, settle, steps)
-    doc = train(manifest, plain, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(clock)])
-    wall = clock.ms_per_step()
-    peak = clock.peak_memory()
+    doc, window = plain_window(manifest, plain, device, settle, steps, f"{cfg.method} (plain copy)")
+    wall, peak, start = window.ms_per_step, window.peak, window.start
 
     # the same window timed inside a run from step 0 (no resume): a check that resuming does not change
     # the step
     wall_fresh = None
     if fresh:
         fresh_clock = StepWindow(device, warmup + settle, steps)
+        release_memory(device)
         train(
             manifest, work / "fresh", cfg, force=True, progress=False, log=_quiet,
             callbacks=[StepCallback(fresh_clock)],
@@ -499,6 +578,7 @@ def profile_method(
         if trace is not None:
             p.export_chrome_trace(str(trace))
 
+    release_memory(device)
     with torch.profiler.profile(
         activities=activities, schedule=StepWindow.schedule(settle, steps), on_trace_ready=ready,
         with_stack=trace is not None,
@@ -510,7 +590,9 @@ def profile_method(
     wall_prof = pclock.ms_per_step()
     if "events" not in captured:
         raise JsgsError(f"{cfg.method}: the profiler delivered no trace for the window")
-    stats = window_stats(captured["events"], cuda)
+    stats = window_stats(captured.pop("events"), cuda)
+    pclock.prof = None
+    del prof  # the profiler's results (host memory) go before the next run, with its events
     device_ms = None if stats.device_us is None else stats.device_us / 1000.0 / steps
 
     result = {
@@ -523,6 +605,7 @@ def profile_method(
         "host_op_ms_per_step": stats.host_us / 1000.0 / steps,
         "syncs_per_step": None if stats.syncs is None else stats.syncs / steps,
         **{f"peak_memory_{k}_bytes": None if peak is None else peak[k] for k in MEMORY_KINDS},
+        **{f"start_memory_{k}_bytes": None if start is None else start[k] for k in MEMORY_KINDS},
         "num_gaussians": int(doc["num_gaussians"]),
         "num_gaussians_profiled": int(pdoc["num_gaussians"]),
         "device_name": doc["device_name"],
@@ -534,6 +617,7 @@ def profile_method(
         py = work / "python"
         shutil.copytree(warm, py)
         pywin = PythonWindow(device, settle, steps)
+        release_memory(device)
         train(manifest, py, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(pywin)])
         result["python_wall_ms_per_step"] = pywin.ms_per_step()
         result["python_top"] = pywin.top(python_top)
@@ -554,31 +638,42 @@ def _ratio_doc(per_pair: list[float]) -> dict[str, Any]:
 
 
 def _ratios(values: dict[str, list[float]]) -> dict[str, dict[str, Any]]:
-    """:func:`_ratio_doc` of each method but the first: its values over the first method's, round by round."""
+    """:func:`_ratio_doc` of each method but the first: its values over the first method's, round by round;
+    a method left out where a value of its own or the first method's is not positive (no ratio there)."""
     base, *others = values
-    return {m: _ratio_doc([a / b for a, b in zip(values[m], values[base], strict=True)]) for m in others}
+    return {
+        m: _ratio_doc([a / b for a, b in zip(values[m], values[base], strict=True)])
+        for m in others
+        if min(values[m] + values[base]) > 0
+    }
 
 
-#: A method's peak memory over the rounds: kind (:data:`MEMORY_KINDS`) -> bytes per round; None on the CPU.
+#: A method's memory figure over the rounds: kind (:data:`MEMORY_KINDS`) -> bytes per round; None on the CPU.
 Peaks = dict[str, list[int]] | None
 
 
 def pairs_doc(
-    order: list[list[str]], walls: dict[str, list[float]], peaks: dict[str, Peaks]
+    order: list[list[str]], walls: dict[str, list[float]], peaks: dict[str, Peaks], starts: dict[str, Peaks]
 ) -> dict[str, Any]:
-    """The document's ``pairs`` object from each method's wall times (ms/step) and peak memory per round
-    (``walls`` and ``peaks`` by method, the baseline first): the medians, and the median over the rounds of
-    each method's figure over the baseline's in the same round, with its interval. ``peak_memory`` is None
-    unless every method has its peaks (CUDA only)."""
+    """The document's ``pairs`` object from each method's wall times (ms/step), peak memory and memory at the
+    start per round (``walls``, ``peaks`` and ``starts`` by method, the baseline first): the medians, and the
+    median over the rounds of each method's figure over the baseline's in the same round, with its interval,
+    for the wall time, the peak and the peak's increment over the start (the window's own memory, whatever
+    was left on the device before it). ``peak_memory`` is None unless every method has its peaks and starts
+    (CUDA only)."""
     memory = None
-    if all(p is not None for p in peaks.values()):
-        memory = {
-            k: {
-                "median_bytes": {m: statistics.median(p[k]) for m, p in peaks.items() if p is not None},
-                "ratio": _ratios({m: [float(b) for b in p[k]] for m, p in peaks.items() if p is not None}),
+    known = {m: (p, starts[m]) for m, p in peaks.items() if p is not None and starts[m] is not None}
+    if len(known) == len(peaks):
+        memory = {}
+        for k in MEMORY_KINDS:
+            inc = {m: [float(a - b) for a, b in zip(p[k], s[k], strict=True)] for m, (p, s) in known.items()}
+            memory[k] = {
+                "median_bytes": {m: statistics.median(p[k]) for m, (p, _) in known.items()},
+                "ratio": _ratios({m: [float(b) for b in p[k]] for m, (p, _) in known.items()}),
+                "start_median_bytes": {m: statistics.median(s[k]) for m, (_, s) in known.items()},
+                "increment_median_bytes": {m: statistics.median(v) for m, v in inc.items()},
+                "increment_ratio": _ratios(inc),
             }
-            for k in MEMORY_KINDS
-        }
     return {
         "count": len(order),
         "order": order,
@@ -591,27 +686,33 @@ def pairs_doc(
 def interleaved_windows(
     manifest: Path, work: Path, methods: Sequence[str], device: torch.device, settle: int, steps: int,
     pairs: int,
-) -> tuple[dict[str, list[float]], dict[str, Peaks], dict[str, Any]]:  # fmt: skip
+) -> tuple[dict[str, list[PlainWindow]], dict[str, Any]]:  # fmt: skip
     """``pairs`` more plain windows per method, each resumed from ``work/METHOD/warm`` (left by
-    :func:`profile_method`), in :func:`pair_order`: ``({method: [ms/step per round]}, {method: its peak
-    memory per round (None on the CPU)}, the document's ``pairs`` object)`` (:func:`pairs_doc`)."""
+    :func:`profile_method`), in :func:`pair_order`, each between two :func:`release_memory` calls
+    (:func:`plain_window`): ``({method: its windows in round order}, the document's ``pairs`` object)``
+    (:func:`pairs_doc`)."""
     order = pair_order(methods, pairs)
-    walls: dict[str, list[float]] = {m: [] for m in methods}
-    rounds: dict[str, list[dict[str, int] | None]] = {m: [] for m in methods}
+    windows: dict[str, list[PlainWindow]] = {m: [] for m in methods}
     for i, round_ in enumerate(order):
         for m in round_:
             copy = work / m / f"pair{i}"
             shutil.copytree(work / m / "warm", copy)
-            clock = StepWindow(device, settle, steps)
-            train(manifest, copy, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(clock)])
-            walls[m].append(clock.ms_per_step())
-            rounds[m].append(clock.peak_memory())
+            _, window = plain_window(manifest, copy, device, settle, steps, f"{m} (pair {i + 1})")
+            windows[m].append(window)
             shutil.rmtree(copy)
-    peaks: dict[str, Peaks] = {}
-    for m, per_round in rounds.items():
-        known = [r for r in per_round if r is not None]
-        peaks[m] = {k: [r[k] for r in known] for k in MEMORY_KINDS} if len(known) == pairs else None
-    return walls, peaks, pairs_doc(order, walls, peaks)
+    walls = {m: [w.ms_per_step for w in ws] for m, ws in windows.items()}
+    return windows, pairs_doc(order, walls, _per_kind(windows, "peak"), _per_kind(windows, "start"))
+
+
+def _per_kind(windows: dict[str, list[PlainWindow]], figure: str) -> dict[str, Peaks]:
+    """Each method's ``figure`` ("peak" or "start") of its windows by memory kind; None unless every window
+    has it (CUDA only)."""
+    out: dict[str, Peaks] = {}
+    for m, ws in windows.items():
+        values = [getattr(w, figure) for w in ws]
+        known = [v for v in values if v is not None]
+        out[m] = {k: [v[k] for v in known] for k in MEMORY_KINDS} if len(known) == len(values) else None
+    return out
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -653,9 +754,10 @@ def print_report(doc: dict[str, Any]) -> None:
     print(
         "| method | wall ms/step (unprofiled) | the same, run not resumed | wall ms/step (profiled) | "
         "kernel launches/step | graph launches/step | device kernel ms/step | device busy % | "
-        "host op ms/step | syncs/step | peak allocated MiB | peak reserved MiB | #Gaussians |"
+        "host op ms/step | syncs/step | peak allocated MiB | peak reserved MiB | "
+        "allocated at the start MiB | #Gaussians |"
     )
-    print("|---|" + "---:|" * 12)
+    print("|---|" + "---:|" * 13)
     for m, r in res.items():
         cells = [
             _cell(r["wall_ms_per_step"]),
@@ -668,6 +770,7 @@ def print_report(doc: dict[str, Any]) -> None:
             _cell(r["host_op_ms_per_step"]),
             _cell(r["syncs_per_step"], ".1f"),
             *(_cell(_mib(r[f"peak_memory_{k}_bytes"]), ".1f") for k in MEMORY_KINDS),
+            _cell(_mib(r["start_memory_allocated_bytes"]), ".1f"),
             str(r["num_gaussians"]),
         ]
         print(f"| {m} | " + " | ".join(cells) + " |")
@@ -726,24 +829,36 @@ def print_pairs(doc: dict[str, Any]) -> None:
         print("peak memory of the windows: CUDA only")
         return
     print(
-        "peak device memory of each window (torch.cuda.max_memory_allocated / max_memory_reserved since the "
-        "window's start)"
+        "device memory of each window: at the run's start after freeing what earlier runs left "
+        "(torch.cuda.memory_allocated / memory_reserved), the peak over the window "
+        "(max_memory_allocated / max_memory_reserved since the window's start), and the peak's increment "
+        "over the start (the window's own memory)"
     )
     print()
     print(
-        f"| method | memory | MiB, each window | median | median over the pairs of peak ÷ {base}'s | "
-        "its interval (coverage) |"
+        f"| method | memory | figure | MiB, each window | median | median over the pairs of the figure ÷ "
+        f"{base}'s | its interval (coverage) |"
     )
-    print("|---|---|---|---:|---:|---|")
+    print("|---|---|---|---|---:|---:|---|")
+    figures = (("start", "start_median_bytes", None), ("peak", "median_bytes", "ratio"),
+               ("peak − start", "increment_median_bytes", "increment_ratio"))  # fmt: skip
     for k in MEMORY_KINDS:
         for m, r in doc["results"].items():
-            each = ", ".join(f"{v / 2**20:.1f}" for v in r[f"paired_peak_memory_{k}_bytes"])
-            ratio, interval = "1", ""
-            if m != base:
-                q = memory[k]["ratio"][m]
-                ratio, interval = f"{q['median']:.3f}", _interval(q)
-            median = memory[k]["median_bytes"][m] / 2**20
-            print(f"| {m} | {k} | {each} | {median:.1f} | {ratio} | {interval} |")
+            start, peak = r[f"paired_start_memory_{k}_bytes"], r[f"paired_peak_memory_{k}_bytes"]
+            values = {
+                "start": start,
+                "peak": peak,
+                "peak − start": [a - b for a, b in zip(peak, start, strict=True)],
+            }
+            for figure, median_key, ratio_key in figures:
+                each = ", ".join(f"{v / 2**20:.1f}" for v in values[figure])
+                ratio, interval = "", ""
+                if ratio_key is not None:
+                    q = memory[k][ratio_key].get(m)
+                    ratio = "1" if m == base else "–" if q is None else f"{q['median']:.3f}"
+                    interval = "" if q is None else _interval(q)
+                median = memory[k][median_key][m] / 2**20
+                print(f"| {m} | {k} | {figure} | {each} | {median:.1f} | {ratio} | {interval} |")
 
 
 def print_python(doc: dict[str, Any]) -> None:
@@ -870,14 +985,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             results[m]["kernels"] = kernel_rows(stats[m].kernels, args.steps, args.top)
         pairs = None
         if args.pairs > 0:
-            walls, peaks, pairs = interleaved_windows(
+            windows, pairs = interleaved_windows(
                 manifest, work, methods, device, args.settle, args.steps, args.pairs
             )
+            peaks, starts = _per_kind(windows, "peak"), _per_kind(windows, "start")
             for m in methods:
-                results[m]["paired_wall_ms_per_step"] = walls[m]
+                results[m]["paired_wall_ms_per_step"] = [w.ms_per_step for w in windows[m]]
                 for k in MEMORY_KINDS:
-                    p = peaks[m]
+                    p, s0 = peaks[m], starts[m]
                     results[m][f"paired_peak_memory_{k}_bytes"] = None if p is None else p[k]
+                    results[m][f"paired_start_memory_{k}_bytes"] = None if s0 is None else s0[k]
     baseline = methods[0]
     differences = {}
     for m in methods[1:]:
