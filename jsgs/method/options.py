@@ -19,6 +19,8 @@ from jsgs.train.config import check_bounds, parse_method_options, setting
 
 #: ``method_options.speed.compile`` (``jsgs train --compile``, ``jsgs bench --compile``)
 COMPILE_BACKENDS = ("off", "inductor", "aot_eager")
+#: the jpeg_modes ``method_options.speed.fused_jo`` covers (mode exact runs libjpeg's integer code in torch)
+FUSED_JO_MODES = ("paper", "float")
 
 
 @dataclass
@@ -49,12 +51,11 @@ class JsgsSpeed:
     )
     fused_jo: bool | Literal["auto"] = setting(
         "auto",
-        "JO's coding pass in jpeg_mode paper (per 8x8 block: DCT, soft quantisation, IDCT, clamp) as two "
-        "fused Triton kernels, forward and backward, and DS's Delta as one kernel each way "
+        "JO's coding pass in jpeg_mode paper or float (per 8x8 block: DCT, quantisation, IDCT, clamp) as "
+        "two fused Triton kernels, forward and backward, and DS's Delta as one kernel each way "
         "(jsgs/kernels/_triton_jo.py), instead of a few dozen torch kernels (0.73 ms less per step at "
-        "1440x1920 on an H200): auto: on for CUDA with Triton, jpeg_mode paper and compile off, the torch "
-        "code elsewhere; true needs those; false: the torch code (its twin). jpeg_mode float runs the torch "
-        "code (its fused kernels disagreed with the twin on CUDA; their fix has not run on a GPU yet).",
+        "1440x1920 on an H200): auto: on for CUDA with Triton, jpeg_mode paper or float and compile off, the "
+        "torch code elsewhere; true needs those; false: the torch code (its twin).",
     )
     fused_color: bool | Literal["auto"] = setting(
         False,
@@ -173,15 +174,10 @@ class JsgsOptions:
                 f"{where}: method_options.speed.cuda_graph and method_options.speed.compile "
                 f"({self.speed.compile}) cannot be combined yet; use one of them"
             )
-        if self.speed.fused_jo is True and self.jpeg_mode == "float":
+        covered = self.speed.compile == "off" and self.jpeg_mode in FUSED_JO_MODES
+        if self.speed.fused_jo is True and not covered:
             raise JsgsError(
-                f"{where}: method_options.speed.fused_jo: the fused jpeg_mode float path disagreed with the "
-                "torch twin on CUDA (up to 29 8-bit units on 2 % of the pixels) and its fix has not run on a "
-                'GPU yet; use jpeg_mode paper, or set fused_jo false or "auto" (the torch code)'
-            )
-        if self.speed.fused_jo is True and (self.speed.compile != "off" or self.jpeg_mode == "exact"):
-            raise JsgsError(
-                f"{where}: method_options.speed.fused_jo covers jpeg_mode paper without compile "
+                f"{where}: method_options.speed.fused_jo covers jpeg_mode paper and float without compile "
                 f"(got jpeg_mode {self.jpeg_mode}, compile {self.speed.compile}); set it to false or \"auto\""
             )
         if self.base_ramp_steps and not self.base_by_view:
@@ -230,7 +226,10 @@ def use_fused_jo(opts: JsgsOptions, device: torch.device) -> bool:
     s = opts.speed
     if s.fused_jo == "auto":
         return (
-            device.type == "cuda" and triton_available() and opts.jpeg_mode == "paper" and s.compile == "off"
+            device.type == "cuda"
+            and triton_available()
+            and opts.jpeg_mode in FUSED_JO_MODES
+            and s.compile == "off"
         )
     if s.fused_jo and device.type != "cuda":
         raise JsgsError(

@@ -2,8 +2,8 @@
 # well inside the device tool's 600 s:
 #   GPUs 0-1  the several-GPU tests (gsplat's exchange: gradients and statistics against one GPU; gsplat's
 #             exchange against the torch exchange at equal steps), then `scale.sh` on jpeg_mouse;
-#   GPU 2     the fused Triton kernels' GPU tests (JO, DS, the colour conversion; mode float's strict xfails
-#             flip to failures once the exact-division fix holds on the GPU) and bench_jpeg_ops.py --fused-jo;
+#   GPU 2     the fused Triton kernels' GPU tests (JO in modes paper and float, DS, the colour conversion)
+#             and bench_jpeg_ops.py --fused-jo;
 #   GPU 3     equal-budget step profiles (`--preset mcmc`, 6 interleaved pairs after 1,500 steps) of jpeg_mouse
 #             at 1440x1920 with the default kernels and with `fused_color` and `gc_every` 4 as well.
 # On the CPU first, into a folder that .git/info/exclude ignores (the carry, with the tracked tree, stays under

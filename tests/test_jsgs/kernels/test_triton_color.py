@@ -197,9 +197,11 @@ def test_fused_color_setting() -> None:
     assert not use_fused_color(parse_options({"speed": {"fused_color": "auto"}}), cpu)
     with pytest.raises(JsgsError, match="fused_color runs with the fused JO kernels only"):
         use_fused_color(parse_options({"speed": {"fused_color": True}}), cpu)
-    # auto on CUDA: where the fused coding pass runs (Triton, mode paper)
-    assert use_fused_color(parse_options({"speed": {"fused_color": "auto"}}), cuda) == triton_available()
-    for raw in ({"jpeg_mode": "float"}, {"speed": {"fused_jo": False}}):
+    # auto on CUDA: where the fused coding pass runs (Triton, mode paper or float)
+    for mode in ("paper", "float"):
+        on = parse_options({"jpeg_mode": mode, "speed": {"fused_color": "auto"}})
+        assert use_fused_color(on, cuda) == triton_available(), mode
+    for raw in ({"jpeg_mode": "exact"}, {"speed": {"fused_jo": False}}):
         opts = parse_options({**raw, "speed": {**raw.get("speed", {}), "fused_color": "auto"}})
         assert not use_fused_color(opts, cuda), raw
         on = parse_options({**raw, "speed": {**raw.get("speed", {}), "fused_color": True}})

@@ -431,13 +431,14 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
 
     assert described()["cuda_graph_gc"] is True
     # JO's fused kernels: by default (auto) where Triton imports, in mode paper (checked, not run, for a CUDA
-    # device); mode float and fused_jo false run the torch code
+    # device), in modes paper and float; mode exact and fused_jo false run the torch code
     fused = "triton" if triton_available() else "torch"
     assert described(cuda_graph_gc=False) == {
         "color_kernel": "torch", "cuda_graph": True, "cuda_graph_gc": False, "gc_attribution": "probe",
         "gc_kernel": "torch", "gc_route": "deferred", "jo_kernel": fused, "jpeg_mode": "paper",
     }  # fmt: skip
-    assert described(jpeg_mode="float")["jo_kernel"] == described(fused_jo=False)["jo_kernel"] == "torch"
+    assert described(jpeg_mode="float")["jo_kernel"] == fused
+    assert described(jpeg_mode="exact")["jo_kernel"] == described(fused_jo=False)["jo_kernel"] == "torch"
     # the colour kernel: off by default; auto follows the fused coding pass
     assert described(fused_color="auto")["color_kernel"] == fused
     assert described(fused_color="auto", fused_jo=False)["color_kernel"] == "torch"
