@@ -411,15 +411,18 @@ class _Trainer:
 
 
 def test_plain_window_releases_and_reads_memory_on_a_cuda_stand_in(monkeypatch: Any) -> None:
-    """A plain window frees what earlier runs left (cycle collector, synchronisation, empty_cache) before it
-    reads the memory at the run's start, and again after the run; the start is read before the run allocates
-    anything, the peaks at the window's end. torch.cuda and the run stood in for (CI has no GPU)."""
+    """A plain window frees what earlier runs left (cycle collector, synchronisation, cuBLAS workspaces,
+    empty_cache) before it reads the memory at the run's start, and again after the run; the start is read
+    before the run allocates anything, the peaks at the window's end. torch.cuda and the run stood in for
+    (CI has no GPU)."""
     calls: list[str] = []
     held = {"bytes": 7}  # what the stand-in device holds
     monkeypatch.setattr(ps.gc, "collect", lambda: calls.append("collect") or 0)
     monkeypatch.setattr(ps, "synchronize", lambda d: calls.append("window sync"))
     monkeypatch.setattr(torch.cuda, "synchronize", lambda d=None: calls.append("sync"))
     monkeypatch.setattr(torch.cuda, "empty_cache", lambda: calls.append("empty"))
+    clear = lambda: calls.append("workspaces")  # noqa: E731
+    monkeypatch.setattr(torch._C, "_cuda_clearCublasWorkspaces", clear, raising=False)
     monkeypatch.setattr(torch.cuda, "memory_allocated", lambda d=None: calls.append("read") or held["bytes"])
     monkeypatch.setattr(torch.cuda, "memory_reserved", lambda d=None: held["bytes"] + 1)
     monkeypatch.setattr(torch.cuda, "reset_peak_memory_stats", lambda d=None: None)
@@ -438,7 +441,7 @@ def test_plain_window_releases_and_reads_memory_on_a_cuda_stand_in(monkeypatch: 
     monkeypatch.setattr(ps, "train", run)
     doc, w = ps.plain_window(Path("m.json"), Path("run"), torch.device("cuda"), 1, 2, "jsgs (pair 1)")
     assert doc == {"num_gaussians": 1}
-    release = ["collect", "sync", "empty"]
+    release = ["collect", "sync", "workspaces", "empty"]
     assert calls == [*release, "read", "train", "window sync", "window sync", *release]
     assert w.start == {"allocated": 7, "reserved": 8} and w.peak == {"allocated": 300, "reserved": 512}
     assert w.released and w.ms_per_step >= 0  # the stand-in trainer died with the run

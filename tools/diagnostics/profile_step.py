@@ -303,12 +303,21 @@ def release_memory(device: torch.device) -> None:
     """Free what finished runs left behind, so that every window starts from the same baseline: Python's
     cycle collector (a trainer, its model, optimisers, data on the device and the JSGS hook's CUDA graphs
     with their memory pool are freed at once only where nothing refers to them; a reference cycle keeps
-    them until a collection), then on CUDA a device synchronisation (frees in flight complete) and
-    ``torch.cuda.empty_cache`` (the allocator's free segments, freed graph pools included, go back to the
-    driver, so the reserved figure starts from what is still in use)."""
+    them until a collection), then on CUDA a device synchronisation (frees in flight complete), torch's
+    cuBLAS workspaces and ``torch.cuda.empty_cache`` (the allocator's free segments, freed graph pools
+    included, go back to the driver, so the reserved figure starts from what is still in use).
+
+    The workspaces: torch keeps one per cuBLAS handle and stream, allocated through the caching allocator
+    on the stream's first matrix product and held until the process ends or they are cleared. The JSGS hook
+    records its CUDA graph on a side stream of torch's pool, a different one in each run, so each JSGS run
+    would leave one more behind (torch's own leak checks clear them too before they compare memory). Cleared
+    between runs only: no graph of a finished run replays again, and the next run allocates its own."""
     gc.collect()
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+        clear_workspaces = getattr(torch._C, "_cuda_clearCublasWorkspaces", None)
+        if clear_workspaces is not None:
+            clear_workspaces()
         torch.cuda.empty_cache()
 
 
