@@ -231,3 +231,16 @@ def test_a_short_run_keeps_most_of_the_controllers_effect(tmp_path: Path) -> Non
     for name in ("probe", "footprint"):
         config = json.loads((tmp_path / name / "config.json").read_text())
         assert config["derived"]["method"]["gc_attribution"] == name  # the resolved value
+
+
+def test_footprint_with_gc_every_runs_on_the_controllers_steps_only() -> None:
+    view = make_view(50, "4:2:0")
+    on = step_at(new_hook(view, gc_attribution="footprint", gc_every=4), 4)
+    exact = step_at(new_hook(view, gc_attribution="footprint", lambda_fro=0.05 * 4), 4)
+    assert not on["probe"] and on["weights"]["fro"] == 0.2 and on["stats"]["gc_damped"] > 0
+    assert on["terms"] == exact["terms"] and on["stats"] == exact["stats"]
+    assert all(torch.equal(on["grads"][n], exact["grads"][n]) for n in on["grads"])
+    between = step_at(new_hook(view, gc_attribution="footprint", gc_every=4), 5)
+    off = step_at(new_hook(view, gc=False), 5)
+    assert between["terms"]["fro"] == 0.0
+    assert all(torch.equal(between["grads"][n], off["grads"][n]) for n in off["grads"])
