@@ -3,7 +3,8 @@
 #   GPUs 0-1  the several-GPU tests (gsplat's exchange: gradients and statistics against one GPU; gsplat's
 #             exchange against the torch exchange at equal steps), then `scale.sh` on jpeg_mouse;
 #   GPU 2     the fused Triton kernels' GPU tests (JO in modes paper and float, DS, the colour conversion)
-#             and bench_jpeg_ops.py --fused-jo;
+#             and the footprint attribution's (gsplat against its probe), bench_jpeg_ops.py --fused-jo, then
+#             jpeg_mouse's step profile with `gc_attribution` footprint (GPU 3's protocol);
 #   GPU 3     equal-budget step profiles (`--preset mcmc`, 6 interleaved pairs after 1,500 steps) of jpeg_mouse
 #             at 1440x1920 with the default kernels and with `fused_color` and `gc_every` 4 as well.
 # On the CPU first, into a folder that .git/info/exclude ignores (the carry, with the tracked tree, stays under
@@ -31,9 +32,14 @@ P=tools/diagnostics/profile_step.py
     export CUDA_VISIBLE_DEVICES=2
     timeout 150 bash scripts/gpu_run.sh python3 -m pytest -m "gpu or slow" -s -rs -p no:cacheprovider \
         tests/test_jsgs/kernels/test_triton_jo.py tests/test_jsgs/kernels/test_triton_color.py \
-        tests/test_jsgs/method/test_graphed.py::test_gpu_training_with_fused_jo_matches_the_twin > $O/fused_tests.log 2>&1
+        tests/test_jsgs/method/test_graphed.py::test_gpu_training_with_fused_jo_matches_the_twin \
+        tests/test_jsgs/render/test_render_gpu.py::test_footprint_attribution_on_gsplat_matches_its_probe \
+        > $O/fused_tests.log 2>&1
     timeout 90 bash scripts/gpu_run.sh python3 benchmarks/bench_jpeg_ops.py --fused-jo --device cuda --repeats 50 \
         --warmup 5 > $O/fused_bench.log 2>&1
+    timeout 190 bash scripts/gpu_run.sh python3 $P --manifest .gpu3/jpeg_mouse/manifest.json --device cuda \
+        --preset mcmc --warmup 1500 --steps 100 --pairs 6 --no-fresh --jsgs-options '{"gc_attribution":"footprint"}' \
+        --out $O/camera_jpeg_mouse_1500_footprint.json > $O/camera_jpeg_mouse_1500_footprint.txt 2>&1
 ) &
 (
     export CUDA_VISIBLE_DEVICES=3
