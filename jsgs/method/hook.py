@@ -206,6 +206,8 @@ class JsgsHook(LossHook):
 
     @property
     def gc_route(self) -> str:
+        if self.opts.gc_attribution == "footprint":  # inside the main backward, whatever λ_fro
+            return "deferred"
         return "now" if self.opts.lambda_fro == 0.0 else self.opts.gc_pooling
 
     def active_terms(self) -> list[str]:

@@ -183,7 +183,9 @@ def test_footprint_is_deterministic_and_the_default_is_the_probe() -> None:
 
 def test_footprint_with_lambda_fro_zero_logs_the_term_only() -> None:
     view = make_view(50, "4:2:0")
-    foot = step_at(new_hook(view, gc_attribution="footprint", lambda_fro=0.0), 0)
+    hook = new_hook(view, gc_attribution="footprint", lambda_fro=0.0)
+    assert hook.describe()["gc_route"] == "deferred"
+    foot = step_at(hook, 0)
     off = step_at(new_hook(view, gc=False), 0)
     assert foot["terms"]["fro"] > 0 and foot["stats"]["gc_visible"] > 0
     assert all(torch.equal(foot["grads"][n], off["grads"][n]) for n in off["grads"])
