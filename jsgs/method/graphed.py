@@ -18,6 +18,11 @@ sampling, weights and epsilons are fixed per graph. One graph per (image shape, 
 we train have one image size. Graphs need static shapes and no host synchronisation, which the JPEG code
 guarantees (see ``jsgs.jpeg.observe``); they are CUDA-only. Should a recording fail all the same
 (:class:`GraphCaptureFailed`), the hook says so in one line and runs the eager chain for the rest of the run.
+
+Every recording on a device, of either class, is made on one side stream per device (:func:`side_stream`),
+created on first use and kept for the process. torch keeps a cuBLAS workspace per (handle, stream) until
+``torch._C._cuda_clearCublasWorkspaces()``, so a new stream per recording (the controller records again at
+every densification) would leave one more workspace behind each time.
 """
 
 from __future__ import annotations
@@ -57,20 +62,32 @@ class GraphCaptureFailed(RuntimeError):
     """Recording a graph failed (the message says why); the caller runs the eager chain instead."""
 
 
+_SIDE_STREAMS: dict[torch.device, Any] = {}
+
+
+def side_stream(device: torch.device) -> Any:
+    """The stream that every graph recording on ``device`` runs on: made once per device, then reused."""
+    stream = _SIDE_STREAMS.get(device)
+    if stream is None:
+        stream = _SIDE_STREAMS[device] = torch.cuda.Stream(device)
+    return stream
+
+
 def record_graph(
     fn: Callable[[], Any], device: torch.device, *, warmups: int, pool: Any, error_mode: str
 ) -> tuple[Any, Any]:
     """``fn()`` recorded as a CUDA graph: ``(graph, outputs)``, the outputs living in the graph's memory.
 
-    ``warmups`` eager calls first, on the same side stream as the capture (lazy library and autograd-engine
-    state is set up outside the capture); the capture goes into ``pool`` (None: a new one) with torch's
-    ``capture_error_mode`` ``error_mode`` ("thread_local" when recording from inside a backward, whose
-    engine threads keep working). The caller's stream waits for the side stream before and after.
-    GraphCaptureFailed (one line) where recording fails, e.g. on an op that synchronises with the host.
+    ``warmups`` eager calls first, on the same side stream as the capture (the device's :func:`side_stream`;
+    lazy library and autograd-engine state is set up outside the capture); the capture goes into ``pool``
+    (None: a new one) with torch's ``capture_error_mode`` ``error_mode`` ("thread_local" when recording
+    from inside a backward, whose engine threads keep working). The caller's stream waits for the side
+    stream before and after. GraphCaptureFailed (one line) where recording fails, e.g. on an op that
+    synchronises with the host.
     """
     try:
         here = torch.cuda.current_stream(device)
-        side = torch.cuda.Stream(device)
+        side = side_stream(device)
         side.wait_stream(here)
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.stream(side):

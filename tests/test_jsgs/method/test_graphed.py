@@ -18,6 +18,7 @@ from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import dct_supervision
 from jsgs.kernels import fro_from_probe_grad, packed_fro_stats
 from jsgs.kernels._triton_jo import triton_available
+from jsgs.method import graphed as graphed_module
 from jsgs.method.graphed import GraphedController, GraphedImageTerms, _Recording
 from jsgs.method.hook import JsgsHook
 from jsgs.method.image_terms import image_terms, terms_with_gradient
@@ -176,6 +177,70 @@ def _no_cuda_streams(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(torch.cuda, "Stream", NoStream)
     monkeypatch.setattr(torch.cuda, "stream", lambda s: nullcontext())
     monkeypatch.setattr(torch.cuda, "graph_pool_handle", lambda: None)
+    monkeypatch.setattr(graphed_module, "_SIDE_STREAMS", {})  # no stand-in stream outlives the test
+
+
+def test_every_recording_runs_on_one_side_stream(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Recordings of both graph classes, the controller's again at every change of N or parameter storage,
+    all run on one side stream made once for the device (torch keeps a cuBLAS workspace per stream); each
+    capture runs inside that stream's context, after its warm-ups there, and the outputs are the chain's."""
+    made: list[Any] = []
+    entered: list[Any] = []
+
+    class CountedStream:
+        def __init__(self, device: Any = None) -> None:
+            made.append(self)
+
+        def wait_stream(self, other: Any) -> None:
+            pass
+
+    class StreamContext:
+        def __init__(self, stream: Any) -> None:
+            self.stream = stream
+
+        def __enter__(self) -> None:
+            entered.append(self.stream)
+
+        def __exit__(self, *exc: Any) -> None:
+            entered.append(None)
+
+    captures: list[int] = []
+
+    class StandInGraph:  # capture_begin/end around the chain's call, as torch's; replay a no-op here
+        def capture_begin(self, pool: Any = None, capture_error_mode: str = "global") -> None:
+            assert entered and entered[-1] is not None  # inside the side stream's context
+            captures.append(len(entered))
+
+        def capture_end(self) -> None:
+            pass
+
+        def replay(self) -> None:
+            pass
+
+        def pool(self) -> None:
+            return None
+
+    _no_cuda_streams(monkeypatch)
+    monkeypatch.setattr(torch.cuda, "Stream", CountedStream)
+    monkeypatch.setattr(torch.cuda, "stream", StreamContext)
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", StandInGraph)
+    monkeypatch.setattr(GraphedImageTerms, "_check_device", staticmethod(lambda x: None))
+    settings = dict(weight=0.05, near_plane=0.01, eps_proj=1e-6, tau_s=1.0)
+    ctl = GraphedController(**settings)
+    for i, n in enumerate([50, 80, 30, 80]):
+        probe, logits, log_scales, means, quats, viewmat, K = _controller_inputs(n, i, "cpu")
+        got = ctl(probe, logits, log_scales, means, quats, viewmat, K, 160, 120)
+        ref = fro_from_probe_grad(probe, logits, log_scales, means, quats, viewmat, K, 160, 120, **settings)
+        for a, b in zip(got, (ref.grad_logit, ref.grad_log_scale, packed_fro_stats(ref.terms)), strict=True):
+            assert torch.equal(a, b)
+    terms = GraphedImageTerms(weights=(0.2, 0.02, 0.03), **SETTINGS)
+    for seed in (0, 1):
+        x, y, luma, chroma = _view_tensors(seed, dtype=torch.float32)
+        terms(x[..., : 32 + 8 * seed].requires_grad_(), y[..., : 32 + 8 * seed], torch.stack([luma, chroma]),
+              "4:2:0")  # fmt: skip
+    assert ctl.recordings == 4 and len(terms._graphs) == 2 and len(captures) == 6
+    assert len(made) == 1 and all(s is made[0] for s in entered if s is not None)
+    assert entered.count(made[0]) == 6  # one stream context per recording, warm-ups and capture in it
 
 
 def test_cuda_graph_is_refused_off_cuda_and_with_compile(tmp_path: Path) -> None:
