@@ -308,10 +308,11 @@ def release_memory(device: torch.device) -> None:
     included, go back to the driver, so the reserved figure starts from what is still in use).
 
     The workspaces: torch keeps one per cuBLAS handle and stream, allocated through the caching allocator
-    on the stream's first matrix product and held until the process ends or they are cleared. The JSGS hook
-    records its CUDA graph on a side stream of torch's pool, a different one in each run, so each JSGS run
-    would leave one more behind (torch's own leak checks clear them too before they compare memory). Cleared
-    between runs only: no graph of a finished run replays again, and the next run allocates its own."""
+    on the stream's first matrix product and held until the process ends or they are cleared. The JSGS
+    graphs record on one side stream per device (``jsgs.method.graphed.side_stream``), whose workspace a
+    finished JSGS run would leave to the next window's start, not to gsplat's (torch's own leak checks clear
+    them too before they compare memory). Cleared between runs only: no graph of a finished run replays
+    again, and the next run allocates its own."""
     gc.collect()
     if device.type == "cuda":
         torch.cuda.synchronize(device)
