@@ -191,9 +191,10 @@ def test_the_colour_kernel_needs_the_fused_coding_pass() -> None:
 
 def test_fused_color_setting() -> None:
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
-    assert parse_options({}).speed.fused_color is False
-    for device in (cpu, cuda):  # default off everywhere; auto off on the CPU
-        assert not use_fused_color(parse_options({}), device)
+    assert parse_options({}).speed.fused_color == "auto"  # the default: on where the fused coding pass runs
+    assert not use_fused_color(parse_options({}), cpu)
+    assert use_fused_color(parse_options({}), cuda) == triton_available()
+    assert not use_fused_color(parse_options({"speed": {"fused_color": False}}), cuda)
     assert not use_fused_color(parse_options({"speed": {"fused_color": "auto"}}), cpu)
     with pytest.raises(JsgsError, match="fused_color runs with the fused JO kernels only"):
         use_fused_color(parse_options({"speed": {"fused_color": True}}), cpu)

@@ -499,13 +499,14 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
     # device), in modes paper and float; mode exact and fused_jo false run the torch code
     fused = "triton" if triton_available() else "torch"
     assert described(cuda_graph_gc=False) == {
-        "color_kernel": "torch", "cuda_graph": True, "cuda_graph_gc": False, "gc_attribution": "probe",
+        "color_kernel": fused, "cuda_graph": True, "cuda_graph_gc": False, "gc_attribution": "probe",
         "gc_kernel": "torch", "gc_route": "deferred", "jo_kernel": fused, "jpeg_mode": "paper",
     }  # fmt: skip
     assert described(jpeg_mode="float")["jo_kernel"] == fused
     assert described(jpeg_mode="exact")["jo_kernel"] == described(fused_jo=False)["jo_kernel"] == "torch"
-    # the colour kernel: off by default; auto follows the fused coding pass
+    # the colour kernel: auto (the default) follows the fused coding pass
     assert described(fused_color="auto")["color_kernel"] == fused
+    assert described(fused_color=False)["color_kernel"] == "torch"
     assert described(fused_color="auto", fused_jo=False)["color_kernel"] == "torch"
     assert described(gc_pooling="now")["cuda_graph_gc"] is False
     assert described(cuda_graph=False)["cuda_graph_gc"] is False
