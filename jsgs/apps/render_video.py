@@ -88,16 +88,17 @@ def render_run(
 
     Frames are rendered one at a time and streamed to the encoder (or to their PNG files), so memory holds
     one frame whatever the path's length. The video goes through a temporary file of an unpredictable name
-    in its folder (:func:`jsgs.base.io.atomic_path`); a failure leaves neither it nor any frame of this call.
+    in its folder, with a marker naming its writer beside it (:func:`jsgs.base.io.atomic_path`); a failure
+    leaves neither it nor any frame of this call.
     The run's own files are never written (:func:`jsgs.base.run_files.refuse_run_files`), and a model that
     would draw nothing (no Gaussians, a non-finite value, a zero rotation) is refused. What a killed render
-    into the same folder left beside it is dealt with first (:func:`jsgs.base.io.clear_folder_leftovers`),
-    one line to ``say`` (stderr by default) each."""
+    to the same output left beside it is dealt with first (:func:`jsgs.base.io.clear_file_leftovers`,
+    :func:`jsgs.base.io.clear_folder_leftovers`), one line to ``say`` (stderr by default) each."""
     from tqdm import tqdm
 
     from jsgs.apps.camera_path import KINDS, CameraPath, build_path, read_path, scaled_K
     from jsgs.apps.viewer import load_run_model, render_rgb
-    from jsgs.base.io import clear_folder_leftovers
+    from jsgs.base.io import clear_file_leftovers, clear_folder_leftovers
     from jsgs.base.run_files import refuse_run_files
     from jsgs.schemas import validate
     from jsgs.train.data import load_image
@@ -113,9 +114,8 @@ def render_run(
     refuse_run_files(run, (out, cameras), "render writes only new files (choose another --out)")
     if video and out.is_dir():
         raise JsgsError(f"{out}: is a folder; give a video file name")
-    if not video:
-        for line in clear_folder_leftovers(out):
-            (say or (lambda s: print(s, file=sys.stderr)))(line)
+    for line in clear_file_leftovers(out) if video else clear_folder_leftovers(out):
+        (say or (lambda s: print(s, file=sys.stderr)))(line)
     if video and (os.path.lexists(out) or os.path.lexists(cameras)) and not force:
         raise JsgsError(f"{out}: exists (use --force to replace it)")
     if not video and (os.path.lexists(out) and not out.is_dir()):
@@ -179,7 +179,7 @@ def _write_video(
     from jsgs.base.io import atomic_path, write_json_atomic
 
     count, shape = 0, (0, 0)
-    with atomic_path(out) as tmp:
+    with atomic_path(out, "jsgs render") as tmp:
         try:
             writer = iio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1)
             try:

@@ -30,14 +30,23 @@ def _umask() -> int:
 
 
 @contextmanager
-def atomic_path(final: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a temporary path in the same folder as ``final``; rename it onto ``final`` only on success."""
+def atomic_path(final: str | os.PathLike[str], what: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path ``.NAME.XXXXXXXX.part.SUFFIX`` in the same folder as ``final``; rename it onto
+    ``final`` only on success. With ``what`` (for long writes that a kill may cut short, such as a video)
+    the temporary file has a marker beside it, ``.NAME.XXXXXXXX.part`` + :data:`PART_MARKER`, naming its
+    writer (:func:`writer_record`), made before the file and removed after it, so that what a killed writer
+    left is recognised and removed by the next one (:func:`clear_file_leftovers`)."""
     from jsgs.base.errors import JsgsError
 
     final = Path(final)
+    marker = None
     try:
         final.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part" + final.suffix, dir=final.parent)
+        if what is None:
+            suffix = ".part" + final.suffix
+            fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=suffix, dir=final.parent)
+        else:
+            fd, tmp, marker = _marked_temp(final, what)
     except OSError as e:
         raise JsgsError(f"{final}: cannot write ({e.strerror or e})") from None
     try:
@@ -55,11 +64,35 @@ def atomic_path(final: str | os.PathLike[str]) -> Iterator[Path]:
     finally:
         if os.path.lexists(tmp_path):
             tmp_path.unlink()
+        if marker is not None:
+            marker.unlink(missing_ok=True)
+
+
+def _marked_temp(final: Path, what: str) -> tuple[int, str, Path]:
+    """The marker and the (open, empty) temporary file of :func:`atomic_path` with ``what``: the marker is
+    made first (``mkstemp``) and holds the writer, then the file of the same name stem, also exclusively."""
+    record = json.dumps({"for": final.name, **writer_record(what)}) + "\n"
+    for _ in range(100):
+        fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part" + PART_MARKER, dir=final.parent)
+        marker = Path(name)
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(record)
+            tmp = name[: -len(PART_MARKER)] + final.suffix
+            flags = os.O_CREAT | os.O_EXCL | os.O_WRONLY | getattr(os, "O_CLOEXEC", 0)
+            return os.open(tmp, flags, 0o600), tmp, marker
+        except FileExistsError:  # an entry of that name that is not ours: take another name
+            marker.unlink(missing_ok=True)
+        except BaseException:
+            marker.unlink(missing_ok=True)
+            raise
+    raise FileExistsError(f"no free temporary name beside {final.name}")
 
 
 #: the marker inside a temporary folder of :func:`atomic_folder` (``.NAME.XXXXXXXX.part``, and the earlier
-#: folder moved aside, ``.NAME.XXXXXXXX.old``): the writer that made it (:func:`writer_record`), so that a
-#: leftover of a killed writer is known as ours (:func:`clear_folder_leftovers`)
+#: folder moved aside, ``.NAME.XXXXXXXX.old``), and beside a temporary file of :func:`atomic_path` with a
+#: writer (``.NAME.XXXXXXXX.part`` + this name): the writer that made it (:func:`writer_record`), so that a
+#: leftover of a killed writer is known as ours (:func:`clear_folder_leftovers`, :func:`clear_file_leftovers`)
 PART_MARKER = ".jsgs-part.json"
 
 
@@ -198,6 +231,50 @@ def _clear_leftover(p: Path, kind: str, final: Path, who: Writer) -> str:
         return f"warning: {p}: could not remove it ({e.strerror or e}); left by {who.what} ({who.where()})"
     what = "unfinished output" if kind == "part" else "earlier output it was replacing"
     return f"note: removed {p}, the {what} of {who.what} ({who.where()}, no longer running)"
+
+
+def clear_file_leftovers(final: str | os.PathLike[str]) -> list[str]:
+    """Deal with the temporary files :func:`atomic_path` with a writer left beside ``final``
+    (``.NAME.XXXXXXXX.part.SUFFIX`` and its marker ``.NAME.XXXXXXXX.part`` + :data:`PART_MARKER`: a writer
+    killed mid-write) before writing ``final`` again; returns one line for each, to print. A temporary file
+    is removed, its marker last, only when the marker names ``final`` and a writer that no longer runs on
+    this host (as :func:`clear_folder_leftovers`) and the file is a regular file (not a link); a marker whose
+    file is gone (killed just before or after the file's life) goes the same way. Anything else (no marker
+    or an unreadable one, a writer that still runs or runs on another host, a link) is left alone with a
+    warning naming it."""
+    final = Path(final)
+    if not final.parent.is_dir():
+        return []
+    ends = sorted({final.suffix, PART_MARKER}, key=len, reverse=True)  # a suffix "" matches last
+    ending = "|".join(map(re.escape, ends))
+    pattern = re.compile(rf"\.{re.escape(final.name)}\.([A-Za-z0-9_]+)\.part({ending})")
+    stems = sorted({m[1] for p in final.parent.iterdir() if (m := pattern.fullmatch(p.name))})
+    lines = []
+    for stem in stems:
+        base = final.parent / f".{final.name}.{stem}.part"
+        tmp, marker = Path(f"{base}{final.suffix}"), Path(f"{base}{PART_MARKER}")
+        has_tmp = os.path.lexists(tmp)
+        shown = tmp if has_tmp else marker
+        who = read_writer(marker)
+        if who is None or who.doc.get("for") != final.name:
+            lines.append(
+                f"warning: {shown}: left beside {final.name} by an interrupted write, but no marker of jsgs "
+                f"({marker.name}) records its writer; left alone (remove it yourself once it is not needed)"
+            )
+        elif not who.gone():
+            lines.append(f"warning: {shown}: {who.what} ({who.where()}) is still writing it; left alone")
+        elif has_tmp and (tmp.is_symlink() or not tmp.is_file()):
+            lines.append(f"warning: {tmp}: is not a plain file, so {who.what} did not write it; left alone")
+        else:
+            try:
+                tmp.unlink(missing_ok=True)
+                marker.unlink()
+            except OSError as e:
+                lines.append(f"warning: {shown}: could not remove it ({e.strerror or e}); left by {who.what}")
+                continue
+            what = "the unfinished output" if has_tmp else "the marker"
+            lines.append(f"note: removed {shown}, {what} of {who.what} ({who.where()}, no longer running)")
+    return lines
 
 
 def atomic_leftovers(folder: str | os.PathLike[str], final_name: str) -> list[Path]:

@@ -346,6 +346,97 @@ def test_render_removes_what_a_killed_render_left(run: Path, tmp_path: Path) -> 
     assert sorted(p.name for p in out.iterdir()) == ["cameras.json", "frame_00000.png", "frame_00001.png"]
 
 
+def _plant_video(folder: Path, stem: str, marker: dict[str, object] | None, video: bool = True) -> Path:
+    """A leftover temporary video ``.out.mp4.STEM.part.mp4`` (when ``video``) and its marker (when given)."""
+    from jsgs.base.io import PART_MARKER
+
+    tmp = folder / f".out.mp4.{stem}.part.mp4"
+    if video:
+        tmp.write_bytes(b"half a video")
+    if marker is not None:
+        (folder / f".out.mp4.{stem}.part{PART_MARKER}").write_text(json.dumps(marker))
+    return tmp
+
+
+def test_video_leftovers_are_removed_only_when_ours_and_gone(tmp_path: Path) -> None:
+    """Beside ``out.mp4``: a temporary video whose marker names a writer that is gone (removed with its
+    marker), a marker alone of a gone writer (removed); one whose writer runs, one of another host, one
+    without a marker, one with a marker cut short, one whose marker names another output, a link with a
+    gone writer's marker (all left alone, one warning each); another output's leftover is not looked at."""
+    import os
+    import socket
+
+    from jsgs.base.io import PART_MARKER, _start_time, clear_file_leftovers
+
+    host = socket.gethostname()
+    dead = {"for": "out.mp4", "pid": 2**22 + 12345, "host": host, "start": 1, "what": "jsgs render"}
+    live = {**dead, "pid": os.getppid(), "start": _start_time(os.getppid())}
+    final = tmp_path / "out.mp4"
+    gone = _plant_video(tmp_path, "aaaa1111", dead)
+    lone = _plant_video(tmp_path, "bbbb2222", dead, video=False)
+    running = _plant_video(tmp_path, "cccc3333", live)
+    remote = _plant_video(tmp_path, "dddd4444", {**dead, "host": host + "-elsewhere"})
+    bare = _plant_video(tmp_path, "eeee5555", None)
+    cut = _plant_video(tmp_path, "ffff6666", None)
+    cut.with_name(f".out.mp4.ffff6666.part{PART_MARKER}").write_text("")  # killed before its record
+    other = _plant_video(tmp_path, "gggg7777", {**dead, "for": "other.mp4"})
+    target = tmp_path / "target.mp4"
+    target.write_bytes(b"keep")
+    link = _plant_video(tmp_path, "hhhh8888", dead, video=False)
+    link.symlink_to(target)
+    unrelated = tmp_path / ".outx.mp4.iiii9999.part.mp4"
+    unrelated.write_bytes(b"another output's")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    lines = clear_file_leftovers(final)
+    assert len(lines) == 8 and all("\n" not in s for s in lines), lines
+    kept = (running, remote, bare, cut, other)
+    removed = [gone.name, gone.name[: -len(".mp4")] + PART_MARKER, lone.name[: -len(".mp4")] + PART_MARKER]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(set(before) - set(removed))
+    assert [s.split(",")[0] for s in lines if s.startswith("note")] == [
+        f"note: removed {gone}", f"note: removed {tmp_path / removed[2]}"]  # fmt: skip
+    assert "the unfinished output of jsgs render (PID" in lines[0]
+    for p in kept:
+        assert p.read_bytes() == b"half a video"
+        assert sum(str(p) in s and s.startswith("warning: ") for s in lines) == 1, (p, lines)
+    assert link.is_symlink() and target.read_bytes() == b"keep" and unrelated.exists()
+    assert f"warning: {link}: is not a plain file" in " ".join(lines)
+    assert f"(PID {os.getppid()}) is still writing it" in next(s for s in lines if str(running) in s)
+    assert f"on host {host}-elsewhere" in next(s for s in lines if str(remote) in s)
+    assert "records its writer; left alone" in next(s for s in lines if str(bare) in s)
+
+
+def test_render_removes_what_a_killed_video_render_left(run: Path, tmp_path: Path) -> None:
+    """A process killed (SIGKILL) while writing a video leaves the temporary video and its marker; the next
+    jsgs render to the same file removes both with a note and warns about an unmarked one, which it keeps."""
+    import signal
+    import subprocess
+    import sys
+
+    import imageio.v2 as iio
+
+    from jsgs.base.io import PART_MARKER
+    from jsgs.cli import main
+
+    out = tmp_path / "out.mp4"
+    code = (
+        "import os, signal, sys\nfrom jsgs.base.io import atomic_path\n"
+        "with atomic_path(sys.argv[1], 'jsgs render') as tmp:\n"
+        "    tmp.write_bytes(b'half')\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    assert subprocess.run([sys.executable, "-c", code, str(out)]).returncode == -signal.SIGKILL
+    marker, video = _siblings(out)  # ".out.mp4.X.part.jsgs-part.json" sorts first
+    assert video.endswith(".part.mp4") and marker == video[: -len(".mp4")] + PART_MARKER
+    assert json.loads((tmp_path / marker).read_text())["what"] == "jsgs render"
+    stranger = _plant_video(tmp_path, "zzzz0000", None)
+    r = CliRunner().invoke(main, ["render", str(run), "--out", str(out), "--frames", "2", "--device", "cpu"])
+    assert r.exit_code == 0, r.output
+    assert f"note: removed {tmp_path / video}, the unfinished output of jsgs render (PID " in r.output
+    assert f"warning: {stranger}: left beside out.mp4" in r.output
+    assert _siblings(out) == [stranger.name] and stranger.read_bytes() == b"half a video"
+    assert iio.get_reader(out).count_frames() == 2
+
+
 def test_a_lock_of_another_host_is_never_taken_over(tmp_path: Path) -> None:
     """The output lock holds the same writer record as atomic_folder's marker: a PID recorded on another
     host says nothing here, so that lock is refused (naming the host) where a dead PID of this host's is
