@@ -136,7 +136,8 @@ def build_manifest(
     base = out.parent
     test_every, split = _split(scene_dir, scene, record, test_every)
     n_train = sum(s == "train" for s in split.values())
-    if say is not None and (w := split_warning(str(out), len(scene.views), n_train, test_every)) is not None:
+    fixed_by = None if record is None else str(scene_dir / RECORD)
+    if say is not None and (w := split_warning(str(out), len(scene.views), n_train, test_every, fixed_by)):
         say(w)
     views = [_view_doc(scene, v, scene_dir, base, split[v.name], analyze) for v in scene.views]
     if record is not None:

@@ -432,14 +432,25 @@ def world_warning(scene: ColmapScene) -> str | None:
     )
 
 
-def split_warning(where: str, n_views: int, n_train: int, test_every: int) -> str | None:
+def split_warning(
+    where: str, n_views: int, n_train: int, test_every: int, record: str | None = None
+) -> str | None:
     """One line when a split leaves no training view (one view, or ``--test-every 1``): jsgs train refuses
-    such a manifest; else None."""
+    such a manifest; else None. ``record``: the ``compress.json`` that fixes the split of a scene
+    ``jsgstools compress`` made (its test views were not compressed, so ``--test-every`` cannot change it:
+    the advice is to compress a source with more views; view 0 by name is always a test view there)."""
     if n_train > 0 or n_views == 0:
         return None
+    if record is not None:
+        return (
+            f"{where}: no training views: {record} (test every {test_every}) makes all {n_views} view(s) "
+            "test views and fixes the split of a compressed scene; jsgs train needs at least one (compress "
+            "a source with more views)"
+        )
+    larger = "; 2 or more keeps some test views" if test_every == 1 and n_views > 1 else ""
     return (
         f"{where}: no training views: with test every {test_every}, all {n_views} view(s) are test views; "
-        "jsgs train needs at least one (--test-every 0 makes every view a training view)"
+        f"jsgs train needs at least one (--test-every 0 makes every view a training view{larger})"
     )
 
 
@@ -448,15 +459,16 @@ def _split_warning(scene: ColmapScene, test_every: int) -> str | None:
     scene's: its record's, which ``_check_record`` checks)."""
     import json
 
-    n = len(scene.views)
+    n, record = len(scene.views), scene.root / "compress.json"
     try:
-        rec = json.loads((scene.root / "compress.json").read_text())
+        rec = json.loads(record.read_text())
         n_train, test_every = sum(v["split"] == "train" for v in rec["views"]), rec["settings"]["test_every"]
     except FileNotFoundError:
         n_train = n - (len(range(0, n, test_every)) if test_every > 0 else 0)
+        return split_warning(scene.rel(scene.model_dir), n, n_train, test_every)
     except (OSError, ValueError, KeyError, TypeError, RecursionError):
         return None  # a problem of its own
-    return split_warning(scene.rel(scene.model_dir), n, n_train, test_every)
+    return split_warning(scene.rel(scene.model_dir), n, n_train, test_every, scene.rel(record))
 
 
 def _check_points(scene: ColmapScene, report: ValidationReport) -> None:

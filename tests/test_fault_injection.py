@@ -531,21 +531,26 @@ def test_coincident_colmap_cameras_are_named_by_validate(synth_scene: Path, tmp_
     assert r.exit_code == 0 and "cameras are at one position" in r.output, r.output
 
 
-def test_a_single_camera_is_named_by_validate_manifest_and_train(
-    synth_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """One registered camera: validate and manifest warn that jsgs train refuses it (no camera distance for
-    the world's normalisation) and, with the default split, that no view trains; jsgs train says either in
-    one line, and trains with scene.normalize_world false."""
+def _one_view_scene(synth_scene: Path, scene: Path) -> None:
+    """``synth_scene`` copied to ``scene`` with only its first registered view."""
     import pycolmap
 
-    scene = tmp_path / "scene"
     shutil.copytree(synth_scene, scene)
     rec = pycolmap.Reconstruction(str(scene / "sparse/0"))
     for iid in sorted(rec.images)[1:]:
         (scene / "images" / rec.images[iid].name).unlink()
         rec.deregister_frame(rec.images[iid].frame_id)
     rec.write_binary(str(scene / "sparse/0"))
+
+
+def test_a_single_camera_is_named_by_validate_manifest_and_train(
+    synth_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One registered camera: validate and manifest warn that jsgs train refuses it (no camera distance for
+    the world's normalisation) and, with the default split, that no view trains; jsgs train says either in
+    one line, and trains with scene.normalize_world false."""
+    scene = tmp_path / "scene"
+    _one_view_scene(synth_scene, scene)
     lone = "warning: scene/sparse/0: only one camera: jsgs train refuses the scene unless scene.normalize"
     no_train = "no training views: with test every 8, all 1 view(s) are test views; jsgs train needs at least"
     monkeypatch.chdir(tmp_path)  # the messages name the scene as given
@@ -567,6 +572,40 @@ def test_a_single_camera_is_named_by_validate_manifest_and_train(
     Path("flat.json").write_text(json.dumps({"scene": {"normalize_world": False}}))
     r = CliRunner().invoke(jsgs_main, [*train, "m0.json", "--out", "run", "--config", "flat.json"])
     assert r.exit_code == 0 and "note: only one camera: camera extent 0 replaced by 1" in r.output, r.output
+
+
+def test_no_training_view_advice_fits_the_scene(
+    synth_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One view, so the split leaves no training view: for a COLMAP scene the warning suggests
+    --test-every 0 (which then trains); for a scene jsgstools compress made, whose compress.json fixes the
+    split (--test-every 0 is refused there), it names the record and says to compress a source with more
+    views. With several views and --test-every 1, a larger spacing is suggested too."""
+    from jsgstools.compress import compress
+    from jsgstools.validate import split_warning
+
+    monkeypatch.chdir(tmp_path)  # the messages name the scenes as given
+    _one_view_scene(synth_scene, tmp_path / "scene")
+    compress(Path("scene"), Path("data"), "gaussian", seed=0, jobs=1)
+    plain = "no training views: with test every 8, all 1 view(s) are test views; jsgs train needs at least "
+    fixed = (
+        "no training views: data/compress.json (test every 8) makes all 1 view(s) test views and fixes the "
+        "split of a compressed scene; jsgs train needs at least one (compress a source with more views)"
+    )
+    r = CliRunner().invoke(tools_main, ["validate", "scene"])
+    advice = "one (--test-every 0 makes every view a training view)"
+    assert f"warning: scene/sparse/0: {plain}{advice}\n" in r.output, r.output
+    r = CliRunner().invoke(tools_main, ["validate", "data", "--test-every", "0"])
+    (line,) = (ln for ln in r.output.splitlines() if "no training views" in ln)
+    assert line.endswith(fixed) and "--test-every" not in line, r.output
+    r = CliRunner().invoke(tools_main, ["manifest", "data", "--out", "m.json"])
+    assert r.exit_code == 0 and f"warning: m.json: {fixed}\n" in r.output, r.output
+    r = CliRunner().invoke(tools_main, ["manifest", "data", "--out", "m0.json", "--test-every", "0"])
+    assert r.exit_code != 0 and "its split cannot be changed to 0" in r.output, r.output
+    assert split_warning("m.json", 5, 0, 1) == (
+        "m.json: no training views: with test every 1, all 5 view(s) are test views; jsgs train needs at "
+        "least one (--test-every 0 makes every view a training view; 2 or more keeps some test views)"
+    )
 
 
 # PLY files: a model that cannot be rendered gets one line from every reader (export, render, view)
