@@ -21,11 +21,12 @@ Its accounting is storage-level and the allocator's business is left out:
 
 Each made storage is charged to the op that made it, the innermost frame of the project (or gsplat) above
 it and the part of :data:`PARTS` (``op_sources.py``'s) whose code that is; in the backward, to the frames
-that run it where the project's code does (the controller's hook, custom autograd functions), else to where
+that run it where the project's code of a part does (the controller's hook), else (the engine runs it,
+under ``backward()`` or ``torch.autograd.grad``, or a custom function's backward outside the parts) to where
 its autograd node was made in the forward (anomaly mode records that, without its NaN checks), marked
 "(backward)". Each is also classed by what its size scales with: ``pixels`` (a dimension of the image, at
 8×8 blocks or 4:2:0 chroma too), ``gaussians`` (the number of Gaussians) or ``other`` (e.g. the reference
-rasteriser's pixel-Gaussian pairs).
+rasteriser's per-tile pair tensors).
 
 For ``jsgs-graph-layout`` two peaks are kept: of everything, and of everything outside the graph's replay
 (``step_peak_bytes``; on CUDA the replay's intermediates live in the graph's private pool, reserved but not
@@ -146,17 +147,26 @@ def _node_frames(node: Any) -> list[Frame]:
     return [(m["file"], int(m["line"]), m["fn"]) for m in reversed(found) if m]
 
 
+def _engine_run(frames: Sequence[Frame]) -> bool:
+    """Whether the autograd engine runs the op: between it and the innermost project frame there is a call
+    into autograd (``backward()``, ``torch.autograd.grad``), not a hook or a custom function's backward."""
+    for f in frames:
+        if _project(f):
+            return False
+        if "torch/autograd/" in f[0] or f[0].endswith("torch/_tensor.py"):
+            return True
+    return True
+
+
 def _where(node: Any) -> tuple[str, str, str, bool]:
     """``(phase, origin, part, inside a graph replay)`` of the op running now (module docstring)."""
     frames = _python_frames()
     pool = any(fn == "_replay_in_pool" for _, _, fn in frames)
     if node is None:
         return "forward", origin_of(frames), part_of(frames), pool
-    part = part_of(frames)
-    if part in ("trainer", "other"):  # the engine runs it under loss.backward(): where its node was made
-        frames = _node_frames(node)
-        part = part_of(frames)
-    return "backward", origin_of(frames), f"{part} (backward)", pool
+    if _engine_run(frames) or part_of(frames) in ("trainer", "other"):  # where its node was made
+        frames = _node_frames(node) or frames
+    return "backward", origin_of(frames), f"{part_of(frames)} (backward)", pool
 
 
 class LiveStorages(TorchDispatchMode):
