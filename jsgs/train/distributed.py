@@ -257,27 +257,44 @@ def keep_a_gaussian_per_shard(strategy: Any, world: World) -> None:
     Gaussian of this process's shard keeps its most opaque one (gsplat's pruning otherwise as it is), so
     no shard ever becomes empty (:func:`shard_rows`). That Gaussian's opacity is below ``prune_opa``
     (0.005 by default) or it is too large: it may grow again like any other. MCMCStrategy never removes
-    Gaussians."""
+    Gaussians. This strategy object's prune step is wrapped (:func:`_prune_mask`, then gsplat's public
+    ``remove``); gsplat's modules are left as they are."""
     if not world.enabled or strategy.type != "default":
         return
-    import gsplat.strategy.default as gsd
+    from gsplat.strategy.ops import remove
 
-    gs, own_prune, own_remove = strategy.gsplat, strategy.gsplat._prune_gs, gsd.remove
-
-    def remove(params: Any, optimizers: Any, state: Any, mask: Tensor) -> None:
-        if mask.numel() > 0 and bool(mask.all()):
-            mask = mask.clone()
-            mask[torch.argmax(params["opacities"].detach().flatten())] = False
-        own_remove(params=params, optimizers=optimizers, state=state, mask=mask)
+    own_prune = strategy.gsplat._prune_gs
 
     def prune_gs(params: Any, optimizers: Any, state: dict[str, Any], step: int) -> int:
-        gsd.remove = remove  # gsplat's _prune_gs calls its module's remove; for this call only
-        try:
-            return own_prune(params, optimizers, state, step)
-        finally:
-            gsd.remove = own_remove
+        mask = _prune_mask(own_prune, params, state, step)
+        if mask.numel() > 0 and bool(mask.all()):
+            mask[torch.argmax(params["opacities"].detach().flatten())] = False
+        n_prune = int(mask.sum())
+        if n_prune > 0:
+            remove(params=params, optimizers=optimizers, state=state, mask=mask)
+        return n_prune
 
-    gs._prune_gs = prune_gs
+    strategy.gsplat._prune_gs = prune_gs
+
+
+#: the key of each Gaussian's row index in :func:`_prune_mask`'s stand-in state
+_ROW = "jsgs_row"
+
+
+def _prune_mask(prune: Any, params: Any, state: dict[str, Any], step: int) -> Tensor:
+    """The rows gsplat's ``DefaultStrategy._prune_gs`` (``prune``, the bound method) removes at ``step``,
+    found by running that method itself on stand-ins, so its rule is gsplat's own: the opacities and scales
+    it reads (detached, without optimizers; its ``remove`` makes new tensors, the model's are untouched) and
+    a shallow copy of the running state with each row's index added, which ``remove`` cuts like the others;
+    the rows whose index is left are those it keeps."""
+    opacities = params["opacities"]
+    rows = torch.arange(opacities.shape[0], device=opacities.device)
+    stand_in = {name: params[name].detach() for name in ("opacities", "scales")}
+    kept = {**state, _ROW: rows}
+    prune(stand_in, {}, kept, step)
+    mask = torch.ones_like(rows, dtype=torch.bool)
+    mask[kept[_ROW]] = False
+    return mask
 
 
 def shard_cap(cap: int, world: World) -> int:

@@ -588,6 +588,62 @@ def test_pruning_never_empties_a_shard() -> None:
     assert "_prune_gs" not in vars(one.gsplat)
 
 
+def test_the_shard_prune_removes_what_gsplat_removes() -> None:
+    """The per-shard prune finds its rows with gsplat's own rule (opacity, and after reset_every the 3D
+    scale, before refine_scale2d_stop_iter the screen radius): on random shards it removes the rows, moments
+    and statistics gsplat's DefaultStrategy removes, leaves gsplat's modules as they are, and keeps the
+    model's tensors untouched while it looks."""
+    import dataclasses
+
+    import gsplat.strategy.default as gsd
+    import gsplat.strategy.ops as ops
+    import torch
+
+    from jsgs.train import distributed as dd
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.strategy import Densifier
+
+    base = TrainConfig.from_preset("paper", device="cpu").strategy
+    cfg = dataclasses.replace(base, refine_scale2d_stop_iter=4000, prune_opa=0.3)
+    n, counts = 64, {}
+    for step in (100, 3500, 4500):  # one shard, pruned at three steps
+        g = torch.Generator().manual_seed(0)
+        opacities, scales = torch.randn(n, 1, generator=g), torch.randn(n, 3, generator=g) - 3.0
+        radii = torch.rand(n, generator=g) * 0.2
+        results = []
+        for wrap in (True, False):
+            strategy = Densifier(cfg)
+            if wrap:
+                dd.keep_a_gaussian_per_shard(strategy, dd.World(0, 2, 0))
+            params = torch.nn.ParameterDict({
+                "means": torch.nn.Parameter(torch.arange(3.0 * n).reshape(n, 3)),
+                "scales": torch.nn.Parameter(scales.clone()),
+                "opacities": torch.nn.Parameter(opacities.clone()),
+            })  # fmt: skip
+            optimizers = {k: torch.optim.Adam([p], lr=0.1) for k, p in params.items()}
+            sum(p.sum() for p in params.values()).backward()
+            for o in optimizers.values():
+                o.step()
+            state = strategy.initialize_state(scene_scale=1.0)
+            state.update(grad2d=torch.arange(n) + 1.0, count=torch.ones(n), radii=radii.clone())
+            if wrap:
+                own = gsd.DefaultStrategy._prune_gs.__get__(strategy.gsplat)
+                mask = dd._prune_mask(own, params, state, step)
+                assert params["means"].shape[0] == n and state["radii"].shape == (n,)
+                assert "jsgs_row" not in state
+            count = strategy.gsplat._prune_gs(params, optimizers, state, step)
+            moments = optimizers["opacities"].state_dict()["state"][0]["exp_avg"]
+            rows = torch.round(params["means"].detach()[:, 0] / 3).long()  # Adam moved them by 0.1
+            results.append((count, rows, moments, state["grad2d"], state["radii"]))
+        (count, rows, *rest), (want_count, want_rows, *want_rest) = results
+        assert count == want_count == int(mask.sum()) and 0 < count < n
+        assert torch.equal(rows, want_rows) and torch.equal(rows, torch.where(~mask)[0])
+        assert all(torch.equal(a, b) for a, b in zip(rest, want_rest, strict=True))
+        counts[step] = count
+        assert gsd.remove is ops.remove
+    assert counts[100] < counts[4500] < counts[3500]  # opacity; and 3D scale; and screen radius
+
+
 @pytest.mark.parametrize(
     ("args", "expected"),
     [
