@@ -23,8 +23,9 @@ The Gaussian Controller pools the block-score map r(p) per Gaussian with a probe
 rendered with the colours, ``jsgs.method.pooling``), in the same rasterisation pass. Two routes, equal
 values and gradients (tested), chosen by ``gc_pooling``:
 
-* ``"deferred"`` (default): ``probe_objective`` (value exactly 0) rides in the ``fro`` term, so the main
-  backward itself pools ``(o·S_r, ν)`` into the probe's gradient; a post-accumulate hook on the probe then
+* ``"deferred"`` (default): λ_fro times ``probe_objective`` (value exactly 0; ``ProbeObjective``) rides in
+  the loss (``HookOutput.folded_loss``, the ``fro`` term being its logged value), so the main backward
+  itself pools ``λ_fro·(o·S_r, ν)`` into the probe's gradient; a post-accumulate hook on the probe then
   computes r̄, V_i, L_fro and L_fro's closed-form gradient and adds ``λ_fro ∂L_fro/∂θ`` to the opacity-logit
   and log-scale gradients (``jsgs.kernels.fro_from_probe_grad``; on CUDA the three fused kernels of
   ``jsgs/kernels/csrc/controller.cu``, ``method_options.speed.gc_kernel``, or that function replayed as one
@@ -125,6 +126,8 @@ class JsgsHook(LossHook):
         self.last: dict[str, Any] = {}
         # the rasterisation outputs of the step whose deferred GC waits for its backward
         self._pending: dict[str, Any] = {}
+        # λ_fro times the probe objective, with its kept buffer (jsgs.method.pooling.ProbeObjective)
+        self._probe_objective: Any = None
         from jsgs.jpeg.losses import photometric_loss
         from jsgs.jpeg.observe import jpeg_observe
         from jsgs.jpeg.supervision import dct_supervision
@@ -306,19 +309,26 @@ class JsgsHook(LossHook):
                 if self.keep_last:
                     self.last["ds"] = sup
         if o.gc and not self.gc_at(ctx.step):  # a step between the controller's: logged as 0
-            zero = torch.zeros((), dtype=ctx.render.dtype, device=ctx.render.device)
-            terms["fro"] = zero
-            stats.update({k: zero.clone() for k in STAT_NAMES})
+            zeros = torch.zeros(1 + len(STAT_NAMES), dtype=ctx.render.dtype, device=ctx.render.device)
+            terms["fro"], *zero_stats = zeros.unbind()
+            stats.update(zip(STAT_NAMES, zero_stats, strict=True))
+            if folded_loss is not None:  # a value to log only: nothing to weight and add to the loss
+                folded = folded | {"fro"}
         elif o.gc:
             assert r_map is not None
             with self.profiler.phase("gc"):
                 if o.gc_attribution == "footprint":
                     terms["fro"], gc_stats = self._gc_footprint(ctx, r_map)
+                    if folded_loss is not None:  # a value to log (no gradient): nothing to add to the loss
+                        folded = folded | {"fro"}
                 elif self.gc_route == "now":
                     fro, gc_stats = self._gc_now(ctx, r_map)
                     terms["fro"] = fro
                 else:
-                    terms["fro"], gc_stats = self._gc_deferred(ctx, r_map)
+                    # the objective is λ_fro·(probe objective) already: it joins the folded loss unweighted
+                    objective, terms["fro"], gc_stats = self._gc_deferred(ctx, r_map)
+                    folded = folded | {"fro"}
+                    folded_loss = objective if folded_loss is None else folded_loss + objective
                 stats.update(gc_stats)
         return HookOutput(terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab, ctx.step))
 
@@ -347,22 +357,27 @@ class JsgsHook(LossHook):
         s = ft.stats
         return ft.loss, {"gc_visible": s.visible, "gc_rbar": s.rbar_mean, "gc_damped": s.damped}
 
-    def _gc_deferred(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-        from jsgs.method.pooling import probe_objective
+    def _gc_deferred(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
+        """λ_fro times the probe objective (value 0; to add to the loss unweighted), the ``fro`` term to log
+        (0 until the backward writes L_fro into it) and the statistics (likewise)."""
+        from jsgs.method.pooling import ProbeObjective
 
-        # The hook lives on the probe tensor, which ``term``'s graph holds (through the probe's
-        # AccumulateGrad): a closure over ``term`` (or ``info``) would make a reference cycle that keeps
+        # The hook lives on the probe tensor, which the objective's graph holds (through the probe's
+        # AccumulateGrad): a closure over the objective (or ``info``) would make a reference cycle that keeps
         # every step's rasterisation outputs (GBs on a GPU) alive until Python's cycle collector happens to
-        # run. The closure reaches ``term`` through ``pending`` instead, emptied by the hook itself (and by
-        # the next step, if a backward never came).
+        # run. The closure holds plain tensors only, and runs once: its marker in ``pending`` is emptied by
+        # the hook itself (and by the next step, if a backward never came).
         pending = self._pending
         splats = ctx.splats
-        # Σ_p r·probe₀ + Σ_p probe₁, exactly 0; weighted by λ_fro in the loss, so the probe's gradient is
-        # λ_fro·(o·S_r, ν), divided out in fro_from_probe_grad
-        term = probe_objective(ctx.info, r_map)
-        # one tensor for the three statistics: filled by one copy in the backward
-        stat_vec = torch.zeros(len(STAT_NAMES), dtype=term.dtype, device=term.device)
-        stat_t = dict(zip(STAT_NAMES, stat_vec.unbind(), strict=True))
+        # λ_fro·(Σ_p r·probe₀ + Σ_p probe₁), exactly 0, so the probe's gradient is λ_fro·(o·S_r, ν), divided
+        # out in fro_from_probe_grad
+        if self._probe_objective is None:
+            self._probe_objective = ProbeObjective(self.fro_weight)
+        objective = self._probe_objective(ctx.info, r_map)
+        # the logged L_fro and the three statistics: one tensor, filled by one copy in the backward
+        values = torch.zeros(1 + len(STAT_NAMES), dtype=objective.dtype, device=objective.device)
+        term, *stat_list = values.unbind()
+        stat_t = dict(zip(STAT_NAMES, stat_list, strict=True))
         pending["term"] = term
         viewmat, K, w, h = self._camera(ctx)
 
@@ -374,12 +389,10 @@ class JsgsHook(LossHook):
                 grad = probe.grad[None]  # [1, N, 2]
                 probe.grad = None  # served its purpose; keeps memory flat
                 params = (splats["opacities"], splats["scales"], splats["means"], splats["quats"])
-                packed = self._controller(grad, params, viewmat, K, w, h)
-                term.copy_(packed[0])
-                stat_vec.copy_(packed[1:])
+                values.copy_(self._controller(grad, params, viewmat, K, w, h))
 
         ctx.info["extra_features"].register_post_accumulate_grad_hook(on_probe_grad)
-        return term, stat_t
+        return objective, term, stat_t
 
     def _gc_footprint(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """The controller with the footprint attribution: a hook on ``info["conics"]`` reads its gradient
@@ -395,9 +408,10 @@ class JsgsHook(LossHook):
             raise JsgsError(
                 "method_options.gc_attribution footprint: the rasteriser's conics have no gradient to read"
             )
-        term = torch.zeros((), dtype=ctx.render.dtype, device=ctx.render.device)
-        stat_vec = torch.zeros(len(STAT_NAMES), dtype=term.dtype, device=term.device)
-        stat_t = dict(zip(STAT_NAMES, stat_vec.unbind(), strict=True))
+        # the logged L_fro and the three statistics: one tensor, filled by one copy in the backward
+        values = torch.zeros(1 + len(STAT_NAMES), dtype=ctx.render.dtype, device=ctx.render.device)
+        term, *stat_list = values.unbind()
+        stat_t = dict(zip(STAT_NAMES, stat_list, strict=True))
         # detached copies only: the hook lives on the conics, so a closure over a tensor of their graph
         # would make a reference cycle (see _gc_deferred)
         m2, con, op = info["means2d"].detach(), conics.detach(), info["opacities"].detach()
@@ -420,8 +434,7 @@ class JsgsHook(LossHook):
                     unit = {**self._gc_settings, "weight": 1.0}
                     g = probe_grad_from_sums(sums, op)
                     packed = packed_fro_stats(fro_from_probe_grad(g, *params, viewmat, K, w, h, **unit).terms)
-                term.copy_(packed[0])
-                stat_vec.copy_(packed[1:])
+                values.copy_(packed)
 
         conics.register_hook(on_conics_grad)
         return term, stat_t
@@ -433,11 +446,15 @@ class JsgsHook(LossHook):
         gradients and returns the packed (L_fro, statistics) [4]. Fused kernels or the graph where they are
         on (and nothing asks for the intermediates, ``keep_last``), else the eager twin."""
         fast = None  # (grad_logit, grad_log_scale, packed) from the kernels or the graph
+        # the gradients are new tensors of this call (stored as they are where a parameter has no gradient
+        # yet) but for the graph's, which are its output buffers (copied)
+        owned = True
         if self._gc_fused and not self.keep_last:
             fast = fro_from_probe_grad_fused(probe_grad, *params, viewmat, K, w, h, **self._gc_settings)
         elif self._gc_graphed is not None and not self.keep_last:
             try:
                 fast = self._gc_graphed(probe_grad, *params, viewmat, K, w, h)
+                owned = False
             except GraphCaptureFailed as e:
                 self._gc_graphed = None
                 warn_eager_fallback("recording the Gaussian Controller as a CUDA graph", str(e), "it")
@@ -448,17 +465,18 @@ class JsgsHook(LossHook):
             g_logit, g_ls, packed = out.grad_logit, out.grad_log_scale, packed_fro_stats(out.terms)
             if self.keep_last:
                 self.last.update(sums=out.sums, rbar=out.rbar, visible=out.visible, fro=out.terms, A=out.A)
-        _add_grad(params[0], g_logit)
-        _add_grad(params[1], g_ls)
+        _add_grad(params[0], g_logit, owned)
+        _add_grad(params[1], g_ls, owned)
         return packed
 
 
-def _add_grad(p: Tensor, g: Tensor) -> None:
+def _add_grad(p: Tensor, g: Tensor, owned: bool = False) -> None:
     """Accumulate ``g`` into ``p.grad`` as autograd would (the parameter's own AccumulateGrad may run before
-    or after this; both orders sum). ``g`` may be a graph's output buffer: it is never stored as is."""
+    or after this; both orders sum). ``g`` may be a graph's output buffer: it is stored as is only when
+    ``owned`` (a new tensor nothing else holds), else copied."""
     g = g.to(p.dtype)
     if p.grad is None:
-        p.grad = g.clone()
+        p.grad = g if owned else g.clone()
     else:
         p.grad.add_(g)
 

@@ -48,7 +48,7 @@ equal to those without it within gsplat's own run-to-run atomic-add noise
 (tests/test_jsgs/render/test_render_gpu.py); the reference's agree to 1e-14
 (tests/test_jsgs/render/test_render_reference.py). Do not use a non-zero probe colour (say r itself).
 ``probe_objective`` must enter the loss unscaled (no loss weight, no AMP scaler), or the factor
-must be divided out of the gradient.
+must be divided out of the gradient (``ProbeObjective(weight)`` is the weighted objective in one node).
 """
 
 from __future__ import annotations
@@ -96,7 +96,8 @@ def _sums_from_probe_grad(grad: Tensor, info: dict) -> PooledSums:
     return sums_from_probe_grad(grad if grad.dim() == 3 else grad[None], _opacities(info))
 
 
-def _upstream(info: dict, r: Tensor) -> Tensor:
+def _checked_channels(info: dict, r: Tensor) -> Tensor:
+    """The rendered probe channels ``info["extra"]`` [C, H, W, 2], checked against ``r`` [C, H, W]."""
     ch = info.get("extra")
     probe = info.get("extra_features")
     if ch is None or probe is None or ch.shape[-1] != 2 or not probe.requires_grad:
@@ -104,6 +105,11 @@ def _upstream(info: dict, r: Tensor) -> Tensor:
     C, H, W, _ = ch.shape
     if r.shape != (C, H, W):
         raise ValueError(f"r must be [C, H, W] = {(C, H, W)}, got {tuple(r.shape)}")
+    return ch
+
+
+def _upstream(info: dict, r: Tensor) -> Tensor:
+    ch = _checked_channels(info, r)
     r = r.detach().to(ch.dtype)
     # [C, H, W, 2] = (r, 1): r with a channel of ones padded on, one kernel (stack with ones_like is two)
     return F.pad(r[..., None], (0, 1), value=1.0)
@@ -120,6 +126,34 @@ def probe_objective(info: dict, r: Tensor) -> Tensor:
     """
     up = _upstream(info, r)
     return with_known_gradient(info["extra"], up.new_zeros(()), up)
+
+
+class ProbeObjective:
+    """``weight · probe_objective(info, r)`` step after step, with the upstream map ``weight·(r, 1)`` in one
+    buffer kept from call to call: one kernel per step (``weight·r`` written into channel 0; channel 1 and
+    the zero value are set when the buffer is made), where :func:`probe_objective` and a loss weight take
+    five (a pad's fill and copy, the zero, and the weight's multiplication forward and backward).
+
+    The probe's gradient is ``weight·(o·S_r, ν)`` with the same rounding as ``weight * probe_objective(...)``
+    in the loss (``weight·r`` rounded once; the backward multiplies by the loss's upstream 1). The buffer is
+    the returned scalar's known gradient, read in its backward: each call's objective is valid until the next
+    call (a training step's backward comes before the next step's forward)."""
+
+    def __init__(self, weight: float = 1.0) -> None:
+        self.weight = float(weight)
+        self._up: Tensor | None = None
+        self._zero: Tensor | None = None
+
+    def __call__(self, info: dict, r: Tensor) -> Tensor:
+        ch = _checked_channels(info, r)
+        up = self._up
+        if up is None or up.shape != ch.shape or up.dtype != ch.dtype or up.device != ch.device:
+            up = self._up = torch.empty(ch.shape, dtype=ch.dtype, device=ch.device)
+            up[..., 1].fill_(self.weight)
+            self._zero = ch.new_zeros(())
+        assert self._zero is not None
+        torch.mul(r.detach().to(ch.dtype), self.weight, out=up[..., 0])
+        return with_known_gradient(ch, self._zero, up)
 
 
 def pool_from_grad(info: dict) -> PooledSums:

@@ -260,14 +260,17 @@ def _rasterize_gsplat(
     else:
         rgb = colors if colors.dim() == 3 else colors[None].expand(C, -1, -1)
     n_col = rgb.shape[-1]
-    bg = backgrounds if backgrounds is not None else rgb.new_zeros(C, n_col)
     E = extra.shape[-1]
     feats = [rgb, extra.to(rgb.dtype)]
-    bgs = [bg, rgb.new_zeros(C, E)]
+    # the extra channels' background is 0: one zero tensor for all the channels without a background
+    if backgrounds is None:
+        bg_all = rgb.new_zeros(C, n_col + E)
+    else:
+        bg_all = torch.cat([backgrounds, rgb.new_zeros(C, E)], dim=-1)
     # gsplat appends the depth channel after our features in "RGB+D"/"RGB+ED"
     img, alpha, info = gsplat.rasterization(
         means, quats, scales, opacities, torch.cat(feats, dim=-1), viewmats, Ks, width, height,
-        sh_degree=None, backgrounds=torch.cat(bgs, dim=-1), render_mode=render_mode, **kw,
+        sh_degree=None, backgrounds=bg_all, render_mode=render_mode, **kw,
     )  # fmt: skip
     # one split (its backward is one cat of the parts' gradients); a depth channel, if any, is re-attached
     parts = img.split([n_col, E, img.shape[-1] - n_col - E], dim=-1)

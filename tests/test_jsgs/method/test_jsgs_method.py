@@ -456,7 +456,7 @@ def test_a_step_leaves_nothing_alive_for_the_cycle_collector(backward: bool) -> 
             ctx = StepContext(0, view, out.rgb, out.alpha, target_for(view), out.info, sp, None, {}, 0)
             h = hook.losses(ctx)
             if backward:
-                (out.rgb.sum() + sum(w * h.terms[k] for k, w in h.weights.items())).backward()
+                (out.rgb.sum() + weighted_loss(h.terms, h.weights, h.folded, h.folded_loss)).backward()
             refs.append(weakref.ref(out.info["extra_features"]))
             del out, ctx, h, sp
         # the second step's outputs may wait for its backward (or the next step); the first's are gone
@@ -669,7 +669,7 @@ def rbar_parity(manifest: Path, backend: str, device: torch.device, n_views: int
             )  # fmt: skip
             ctx = StepContext(0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0)
             h = hook.losses(ctx)
-            sum(w * h.terms[k] for k, w in h.weights.items()).backward()
+            weighted_loss(h.terms, h.weights, h.folded, h.folded_loss).backward()
             for p in splats.values():
                 p.grad = None
             last = hook.last

@@ -1,0 +1,127 @@
+"""The JSGS step's host-side shortcuts compute what the longer forms they replace computed, bit for bit: the
+weighted probe objective with its kept upstream buffer (one node and one kernel, where λ_fro times the
+objective took a pad, a zero, and a multiplication each way), the controller's term folded into the loss
+unweighted, and the extra channels' background as one zero tensor."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+import torch
+from test_jsgs_method import make_splats, make_view, new_hook, render, target_for
+
+from jsgs.jpeg.losses import photometric_loss
+from jsgs.method.pooling import ProbeObjective, probe_objective
+from jsgs.train.hook import StepContext
+from jsgs.train.trainer import weighted_loss
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _probe_info(dtype: torch.dtype, shape: tuple[int, int, int], seed: int) -> tuple[dict[str, Any], Any]:
+    """A probe [N, 2] and channels [C, H, W, 2] linear in it (a stand-in rasteriser), as ``info`` holds
+    them."""
+    g = torch.Generator().manual_seed(seed)
+    n = 7
+    probe = torch.zeros(n, 2, dtype=dtype, requires_grad=True)
+    weights = torch.rand(*shape, n, generator=g, dtype=dtype)
+    channels = torch.einsum("chwn,nk->chwk", weights, probe)
+    return {"extra": channels, "extra_features": probe}, g
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_weighted_probe_objective_is_the_weight_times_the_objective(dtype: torch.dtype) -> None:
+    """``ProbeObjective(w)`` gives the probe the gradient of ``w * probe_objective`` in a loss, bit for bit,
+    call after call through its kept buffer, and makes a new buffer when the image size changes; its value
+    is 0, a new tensor each call."""
+    w = 0.05 * 4  # λ_fro · gc_every, as the hook weights it
+    obj = ProbeObjective(w)
+    for call, shape in enumerate([(1, 6, 5), (1, 6, 5), (1, 4, 3)]):
+        grads = []
+        for new in (False, True):
+            info, g = _probe_info(dtype, shape, seed=call)
+            r = torch.rand(shape, generator=g, dtype=torch.float32)  # r(p) is float32, as DS makes it
+            other = info["extra"].sum() * 0.0 + 1.0
+            value = obj(info, r) if new else w * probe_objective(info, r)
+            (other + value).backward()
+            assert value.item() == 0.0
+            grads.append(info["extra_features"].grad)
+        assert torch.equal(grads[0], grads[1]) and grads[1].abs().sum() > 0, call
+    assert obj(info, r) is not obj(info, r)
+
+
+def _step(hook: Any, view: Any, old_form: bool) -> dict[str, Any]:
+    """One training step on the tiny scene; ``old_form``: the loss takes λ_fro · probe_objective(info, r) as
+    a weighted term instead of the hook's folded objective (the form the hook used before)."""
+    splats = make_splats()
+    target = target_for(view)
+    out = render(splats, hook.extra_channels(0, view, splats))
+    ctx = StepContext(0, view, out.rgb, out.alpha, target, out.info, splats, out.extra, {}, 0)
+    h = hook.losses(ctx)
+    h.check("jsgs")
+    x, y = out.rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
+    terms = {"photometric": photometric_loss(x, y, 0.2, padding="valid"), **h.terms}
+    weights = {"photometric": 0.7, **h.weights}
+    if old_form:
+        assert h.folded == {"fro"} and h.folded_loss is not None
+        r = hook.last["ds"].pixel_score
+        terms["fro"] = probe_objective(out.info, r)  # its value (0) is the logged one's until the backward
+        loss = weighted_loss(terms, weights)
+    else:
+        loss = weighted_loss(terms, weights, h.folded, h.folded_loss)
+    loss.backward()
+    return {
+        "loss": loss.item(),
+        "terms": {k: v.item() for k, v in h.terms.items()},
+        "stats": {k: float(v) for k, v in h.stats.items()},
+        "grads": {k: p.grad.clone() for k, p in splats.items() if p.grad is not None},
+    }
+
+
+def test_the_folded_controller_term_gives_the_weighted_terms_step() -> None:
+    """A step with the deferred controller's objective folded into the loss unweighted equals the step with
+    λ_fro · probe_objective as a weighted term: loss, terms, statistics and every gradient, bit for bit."""
+    view = make_view(50, "4:2:0")
+    new, old = (_step(new_hook(view), view, old_form=f) for f in (False, True))
+    assert new["loss"] == old["loss"] and new["terms"] == old["terms"] and new["stats"] == old["stats"]
+    assert new["terms"]["fro"] > 0 and set(new["grads"]) == set(old["grads"])
+    for k, g in old["grads"].items():
+        assert torch.equal(new["grads"][k], g), k
+
+
+def test_the_extra_channels_background_is_one_zero_tensor(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With extra channels, gsplat's rasteriser gets the colours and extras side by side and a background
+    of zeros for all of them (or the caller's background and zeros for the extras), in the colours' dtype."""
+    import gsplat
+
+    from jsgs.render import backend
+
+    seen: list[dict[str, Any]] = []
+
+    def rasterization(means: Any, quats: Any, scales: Any, opacities: Any, colors: Any, viewmats: Any,
+                      Ks: Any, width: int, height: int, **kw: Any) -> Any:  # fmt: skip
+        seen.append({"colors": colors, **kw})
+        c = viewmats.shape[0]
+        return torch.zeros(c, height, width, colors.shape[-1]), torch.zeros(c, height, width, 1), {}
+
+    monkeypatch.setattr(gsplat, "rasterization", rasterization)
+    n, c = 5, 2
+    g = torch.Generator().manual_seed(0)
+    colors, extra = torch.rand(n, 3, generator=g), torch.rand(c, n, 2, generator=g)
+    bg = torch.rand(c, 3, generator=g)
+    kw: dict[str, Any] = dict(
+        sh_degree=None, near_plane=0.01, far_plane=1e10, eps2d=0.3, radius_clip=0.0, packed=False,
+        absgrad=False, render_mode="RGB", extra=extra,
+    )  # fmt: skip
+    cams = (torch.eye(4).expand(c, 4, 4), torch.eye(3).expand(c, 3, 3))
+    for given in (None, bg):
+        img, _, info = backend._rasterize_gsplat(
+            torch.rand(n, 3), torch.rand(n, 4), torch.rand(n, 3), torch.rand(n), colors, *cams, 8, 6,
+            backgrounds=given, **kw,
+        )  # fmt: skip
+        call = seen[-1]
+        assert torch.equal(call["colors"], torch.cat([colors[None].expand(c, -1, -1), extra], dim=-1))
+        want = torch.zeros(c, 5) if given is None else torch.cat([bg, torch.zeros(c, 2)], dim=-1)
+        assert call["backgrounds"].dtype == colors.dtype and torch.equal(call["backgrounds"], want)
+        assert img.shape == (c, 6, 8, 3) and info["extra"].shape == (c, 6, 8, 2)
