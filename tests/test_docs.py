@@ -258,3 +258,11 @@ def test_the_readme_demo_block_has_the_demos_shape() -> None:
     for drop in ("== 8. a test view side by side", "jsgs: complete:"):
         broken = "\n".join(x for x in text.splitlines() if not x.startswith(drop))
         assert demo_readme.missing(broken) is not None
+
+
+def test_every_schema_is_listed() -> None:
+    """docs/formats.md lists every schema the package ships, so each file jsgs writes is described there."""
+    text = (ROOT / "docs" / "formats.md").read_text()
+    shipped = sorted(p.name for p in (ROOT / "jsgs" / "schemas").glob("*.schema.json"))
+    missing = [name for name in shipped if f"`jsgs/schemas/{name}`" not in text]
+    assert not missing, f"docs/formats.md does not list {missing}"

@@ -71,7 +71,7 @@ def atomic_path(final: str | os.PathLike[str], what: str | None = None) -> Itera
 def _marked_temp(final: Path, what: str) -> tuple[int, str, Path]:
     """The marker and the (open, empty) temporary file of :func:`atomic_path` with ``what``: the marker is
     made first (``mkstemp``) and holds the writer, then the file of the same name stem, also exclusively."""
-    record = json.dumps({"for": final.name, **writer_record(what)}) + "\n"
+    record = json.dumps(writer_record(what, final.name)) + "\n"
     for _ in range(100):
         fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".part" + PART_MARKER, dir=final.parent)
         marker = Path(name)
@@ -91,8 +91,9 @@ def _marked_temp(final: Path, what: str) -> tuple[int, str, Path]:
 
 #: the marker inside a temporary folder of :func:`atomic_folder` (``.NAME.XXXXXXXX.part``, and the earlier
 #: folder moved aside, ``.NAME.XXXXXXXX.old``), and beside a temporary file of :func:`atomic_path` with a
-#: writer (``.NAME.XXXXXXXX.part`` + this name): the writer that made it (:func:`writer_record`), so that a
-#: leftover of a killed writer is known as ours (:func:`clear_folder_leftovers`, :func:`clear_file_leftovers`)
+#: writer (``.NAME.XXXXXXXX.part`` + this name): the writer that made it (:func:`writer_record`, naming the
+#: final name in ``for``), so that a leftover of a killed writer is known as ours
+#: (:func:`clear_folder_leftovers`, :func:`clear_file_leftovers`)
 PART_MARKER = ".jsgs-part.json"
 
 
@@ -118,7 +119,7 @@ def atomic_folder(final: str | os.PathLike[str], what: str = "a jsgs command") -
     except OSError as e:
         raise JsgsError(f"{final}: cannot write ({e.strerror or e})") from None
     try:
-        record = {"for": final.name, **writer_record(what)}
+        record = writer_record(what, final.name)
         write_json_atomic(work / PART_MARKER, record)
         os.chmod(work, 0o777 & ~_umask())  # mkdtemp makes 0700; give what mkdir would
     except BaseException:
@@ -203,11 +204,17 @@ def clear_folder_leftovers(final: str | os.PathLike[str]) -> list[str]:
         m = pattern.fullmatch(p.name)
         if m is None:
             continue
-        who = read_writer(p / PART_MARKER) if p.is_dir() and not p.is_symlink() else None
-        if who is None or who.doc.get("for") != final.name:
+        marker = p / PART_MARKER
+        who = load_writer(marker) if p.is_dir() and not p.is_symlink() else None
+        if not isinstance(who, Writer) or who.doc.get("for") != final.name:
+            why = (
+                f"its marker is not a writer record of jsgs ({who})"
+                if isinstance(who, str) and os.path.lexists(marker)
+                else f"it holds no {PART_MARKER} of jsgs for it"
+            )
             lines.append(
-                f"warning: {p}: left beside {final.name} by an interrupted write, but it holds no "
-                f"{PART_MARKER} of jsgs for it; left alone (remove it yourself once it is not needed)"
+                f"warning: {p}: left beside {final.name} by an interrupted write, but {why}; left alone "
+                "(remove it yourself once it is not needed)"
             )
         elif not who.gone():
             lines.append(f"warning: {p}: {who.what} ({who.where()}) is still writing it; left alone")
@@ -255,11 +262,16 @@ def clear_file_leftovers(final: str | os.PathLike[str]) -> list[str]:
         tmp, marker = Path(f"{base}{final.suffix}"), Path(f"{base}{PART_MARKER}")
         has_tmp = os.path.lexists(tmp)
         shown = tmp if has_tmp else marker
-        who = read_writer(marker)
-        if who is None or who.doc.get("for") != final.name:
+        who = load_writer(marker)
+        if not isinstance(who, Writer) or who.doc.get("for") != final.name:
+            why = (
+                f"its marker is not a writer record of jsgs ({who})"
+                if isinstance(who, str) and os.path.lexists(marker)
+                else f"no marker of jsgs ({marker.name}) records its writer"
+            )
             lines.append(
-                f"warning: {shown}: left beside {final.name} by an interrupted write, but no marker of jsgs "
-                f"({marker.name}) records its writer; left alone (remove it yourself once it is not needed)"
+                f"warning: {shown}: left beside {final.name} by an interrupted write, but {why}; left alone "
+                "(remove it yourself once it is not needed)"
             )
         elif not who.gone():
             lines.append(f"warning: {shown}: {who.what} ({who.where()}) is still writing it; left alone")
@@ -388,24 +400,44 @@ def refuse_non_regular(path: str | os.PathLike[str]) -> None:
         raise JsgsError(f"{os.fspath(path)}: is {_kind(st.st_mode)}, not a regular file")
 
 
-def writer_record(what: str) -> dict[str, Any]:
-    """Who writes: this process's PID, host name and start time (:func:`_start_time`) and ``what`` it does;
-    the output lock and :func:`atomic_folder`'s marker hold it, and :func:`read_writer` reads it back."""
+#: the ``format`` and ``format_version`` of a writer record (``jsgs/schemas/writer.schema.json``); a record
+#: without ``format`` is the earlier form of the same record, read with the same meaning
+WRITER_FORMAT = "jsgs-writer"
+WRITER_VERSION = 1
+
+
+def writer_record(what: str, target: str | None = None) -> dict[str, Any]:
+    """Who writes: this process's PID, host name and start time (:func:`_start_time`), ``what`` it does and,
+    in a marker, the final name ``target`` it writes (``for``), with the format and jsgs version; checked
+    against ``jsgs/schemas/writer.schema.json``. The output lock and the markers of :data:`PART_MARKER` hold
+    it, and :func:`load_writer` reads it back."""
     import socket
 
-    return {"pid": os.getpid(), "host": socket.gethostname(), "start": _start_time(os.getpid()), "what": what}
+    import jsgs
+    from jsgs.schemas import validate
+
+    doc: dict[str, Any] = {
+        "format": WRITER_FORMAT,
+        "format_version": WRITER_VERSION,
+        "jsgs_version": jsgs.__version__,
+    }
+    if target is not None:
+        doc["for"] = target
+    doc.update(pid=os.getpid(), host=socket.gethostname(), start=_start_time(os.getpid()), what=what)
+    validate(doc, "writer", "the writer record of this process")
+    return doc
 
 
 class Writer:
-    """A :func:`writer_record` read back (:func:`read_writer`)."""
+    """A valid :func:`writer_record` read back (:func:`load_writer`)."""
 
     def __init__(self, doc: dict[str, Any]) -> None:
         self.doc = doc
         self.pid: int = doc["pid"]
-        self.what = " ".join(str(doc.get("what", "another process")).split())  # one line
+        self.what = " ".join(doc.get("what", "another process").split())  # one line
         start, host = doc.get("start"), doc.get("host")
         self.start = start if type(start) is int else None
-        self.host = host if isinstance(host, str) else None  # None: recorded without it (this host)
+        self.host: str | None = host  # None: recorded without it (this host)
 
     def elsewhere(self) -> bool:
         """Whether it runs (or ran) on another host, where its PID says nothing here."""
@@ -421,18 +453,42 @@ class Writer:
         return f"PID {self.pid} on host {self.host}" if self.elsewhere() else f"PID {self.pid}"
 
 
-def read_writer(path: str | os.PathLike[str]) -> Writer | None:
-    """The writer recorded in the lock or marker file at ``path``; None when it is absent, not a regular
-    file (a link included) or no such record (a writer killed between creating and filling it)."""
+def load_writer(path: str | os.PathLike[str]) -> Writer | str:
+    """The writer recorded in the lock or marker file at ``path``, or why there is none, in words naming the
+    file (absent, a link or not a regular file, empty: a writer killed between creating and filling it, not
+    JSON, or not valid against ``jsgs/schemas/writer.schema.json``). Such a file is not provably a jsgs
+    writer's: callers leave it alone."""
     from jsgs.base.errors import JsgsError
+    from jsgs.schemas import validate
 
+    path = Path(path)
+    if path.is_symlink():
+        return f"{path.name}: is a link"
+    if not os.path.lexists(path):
+        return f"{path.name}: is missing"
+    if (why := not_regular(path)) is not None:
+        return f"{path.name}: {why}"
     try:
-        if os.path.islink(path):
-            return None
-        doc = json.loads(read_regular_text(path))
-        return Writer(doc) if isinstance(doc, dict) and type(doc.get("pid")) is int else None
-    except (OSError, ValueError, RecursionError, JsgsError):
-        return None
+        text = read_regular_text(path)
+        if not text.strip():
+            return f"{path.name}: is empty"
+        doc = json.loads(text)
+        validate(doc, "writer", path.name)
+    except (ValueError, RecursionError):  # UnicodeDecodeError and json's errors are ValueErrors
+        return f"{path.name}: is not JSON"
+    except OSError as e:
+        return f"{path.name}: cannot be read ({e.strerror or e})"
+    except JsgsError as e:
+        return str(e)
+    if type(doc["pid"]) is not int:  # the schema's integer takes 7.0
+        return f"{path.name}: not a valid writer file: at pid: {doc['pid']!r} is not a whole number"
+    return Writer(doc)
+
+
+def read_writer(path: str | os.PathLike[str]) -> Writer | None:
+    """The writer recorded at ``path`` (:func:`load_writer`), None when there is no valid one."""
+    who = load_writer(path)
+    return who if isinstance(who, Writer) else None
 
 
 LOCK_NAME = ".jsgs.lock"
@@ -444,7 +500,8 @@ class OutputLock:
     :meth:`release`. A second writer gets a one-line JsgsError naming the holder; a lock whose PID no longer
     runs on this machine (a killed writer) is taken over, and so is one whose PID now belongs to another
     process (the lock records its writer's start time where ``/proc`` gives it, so a PID reused after a
-    crash does not keep the folder locked). A lock of another host is never taken over."""
+    crash does not keep the folder locked). A lock of another host is never taken over, nor one that is not a
+    valid record (:func:`load_writer`: a JsgsError names it, and it is left in place)."""
 
     def __init__(self, folder: str | os.PathLike[str], what: str) -> None:
         from jsgs.base.errors import JsgsError
@@ -460,8 +517,15 @@ class OutputLock:
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
-                w = read_writer(self.path)
-                if w is not None and (w.elsewhere() or w.pid != os.getpid()) and not w.gone():
+                w = load_writer(self.path)
+                if isinstance(w, str):
+                    if not os.path.lexists(self.path):
+                        continue  # released meanwhile
+                    raise JsgsError(
+                        f"{self.path.parent}: its output lock is not a lock of jsgs ({w}), so it is left "
+                        f"alone; remove {self.path} once no jsgs command writes into this folder"
+                    ) from None
+                if (w.elsewhere() or w.pid != os.getpid()) and not w.gone():
                     raise JsgsError(
                         f"{self.path.parent}: in use by {w.what} ({w.where()}); wait for it to end or "
                         f"stop it (a lock left by a killed writer is taken over: {self.path})"
