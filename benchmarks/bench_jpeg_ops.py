@@ -177,7 +177,12 @@ KERNEL_PAIR = ("torch", "triton")
 
 
 def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: torch.device) -> None:
-    from jsgs.kernels._triton_jo import color_convert, paper_code
+    from jsgs.jpeg.color import kernel_coefficients
+    from jsgs.kernels._triton_jo import color_convert as color_affine
+    from jsgs.kernels._triton_jo import paper_code
+
+    def color_convert(x: torch.Tensor, name: str) -> torch.Tensor:
+        return color_affine(x, *kernel_coefficients(name, x.dtype, x.device))
     from jsgs.method.graphed import GraphedImageTerms
 
     gen = torch.Generator().manual_seed(0)

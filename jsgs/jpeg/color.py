@@ -53,6 +53,18 @@ def _affine(name: str, dtype: torch.dtype, device: torch.device) -> tuple[Tensor
     )
 
 
+@cache
+def kernel_coefficients(name: str, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """The colour map ``name`` (``"rgb2ycc"`` or ``"ycc2rgb"``) as the fused colour kernel's two sets of 12
+    values (:func:`jsgs.kernels._triton_jo.color_convert`): forward (``M`` row-major, then the offset) and
+    backward (``M^T`` row-major, then zeros), from the same matrices as the torch code, cached per device
+    (no host-to-device copy inside a graph)."""
+    mt, off = _affine(name, dtype, device)  # M^T, off
+    forward = torch.cat([mt.t().reshape(9), off]).contiguous()
+    backward = torch.cat([mt.reshape(9), torch.zeros_like(off)]).contiguous()
+    return forward, backward
+
+
 def _apply_affine(x: Tensor, name: str) -> Tensor:
     # one matrix product with the offset fused (addmm) over all pixels: the channel-by-channel form is ~20
     # small kernels forward and as many backward, launch-bound on a GPU

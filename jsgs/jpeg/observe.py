@@ -56,7 +56,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .color import rgb_to_ycbcr, rgb_to_ycbcr_libjpeg, ycbcr_to_rgb, ycbcr_to_rgb_libjpeg
+from .color import kernel_coefficients, rgb_to_ycbcr, rgb_to_ycbcr_libjpeg, ycbcr_to_rgb, ycbcr_to_rgb_libjpeg
 from .dct import block_dct, block_idct, blockify, fdct_islow, idct_islow, range_limit, unblockify
 from .rounding import quantize_libjpeg, round_soft_grad, round_ste, soft_round
 from .sampling import downsample, downsample_libjpeg, pad_replicate, upsample, upsample_libjpeg
@@ -216,7 +216,10 @@ def jpeg_observe(
     if fused and color_kernel == "triton":
         from jsgs.kernels._triton_jo import color_convert
 
-        to_ycc, to_rgb = partial(color_convert, name="rgb2ycc"), partial(color_convert, name="ycc2rgb")
+        fwd, bwd = kernel_coefficients("rgb2ycc", rgb.dtype, rgb.device)
+        to_ycc = partial(color_convert, forward=fwd, backward=bwd)
+        fwd, bwd = kernel_coefficients("ycc2rgb", rgb.dtype, rgb.device)
+        to_rgb = partial(color_convert, forward=fwd, backward=bwd)
     b, _, height, width = rgb.shape
     h, v = SAMPLING_FACTORS[sampling]
     tab_y = as_tables(luma_table, b, rgb.dtype, rgb.device)

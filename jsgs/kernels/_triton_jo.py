@@ -600,19 +600,6 @@ if triton is not None:
             tl.store(out_ptr + o_off + j * os_c, y, mask=valid)
 
 
-@functools.cache
-def _color_coefficients(name: str, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
-    """The colour map ``name`` of :mod:`jsgs.jpeg.color` (``"rgb2ycc"`` or ``"ycc2rgb"``) as the kernel's
-    12 values, forward (``M`` row-major, ``off``) and backward (``M^T`` row-major, zeros), built from the
-    same cached matrices as the torch code and cached per device (no copy inside a graph)."""
-    from jsgs.jpeg.color import _affine
-
-    mt, off = _affine(name, dtype, device)  # M^T, off
-    forward = torch.cat([mt.t().reshape(9), off]).contiguous()
-    backward = torch.cat([mt.reshape(9), torch.zeros_like(off)]).contiguous()
-    return forward, backward
-
-
 def color_affine_forward(x: Tensor, coefficients: Tensor, offset: bool = True) -> Tensor:
     """The colour kernel alone (no autograd): ``x`` ``(B, 3, H, W)`` any strides, ``coefficients`` (12,)
     in ``x``'s dtype -> ``(B, 3, H, W)`` contiguous, ``M x (+ off)`` per pixel."""
@@ -632,29 +619,28 @@ def color_affine_forward(x: Tensor, coefficients: Tensor, offset: bool = True) -
 
 class _ColorAffine(torch.autograd.Function):
     """An affine colour map of ``(B, 3, H, W)`` images, differentiable in the image (a linear map: the
-    backward is the transposed matrix, same kernel, no offset; nothing saved)."""
+    backward is the transposed matrix, same kernel, no offset; nothing saved but the coefficients)."""
 
     @staticmethod
-    def forward(ctx: Any, x: Tensor, name: str) -> Tensor:  # type: ignore[override]
-        forward, _ = _color_coefficients(name, x.dtype, x.device)
-        ctx.name = name
+    def forward(ctx: Any, x: Tensor, forward: Tensor, backward: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.backward_coefficients = backward
         return color_affine_forward(x, forward)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
-        _, backward = _color_coefficients(ctx.name, grad.dtype, grad.device)
-        return color_affine_forward(grad, backward, offset=False), None
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
+        return color_affine_forward(grad, ctx.backward_coefficients, offset=False), None, None
 
 
-def color_convert(x: Tensor, name: str) -> Tensor:
-    """:func:`jsgs.jpeg.color.rgb_to_ycbcr` (``name`` ``"rgb2ycc"``) or :func:`jsgs.jpeg.color.ycbcr_to_rgb`
-    (``"ycc2rgb"``) of ``x`` ``(B, 3, H, W)`` as one elementwise kernel each way instead of a matrix product
-    of ``[B H W, 3] x [3, 3]`` (cuBLAS tiles a dimension of 3 poorly); equal to the torch code up to float
-    rounding (the order of the three products and the offset). Contiguous output planes. Needs
-    :func:`fused_jo_runs`."""
-    if name not in ("rgb2ycc", "ycc2rgb") or x.dim() != 4 or x.shape[1] != 3:
-        raise ValueError(f"color_convert: x must be (B, 3, H, W) and name rgb2ycc or ycc2rgb, got "
-                         f"{tuple(x.shape)}, {name!r}")  # fmt: skip
+def color_convert(x: Tensor, forward: Tensor, backward: Tensor) -> Tensor:
+    """An affine colour map of ``x`` ``(B, 3, H, W)`` as one elementwise kernel each way instead of a matrix
+    product of ``[B H W, 3] x [3, 3]`` (cuBLAS tiles a dimension of 3 poorly): ``forward`` holds ``M``
+    row-major then the offset, ``backward`` ``M^T`` row-major then zeros, 12 values each in ``x``'s dtype
+    and device (:func:`jsgs.jpeg.color.kernel_coefficients` gives them for the JPEG colour maps, equal to
+    the torch code up to float rounding: the order of the three products and the offset). Contiguous
+    output planes. Needs :func:`fused_jo_runs`."""
+    if x.dim() != 4 or x.shape[1] != 3 or forward.shape != (12,) or backward.shape != (12,):
+        raise ValueError(f"color_convert: x must be (B, 3, H, W) and the coefficients (12,) each, got "
+                         f"{tuple(x.shape)}, {tuple(forward.shape)}, {tuple(backward.shape)}")  # fmt: skip
     _check_runs("color_convert", x)
-    return _ColorAffine.apply(x, name)
+    return _ColorAffine.apply(x, forward, backward)

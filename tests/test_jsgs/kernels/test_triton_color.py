@@ -23,7 +23,7 @@ import torch
 from _fused_graph import check_graph_replay
 
 from jsgs.base.errors import JsgsError
-from jsgs.jpeg.color import rgb_to_ycbcr, ycbcr_to_rgb
+from jsgs.jpeg.color import kernel_coefficients, rgb_to_ycbcr, ycbcr_to_rgb
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.kernels._triton_jo import color_convert, interpreting, triton_available
 from jsgs.method.options import parse_options, use_fused_color
@@ -40,10 +40,15 @@ cuda_triton = pytest.mark.skipif(
 TORCH: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {"rgb2ycc": rgb_to_ycbcr, "ycc2rgb": ycbcr_to_rgb}
 
 
+def convert(x: torch.Tensor, name: str) -> torch.Tensor:
+    """The colour map ``name`` by the kernel, with the coefficients JO hands it."""
+    return color_convert(x, *kernel_coefficients(name, x.dtype, x.device))
+
+
 def _both(x: torch.Tensor, name: str, g: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """(value, gradient of ``sum(g * value)``) of the kernel and of the torch code."""
     out = []
-    for fn in (lambda t: color_convert(t, name), TORCH[name]):
+    for fn in (lambda t: convert(t, name), TORCH[name]):
         xa = x.detach().clone().requires_grad_() if x.is_contiguous() else _like(x).requires_grad_()
         y = fn(xa)
         (grad,) = torch.autograd.grad(y, xa, g)
@@ -112,11 +117,11 @@ def test_strided_gradient_and_a_round_trip() -> None:
     x, g = _inputs((1, 3, 11, 17), 2, torch.float64)
     for gl in _layouts(g).values():
         xa = x.clone().requires_grad_()
-        (got,) = torch.autograd.grad(color_convert(xa, "rgb2ycc"), xa, gl)
+        (got,) = torch.autograd.grad(convert(xa, "rgb2ycc"), xa, gl)
         xb = x.clone().requires_grad_()
         (want,) = torch.autograd.grad(rgb_to_ycbcr(xb), xb, gl)
         torch.testing.assert_close(got, want, rtol=0, atol=1e-11)
-    back = color_convert(color_convert(x, "rgb2ycc"), "ycc2rgb")
+    back = convert(convert(x, "rgb2ycc"), "ycc2rgb")
     assert float((back - x).abs().max()) < 0.05
 
 
@@ -124,7 +129,7 @@ def test_strided_gradient_and_a_round_trip() -> None:
 @pytest.mark.parametrize("name", ["rgb2ycc", "ycc2rgb"])
 def test_gradcheck_float64(name: str) -> None:
     x = (torch.rand(2, 3, 5, 7, generator=torch.Generator().manual_seed(3), dtype=torch.float64) * 255.0)
-    assert torch.autograd.gradcheck(lambda t: color_convert(t, name), (x.requires_grad_(),))
+    assert torch.autograd.gradcheck(lambda t: convert(t, name), (x.requires_grad_(),))
 
 
 @needs_interpreter
@@ -152,7 +157,7 @@ def test_jpeg_observe_with_the_colour_kernel(mode: str, height: int, width: int)
 def test_jpeg_terms_pass_the_colour_kernel_on(monkeypatch: pytest.MonkeyPatch) -> None:
     # the method's chain (JO twice, L_obs, DS) with color_kernel "triton" reaches the kernel: equal values,
     # and a broken kernel shows
-    from jsgs.kernels import _triton_jo
+    from jsgs.jpeg import observe
     from jsgs.method.image_terms import terms_with_gradient
 
     g = torch.Generator().manual_seed(19)
@@ -167,8 +172,8 @@ def test_jpeg_terms_pass_the_colour_kernel_on(monkeypatch: pytest.MonkeyPatch) -
     out = [terms_with_gradient(x, y, tables, color_kernel=k, **settings) for k in ("triton", "torch")]
     for a, b in zip(*out, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
-    coefficients = _triton_jo._color_coefficients  # every coefficient off by one: the observation moves
-    monkeypatch.setattr(_triton_jo, "_color_coefficients", lambda *a: [c + 1.0 for c in coefficients(*a)])
+    # every coefficient off by one: the observation moves
+    monkeypatch.setattr(observe, "kernel_coefficients", lambda *a: [c + 1.0 for c in kernel_coefficients(*a)])
     broken = terms_with_gradient(x, y, tables, color_kernel="triton", **settings)
     assert float((broken[3] - out[1][3]).abs().max()) > 1e-3
 
@@ -186,7 +191,7 @@ def test_the_colour_kernel_needs_the_fused_coding_pass() -> None:
         jpeg_observe(rgb, luma, luma, color_kernel="cuda")
     if triton_available():
         with pytest.raises(ValueError, match="color_convert: x must be"):
-            color_convert(rgb[:, :2], "rgb2ycc")
+            convert(rgb[:, :2], "rgb2ycc")
 
 
 def test_fused_color_setting() -> None:

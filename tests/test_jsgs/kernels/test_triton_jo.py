@@ -364,14 +364,19 @@ def test_jpeg_terms_with_triton_match_torch(twice: bool) -> None:
 def test_kernels_refuse_tensors_they_cannot_run_on() -> None:
     # a CPU tensor outside the interpreter (or float16, or tables on another device) is one ValueError
     # naming the function, not Triton's pointer error at the CUDA launch
+    from jsgs.jpeg.color import kernel_coefficients
     from jsgs.kernels._triton_jo import color_convert
 
     image = torch.rand(1, 3, 16, 16)
+
+    def coefficients(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        return kernel_coefficients("rgb2ycc", dtype, image.device)
+
     calls = {  # name: (function, its second tensor)
         "paper_code": (paper_code, torch.full((1, 8, 8), 16.0)),
         "float_code": (float_code, torch.full((1, 8, 8), 16.0)),
         "ds_delta": (ds_delta, torch.rand(1, 3, 16, 16)),
-        "color_convert": (lambda x, _: color_convert(x, "rgb2ycc"), None),
+        "color_convert": (lambda x, _: color_convert(x, *coefficients(x.dtype)), None),
     }
     for name, (fn, other) in calls.items():
         with pytest.raises(ValueError, match=f"{name} needs float32 CUDA tensors"):
