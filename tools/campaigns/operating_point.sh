@@ -3,7 +3,7 @@
 #   time  gsplat, JSGS (the default recipe) and the clean ceiling, gaussian schedule (SCHEDULES), seeds 0,1
 #         (SEEDS), JOBS (1) runs per GPU (the training seconds are compared), gsplat trained GSPLAT_STEPS (2) times
 #         as long on its 30,000-step recipe so that its evaluations pass JSGS's end (the equal-time table);
-#   rule  JSGS seed 0 at the fixed budgets 100k, 300k and 1M (RULE_BUDGETS), gaussian schedule, JOBS (2) per
+#   rule  JSGS seed 0 (SEEDS) at the fixed budgets 100k, 300k and 1M (RULE_BUDGETS), gaussian schedule, JOBS (2) per
 #         GPU, to set beside PART=time's auto runs (the auto rule's target).
 # On a lent 2-GPU machine, with the clean bases of scripts/gpu_prepare.sh in $GPU_DIR (default .gpu) and the
 # wheels in .whl (carry [".whl", ".gpu"]):
@@ -26,7 +26,7 @@ for s in $SCENES; do [ -d "$B/data/$s" ] || cp -r "${GPU_DIR:-.gpu}/bench/data/$
 case $P in
   time) ARGS=(--budgets auto --schedules "${SCHEDULES:-gaussian,clean}" --methods gsplat,jsgs
               --seeds "${SEEDS:-0,1}" --gsplat-steps "${GSPLAT_STEPS:-2}" --jobs-per-gpu "${JOBS:-1}") ;;
-  rule) ARGS=(--budgets "${RULE_BUDGETS:-100k,300k,1m}" --schedules gaussian --methods jsgs --seeds 0
+  rule) ARGS=(--budgets "${RULE_BUDGETS:-100k,300k,1m}" --schedules gaussian --methods jsgs --seeds "${SEEDS:-0}"
               --jobs-per-gpu "${JOBS:-2}") ;;
   *) echo "error: PART=$P: choose time or rule" >&2; exit 2 ;;
 esac
