@@ -614,18 +614,67 @@ def fmt_factor(f: float | None) -> str:
 #: the file each writing tool leaves in its output folder; ``--force`` replaces only a folder holding its own
 MARKER = ".jsgstools.json"
 
+#: the ``format`` and ``format_version`` of :data:`MARKER` (``jsgs/schemas/output_marker.schema.json``); a
+#: marker without ``format`` is the earlier form of the same record, read with the same meaning
+MARKER_FORMAT = "jsgstools-output-marker"
+MARKER_VERSION = 1
 
-def read_marker(out: Path) -> str | None:
-    """The tool that made ``out`` (from its marker file), or None."""
+
+def marker_record(tool: str) -> dict[str, Any]:
+    """The marker ``jsgstools <tool>`` writes into its output folder (:data:`MARKER`): the tool, the format,
+    the version and when; checked against ``jsgs/schemas/output_marker.schema.json``."""
+    import datetime
+
+    import jsgs
+    from jsgs.schemas import validate
+
+    doc = {
+        "format": MARKER_FORMAT,
+        "format_version": MARKER_VERSION,
+        "tool": tool,
+        "jsgstools_version": jsgs.__version__,
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+    }
+    validate(doc, "output_marker", f"the {MARKER} of jsgstools {tool}")
+    return doc
+
+
+def load_marker(out: Path) -> dict[str, Any] | str | None:
+    """The marker of ``out`` (:data:`MARKER`): None when there is none, the record when it is valid against
+    ``jsgs/schemas/output_marker.schema.json`` (the earlier form without ``format`` included), else why it is
+    not, in words naming the file (a link or not a regular file, unreadable, empty, not JSON, not valid, a
+    later version). Such a marker is not provably jsgstools's: callers leave the folder alone."""
     import json
 
-    from jsgs.base.io import read_regular_text
+    from jsgs.base.io import not_regular, read_regular_text
+    from jsgs.schemas import validate
 
-    try:
-        doc = json.loads(read_regular_text(out / MARKER))  # a FIFO is refused at once, never waited on
-    except (OSError, ValueError, RecursionError, JsgsError):
+    path = out / MARKER
+    if not os.path.lexists(path):
         return None
-    return doc.get("tool") if isinstance(doc, dict) and isinstance(doc.get("tool"), str) else None
+    if path.is_symlink():
+        return f"{path}: is a link, not a marker of jsgstools"
+    if (why := not_regular(path)) is not None:  # a FIFO is refused at once, never waited on
+        return f"{path}: {why}"
+    try:
+        text = read_regular_text(path)
+        if not text.strip():
+            return f"{path}: is empty"
+        doc = json.loads(text)
+        validate(doc, "output_marker", str(path))
+    except (ValueError, RecursionError):  # UnicodeDecodeError and json's errors are ValueErrors
+        return f"{path}: is not JSON"
+    except OSError as e:
+        return f"{path}: cannot be read ({e.strerror or e})"
+    except JsgsError as e:
+        return str(e)
+    return doc
+
+
+def read_marker(out: Path) -> str | None:
+    """The tool that made ``out`` (from a valid marker, :func:`load_marker`), or None."""
+    doc = load_marker(out)
+    return doc["tool"] if isinstance(doc, dict) else None
 
 
 #: the hidden folder inside OUT that holds an earlier output while ``--force`` writes the new one
@@ -707,12 +756,11 @@ def prepare_output_dir(
     else is touched. In a tool decorated with :func:`removes_partial_output` those entries (and the marker)
     are first moved into a hidden folder ``OUT/.jsgstools-earlier.XXXXXXXX`` and removed only when the tool
     succeeds (put back when it fails; one that a killed call left is replaced with them). ``protect`` (the
-    input scene) must neither contain ``out`` nor lie inside it. Writes the marker."""
-    import datetime
+    input scene) must neither contain ``out`` nor lie inside it. A marker that is not valid
+    (:func:`load_marker`) is refused in one line naming it, and nothing is touched. Writes the marker."""
     import shutil
     import tempfile
 
-    import jsgs
     from jsgs.base.io import LOCK_NAME, write_json_atomic
 
     if out.exists() and not out.is_dir():
@@ -724,10 +772,17 @@ def prepare_output_dir(
         if a in b.parents:
             raise JsgsError(f"{out}: contains the input scene {protect}; choose another output folder")
     prepared, earlier = _PREPARED.get(), None
-    if out.is_dir() and any(p.name not in (LOCK_NAME, MARKER) for p in out.iterdir()):
-        if not force:
-            raise JsgsError(f"{out}: folder is not empty (use --force to replace its contents)")
-        maker = read_marker(out)
+    not_empty = out.is_dir() and any(p.name not in (LOCK_NAME, MARKER) for p in out.iterdir())
+    if not_empty and not force:
+        raise JsgsError(f"{out}: folder is not empty (use --force to replace its contents)")
+    marker = load_marker(out) if out.is_dir() else None
+    if isinstance(marker, str):  # never replaced: it may be anyone's, and so may the folder
+        raise JsgsError(
+            f"{marker}; not provably a marker of jsgstools, so {out} is left as it is "
+            "(choose an empty or new folder)"
+        )
+    if not_empty:
+        maker = marker["tool"] if marker is not None else None
         if maker != tool:
             what = f"made by jsgstools {maker}" if maker else f"not made by jsgstools (no {MARKER})"
             raise JsgsError(
@@ -755,8 +810,7 @@ def prepare_output_dir(
     out.mkdir(parents=True, exist_ok=True)
     if prepared is not None:
         prepared.append((out, owned, read_marker(out) == tool, earlier))
-    now = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-    write_json_atomic(out / MARKER, {"tool": tool, "jsgstools_version": jsgs.__version__, "created": now})
+    write_json_atomic(out / MARKER, marker_record(tool))
 
 
 def write_model_atomic(rec: pycolmap.Reconstruction, dest: Path) -> None:

@@ -392,7 +392,8 @@ def test_force_never_waits_on_a_fifo_named_like_an_earlier_output(
     cases = (
         (tools_main, ["manifest", str(synth_scene), "--out", str(tmp_path / "m.json"), "--force"],
          "is not a jsgs manifest"),
-        (tools_main, ["downscale", str(synth_scene), "--out", str(out), "--force"], "not made by jsgstools"),
+        (tools_main, ["downscale", str(synth_scene), "--out", str(out), "--force"],
+         f"{out / '.jsgstools.json'}: is a FIFO (named pipe), not a regular file; not provably a marker"),
         (jsgs_main, ["train", manifest, "--out", str(again), "--force", "--device", "cpu"],
          "this folder holds none"),
         (jsgs_main, ["export", str(again), "--out", str(tmp_path / "x.ply")],
