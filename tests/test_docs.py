@@ -266,3 +266,85 @@ def test_every_schema_is_listed() -> None:
     shipped = sorted(p.name for p in (ROOT / "jsgs" / "schemas").glob("*.schema.json"))
     missing = [name for name in shipped if f"`jsgs/schemas/{name}`" not in text]
     assert not missing, f"docs/formats.md does not list {missing}"
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the defaults the docs state are the code's
+
+
+def _flat(obj: object, prefix: str = "") -> dict[str, object]:
+    """A settings dataclass's values by dotted name (``speed.fused_jo``), sections expanded."""
+    import dataclasses
+
+    out: dict[str, object] = {}
+    for f in dataclasses.fields(obj):  # type: ignore[arg-type]
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            out.update(_flat(value, f"{prefix}{f.name}."))
+        else:
+            out[prefix + f.name] = value
+    return out
+
+
+def _doc_value(text: str) -> object:
+    """A value as a page writes it (``true``, ``1e-3``, ``1.0 px``, ``300,000``, `` `paper` ``)."""
+    text = text.strip().strip("`").strip()
+    if text in ("true", "false"):
+        return text == "true"
+    number = re.fullmatch(r"(-?[\d,]*\.?\d+(?:e-?\d+)?)(?: ?[a-z]+)?", text)
+    if number:
+        return float(number[1].replace(",", ""))
+    return text
+
+
+def _same(doc: object, code: object) -> bool:
+    if isinstance(doc, float):
+        return isinstance(code, int | float) and not isinstance(code, bool) and doc == float(code)
+    return doc == code
+
+
+def _option_rows(text: str) -> list[tuple[str, object]]:
+    """(name, documented default) of every row of the page's ``| key | default | ... |`` tables: a row names
+    one or more keys (`` `a`, `b` ``, a command-line switch in brackets after them) and as many defaults,
+    or one default for all of them."""
+    rows: list[tuple[str, object]] = []
+    for table in re.findall(r"^\| key \| default \|.*\n\|[-| ]+\|\n((?:\|.*\n?)+)", text, re.M):
+        for line in table.splitlines():
+            key, default = (c.strip() for c in line.strip("|").split("|")[:2])
+            names = [n for n in re.findall(r"`([^`]+)`", key.split("(")[0]) if not n.startswith("-")]
+            values = default.split(", ")
+            assert names and len(values) in (1, len(names)), f"cannot read the row {line[:80]!r}"
+            if len(values) == 1:
+                values *= len(names)
+            rows += [(n, _doc_value(v)) for n, v in zip(names, values, strict=True)]
+    return rows
+
+
+def test_method_options_table_is_the_code() -> None:
+    """docs/method.md's table of ``method_options`` lists every option of ``--method jsgs`` (its speed
+    section included) with the default of jsgs.method.options.JsgsOptions."""
+    from jsgs.method.options import JsgsOptions
+
+    code = _flat(JsgsOptions())
+    rows = _option_rows((ROOT / "docs" / "method.md").read_text())
+    documented = dict(rows)
+    assert len(documented) == len(rows), "docs/method.md: an option listed twice"
+    unknown = sorted(set(documented) - set(code))
+    missing = sorted(set(code) - set(documented))
+    wrong = [f"{n}: {documented[n]!r}, code {code[n]!r}" for n in documented
+             if n in code and not _same(documented[n], code[n])]  # fmt: skip
+    assert not (unknown or missing or wrong), (
+        f"docs/method.md method_options table: not options {unknown}; not listed {missing}; "
+        f"defaults that differ {wrong}"
+    )
+
+
+def test_the_table_check_reads_rows() -> None:
+    page = (
+        "| key | default | |\n|---|---|---|\n"
+        "| `a`, `b` (`--a`) | 0.2, 1e-3 | x |\n| `c`, `d` (`--no-c`) | true | |\n"
+        "| `speed.e` (`--e`) | `auto` | |\n| `f` | 1.0 px | |\n\nafter\n"
+    )
+    assert _option_rows(page) == [("a", 0.2), ("b", 1e-3), ("c", True), ("d", True), ("speed.e", "auto"),
+                                  ("f", 1.0)]  # fmt: skip
+    assert _same(1.0, 1) and not _same(1.0, True) and not _same("auto", True) and _same(False, False)
