@@ -22,30 +22,42 @@ from torch import Tensor
 
 class _KnownGradient(torch.autograd.Function):
     @staticmethod
-    def forward(ctx: Any, x: Tensor, value: Tensor, grad: Tensor) -> Tensor:
-        # kept as an attribute, not saved for backward: the caller may own ``grad``'s memory (a graph's
-        # static output, rewritten by its next replay after this step's backward); read in the backward
-        ctx.grad = grad
+    def forward(ctx: Any, value: Tensor, *pairs: Tensor) -> Tensor:
+        # (x, grad) pairs; the gradients kept as an attribute, not saved for backward: the caller may own
+        # their memory (a graph's static output, rewritten by its next replay after this step's backward);
+        # read in the backward
+        ctx.grads = pairs[1::2]
         return value.detach().clone()
 
     @staticmethod
-    def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor, None, None]:
-        return grad_out * ctx.grad, None, None
+    def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, ...]:
+        out: list[Tensor | None] = [None]
+        for g in ctx.grads:
+            out += [grad_out * g, None]
+        return tuple(out)
 
 
-def with_known_gradient(x: Tensor, value: Tensor, grad: Tensor) -> Tensor:
-    """A 0-dim tensor equal to ``value`` whose gradient with respect to ``x`` is ``grad``.
+def with_known_gradient(x: Tensor, value: Tensor, grad: Tensor, *more: Tensor) -> Tensor:
+    """A 0-dim tensor equal to ``value`` whose gradient with respect to ``x`` is ``grad`` (and with respect
+    to each further ``x_k`` in ``more = (x_2, grad_2, x_3, grad_3, ...)`` its ``grad_k``): one autograd node
+    for them all, where a sum of such scalars takes one per scalar and an addition.
 
     Args:
         x: the tensor the gradient flows into (any shape; its autograd history continues the backward).
         value: 0-dim, the scalar's value (not differentiated).
         grad: shape of ``x``, ``d value / d x``; read once, during the backward (so it must stay valid until
             then; it is not copied).
+        more: further (tensor, its gradient) pairs, alike.
     Returns:
-        0-dim tensor, a copy of ``value``; ``backward`` sends ``upstream * grad`` to ``x``.
+        0-dim tensor, a copy of ``value``; ``backward`` sends ``upstream * grad`` to ``x`` (and
+        ``upstream * grad_k`` to each ``x_k``).
     """
     if value.dim() != 0:
         raise ValueError(f"value must be 0-dim, got shape {tuple(value.shape)}")
-    if grad.shape != x.shape:
-        raise ValueError(f"grad must have x's shape {tuple(x.shape)}, got {tuple(grad.shape)}")
-    return _KnownGradient.apply(x, value, grad)
+    if len(more) % 2:
+        raise ValueError("more must be (tensor, gradient) pairs")
+    pairs = (x, grad, *more)
+    for xk, gk in zip(pairs[::2], pairs[1::2], strict=True):
+        if gk.shape != xk.shape:
+            raise ValueError(f"grad must have x's shape {tuple(xk.shape)}, got {tuple(gk.shape)}")
+    return _KnownGradient.apply(value, *pairs)

@@ -136,8 +136,13 @@ class GraphedImageTerms:
         if x.device.type != "cuda":
             raise ValueError("CUDA graphs need CUDA tensors")
 
-    def __call__(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str) -> ImageTerms:
-        """``x``, ``y``: ``(1, 3, H, W)`` render and target; ``tables``: ``(2, 8, 8)`` luma and chroma."""
+    def __call__(
+        self, x: Tensor, y: Tensor, tables: Tensor, sampling: str,
+        more: Callable[[Tensor], tuple[Tensor, ...]] | None = None,
+    ) -> ImageTerms:  # fmt: skip
+        """``x``, ``y``: ``(1, 3, H, W)`` render and target; ``tables``: ``(2, 8, 8)`` luma and chroma;
+        ``more``: called with r(p) after the replay, further (tensor, gradient) pairs whose known gradients
+        ride on ``weighted``'s node (:func:`~jsgs.base.known_grad.with_known_gradient`)."""
         key = (tuple(x.shape), x.dtype, sampling, x.requires_grad)
         rec = self._graphs.get(key)
         if rec is None:
@@ -148,7 +153,8 @@ class GraphedImageTerms:
         rec.replay()
         values, grad, r, obs = rec.outputs
         values = values.clone()  # the caller's: logged after the step, when the next replay may have run
-        weighted = values[0] if grad is None else with_known_gradient(x, values[0], grad)
+        pairs = ((x, grad) if grad is not None else ()) + (more(r) if more is not None else ())
+        weighted = with_known_gradient(pairs[0], values[0], *pairs[1:]) if pairs else values[0]
         return ImageTerms(weighted, values[1:], r, obs)
 
     def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str) -> _Recording:

@@ -274,10 +274,22 @@ class JsgsHook(LossHook):
         graphed = None
         folded: frozenset[str] = frozenset()
         folded_loss = None
+        # the deferred controller's objective rides on the graph's node where there is one (one node and
+        # no addition for both known gradients): its (channels, gradient) pair, made from the replay's r
+        deferred = o.gc and self.gc_at(ctx.step) and self.gc_route == "deferred"
+        deferred = deferred and o.gc_attribution == "probe"
+        probe_pair: tuple[Tensor, ...] = ()
+
+        def probe_upstream(r: Tensor) -> tuple[Tensor, ...]:
+            nonlocal probe_pair
+            probe_pair = self._probe().upstream(ctx.info, r)
+            return probe_pair
+
         if self._graphed is not None and tab.first is None:  # the graph holds one quantization
             try:
                 with self.profiler.phase("jo"):  # JO, L_obs and DS: one graph replay ("ds" is in it)
-                    graphed = self._graphed(x, y, tab.tables, tab.sampling)
+                    more = probe_upstream if deferred else None
+                    graphed = self._graphed(x, y, tab.tables, tab.sampling, more)
             except GraphCaptureFailed as e:
                 # a speed-up, not a result: the run goes on with the eager chain, which computes the same
                 self._graphed = None
@@ -326,9 +338,12 @@ class JsgsHook(LossHook):
                     terms["fro"] = fro
                 else:
                     # the objective is λ_fro·(probe objective) already: it joins the folded loss unweighted
-                    objective, terms["fro"], gc_stats = self._gc_deferred(ctx, r_map)
+                    # (already in it where it rode on the graph's node)
+                    terms["fro"], gc_stats = self._gc_deferred(ctx)
                     folded = folded | {"fro"}
-                    folded_loss = objective if folded_loss is None else folded_loss + objective
+                    if not probe_pair:
+                        objective = self._probe()(ctx.info, r_map)
+                        folded_loss = objective if folded_loss is None else folded_loss + objective
                 stats.update(gc_stats)
         return HookOutput(terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab, ctx.step))
 
@@ -357,10 +372,19 @@ class JsgsHook(LossHook):
         s = ft.stats
         return ft.loss, {"gc_visible": s.visible, "gc_rbar": s.rbar_mean, "gc_damped": s.damped}
 
-    def _gc_deferred(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, Tensor, dict[str, Tensor]]:
-        """λ_fro times the probe objective (value 0; to add to the loss unweighted), the ``fro`` term to log
-        (0 until the backward writes L_fro into it) and the statistics (likewise)."""
-        from jsgs.method.pooling import ProbeObjective
+    def _probe(self) -> Any:
+        """λ_fro times the probe objective, with its kept buffer (:class:`jsgs.method.pooling.ProbeObjective`;
+        its probe gradient λ_fro·(o·S_r, ν) is divided out in fro_from_probe_grad)."""
+        if self._probe_objective is None:
+            from jsgs.method.pooling import ProbeObjective
+
+            self._probe_objective = ProbeObjective(self.fro_weight)
+        return self._probe_objective
+
+    def _gc_deferred(self, ctx: StepContext) -> tuple[Tensor, dict[str, Tensor]]:
+        """The deferred controller on the probe's gradient, once the backward has made it (the caller puts
+        the probe objective in the loss): the ``fro`` term to log (0 until the backward writes L_fro into
+        it) and the statistics (likewise)."""
 
         # The hook lives on the probe tensor, which the objective's graph holds (through the probe's
         # AccumulateGrad): a closure over the objective (or ``info``) would make a reference cycle that keeps
@@ -369,13 +393,8 @@ class JsgsHook(LossHook):
         # the hook itself (and by the next step, if a backward never came).
         pending = self._pending
         splats = ctx.splats
-        # λ_fro·(Σ_p r·probe₀ + Σ_p probe₁), exactly 0, so the probe's gradient is λ_fro·(o·S_r, ν), divided
-        # out in fro_from_probe_grad
-        if self._probe_objective is None:
-            self._probe_objective = ProbeObjective(self.fro_weight)
-        objective = self._probe_objective(ctx.info, r_map)
         # the logged L_fro and the three statistics: one tensor, filled by one copy in the backward
-        values = torch.zeros(1 + len(STAT_NAMES), dtype=objective.dtype, device=objective.device)
+        values = torch.zeros(1 + len(STAT_NAMES), dtype=ctx.render.dtype, device=ctx.render.device)
         term, *stat_list = values.unbind()
         stat_t = dict(zip(STAT_NAMES, stat_list, strict=True))
         pending["term"] = term
@@ -392,7 +411,7 @@ class JsgsHook(LossHook):
                 values.copy_(self._controller(grad, params, viewmat, K, w, h))
 
         ctx.info["extra_features"].register_post_accumulate_grad_hook(on_probe_grad)
-        return objective, term, stat_t
+        return term, stat_t
 
     def _gc_footprint(self, ctx: StepContext, r_map: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """The controller with the footprint attribution: a hook on ``info["conics"]`` reads its gradient

@@ -145,15 +145,22 @@ class ProbeObjective:
         self._zero: Tensor | None = None
 
     def __call__(self, info: dict, r: Tensor) -> Tensor:
+        ch, up = self.upstream(info, r)
+        assert self._zero is not None
+        return with_known_gradient(ch, self._zero, up)
+
+    def upstream(self, info: dict, r: Tensor) -> tuple[Tensor, Tensor]:
+        """The rendered probe channels and their known gradient ``weight·(r, 1)`` (the buffer, written
+        now): the objective's (tensor, gradient) pair, for a caller that puts it on a node of its own
+        (:func:`jsgs.base.known_grad.with_known_gradient`) unscaled."""
         ch = _checked_channels(info, r)
         up = self._up
         if up is None or up.shape != ch.shape or up.dtype != ch.dtype or up.device != ch.device:
             up = self._up = torch.empty(ch.shape, dtype=ch.dtype, device=ch.device)
             up[..., 1].fill_(self.weight)
             self._zero = ch.new_zeros(())
-        assert self._zero is not None
         torch.mul(r.detach().to(ch.dtype), self.weight, out=up[..., 0])
-        return with_known_gradient(ch, self._zero, up)
+        return ch, up
 
 
 def pool_from_grad(info: dict) -> PooledSums:

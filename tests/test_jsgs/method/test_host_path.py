@@ -9,9 +9,12 @@ from typing import Any
 
 import pytest
 import torch
+from test_graphed import _eager_recording
 from test_jsgs_method import make_splats, make_view, new_hook, render, target_for
 
+from jsgs.base.known_grad import with_known_gradient
 from jsgs.jpeg.losses import photometric_loss
+from jsgs.method.graphed import GraphedImageTerms
 from jsgs.method.pooling import ProbeObjective, probe_objective
 from jsgs.train.hook import StepContext
 from jsgs.train.trainer import weighted_loss
@@ -88,6 +91,63 @@ def test_the_folded_controller_term_gives_the_weighted_terms_step() -> None:
     assert new["terms"]["fro"] > 0 and set(new["grads"]) == set(old["grads"])
     for k, g in old["grads"].items():
         assert torch.equal(new["grads"][k], g), k
+
+
+def test_one_node_carries_several_known_gradients() -> None:
+    """``with_known_gradient(x, v, g, x2, g2)``: the value v, and the gradients the sum of two such scalars
+    (v and 0) sends, bit for bit, through one node; mismatched pairs are refused."""
+    grads = []
+    for together in (False, True):
+        gen = torch.Generator().manual_seed(0)
+        a = torch.rand(2, 3, generator=gen, dtype=torch.float64).requires_grad_()
+        b = torch.rand(4, generator=gen, dtype=torch.float64).requires_grad_()
+        xa, xb = a * 3.0, b.exp()
+        ga, gb = (
+            torch.rand(2, 3, generator=gen, dtype=torch.float64),
+            torch.rand(4, generator=gen, dtype=torch.float64),
+        )
+        v = torch.tensor(1.25, dtype=torch.float64)
+        if together:
+            s = with_known_gradient(xa, v, ga, xb, gb)
+        else:
+            s = with_known_gradient(xa, v, ga) + with_known_gradient(xb, torch.zeros((), dtype=v.dtype), gb)
+        (0.5 * s).backward()
+        assert s.item() == 1.25
+        grads.append((a.grad, b.grad))
+    assert all(torch.equal(u, w) for u, w in zip(*grads, strict=True))
+    with pytest.raises(ValueError, match="pairs"):
+        with_known_gradient(xa, v, ga, xb)
+    with pytest.raises(ValueError, match="shape"):
+        with_known_gradient(xa, v, ga, xb, ga)
+
+
+class _SeparateObjective(GraphedImageTerms):
+    """The graph's terms without the probe objective on its node (the hook then adds it on its own)."""
+
+    def __call__(self, x: Any, y: Any, tables: Any, sampling: str, more: Any = None) -> Any:
+        return super().__call__(x, y, tables, sampling)
+
+
+def test_the_probe_objective_on_the_graphs_node_gives_the_separate_objectives_step(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The hook's CUDA-graph branch (recorded eagerly on the CPU): the controller's objective riding on the
+    image terms' node gives the step of the objective as a term of its own, bit for bit."""
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    view = make_view(50, "4:2:0")
+    steps = []
+    for graph_class in (GraphedImageTerms, _SeparateObjective):
+        hook = new_hook(view)
+        w = hook.weights()
+        hook._graphed = graph_class(
+            weights=(w["obs"], w.get("low", 0.0), w.get("mid", 0.0)), **hook._jpeg_settings
+        )
+        steps.append(_step(hook, view, old_form=False))
+    one, separate = steps
+    assert one["loss"] == separate["loss"] and one["terms"] == separate["terms"]
+    assert one["stats"] == separate["stats"] and one["terms"]["fro"] > 0
+    for k, g in separate["grads"].items():
+        assert torch.equal(one["grads"][k], g), k
 
 
 def test_the_extra_channels_background_is_one_zero_tensor(monkeypatch: pytest.MonkeyPatch) -> None:
