@@ -348,3 +348,114 @@ def test_the_table_check_reads_rows() -> None:
     assert _option_rows(page) == [("a", 0.2), ("b", 1e-3), ("c", True), ("d", True), ("speed.e", "auto"),
                                   ("f", 1.0)]  # fmt: skip
     assert _same(1.0, 1) and not _same(1.0, True) and not _same("auto", True) and _same(False, False)
+
+
+def _row(text: str, first: str) -> str:
+    """The table row of ``text`` whose first cell starts with ``first``."""
+    rows = [r for r in text.splitlines() if r.startswith(f"| {first}")]
+    assert len(rows) == 1, f"no single table row starting {first!r}"
+    return rows[0]
+
+
+def _numbers(pattern: str, text: str) -> list[float]:
+    """The numbers of ``pattern``'s groups in ``text`` (``300,000`` -> 300000.0); the pattern must match."""
+    m = re.search(pattern, text)
+    assert m, f"docs/training.md no longer says {pattern!r}: update the check with the page"
+    return [float(g.replace(",", "")) for g in m.groups()]
+
+
+def test_training_presets_are_the_code() -> None:
+    """docs/training.md's presets table and its table of the paper's values state the settings that
+    jsgs.train.config's presets and JSGS's recipes (jsgs.method.recipes.RECIPES) give."""
+    from jsgs.method.recipes import RECIPES
+    from jsgs.train.config import TrainConfig
+
+    text = (ROOT / "docs" / "training.md").read_text()
+    mcmc, paper = TrainConfig.from_preset("mcmc"), TrainConfig.from_preset("paper")
+    row = _row(text, "`mcmc` (default)")
+    assert _numbers(r"([\d,]+) steps \(`max_steps`\)", row) == [mcmc.iterations]
+    assert _numbers(r"evaluations at ([\d,]+) and ([\d,]+)", row) == mcmc.eval_at
+    s = mcmc.strategy
+    assert s.type == "mcmc" and "MCMCStrategy" in row
+    assert _numbers(r"refining from ([\d,]+) to ([\d,]+) every ([\d,]+) steps", row) == [
+        s.refine_start_iter, s.refine_stop_iter, s.refine_every]  # fmt: skip
+    assert _numbers(r"`strategy.cap_max` = ([\d,]+) Gaussians", row) == [s.cap_max]
+    assert _numbers(r"init opacity ([\d.]+) and scale ([\d.]+)", row) == [mcmc.init.opacity, mcmc.init.scale]
+    assert _numbers(r"opacity and scale regularisation ([\d.]+)", row) * 2 == [
+        mcmc.loss.opacity_reg, mcmc.loss.scale_reg]  # fmt: skip
+    recipe = re.search(r"for JSGS the method options (.*?) \(`jsgs.method.recipes.RECIPES`", row)
+    assert recipe
+    given = {k: _doc_value(v) for k, v in re.findall(r"`(\w+)` ([\w.]+)", recipe[1])}
+    jsgs_mcmc = RECIPES["mcmc"]
+    recipe_ok = set(given) == set(jsgs_mcmc) and all(_same(given[k], v) for k, v in jsgs_mcmc.items())
+    assert recipe_ok, (given, jsgs_mcmc)
+    assert "paper" not in RECIPES, "docs/training.md: the paper preset gives JSGS the paper's weights"
+
+    row = _row(text, "`paper`")
+    assert _numbers(r"([\d,]+) steps with evaluations at ([\d,]+), ([\d,]+) and ([\d,]+)", row) == [
+        paper.iterations, *paper.eval_at]  # fmt: skip
+    assert paper.strategy.type == "default" and "DefaultStrategy" in row
+    dens = _row(text, "densification")
+    named = {k: _doc_value(v) for k, v in re.findall(r"(\w+) (\d[\d.e-]*)(?=,| \|)", dens)}
+    assert {k: v for k, v in named.items() if k not in ("refine", "every")} == {
+        k: getattr(paper.strategy, k) for k in ("grow_grad2d", "grow_scale3d", "prune_opa", "prune_scale3d",
+                                                "reset_every")}, named  # fmt: skip
+    ps = paper.strategy
+    assert _numbers(r"refine ([\d,]+)…([\d,]+) every ([\d,]+)", dens) == [
+        ps.refine_start_iter, ps.refine_stop_iter, ps.refine_every]  # fmt: skip
+    o = paper.optim
+    opt = _row(text, "optimiser")
+    assert _numbers(r"Adam \(eps ([\de.-]+)\)", opt) == [o.eps]
+    assert _numbers(r"means ([\de.-]+) × scene scale decaying exponentially to ([\d.]+)×", opt) == [
+        o.means_lr, o.means_lr_final_factor]  # fmt: skip
+    lr = r"([\de.-]+)"
+    lrs = _numbers(rf"scales {lr}, quats {lr}, opacities {lr}, sh0 {lr}, shN {lr}/(\d+)", opt)
+    assert lrs[:4] == [o.scales_lr, o.quats_lr, o.opacities_lr, o.sh0_lr] and lrs[4] / lrs[5] == o.shN_lr
+    assert _numbers(r"opacity ([\d.]+);", _row(text, "init")) == [paper.init.opacity]
+    assert _numbers(r"one more every (\d+) steps", _row(text, "SH")) == [paper.render.sh_degree_interval]
+    assert _numbers(r"seed (\d+)", _row(text, "views")) == [paper.seed]
+
+
+# how a page states a setting's default in its prose: `speed.fused_jo`, `auto` by default; `tables: effective`
+# (default `header`); `optim.means_lr_decay_steps` (0, the default ...); `checkpoint_keep` (default 3 ...)
+DEFAULT_CLAIMS = (
+    r"`(?:method_options\.)?([\w.]+)`,? `([^`]+)` by default",
+    r"`(?:method_options\.)?([\w.]+): [^`]+` \(default `?([^`),]+)`?\)",
+    r"`(?:method_options\.)?([\w.]+)` \(([^,()]+), the default",
+    r"`(?:method_options\.)?([\w.]+)` \(default:? `?([^`\s,;)]+)`?",
+)
+
+
+def _default_claims(text: str) -> list[tuple[str, object]]:
+    text = re.sub(r"\s+", " ", text)
+    return [(n, _doc_value(v)) for p in DEFAULT_CLAIMS for n, v in re.findall(p, text)]
+
+
+def test_defaults_stated_in_prose_are_the_code() -> None:
+    """Where a page says in a sentence what a setting's default is, it is the code's: a training setting's
+    (jsgs.train.config.TrainConfig, the default preset) or a JSGS option's (JsgsOptions)."""
+    from jsgs.method.options import JsgsOptions
+    from jsgs.train.config import TrainConfig
+
+    train, jsgs = _flat(TrainConfig()), _flat(JsgsOptions())
+    claims, bad = 0, []
+    for page in DOCS:
+        for name, value in _default_claims(page.read_text()):
+            claims += 1
+            code = [c[name] for c in (train, jsgs) if name in c]
+            if len(code) != 1 or not _same(value, code[0]):
+                bad.append(f"{page.relative_to(ROOT)}: {name} {value!r}, code {code or 'no such setting'}")
+    assert not bad, "\n".join(bad)
+    assert claims >= 4, "the docs' default claims are no longer found: update DEFAULT_CLAIMS with the pages"
+
+
+def test_the_prose_check_reads_claims() -> None:
+    text = (
+        "A (`method_options.speed.fused_jo`, `auto` by default: on) and `method_options.tables: effective`\n"
+        "(default `header`); `optim.means_lr_decay_steps` (0, the default: the end) and `checkpoint_keep`\n"
+        "(default 3, the newest)."
+    )
+    assert _default_claims(text) == [
+        ("speed.fused_jo", "auto"), ("tables", "header"), ("optim.means_lr_decay_steps", 0.0),
+        ("checkpoint_keep", 3.0),
+    ]  # fmt: skip
