@@ -433,24 +433,32 @@ def world_warning(scene: ColmapScene) -> str | None:
 
 
 def split_warning(
-    where: str, n_views: int, n_train: int, test_every: int, record: str | None = None
+    where: str, n_views: int, n_train: int, test_every: int | None, record: str | None = None
 ) -> str | None:
     """One line when a split leaves no training view (one view, or ``--test-every 1``): jsgs train refuses
-    such a manifest; else None. ``record``: the ``compress.json`` that fixes the split of a scene
+    such a manifest (and says this line); else None. The one wording of that advice for jsgstools validate,
+    jsgstools manifest and jsgs train. ``record``: the ``compress.json`` that fixes the split of a scene
     ``jsgstools compress`` made (its test views were not compressed, so ``--test-every`` cannot change it:
-    the advice is to compress a source with more views; view 0 by name is always a test view there)."""
+    the advice is to compress a source with more views; view 0 by name is always a test view there).
+    ``test_every`` None: a split that no spacing made (a manifest edited by hand)."""
     if n_train > 0 or n_views == 0:
         return None
     if record is not None:
+        every = "" if test_every is None else f" (test every {test_every})"
         return (
-            f"{where}: no training views: {record} (test every {test_every}) makes all {n_views} view(s) "
-            "test views and fixes the split of a compressed scene; jsgs train needs at least one (compress "
-            "a source with more views)"
+            f"{where}: no training views: {record}{every} makes all {n_views} view(s) test views and "
+            "fixes the split of a compressed scene; jsgs train needs at least one (compress a source with "
+            "more views)"
         )
-    larger = "; 2 or more keeps some test views" if test_every == 1 and n_views > 1 else ""
+    larger = "; 2 or more keeps some test views" if test_every in (1, None) and n_views > 1 else ""
+    why = (
+        f"all {n_views} view(s) have split 'test'"
+        if test_every is None
+        else f"with test every {test_every}, all {n_views} view(s) are test views"
+    )
     return (
-        f"{where}: no training views: with test every {test_every}, all {n_views} view(s) are test views; "
-        f"jsgs train needs at least one (--test-every 0 makes every view a training view{larger})"
+        f"{where}: no training views: {why}; jsgs train needs at least one (jsgstools manifest "
+        f"--test-every 0 makes every view a training view{larger})"
     )
 
 

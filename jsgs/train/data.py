@@ -12,7 +12,7 @@ import functools
 import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import numpy as np
@@ -169,6 +169,7 @@ def load_training_scene(manifest_path: str | Path, cfg: TrainConfig) -> Training
 
     _check_cameras(manifest.views, where)
     notes = _check_jpeg_headers(manifest.views, where)
+    _check_split(manifest, where)
     _check_views(manifest.views, cfg, where)
     c2w = np.stack([np.linalg.inv(v.world_to_camera) for v in manifest.views])
     centres = c2w[:, :3, 3]
@@ -239,11 +240,35 @@ def _check_cameras(views: Sequence[ManifestView], where: str) -> None:
             )
 
 
+def _check_split(manifest: Manifest, where: str) -> None:
+    """Refuse a manifest without training views, with the advice that fits it
+    (:func:`jsgstools.validate.split_warning`): for a scene ``jsgstools compress`` made (its ``compress.json``
+    fixes the split) to compress a source with more views, else ``jsgstools manifest --test-every``."""
+    from jsgstools.validate import split_warning
+
+    views = manifest.views
+    if any(v.split == "train" for v in views):
+        return
+    every: int | None = manifest.scene.test_every
+    if not (every == 1 or (every and len(views) == 1)):
+        every = None  # no spacing makes every view a test view: a split edited by hand
+    record = None
+    settings = manifest.producer.get("settings")
+    if manifest.producer.get("tool") == "jsgstools compress" or (
+        isinstance(settings, dict) and "compress" in settings
+    ):  # its folder holds compress.json and images/NAME
+        depth, parents = len(PurePosixPath(views[0].name).parts), views[0].image.parents
+        found = len(parents) > depth and parents[depth - 1].name == "images"
+        record = str(parents[depth] / "compress.json") if found else "its compress.json"
+        every = manifest.scene.test_every
+    line = split_warning(where, len(views), 0, every, record)
+    assert line is not None
+    raise JsgsError(line)
+
+
 def _check_views(views: Sequence[ManifestView], cfg: TrainConfig, where: str) -> None:
-    """Refuse a manifest without training views, a test view without a lossless image when
-    ``scene.require_lossless_reference`` is set, and a view smaller than the SSIM window."""
-    if not any(v.split == "train" for v in views):
-        raise JsgsError(f"{where}: no training views (every view has split 'test')")
+    """Refuse a test view without a lossless image when ``scene.require_lossless_reference`` is set, and a
+    view smaller than the SSIM window."""
     if cfg.scene.require_lossless_reference:
         for v in views:
             if v.split == "test" and v.reference is None and v.jpeg is not None:

@@ -135,7 +135,9 @@ BAD: list[tuple[str, Callable[[dict[str, Any]], None] | None, str]] = [
     ("missing image", _set_view(2, "image", "images/nope.png"), r"image images/nope.png not found"),
     ("not a rotation", _set_view(1, "R", [[1, 0, 0], [0, 1, 0], [0, 0, 2]]), "not a rotation matrix"),
     ("schema", _set_view(1, "split", "val"), r"not a valid manifest file: at views/1/split"),
-    ("no train", _all_split("test"), "no training views"),
+    ("no train", _all_split("test"),
+     r"no training views: all \d+ view\(s\) have split 'test'; jsgs train needs at least one \(jsgstools "
+     r"manifest --test-every 0 makes every view a training view; 2 or more keeps some test views\)$"),
     ("no points", _no_points, "0 points: SfM initialisation needs more than 3"),
 ]  # fmt: skip
 
