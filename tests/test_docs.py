@@ -77,8 +77,11 @@ def test_every_command_help_ends_with_an_example() -> None:
 
 # a dotted name of this project's code: jsgs.x.y or jsgstools.x (not part of a path, a URL or a file name)
 DOTTED = re.compile(r"(?<![\w./$-])((?:jsgs|jsgstools)(?:\.[A-Za-z_]\w*)+)(?![\w/-]|\.\w)")
-# a command: the program, its subcommand, and the rest of that command (up to a pipe, a ; or &&)
-COMMAND = re.compile(r"(?<![\w./-])(?:\S*/)?(jsgs|jsgstools) ([a-z][a-z-]*)(?![\w-])([^|;&\n`]*)")
+# a command: the program (or its module, `python -m jsgs.cli`, `torchrun ... -m jsgs.cli`), its subcommand,
+# and the rest of that command (up to a pipe, a ; or &&; a | between alternatives, `[--method jsgs|gsplat]`,
+# is no pipe)
+REST = r"((?:[^|;&\n`]|\|(?=[\w-]))*)"
+COMMAND = re.compile(r"(?<![\w./-])(?:\S*/)?(jsgs|jsgstools)(?: |\.cli )([a-z][a-z-]*)(?![\w-])" + REST)
 FENCE = re.compile(r"^```([^\n]*)\n(.*?)^```", re.MULTILINE | re.DOTALL)
 SPAN = re.compile(r"`([^`\n]+(?:\n[^`\n]+)?)`")
 
@@ -157,15 +160,92 @@ def test_the_checks_see_bad_names_and_commands() -> None:
     page = (
         "Call `jsgs.train.train(m, out)` or `jsgs.train.trainer.train`.\n\n"
         "```bash\njsgs train m.json --out r --methd jsgs  # jsgs fly --no\n"
-        ".venv/bin/jsgstools sfmm photos\n```\n"
+        ".venv/bin/jsgstools sfmm photos\ntorchrun --nproc-per-node 2 -m jsgs.cli train m --gpu 2 | tee log\n"
+        "jsgs bench [--strategy default|mcmc] [--budget 3]\n```\n"
     )
     names = {n for code in _code(page) for n in DOTTED.findall(code)}
-    assert names == {"jsgs.train.train", "jsgs.train.trainer.train"}
-    assert [_resolves(n) for n in sorted(names)] == [False, True]
+    assert names == {"jsgs.train.train", "jsgs.train.trainer.train", "jsgs.cli"}
+    assert [_resolves(n) for n in sorted(names)] == [True, False, True]
     cmds = [(p, s, re.findall(r"--[a-z-]+", r)) for code in _code(page) for p, s, r in COMMAND.findall(code)]
-    assert cmds == [("jsgs", "train", ["--out", "--methd"]), ("jsgstools", "sfmm", [])]
+    assert cmds == [
+        ("jsgs", "train", ["--out", "--methd"]), ("jsgstools", "sfmm", []), ("jsgs", "train", ["--gpu"]),
+        ("jsgs", "bench", ["--strategy", "--budget"]),
+    ]  # fmt: skip
     known = _commands()
     assert "--methd" not in known["jsgs"]["train"] and "sfmm" not in known["jsgstools"]
+    assert "--gpu" not in known["jsgs"]["train"] and "--budget" not in known["jsgs"]["bench"]
+
+
+# a script of the repository's own (tools/…, benchmarks/…, scripts/…, or its file name alone where that is one
+# script's) and the rest of the command that runs it
+SCRIPT = re.compile(r"(?<![\w.-])((?:[\w.-]+/)*[A-Za-z_]\w*\.py)(?![\w.])" + REST)
+SCRIPTS = sorted(p for folder in ("tools", "benchmarks", "scripts") for p in (ROOT / folder).rglob("*.py"))
+
+
+def _script_options(code: str) -> list[tuple[Path, list[str]]]:
+    """(script, the --options written after it) of each run of a repository script in ``code``; a shell
+    variable set to a script (``P=tools/x.py`` … ``$P --steps 5``) is that script."""
+    assignment = r"(?m)^\s*(\w+)=(\S+\.py)\s*$"
+    for name, value in re.findall(assignment, code):
+        code = re.sub(rf"\${{?{name}\b}}?", value, code)
+    out = []
+    for path, rest in SCRIPT.findall(re.sub(assignment, "", code)):
+        named = Path(path).name
+        found = [ROOT / path] if (ROOT / path).is_file() else [p for p in SCRIPTS if p.name == named]
+        if len(found) == 1 and found[0] in SCRIPTS:
+            out.append((found[0], re.findall(r"(?<![\w-])(--[a-z][a-z0-9-]*)", rest)))
+    return out
+
+
+def _takes(source: str, option: str) -> bool:
+    """Whether a script's source declares ``option`` (argparse: the option's string; ``--no-x`` of a
+    BooleanOptionalAction ``--x``)."""
+    if f'"{option}"' in source or f"'{option}'" in source:
+        return True
+    return option.startswith("--no-") and f'"--{option[5:]}"' in source and "BooleanOptionalAction" in source
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_script_options_in_docs_exist(page: Path) -> None:
+    """Every --option the page's code passes to a script of tools/, benchmarks/ or scripts/ is one that
+    script declares."""
+    bad = sorted(
+        f"{script.relative_to(ROOT)} {opt}"
+        for code in _code(page.read_text())
+        for script, opts in _script_options(code)
+        for opt in opts if not _takes(script.read_text(), opt)
+    )  # fmt: skip
+    assert not bad, f"{page.relative_to(ROOT)}: options the scripts do not take: {bad}"
+
+
+def test_options_named_alone_exist() -> None:
+    """An option the docs name on its own (`--cap-max N`, `--pairs`) is one that a jsgs or jsgstools
+    command or a repository script takes."""
+    known = set().union(*(opts for prog in _commands().values() for opts in prog.values()))
+    sources = [p.read_text() for p in SCRIPTS]
+    bad = sorted(
+        f"{page.relative_to(ROOT)}: {opt}"
+        for page in DOCS
+        for code in _code(page.read_text()) if code.lstrip().startswith("--")
+        for opt in re.findall(r"(?<![\w-])(--[a-z][a-z0-9-]*)", code)
+        if opt not in known and not any(_takes(s, opt) for s in sources)
+    )  # fmt: skip
+    assert not bad, "options no command or script takes:\n" + "\n".join(bad)
+
+
+def test_the_script_check_sees_bad_options() -> None:
+    code = (
+        "P=tools/diagnostics/profile_step.py\n$P --pairs 5 --pears 2\n"
+        "python benchmarks/bench_jpeg_ops.py --fused-jo | tee x --nothing\n"
+        "profile_step.py --no-fresh; tests/test_docs.py --x\n"
+    )
+    found = [(s.name, o) for s, o in _script_options(code)]
+    assert found == [
+        ("profile_step.py", ["--pairs", "--pears"]), ("bench_jpeg_ops.py", ["--fused-jo"]),
+        ("profile_step.py", ["--no-fresh"]),
+    ]  # fmt: skip
+    source = (ROOT / "tools" / "diagnostics" / "profile_step.py").read_text()
+    assert _takes(source, "--pairs") and _takes(source, "--no-fresh") and not _takes(source, "--pears")
 
 
 # a path into the repository's own folders (jsgs/…, tests/…, tools/…), not part of a longer path or a URL
