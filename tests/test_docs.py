@@ -539,3 +539,45 @@ def test_the_prose_check_reads_claims() -> None:
         ("speed.fused_jo", "auto"), ("tables", "header"), ("optim.means_lr_decay_steps", 0.0),
         ("checkpoint_keep", 3.0),
     ]  # fmt: skip
+
+
+def test_defaults_in_the_train_help_are_the_code() -> None:
+    """The defaults `jsgs train --help` writes into its options' help (which start as None, so that a preset
+    or a config file decides) are the settings' and the method options' defaults, and each preset's
+    length and evaluation steps."""
+    from jsgs.cli import main
+    from jsgs.method.flags import FLAGS
+    from jsgs.method.options import JsgsOptions
+    from jsgs.train.config import DEFAULT_PRESET, TrainConfig
+
+    train, jsgs = _flat(TrainConfig()), _flat(JsgsOptions())
+    flags = {f.flag: f.option for f in FLAGS}
+    checked, bad = set(), []
+    for p in main.commands["train"].params:
+        help_text = re.sub(r"\s+", " ", getattr(p, "help", None) or "")
+        if p.name in ("iterations", "eval_at"):
+            per_preset = re.findall(r"(\d[\d,]*) for (\w+)", help_text)
+            assert {name for _, name in per_preset} >= {"mcmc", "paper"}, (p.name, help_text)
+            for value, name in per_preset:
+                code = getattr(TrainConfig.from_preset(name), p.name)
+                if [int(v) for v in value.split(",")] != (code if isinstance(code, list) else [code]):
+                    bad.append(f"{p.opts[0]} for {name}: {value}, code {code}")
+            checked.add(p.name)
+            continue
+        m = re.search(r"\[default: ([^\]\s]+)\]", help_text)
+        if not m:
+            continue
+        opt = p.opts[0]
+        if opt in flags:
+            code = jsgs[flags[opt]]
+        elif p.name == "preset":
+            code = DEFAULT_PRESET
+        else:
+            keys = [k for k in (p.name, f"strategy.{p.name}") if k in train]
+            assert keys, f"{opt}: [default: {m[1]}] of no setting"
+            code = train[keys[0]]
+        if not _same(_doc_value(m[1]), code):
+            bad.append(f"{opt}: [default: {m[1]}], code {code!r}")
+        checked.add(p.name)
+    assert not bad, "\n".join(bad)
+    assert {"iterations", "eval_at", "seed", "method", "preset", "jpeg_mode"} <= checked, checked
