@@ -233,6 +233,43 @@ def test_options_named_alone_exist() -> None:
     assert not bad, "options no command or script takes:\n" + "\n".join(bad)
 
 
+# `make TARGET`, and a shell script run with settings in its environment (`PART=toy bash tools/x.sh`, also
+# through scripts/gpu_run.sh, which runs its command with the environment it is given)
+MAKE = re.compile(r"(?<![\w-])make ([a-z][\w-]*)")
+SHELL_RUN = re.compile(
+    r"((?:[A-Z][A-Z0-9_]*=\S+ )+)(?:bash )?(?:scripts/gpu_run\.sh (?:bash )?)?"
+    r"(?!scripts/gpu_run\.sh)((?:tools|scripts|benchmarks)/[\w/.-]+\.sh)"
+)
+
+
+def _bad_make_and_shell_runs(code: str) -> list[str]:
+    """The `make` targets the Makefile lacks and the VAR=value settings a shell script does not read (its
+    source does not name the variable, or the value where that is a named choice)."""
+    targets = set(re.findall(r"(?m)^([\w-]+):", (ROOT / "Makefile").read_text()))
+    bad = [f"make {t}" for t in MAKE.findall(code) if t not in targets]
+    for settings, script in SHELL_RUN.findall(code):
+        path = ROOT / script
+        source = path.read_text() if path.is_file() else ""
+        for var, value in re.findall(r"([A-Z][A-Z0-9_]*)=(\S+)", settings):
+            choice = re.fullmatch(r"[a-z][a-z0-9_]*", value)  # a named choice (PART=toy), not a number
+            if not re.search(rf"\b{var}\b", source) or (choice and not re.search(rf"\b{value}\b", source)):
+                bad.append(f"{var}={value} {script}")
+    return bad
+
+
+def test_make_targets_and_script_settings_in_docs_exist() -> None:
+    """Every `make TARGET` the docs write is a Makefile target, and every VAR=value a page sets for a
+    repository shell script (`PART=toy tools/campaigns/gc_every.sh`) is a variable and value it reads."""
+    bad = [f"{page.relative_to(ROOT)}: {b}" for page in DOCS for code in _code(page.read_text())
+           for b in _bad_make_and_shell_runs(code)]  # fmt: skip
+    assert not bad, "\n".join(bad)
+    assert _bad_make_and_shell_runs("make demoo; PART=toyy tools/campaigns/gc_every.sh; make test") == [
+        "make demoo", "PART=toyy tools/campaigns/gc_every.sh"]  # fmt: skip
+    assert not _bad_make_and_shell_runs("PART=toy bash tools/campaigns/gc_every.sh")
+    assert _bad_make_and_shell_runs("PART=toyy bash scripts/gpu_run.sh bash tools/campaigns/gc_every.sh") == [
+        "PART=toyy tools/campaigns/gc_every.sh"]  # fmt: skip
+
+
 def test_the_script_check_sees_bad_options() -> None:
     code = (
         "P=tools/diagnostics/profile_step.py\n$P --pairs 5 --pears 2\n"
