@@ -79,8 +79,8 @@ def test_every_command_help_ends_with_an_example() -> None:
 DOTTED = re.compile(r"(?<![\w./$-])((?:jsgs|jsgstools)(?:\.[A-Za-z_]\w*)+)(?![\w/-]|\.\w)")
 # a command: the program (or its module, `python -m jsgs.cli`, `torchrun ... -m jsgs.cli`), its subcommand,
 # and the rest of that command (up to a pipe, a ; or &&; a | between alternatives, `[--method jsgs|gsplat]`,
-# is no pipe)
-REST = r"((?:[^|;&\n`]|\|(?=[\w-]))*)"
+# `[--resume | --force]`, is no pipe)
+REST = r"((?:\[[^\]\n`]*\]|[^|;&\n`]|\|(?=[\w-]))*)"
 COMMAND = re.compile(r"(?<![\w./-])(?:\S*/)?(jsgs|jsgstools)(?: |\.cli )([a-z][a-z-]*)(?![\w-])" + REST)
 FENCE = re.compile(r"^```([^\n]*)\n(.*?)^```", re.MULTILINE | re.DOTALL)
 SPAN = re.compile(r"`([^`\n]+(?:\n[^`\n]+)?)`")
@@ -156,12 +156,43 @@ def test_commands_in_docs_exist(page: Path) -> None:
     assert not bad, f"{page.relative_to(ROOT)}: commands that do not exist: {sorted(set(bad))}"
 
 
+def _shown_default_is_the_code(param: object, value: str) -> bool:
+    """Whether ``value``, which a synopsis shows for an option (`[--seed 0]`), is the option's default: its
+    click default, or a value its help's ``[default: ...]`` names."""
+    default = getattr(param, "default", None)
+    if default is not None and (str(default) == value or _same(_doc_value(value), default)):
+        return True
+    said = re.findall(r"\[default: ([^\]]*)\]", re.sub(r"\s+", " ", getattr(param, "help", None) or ""))
+    alone = rf"(?<![\w.])(?<!\w,){re.escape(value)}(?![\w.]|,\w)"  # 8 in "8, or ...", not in "30,80"
+    return bool(said) and re.search(alone, said[0]) is not None
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_defaults_shown_in_synopses_are_the_code(page: Path) -> None:
+    """An option a page's synopsis shows with a value in brackets (`[--test-every 8]`, not a placeholder
+    such as `[--quality Q]`) shows its default."""
+    from jsgs.cli import main as jsgs_main
+    from jsgstools.cli import main as tools_main
+
+    groups = {"jsgs": jsgs_main, "jsgstools": tools_main}
+    bad = []
+    for code in _code(page.read_text()):
+        for prog, sub, rest in COMMAND.findall(code):
+            command = groups[prog].commands.get(sub)
+            for opt, value in re.findall(r"\[(--[a-z][a-z0-9-]*) ([^\]\s|]+)\]", rest):
+                params = [p for p in getattr(command, "params", []) if opt in p.opts]
+                if params and not re.fullmatch(r"[A-Z][A-Z_]*|[A-Z]x[A-Z]|WxH", value):
+                    if not _shown_default_is_the_code(params[0], value):
+                        bad.append(f"{prog} {sub} [{opt} {value}]")
+    assert not bad, f"{page.relative_to(ROOT)}: values shown that are not the defaults: {bad}"
+
+
 def test_the_checks_see_bad_names_and_commands() -> None:
     page = (
         "Call `jsgs.train.train(m, out)` or `jsgs.train.trainer.train`.\n\n"
         "```bash\njsgs train m.json --out r --methd jsgs  # jsgs fly --no\n"
         ".venv/bin/jsgstools sfmm photos\ntorchrun --nproc-per-node 2 -m jsgs.cli train m --gpu 2 | tee log\n"
-        "jsgs bench [--strategy default|mcmc] [--budget 3]\n```\n"
+        "jsgs bench [--strategy default|mcmc] [--resume | --forc] [--budget 3]\n```\n"
     )
     names = {n for code in _code(page) for n in DOTTED.findall(code)}
     assert names == {"jsgs.train.train", "jsgs.train.trainer.train", "jsgs.cli"}
@@ -169,7 +200,7 @@ def test_the_checks_see_bad_names_and_commands() -> None:
     cmds = [(p, s, re.findall(r"--[a-z-]+", r)) for code in _code(page) for p, s, r in COMMAND.findall(code)]
     assert cmds == [
         ("jsgs", "train", ["--out", "--methd"]), ("jsgstools", "sfmm", []), ("jsgs", "train", ["--gpu"]),
-        ("jsgs", "bench", ["--strategy", "--budget"]),
+        ("jsgs", "bench", ["--strategy", "--resume", "--forc", "--budget"]),
     ]  # fmt: skip
     known = _commands()
     assert "--methd" not in known["jsgs"]["train"] and "sfmm" not in known["jsgstools"]
@@ -618,3 +649,21 @@ def test_defaults_in_the_train_help_are_the_code() -> None:
         checked.add(p.name)
     assert not bad, "\n".join(bad)
     assert {"iterations", "eval_at", "seed", "method", "preset", "jpeg_mode"} <= checked, checked
+
+
+def test_the_synopsis_check_sees_other_values() -> None:
+    from jsgs.cli import main as jsgs_main
+    from jsgstools.cli import main as tools_main
+
+    def param(group: object, sub: str, opt: str) -> object:
+        return next(p for p in group.commands[sub].params if opt in p.opts)  # type: ignore[attr-defined]
+
+    t, j = tools_main, jsgs_main
+    shown = [
+        (t, "compress", "--test-every", "8", True), (t, "compress", "--test-every", "9", False),
+        (t, "manifest", "--test-every", "8", True), (j, "train", "--seed", "42", True),
+        (j, "train", "--eval-at", "7000,30000", True), (j, "train", "--eval-at", "7000", False),
+        (j, "render", "--fps", "30", True), (j, "render", "--fps", "24", False),
+    ]  # fmt: skip
+    for group, sub, opt, value, ok in shown:
+        assert _shown_default_is_the_code(param(group, sub, opt), value) is ok, (sub, opt, value)
