@@ -667,3 +667,40 @@ def test_the_synopsis_check_sees_other_values() -> None:
     ]  # fmt: skip
     for group, sub, opt, value, ok in shown:
         assert _shown_default_is_the_code(param(group, sub, opt), value) is ok, (sub, opt, value)
+
+
+# a setting's dotted name as the docs write it: `strategy.cap_max`, `method_options.speed.fused_jo`
+SETTING = re.compile(
+    r"(?<![\w./-])(method_options\.[a-z_]+(?:\.[a-z_]+)?|(?:init|optim|strategy|scene|render|loss|speed|eval)"
+    r"\.[a-z_]+)(?![\w(/-]|\.\w)"
+)
+
+
+def _unknown_settings(code: str) -> list[str]:
+    from jsgs.method.options import JsgsOptions
+    from jsgs.train.config import TrainConfig
+
+    train, jsgs = _flat(TrainConfig()), _flat(JsgsOptions())
+    out = []
+    for name in SETTING.findall(code):
+        if name.startswith("method_options."):
+            known = name.removeprefix("method_options.") in (*jsgs, "speed")
+        else:
+            known = name in train or name in jsgs  # speed.fused_jo: the JSGS options' speed section
+        if not known:
+            out.append(name)
+    return out
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_settings_named_in_docs_exist(page: Path) -> None:
+    """Every setting the page's code names by its dotted path (`strategy.cap_max`, `loss.base_weight`,
+    `method_options.base_noise`, `speed.fused_jo`) is a training setting or a JSGS option."""
+    bad = sorted({n for code in _code(page.read_text()) for n in _unknown_settings(code)})
+    assert not bad, f"{page.relative_to(ROOT)}: settings that do not exist: {bad}"
+
+
+def test_the_settings_check_sees_unknown_names() -> None:
+    code = "`strategy.cap_max`, `loss.base_wieght`, `method_options.speed.fused_jo`, `method_options.tabels`"
+    assert _unknown_settings(code + " jsgs/train/config.py, `speed.ssim_kernel`") == [
+        "loss.base_wieght", "method_options.tabels"]  # fmt: skip
