@@ -47,7 +47,7 @@ class ImageTerms(NamedTuple):
       (its gradient was computed in the same replay; the backward only scales it);
     - ``values``: ``(3,)`` L_obs, L_low, L_mid (0 without DS), detached, the caller's own copy;
     - ``r``: ``(1, H, W)`` the block-score map r(p), detached (0 without DS and GC);
-    - ``obs``: ``(1, 3, H, W)`` the observation, detached.
+    - ``obs``: ``(1, 3, H, W)`` the observation, detached; None unless the call asks for it.
 
     ``r`` and ``obs`` live in the graph's memory: valid until the next call (the step's backward included).
     """
@@ -55,7 +55,7 @@ class ImageTerms(NamedTuple):
     weighted: Tensor
     values: Tensor
     r: Tensor
-    obs: Tensor
+    obs: Tensor | None
 
 
 class GraphCaptureFailed(RuntimeError):
@@ -110,19 +110,23 @@ class _Recording:
 
     replay: Callable[[], None]
     inputs: tuple[Tensor, Tensor, Tensor]
-    outputs: tuple[Tensor, Tensor | None, Tensor, Tensor]
+    outputs: tuple[Tensor, Tensor | None, Tensor, Tensor | None]
 
 
 class GraphedImageTerms:
-    """:func:`terms_with_gradient` replayed as one CUDA graph per (shape, dtype, sampling, needs-grad),
-    recorded on first use: the forward of JO, L_obs and DS *and* the gradient of their weighted sum with
-    respect to the render, in one launch. The trainer's backward then multiplies that stored gradient by its
-    upstream scalar (:func:`jsgs.base.known_grad.with_known_gradient`): no second replay and no per-term
-    output gradients to copy in.
+    """:func:`terms_with_gradient` replayed as one CUDA graph per (shape, dtype, sampling, needs-grad,
+    observation), recorded on first use: the forward of JO, L_obs and DS *and* the gradient of their weighted
+    sum with respect to the render, in one launch. The trainer's backward then multiplies that stored
+    gradient by its upstream scalar (:func:`jsgs.base.known_grad.with_known_gradient`): no second replay and
+    no per-term output gradients to copy in.
 
     This is exact for the loss the trainer forms, Σ_k λ_k·term_k + the rest, because the weights are fixed
     for the run and the weighted sum enters the loss as one term (``HookOutput.folded_loss``). Each call
     copies the render, the target and the tables into the graph's input buffers and the four values out.
+
+    The observation is an output buffer only in the graphs of calls that ask for it (``observation``; the
+    hook's ``keep_last``): the others leave it in the graph's private pool, 12 bytes a pixel less of memory
+    kept for the run. Both kinds compute the same values, gradient and r(p).
     """
 
     def __init__(self, *, weights: tuple[float, float, float], **settings: Any) -> None:
@@ -138,15 +142,16 @@ class GraphedImageTerms:
 
     def __call__(
         self, x: Tensor, y: Tensor, tables: Tensor, sampling: str,
-        more: Callable[[Tensor], tuple[Tensor, ...]] | None = None,
+        more: Callable[[Tensor], tuple[Tensor, ...]] | None = None, observation: bool = False,
     ) -> ImageTerms:  # fmt: skip
         """``x``, ``y``: ``(1, 3, H, W)`` render and target; ``tables``: ``(2, 8, 8)`` luma and chroma;
         ``more``: called with r(p) after the replay, further (tensor, gradient) pairs whose known gradients
-        ride on ``weighted``'s node (:func:`~jsgs.base.known_grad.with_known_gradient`)."""
-        key = (tuple(x.shape), x.dtype, sampling, x.requires_grad)
+        ride on ``weighted``'s node (:func:`~jsgs.base.known_grad.with_known_gradient`); ``observation``:
+        also return the observation (else ``obs`` is None)."""
+        key = (tuple(x.shape), x.dtype, sampling, x.requires_grad, observation)
         rec = self._graphs.get(key)
         if rec is None:
-            rec = self._graphs[key] = self._record(x, y, tables, sampling)
+            rec = self._graphs[key] = self._record(x, y, tables, sampling, observation)
         with torch.no_grad():  # the render's buffer is a leaf that needs grad (the recorded gradient's input)
             for buf, src in zip(rec.inputs, (x, y, tables), strict=True):
                 buf.copy_(src)
@@ -157,10 +162,11 @@ class GraphedImageTerms:
         weighted = with_known_gradient(pairs[0], values[0], *pairs[1:]) if pairs else values[0]
         return ImageTerms(weighted, values[1:], r, obs)
 
-    def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str) -> _Recording:
+    def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str, observation: bool) -> _Recording:
         self._check_device(x)
         inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
-        fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling, **self.settings)
+        fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling,
+                     observation=observation, **self.settings)  # fmt: skip
         if self._pool is None:  # one memory pool shared by all of this object's graphs
             self._pool = torch.cuda.graph_pool_handle()
         graph, outputs = record_graph(fn, x.device, warmups=2, pool=self._pool, error_mode="global")

@@ -289,7 +289,7 @@ class JsgsHook(LossHook):
             try:
                 with self.profiler.phase("jo"):  # JO, L_obs and DS: one graph replay ("ds" is in it)
                     more = probe_upstream if deferred else None
-                    graphed = self._graphed(x, y, tab.tables, tab.sampling, more)
+                    graphed = self._graphed(x, y, tab.tables, tab.sampling, more, observation=self.keep_last)
             except GraphCaptureFailed as e:
                 # a speed-up, not a result: the run goes on with the eager chain, which computes the same
                 self._graphed = None
@@ -303,6 +303,7 @@ class JsgsHook(LossHook):
             folded, folded_loss = frozenset(terms), graphed.weighted
             r_map = graphed.r
             if self.keep_last:
+                assert graphed.obs is not None
                 self.last["observation"] = graphed.obs.clone()
                 r_map = r_map.clone()
         else:

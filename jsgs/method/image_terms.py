@@ -108,24 +108,32 @@ def image_terms(
 
 
 def terms_with_gradient(
-    x: Tensor, y: Tensor, tables: Tensor, *, weights: tuple[float, float, float], **settings: Any
-) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+    x: Tensor,
+    y: Tensor,
+    tables: Tensor,
+    *,
+    weights: tuple[float, float, float],
+    observation: bool = True,
+    **settings: Any,
+) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
     """:func:`image_terms` and the gradient of their weighted sum, in one pass (what the graph records).
 
     Args:
         x: ``(1, 3, H, W)`` the render (a leaf; needs grad for the gradient); y: ``(1, 3, H, W)`` the target;
         tables: ``(2, 8, 8)`` the view's luma and chroma tables; weights: (λ_obs, λ_low, λ_mid), the last two
-            0 without DS; settings: :func:`jpeg_terms`'s, with ``sampling``.
+            0 without DS; observation: whether to return the observation (a graph's output buffer for the
+            rest of the run; only ``keep_last`` reads it); settings: :func:`jpeg_terms`'s, with ``sampling``.
     Returns:
         values ``(4,)`` (the weighted sum, L_obs, L_low, L_mid), its gradient with respect to ``x`` (None when
-        ``x`` needs none), r(p) ``(1, H, W)`` and the observation ``(1, 3, H, W)``, all detached.
+        ``x`` needs none), r(p) ``(1, H, W)`` and the observation ``(1, 3, H, W)`` (None without
+        ``observation``), all detached. The values do not depend on ``observation``.
     """
     l_obs, low, mid, r, obs = image_terms(x, y, tables[0], tables[1], **settings)
     w_obs, w_low, w_mid = weights
     total = w_obs * l_obs + w_low * low + w_mid * mid
     grad = torch.autograd.grad(total, x)[0] if x.requires_grad else None
     values = torch.stack([total, l_obs, low, mid]).detach()
-    return values, grad, r, obs
+    return values, grad, r, obs if observation else None
 
 
 def image_term_settings(

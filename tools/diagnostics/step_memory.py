@@ -233,9 +233,12 @@ class GraphLayout(GraphedImageTerms):
     graph's private pool holds on CUDA. The values and gradients are the eager chain's
     (``tests/test_jsgs/method/test_graphed.py`` tests this contract)."""
 
-    def _record(self, x: torch.Tensor, y: torch.Tensor, tables: torch.Tensor, sampling: str) -> _Recording:
+    def _record(
+        self, x: torch.Tensor, y: torch.Tensor, tables: torch.Tensor, sampling: str, observation: bool
+    ) -> _Recording:
         inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
-        fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling, **self.settings)
+        fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling,
+                     observation=observation, **self.settings)  # fmt: skip
         outputs = fn()
         return _Recording(partial(_replay_in_pool, fn, outputs), inputs, outputs)
 

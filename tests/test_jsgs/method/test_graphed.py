@@ -64,12 +64,14 @@ def test_image_terms_are_the_three_eager_functions(ds: bool, gc: bool) -> None:
 
 
 def _eager_recording(
-    self: GraphedImageTerms, x: torch.Tensor, y: torch.Tensor, tables: torch.Tensor, sampling: str
+    self: GraphedImageTerms, x: torch.Tensor, y: torch.Tensor, tables: torch.Tensor, sampling: str,
+    observation: bool,
 ) -> _Recording:
     """GraphedImageTerms._record without CUDA: the same input and output buffers, and a "replay" that runs
     the function the graph would record on the input buffers and writes its results into the outputs."""
     inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
-    fn = partial(terms_with_gradient, weights=self.weights, sampling=sampling, **self.settings)
+    fn = partial(terms_with_gradient, weights=self.weights, sampling=sampling, observation=observation,
+                 **self.settings)  # fmt: skip
     outputs = fn(*inputs)
 
     def replay() -> None:
@@ -133,6 +135,37 @@ def test_the_hooks_graphed_branch_gives_the_eager_terms_and_gradients(
             b.fill_(float("nan"))
     for k, p in splats.items():
         assert torch.equal(p.grad, kept[k]), k
+
+
+def test_the_observation_is_a_graph_output_only_when_asked_for(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A graph recorded without the observation keeps no buffer for it and gives the same values, gradient
+    and r(p), bit for bit, as one recorded with it; the hook asks for it only with ``keep_last`` (a graph
+    of each kind then, the same terms and gradients from both)."""
+    x, y, luma, chroma = _view_tensors(5)
+    tables, w = torch.stack([luma, chroma]), (0.2, 0.02, 0.03)
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    graphed = GraphedImageTerms(weights=w, **SETTINGS)
+    xa, xb = x.clone().requires_grad_(), x.clone().requires_grad_()
+    a, b = graphed(xa, y, tables, "4:2:0"), graphed(xb, y, tables, "4:2:0", observation=True)
+    assert a.obs is None and b.obs is not None and len(graphed._graphs) == 2
+    assert [rec.outputs[3] is None for rec in graphed._graphs.values()] == [True, False]
+    xe = x.clone().requires_grad_()
+    eager = terms_with_gradient(xe, y, tables, weights=w, sampling="4:2:0", **SETTINGS)
+    assert torch.equal(b.obs, eager[3]) and torch.equal(a.values, b.values) and torch.equal(a.r, b.r)
+    assert torch.equal(torch.autograd.grad(a.weighted, xa)[0], torch.autograd.grad(b.weighted, xb)[0])
+    view = make_view(30, "4:2:0")
+    steps = {}
+    for keep in (False, True):
+        hook = new_hook(view)
+        hook.keep_last = keep
+        hw = hook.weights()
+        hook._graphed = GraphedImageTerms(weights=(hw["obs"], hw["low"], hw["mid"]), **hook._jpeg_settings)
+        steps[keep] = train_step(hook, view)
+        (key,) = hook._graphed._graphs
+        assert key[-1] is keep and ("observation" in hook.last) is keep
+    assert steps[False]["terms"] == steps[True]["terms"] and steps[False]["stats"] == steps[True]["stats"]
+    for k, g in steps[True]["grads"].items():
+        assert torch.equal(steps[False]["grads"][k], g), k
 
 
 def test_a_failed_graph_recording_falls_back_to_eager(monkeypatch: pytest.MonkeyPatch, capsys: Any) -> None:
@@ -411,7 +444,7 @@ def test_gpu_graph_replays_equal_eager_for_every_view(mode: str) -> None:
             x, y, luma, chroma = _view_tensors(seed, "cuda", torch.float32)
             x = x * (1.0 + 0.01 * rnd)
             xg, xe = x.clone().requires_grad_(), x.clone().requires_grad_()
-            out_g = graphed(xg, y, torch.stack([luma, chroma]), "4:2:0")
+            out_g = graphed(xg, y, torch.stack([luma, chroma]), "4:2:0", observation=True)
             out_e = eager(xe, y, luma, chroma)
             total_e = w[0] * out_e[0] + w[1] * out_e[1] + w[2] * out_e[2]
             torch.testing.assert_close(out_g.values, torch.stack(out_e[:3]).detach(), rtol=1e-6, atol=1e-7)

@@ -124,8 +124,8 @@ def test_one_node_carries_several_known_gradients() -> None:
 class _SeparateObjective(GraphedImageTerms):
     """The graph's terms without the probe objective on its node (the hook then adds it on its own)."""
 
-    def __call__(self, x: Any, y: Any, tables: Any, sampling: str, more: Any = None) -> Any:
-        return super().__call__(x, y, tables, sampling)
+    def __call__(self, x: Any, y: Any, tables: Any, sampling: str, more: Any = None, **kw: Any) -> Any:
+        return super().__call__(x, y, tables, sampling, **kw)
 
 
 def test_the_probe_objective_on_the_graphs_node_gives_the_separate_objectives_step(
