@@ -45,6 +45,27 @@ def test_no_history_in_docs_or_shipped_files() -> None:
     assert not hits, "\n".join(hits[:20])
 
 
+# words that narrate a change rather than describe the present ("now the default", "previously")
+CHANGE_TALK = re.compile(
+    r"\b(previously|formerly|used to be|now the default|no longer (?:the default|used|needed|supported)|"
+    r"the (?:new|old) defaults?)\b",
+    re.IGNORECASE,
+)
+
+
+def test_docs_describe_the_present() -> None:
+    """README.md and docs/ say what the code does, not how it changed (CHANGELOG.md holds that)."""
+    hits = [
+        f"{p.relative_to(ROOT)}:{i}: {line.strip()[:100]}"
+        for p in DOCS if "docs/results/paper_protocol/runs" not in str(p)
+        for i, line in enumerate(p.read_text().splitlines(), 1) if CHANGE_TALK.search(line)
+    ]  # fmt: skip
+    assert not hits, "\n".join(hits[:20])
+    said = "the colour kernel (now the default) and the flag, previously on; the new defaults"
+    assert CHANGE_TALK.findall(said) == ["now the default", "previously", "the new defaults"]
+    assert not CHANGE_TALK.search("a downscaled copy no longer holds the grid; the default is used")
+
+
 def test_cli_reference_is_current() -> None:
     sys.path.insert(0, str(ROOT / "scripts"))
     try:
