@@ -90,6 +90,14 @@ def install() -> None:
     hook_module.fro_from_probe_grad_fused = controller_stand_in  # type: ignore[assignment]
 
 
+#: profile_step.py's options, passed on as they are (its ``--device`` is set to cpu here)
+PASSED_ON = (
+    "--manifest", "--size", "--views", "--methods", "--preset", "--config", "--jsgs-options", "--warmup",
+    "--settle", "--steps", "--top", "--python-top", "--trace", "--pairs", "--no-fresh", "--threads",
+    "--workdir", "--out",
+)  # fmt: skip
+
+
 class _ThreadClock:
     """The ``time`` module as ``profile_step`` reads it, with ``perf_counter`` the thread's CPU time."""
 
@@ -101,6 +109,10 @@ class _ThreadClock:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
+    unknown = [a for a in args if a.startswith("--") and a.split("=")[0] not in (*PASSED_ON, "--cpu-time")]
+    if unknown:
+        print(f"error: host_path_cpu.py takes profile_step.py's options but {unknown[0]}", file=sys.stderr)
+        return 2
     install()
     clock = "perf_counter"
     if "--cpu-time" in args:

@@ -185,3 +185,24 @@ def test_the_extra_channels_background_is_one_zero_tensor(monkeypatch: pytest.Mo
         want = torch.zeros(c, 5) if given is None else torch.cat([bg, torch.zeros(c, 2)], dim=-1)
         assert call["backgrounds"].dtype == colors.dtype and torch.equal(call["backgrounds"], want)
         assert img.shape == (c, 6, 8, 3) and info["extra"].shape == (c, 6, 8, 2)
+
+
+def test_host_path_cpu_passes_on_profile_steps_options() -> None:
+    """tools/diagnostics/host_path_cpu.py names the options it passes on to profile_step.py: exactly that
+    script's, less ``--device`` (it sets cpu); one profile_step.py does not take is refused in one line."""
+    import inspect
+    import re
+    import sys
+    from pathlib import Path
+
+    tools = Path(__file__).resolve().parents[3] / "tools" / "diagnostics"
+    saved = list(sys.path)
+    sys.path.insert(0, str(tools))
+    try:
+        import host_path_cpu
+        import profile_step
+    finally:
+        sys.path[:] = saved
+    declared = set(re.findall(r'"(--[a-z][a-z-]*)"', inspect.getsource(profile_step.parse_args)))
+    assert set(host_path_cpu.PASSED_ON) == declared - {"--device"}
+    assert host_path_cpu.main(["--steps", "3", "--not-an-option"]) == 2
