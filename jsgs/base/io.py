@@ -205,22 +205,32 @@ def clear_folder_leftovers(final: str | os.PathLike[str]) -> list[str]:
         if m is None:
             continue
         marker = p / PART_MARKER
-        who = load_writer(marker) if p.is_dir() and not p.is_symlink() else None
-        if not isinstance(who, Writer) or who.doc.get("for") != final.name:
-            why = (
-                f"its marker is not a writer record of jsgs ({who})"
-                if isinstance(who, str) and os.path.lexists(marker)
-                else f"it holds no {PART_MARKER} of jsgs for it"
-            )
-            lines.append(
-                f"warning: {p}: left beside {final.name} by an interrupted write, but {why}; left alone "
-                "(remove it yourself once it is not needed)"
-            )
-        elif not who.gone():
-            lines.append(f"warning: {p}: {who.what} ({who.where()}) is still writing it; left alone")
-        else:
-            lines.append(_clear_leftover(p, m[1], final, who))
+        read = load_writer(marker) if p.is_dir() and not p.is_symlink() else None
+        who = _leftover_writer(p, final, marker, read, f"it holds no {PART_MARKER} of jsgs for it")
+        lines.append(who if isinstance(who, str) else _clear_leftover(p, m[1], final, who))
     return lines
+
+
+def _leftover_writer(
+    shown: Path, final: Path, marker: Path, who: Writer | str | None, unmarked: str
+) -> Writer | str:
+    """The writer, no longer running, of the leftover ``shown`` beside ``final`` whose ``marker`` gave ``who``
+    (:func:`load_writer`; None: not read), so it may be cleared; else the warning line saying why it is left
+    alone: the marker is not a writer record of jsgs for ``final`` (``unmarked`` says so when there is no
+    marker at all), or its writer still runs (or runs on another host)."""
+    if not isinstance(who, Writer) or who.doc.get("for") != final.name:
+        why = (
+            f"its marker is not a writer record of jsgs ({who})"
+            if isinstance(who, str) and os.path.lexists(marker)
+            else unmarked
+        )
+        return (
+            f"warning: {shown}: left beside {final.name} by an interrupted write, but {why}; left alone "
+            "(remove it yourself once it is not needed)"
+        )
+    if not who.gone():
+        return f"warning: {shown}: {who.what} ({who.where()}) is still writing it; left alone"
+    return who
 
 
 def _clear_leftover(p: Path, kind: str, final: Path, who: Writer) -> str:
@@ -262,19 +272,11 @@ def clear_file_leftovers(final: str | os.PathLike[str]) -> list[str]:
         tmp, marker = Path(f"{base}{final.suffix}"), Path(f"{base}{PART_MARKER}")
         has_tmp = os.path.lexists(tmp)
         shown = tmp if has_tmp else marker
-        who = load_writer(marker)
-        if not isinstance(who, Writer) or who.doc.get("for") != final.name:
-            why = (
-                f"its marker is not a writer record of jsgs ({who})"
-                if isinstance(who, str) and os.path.lexists(marker)
-                else f"no marker of jsgs ({marker.name}) records its writer"
-            )
-            lines.append(
-                f"warning: {shown}: left beside {final.name} by an interrupted write, but {why}; left alone "
-                "(remove it yourself once it is not needed)"
-            )
-        elif not who.gone():
-            lines.append(f"warning: {shown}: {who.what} ({who.where()}) is still writing it; left alone")
+        who = _leftover_writer(
+            shown, final, marker, load_writer(marker), f"no marker of jsgs ({marker.name}) records its writer"
+        )
+        if isinstance(who, str):
+            lines.append(who)
         elif has_tmp and (tmp.is_symlink() or not tmp.is_file()):
             lines.append(f"warning: {tmp}: is not a plain file, so {who.what} did not write it; left alone")
         else:
