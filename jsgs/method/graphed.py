@@ -126,7 +126,9 @@ class GraphedImageTerms:
 
     The observation is an output buffer only in the graphs of calls that ask for it (``observation``; the
     hook's ``keep_last``): the others leave it in the graph's private pool, 12 bytes a pixel less of memory
-    kept for the run. Both kinds compute the same values, gradient and r(p).
+    kept for the run. Both kinds compute the same values, gradient and r(p). Given the uint8 training image
+    instead of the target (the hook does where the trainer says which it is, ``StepContext.image``), the
+    graph copies that in and makes the target inside: 3 bytes a pixel kept instead of 12, the same values.
     """
 
     def __init__(self, *, weights: tuple[float, float, float], **settings: Any) -> None:
@@ -147,8 +149,9 @@ class GraphedImageTerms:
         """``x``, ``y``: ``(1, 3, H, W)`` render and target; ``tables``: ``(2, 8, 8)`` luma and chroma;
         ``more``: called with r(p) after the replay, further (tensor, gradient) pairs whose known gradients
         ride on ``weighted``'s node (:func:`~jsgs.base.known_grad.with_known_gradient`); ``observation``:
-        also return the observation (else ``obs`` is None)."""
-        key = (tuple(x.shape), x.dtype, sampling, x.requires_grad, observation)
+        also return the observation (else ``obs`` is None). ``y`` may be the ``(H, W, 3)`` uint8 training
+        image the target is made from (:func:`~jsgs.method.image_terms.terms_with_gradient`)."""
+        key = (tuple(x.shape), x.dtype, y.dtype, sampling, x.requires_grad, observation)
         rec = self._graphs.get(key)
         if rec is None:
             rec = self._graphs[key] = self._record(x, y, tables, sampling, observation)

@@ -289,7 +289,11 @@ class JsgsHook(LossHook):
             try:
                 with self.profiler.phase("jo"):  # JO, L_obs and DS: one graph replay ("ds" is in it)
                     more = probe_upstream if deferred else None
-                    graphed = self._graphed(x, y, tab.tables, tab.sampling, more, observation=self.keep_last)
+                    # the uint8 image the target is made from, where there is one: a smaller input buffer
+                    y_in = y if ctx.image is None else ctx.image
+                    graphed = self._graphed(
+                        x, y_in, tab.tables, tab.sampling, more, observation=self.keep_last
+                    )
             except GraphCaptureFailed as e:
                 # a speed-up, not a result: the run goes on with the eager chain, which computes the same
                 self._graphed = None

@@ -23,6 +23,7 @@ from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import DctSupervision, TableWeights, dct_supervision, table_weights
 from jsgs.jpeg.tables import SAMPLING_FACTORS
+from jsgs.train.data import image_target
 
 if TYPE_CHECKING:
     from jsgs.method.options import JsgsOptions
@@ -119,15 +120,22 @@ def terms_with_gradient(
     """:func:`image_terms` and the gradient of their weighted sum, in one pass (what the graph records).
 
     Args:
-        x: ``(1, 3, H, W)`` the render (a leaf; needs grad for the gradient); y: ``(1, 3, H, W)`` the target;
-        tables: ``(2, 8, 8)`` the view's luma and chroma tables; weights: (λ_obs, λ_low, λ_mid), the last two
-            0 without DS; observation: whether to return the observation (a graph's output buffer for the
-            rest of the run; only ``keep_last`` reads it); settings: :func:`jpeg_terms`'s, with ``sampling``.
+        x: ``(1, 3, H, W)`` the render (a leaf; needs grad for the gradient).
+        y: ``(1, 3, H, W)`` the target, or ``(H, W, 3)`` uint8 the training image it is made from
+            (converted here as the trainer does, :func:`jsgs.train.data.image_target`: the same values; a
+            graph then keeps 3 bytes a pixel for its target buffer instead of 12).
+        tables: ``(2, 8, 8)`` the view's luma and chroma tables.
+        weights: (λ_obs, λ_low, λ_mid), the last two 0 without DS.
+        observation: whether to return the observation (a graph's output buffer for the rest of the run;
+            only ``keep_last`` reads it).
+        settings: :func:`jpeg_terms`'s, with ``sampling``.
     Returns:
         values ``(4,)`` (the weighted sum, L_obs, L_low, L_mid), its gradient with respect to ``x`` (None when
         ``x`` needs none), r(p) ``(1, H, W)`` and the observation ``(1, 3, H, W)`` (None without
         ``observation``), all detached. The values do not depend on ``observation``.
     """
+    if y.dtype == torch.uint8:
+        y = image_target(y).permute(0, 3, 1, 2)
     l_obs, low, mid, r, obs = image_terms(x, y, tables[0], tables[1], **settings)
     w_obs, w_low, w_mid = weights
     total = w_obs * l_obs + w_low * low + w_mid * mid

@@ -360,6 +360,12 @@ def load_train_images(scene: TrainingScene, device: torch.device) -> dict[int, T
     }
 
 
+def image_target(image: Tensor) -> Tensor:
+    """The loss's target of a training image ``[H, W, 3]`` uint8: ``[1, H, W, 3]`` float32 in [0, 1] (the
+    trainer's, and the one JSGS's CUDA graph makes from the image it copies in)."""
+    return image.float()[None] / 255.0
+
+
 def load_eval_images(scene: TrainingScene, device: torch.device) -> dict[int, Tensor]:
     """view index -> [H, W, 3] uint8 on ``device``: the uncompressed reference of every test view."""
     return {

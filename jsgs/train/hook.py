@@ -61,6 +61,8 @@ class StepContext:
     - ``extra``: [1, H, W, E] extra channels asked for by :meth:`LossHook.extra_channels`, else None.
     - ``base_terms``: the baseline's unweighted terms {"l1", "ssim" (= 1 - SSIM), "photometric" (= l_ph)}.
     - ``sh_degree``: the SH degree used at this step.
+    - ``image``: [H, W, 3] uint8, the training image ``target`` was made from
+      (:func:`jsgs.train.data.image_target`), or None where ``target`` was not made so.
     """
 
     step: int
@@ -73,6 +75,7 @@ class StepContext:
     extra: Tensor | None
     base_terms: dict[str, Tensor]
     sh_degree: int
+    image: Tensor | None = None
 
 
 @dataclass

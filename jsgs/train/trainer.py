@@ -58,6 +58,7 @@ from jsgs.train.data import (
     TrainingScene,
     TrainingView,
     ViewSampler,
+    image_target,
     load_eval_images,
     load_train_images,
     load_training_scene,
@@ -971,6 +972,7 @@ class Trainer:
                     extra=r.extra,
                     base_terms=dict(terms),
                     sh_degree=sh_degree,
+                    image=self.train_images[view.index],
                 )
                 stats, folded, folded_loss = self._hook_terms(ctx, cfg, terms, weights)
         loss = weighted_loss(terms, weights, folded, folded_loss)
@@ -1032,7 +1034,7 @@ class Trainer:
         shown = splats
         with profiler.phase("data"):
             view = self.train_views[dd.pick_view(self.world, self.sampler.next)]
-            target = self.train_images[view.index].float()[None] / 255.0
+            target = image_target(self.train_images[view.index])
             sh_degree = sh_degree_at(step, cfg)
             if self.exchange == "torch":
                 self._exchange = dd.gather_gaussians(self.world, splats, PARAM_NAMES)

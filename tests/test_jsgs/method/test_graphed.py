@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 import torch
-from test_jsgs_method import jsgs_options, make_splats, make_view, new_hook, train_step
+from test_jsgs_method import jsgs_options, make_splats, make_view, new_hook, target_for, train_step
 
 from jsgs.base.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
@@ -23,6 +23,7 @@ from jsgs.method.graphed import GraphedController, GraphedImageTerms, _Recording
 from jsgs.method.hook import JsgsHook
 from jsgs.method.image_terms import image_terms, terms_with_gradient
 from jsgs.method.options import parse_options, use_cuda_graph
+from jsgs.train.data import image_target
 
 SETTINGS = dict(
     mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
@@ -166,6 +167,39 @@ def test_the_observation_is_a_graph_output_only_when_asked_for(monkeypatch: pyte
     assert steps[False]["terms"] == steps[True]["terms"] and steps[False]["stats"] == steps[True]["stats"]
     for k, g in steps[True]["grads"].items():
         assert torch.equal(steps[False]["grads"][k], g), k
+
+
+def test_the_graph_makes_the_target_from_the_uint8_image(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Given the uint8 training image instead of its target, the graph keeps a 3-byte-a-pixel target buffer
+    and gives the values, gradient and r(p) of the trainer's float target, bit for bit; the hook hands it
+    the step's image where the context has one, with the same terms and gradients as from the target."""
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    x, _, luma, chroma = _view_tensors(6, dtype=torch.float32)
+    image = torch.randint(0, 256, (37, 53, 3), generator=torch.Generator().manual_seed(6), dtype=torch.uint8)
+    y = image_target(image).permute(0, 3, 1, 2)
+    tables, w = torch.stack([luma, chroma]), (0.2, 0.02, 0.03)
+    graphed = GraphedImageTerms(weights=w, **SETTINGS)
+    xa, xb = x.clone().requires_grad_(), x.clone().requires_grad_()
+    a, b = graphed(xa, y, tables, "4:2:0"), graphed(xb, image, tables, "4:2:0")
+    buffers = [rec.inputs[1] for rec in graphed._graphs.values()]
+    assert [(t.dtype, t.nbytes) for t in buffers] == [(torch.float32, 12 * 37 * 53),
+                                                      (torch.uint8, 3 * 37 * 53)]  # fmt: skip
+    assert torch.equal(a.values, b.values) and torch.equal(a.r, b.r) and a.values[0] > 0
+    assert torch.equal(torch.autograd.grad(a.weighted, xa)[0], torch.autograd.grad(b.weighted, xb)[0])
+    view = make_view(30, "4:2:0")
+    image = (torch.as_tensor(target_for(view)[0].numpy()) * 255.0).round().to(torch.uint8)
+    steps = []
+    for given in (None, image):
+        hook = new_hook(view)
+        hook.keep_last = False
+        hw = hook.weights()
+        hook._graphed = GraphedImageTerms(weights=(hw["obs"], hw["low"], hw["mid"]), **hook._jpeg_settings)
+        steps.append(train_step(hook, view, image=image, context_image=given is not None))
+        (rec,) = hook._graphed._graphs.values()
+        assert rec.inputs[1].dtype == (torch.float32 if given is None else torch.uint8)
+    assert steps[0]["terms"] == steps[1]["terms"] and steps[0]["stats"] == steps[1]["stats"]
+    for k, g in steps[0]["grads"].items():
+        assert torch.equal(steps[1]["grads"][k], g), k
 
 
 def test_a_failed_graph_recording_falls_back_to_eager(monkeypatch: pytest.MonkeyPatch, capsys: Any) -> None:

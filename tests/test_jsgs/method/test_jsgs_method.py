@@ -33,7 +33,7 @@ from jsgs.method.image_terms import view_tables
 from jsgs.method.options import parse_options
 from jsgs.render.bruteforce import render_bruteforce
 from jsgs.train.config import TrainConfig
-from jsgs.train.data import TrainingView
+from jsgs.train.data import TrainingView, image_target
 from jsgs.train.hook import StepContext, make_hook
 from jsgs.train.render_view import render_view
 from jsgs.train.trainer import weighted_loss
@@ -280,16 +280,21 @@ def new_hook(view: TrainingView, **options: Any) -> JsgsHook:
 
 
 def train_step(
-    hook: JsgsHook, view: TrainingView, splats: torch.nn.ParameterDict | None = None
-) -> dict[str, Any]:
+    hook: JsgsHook, view: TrainingView, splats: torch.nn.ParameterDict | None = None,
+    image: torch.Tensor | None = None, context_image: bool = True,
+) -> dict[str, Any]:  # fmt: skip
     """One step as the trainer takes it: render (training path), base ℓ_ph, the hook's terms, backward.
-    Returns term values (read after the backward, as the trainer does), stats, parameter gradients and
-    the screen-space means' gradient."""
+    ``image``: a uint8 [H, W, 3] training image, the target made from it as the trainer makes it, the image
+    in the step's context too with ``context_image`` (else :func:`target_for`'s target alone). Returns term
+    values (read after the backward, as the trainer does), stats, parameter gradients and the screen-space
+    means' gradient."""
     splats = splats if splats is not None else make_splats()
-    target = target_for(view)
+    target = target_for(view) if image is None else image_target(image)
     out = render(splats, hook.extra_channels(0, view, splats))
     out.info["means2d"].retain_grad()
-    ctx = StepContext(0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0)
+    ctx = StepContext(
+        0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0, image if context_image else None
+    )
     h = hook.losses(ctx)
     h.check("jsgs")
     x, y = out.rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
