@@ -644,31 +644,12 @@ def load_marker(out: Path) -> dict[str, Any] | str | None:
     ``jsgs/schemas/output_marker.schema.json`` (the earlier form without ``format`` included), else why it is
     not, in words naming the file (a link or not a regular file, unreadable, empty, not JSON, not valid, a
     later version). Such a marker is not provably jsgstools's: callers leave the folder alone."""
-    import json
-
-    from jsgs.base.io import not_regular, read_regular_text
-    from jsgs.schemas import validate
+    from jsgs.base.io import load_json_record
 
     path = out / MARKER
     if not os.path.lexists(path):
         return None
-    if path.is_symlink():
-        return f"{path}: is a link, not a marker of jsgstools"
-    if (why := not_regular(path)) is not None:  # a FIFO is refused at once, never waited on
-        return f"{path}: {why}"
-    try:
-        text = read_regular_text(path)
-        if not text.strip():
-            return f"{path}: is empty"
-        doc = json.loads(text)
-        validate(doc, "output_marker", str(path))
-    except (ValueError, RecursionError):  # UnicodeDecodeError and json's errors are ValueErrors
-        return f"{path}: is not JSON"
-    except OSError as e:
-        return f"{path}: cannot be read ({e.strerror or e})"
-    except JsgsError as e:
-        return str(e)
-    return doc
+    return load_json_record(path, "output_marker", str(path), link="is a link, not a marker of jsgstools")
 
 
 def read_marker(out: Path) -> str | None:

@@ -402,6 +402,37 @@ def refuse_non_regular(path: str | os.PathLike[str]) -> None:
         raise JsgsError(f"{os.fspath(path)}: is {_kind(st.st_mode)}, not a regular file")
 
 
+def load_json_record(
+    path: str | os.PathLike[str], schema: str, shown: str, link: str = "is a link"
+) -> dict[str, Any] | str:
+    """The small JSON record at ``path`` (a lock, a marker) when it is valid against
+    ``jsgs/schemas/<schema>.schema.json``, else why it is not, in one line naming the file as ``shown``: a
+    link (``link`` says so), missing, not a regular file (a FIFO is refused at once, never waited on),
+    unreadable, empty (a writer killed between creating and filling it), not JSON, or not valid."""
+    from jsgs.base.errors import JsgsError
+    from jsgs.schemas import validate
+
+    if os.path.islink(path):
+        return f"{shown}: {link}"
+    if not os.path.lexists(path):
+        return f"{shown}: is missing"
+    if (why := not_regular(path)) is not None:
+        return f"{shown}: {why}"
+    try:
+        text = read_regular_text(path)
+        if not text.strip():
+            return f"{shown}: is empty"
+        doc = json.loads(text)
+        validate(doc, schema, shown)
+    except (ValueError, RecursionError):  # UnicodeDecodeError and json's errors are ValueErrors
+        return f"{shown}: is not JSON"
+    except OSError as e:
+        return f"{shown}: cannot be read ({e.strerror or e})"
+    except JsgsError as e:
+        return str(e)
+    return doc  # the schemas of these records take objects only
+
+
 #: the ``format`` and ``format_version`` of a writer record (``jsgs/schemas/writer.schema.json``); a record
 #: without ``format`` is the earlier form of the same record, read with the same meaning
 WRITER_FORMAT = "jsgs-writer"
@@ -460,28 +491,10 @@ def load_writer(path: str | os.PathLike[str]) -> Writer | str:
     file (absent, a link or not a regular file, empty: a writer killed between creating and filling it, not
     JSON, or not valid against ``jsgs/schemas/writer.schema.json``). Such a file is not provably a jsgs
     writer's: callers leave it alone."""
-    from jsgs.base.errors import JsgsError
-    from jsgs.schemas import validate
-
     path = Path(path)
-    if path.is_symlink():
-        return f"{path.name}: is a link"
-    if not os.path.lexists(path):
-        return f"{path.name}: is missing"
-    if (why := not_regular(path)) is not None:
-        return f"{path.name}: {why}"
-    try:
-        text = read_regular_text(path)
-        if not text.strip():
-            return f"{path.name}: is empty"
-        doc = json.loads(text)
-        validate(doc, "writer", path.name)
-    except (ValueError, RecursionError):  # UnicodeDecodeError and json's errors are ValueErrors
-        return f"{path.name}: is not JSON"
-    except OSError as e:
-        return f"{path.name}: cannot be read ({e.strerror or e})"
-    except JsgsError as e:
-        return str(e)
+    doc = load_json_record(path, "writer", path.name)
+    if isinstance(doc, str):
+        return doc
     if type(doc["pid"]) is not int:  # the schema's integer takes 7.0
         return f"{path.name}: not a valid writer file: at pid: {doc['pid']!r} is not a whole number"
     return Writer(doc)
