@@ -51,9 +51,11 @@ class ReplayStandIn(GraphedImageTerms):
     """:class:`GraphedImageTerms` whose replay does nothing (module docstring): the outputs are the first
     call's."""
 
-    def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str) -> _Recording:
+    def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str, observation: bool) -> _Recording:
         inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
-        outputs = terms_with_gradient(*inputs, weights=self.weights, sampling=sampling, **self.settings)
+        outputs = terms_with_gradient(
+            *inputs, weights=self.weights, sampling=sampling, observation=observation, **self.settings
+        )
         return _Recording(lambda: None, inputs, outputs)
 
 

@@ -206,3 +206,32 @@ def test_host_path_cpu_passes_on_profile_steps_options() -> None:
     declared = set(re.findall(r'"(--[a-z][a-z-]*)"', inspect.getsource(profile_step.parse_args)))
     assert set(host_path_cpu.PASSED_ON) == declared - {"--device"}
     assert host_path_cpu.main(["--steps", "3", "--not-an-option"]) == 2
+
+
+def test_host_path_cpu_runs_the_step_with_the_stand_ins(tmp_path: Any) -> None:
+    """tools/diagnostics/host_path_cpu.py runs (in its own process: it patches the hook class): a profile of
+    both methods on a tiny synthetic scene, the JSGS step through the stood-in graph and controller, its
+    clock and stand-ins recorded, and JSGS counting more ops per step than gsplat."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[3]
+    config = tmp_path / "small.json"
+    config.write_text(json.dumps({"init": {"type": "random", "num_points": 60}}))
+    out = tmp_path / "out.json"
+    args = ["--size", "16x12", "--views", "4", "--preset", "mcmc", "--config", str(config), "--warmup", "3",
+            "--settle", "1", "--steps", "2", "--threads", "1", "--no-fresh", "--top", "3", "--cpu-time",
+            "--workdir", str(tmp_path / "work"), "--out", str(out)]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    run = subprocess.run(
+        [sys.executable, str(root / "tools" / "diagnostics" / "host_path_cpu.py"), *args],
+        capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    doc = json.loads(out.read_text())
+    assert doc["device"] == "cpu" and doc["settings"]["host_path_cpu"]["clock"] == "thread_time"
+    r = doc["results"]
+    assert r["jsgs"]["kernel_launches_per_step"] > r["gsplat"]["kernel_launches_per_step"] > 0
