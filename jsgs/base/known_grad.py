@@ -22,22 +22,35 @@ from torch import Tensor
 
 class _KnownGradient(torch.autograd.Function):
     @staticmethod
-    def forward(ctx: Any, value: Tensor, *pairs: Tensor) -> Tensor:
+    def forward(ctx: Any, value: Tensor, scratch: bool, *pairs: Tensor) -> Tensor:
         # (x, grad) pairs; the gradients kept as an attribute, not saved for backward: the caller may own
         # their memory (a graph's static output, rewritten by its next replay after this step's backward);
         # read in the backward
         ctx.grads = pairs[1::2]
+        ctx.scratch = scratch
         return value.detach().clone()
 
     @staticmethod
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, ...]:
-        out: list[Tensor | None] = [None]
-        for g in ctx.grads:
-            out += [grad_out * g, None]
+        out: list[Tensor | None] = [None, None]
+        if not ctx.scratch:
+            for g in ctx.grads:
+                out += [grad_out * g, None]
+            return tuple(out)
+        if ctx.grads is None:
+            raise RuntimeError(
+                "with_known_gradient(scratch=True): a second backward through the same scalar (the first "
+                "wrote its gradients over the known ones)"
+            )
+        grads, ctx.grads = ctx.grads, None
+        for g in grads:  # upstream·g written over g: the same values as the product, no new tensor
+            out += [g.mul_(grad_out), None]
         return tuple(out)
 
 
-def with_known_gradient(x: Tensor, value: Tensor, grad: Tensor, *more: Tensor) -> Tensor:
+def with_known_gradient(
+    x: Tensor, value: Tensor, grad: Tensor, *more: Tensor, scratch: bool = False
+) -> Tensor:
     """A 0-dim tensor equal to ``value`` whose gradient with respect to ``x`` is ``grad`` (and with respect
     to each further ``x_k`` in ``more = (x_2, grad_2, x_3, grad_3, ...)`` its ``grad_k``): one autograd node
     for them all, where a sum of such scalars takes one per scalar and an addition.
@@ -48,6 +61,10 @@ def with_known_gradient(x: Tensor, value: Tensor, grad: Tensor, *more: Tensor) -
         grad: shape of ``x``, ``d value / d x``; read once, during the backward (so it must stay valid until
             then; it is not copied).
         more: further (tensor, its gradient) pairs, alike.
+        scratch: the gradients are the caller's scratch, not read again before the caller writes them anew
+            (a graph's output buffer, rewritten by its next replay): the backward writes ``upstream * grad``
+            over each and hands that on, so no product of the image's size is allocated in the backward
+            (the same values: a product of two numbers in either order). One backward only.
     Returns:
         0-dim tensor, a copy of ``value``; ``backward`` sends ``upstream * grad`` to ``x`` (and
         ``upstream * grad_k`` to each ``x_k``).
@@ -60,4 +77,4 @@ def with_known_gradient(x: Tensor, value: Tensor, grad: Tensor, *more: Tensor) -
     for xk, gk in zip(pairs[::2], pairs[1::2], strict=True):
         if gk.shape != xk.shape:
             raise ValueError(f"grad must have x's shape {tuple(xk.shape)}, got {tuple(gk.shape)}")
-    return _KnownGradient.apply(value, *pairs)
+    return _KnownGradient.apply(value, scratch, *pairs)

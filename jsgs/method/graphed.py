@@ -162,7 +162,9 @@ class GraphedImageTerms:
         values, grad, r, obs = rec.outputs
         values = values.clone()  # the caller's: logged after the step, when the next replay may have run
         pairs = ((x, grad) if grad is not None else ()) + (more(r) if more is not None else ())
-        weighted = with_known_gradient(pairs[0], values[0], *pairs[1:]) if pairs else values[0]
+        # the gradients are scratch: the graph's buffer is rewritten by the next replay, the probe's
+        # upstream buffer by the next call (jsgs.method.pooling.ProbeObjective)
+        weighted = with_known_gradient(pairs[0], values[0], *pairs[1:], scratch=True) if pairs else values[0]
         return ImageTerms(weighted, values[1:], r, obs)
 
     def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str, observation: bool) -> _Recording:

@@ -125,19 +125,20 @@ def probe_objective(info: dict, r: Tensor) -> Tensor:
     that known gradient rather than a product and a sum (``jsgs.base.known_grad``).
     """
     up = _upstream(info, r)
-    return with_known_gradient(info["extra"], up.new_zeros(()), up)
+    return with_known_gradient(info["extra"], up.new_zeros(()), up, scratch=True)  # up: made for this call
 
 
 class ProbeObjective:
     """``weight · probe_objective(info, r)`` step after step, with the upstream map ``weight·(r, 1)`` in one
-    buffer kept from call to call: one kernel per step (``weight·r`` written into channel 0; channel 1 and
-    the zero value are set when the buffer is made), where :func:`probe_objective` and a loss weight take
-    five (a pad's fill and copy, the zero, and the weight's multiplication forward and backward).
+    buffer kept from call to call: two kernels per step (``weight·r`` written into channel 0, ``weight`` into
+    channel 1; the zero value is set when the buffer is made), where :func:`probe_objective` and a loss
+    weight take five (a pad's fill and copy, the zero, and the weight's multiplication forward and backward).
 
     The probe's gradient is ``weight·(o·S_r, ν)`` with the same rounding as ``weight * probe_objective(...)``
     in the loss (``weight·r`` rounded once; the backward multiplies by the loss's upstream 1). The buffer is
-    the returned scalar's known gradient, read in its backward: each call's objective is valid until the next
-    call (a training step's backward comes before the next step's forward)."""
+    the returned scalar's known gradient, read in its backward, which writes the upstream times it over it
+    (``scratch``: no product of the image's size in the backward): each call's objective is valid until the
+    next call (a training step's backward comes before the next step's forward), for one backward."""
 
     def __init__(self, weight: float = 1.0) -> None:
         self.weight = float(weight)
@@ -147,19 +148,21 @@ class ProbeObjective:
     def __call__(self, info: dict, r: Tensor) -> Tensor:
         ch, up = self.upstream(info, r)
         assert self._zero is not None
-        return with_known_gradient(ch, self._zero, up)
+        return with_known_gradient(ch, self._zero, up, scratch=True)
 
     def upstream(self, info: dict, r: Tensor) -> tuple[Tensor, Tensor]:
         """The rendered probe channels and their known gradient ``weight·(r, 1)`` (the buffer, written
         now): the objective's (tensor, gradient) pair, for a caller that puts it on a node of its own
-        (:func:`jsgs.base.known_grad.with_known_gradient`) unscaled."""
+        (:func:`jsgs.base.known_grad.with_known_gradient`) unscaled. The buffer is scratch for that node
+        (``scratch``: its backward writes the upstream times it over it), so both channels are written
+        anew at every call."""
         ch = _checked_channels(info, r)
         up = self._up
         if up is None or up.shape != ch.shape or up.dtype != ch.dtype or up.device != ch.device:
             up = self._up = torch.empty(ch.shape, dtype=ch.dtype, device=ch.device)
-            up[..., 1].fill_(self.weight)
             self._zero = ch.new_zeros(())
         torch.mul(r.detach().to(ch.dtype), self.weight, out=up[..., 0])
+        up[..., 1].fill_(self.weight)
         return ch, up
 
 

@@ -1,0 +1,83 @@
+"""Known gradients written over their buffers in the backward (``with_known_gradient(..., scratch=True)``):
+the products they replace, bit for bit, with no new tensor of the image's size; the buffers written anew
+before their next use (the graph's by its replay, the probe objective's by its next call)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_graphed import SETTINGS, _eager_recording, _view_tensors
+from test_host_path import _probe_info
+
+from jsgs.base.known_grad import with_known_gradient
+from jsgs.method.graphed import GraphedImageTerms
+from jsgs.method.image_terms import terms_with_gradient
+from jsgs.method.pooling import ProbeObjective
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.mark.parametrize("upstream", [1.0, 3.0, -0.7])
+def test_scratch_gradients_are_the_products_written_over_the_buffers(upstream: float) -> None:
+    """The gradients sent on are ``upstream * grad`` bit for bit, in the buffers themselves (scratch) or in
+    new tensors (not); a second backward through a scratch scalar is refused."""
+    sent: dict[bool, list[torch.Tensor]] = {}
+    buffers: dict[bool, list[torch.Tensor]] = {}
+    for scratch in (False, True):
+        gen = torch.Generator().manual_seed(1)
+        a = torch.rand(2, 3, 5, generator=gen).requires_grad_()
+        b = torch.rand(4, 2, generator=gen, dtype=torch.float64).requires_grad_()
+        xa, xb = a * 3.0, b.exp()
+        ga, gb = torch.randn(2, 3, 5, generator=gen), torch.randn(4, 2, generator=gen, dtype=torch.float64)
+        seen: list[torch.Tensor] = []
+        xa.register_hook(seen.append)
+        xb.register_hook(seen.append)
+        s = with_known_gradient(xa, torch.tensor(0.5), ga, xb, gb, scratch=scratch)
+        (upstream * s).backward(retain_graph=True)
+        sent[scratch], buffers[scratch] = seen, [ga, gb]
+        if scratch:
+            with pytest.raises(RuntimeError, match="second backward"):
+                (upstream * s).backward()
+    for got, want in zip(sent[True], sent[False], strict=True):
+        assert torch.equal(got, want) and got.abs().sum() > 0
+    assert [g.data_ptr() for g in sent[True]] == [g.data_ptr() for g in reversed(buffers[True])]
+    assert not {g.data_ptr() for g in sent[False]} & {g.data_ptr() for g in buffers[False]}
+
+
+def test_the_graphs_gradient_buffer_is_scaled_once_per_replay(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Through the graph (recorded eagerly), an upstream factor other than 1, view after view: the render
+    gets the factor times the eager gradient, bit for bit (the replay writes the buffer anew each time)."""
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    w = (0.2, 0.02, 0.03)
+    graphed = GraphedImageTerms(weights=w, **SETTINGS)
+    for seed in (1, 2, 1):
+        x, y, luma, chroma = _view_tensors(seed, dtype=torch.float32)
+        tables = torch.stack([luma, chroma])
+        xg = x.clone().requires_grad_()
+        (3.0 * graphed(xg, y, tables, "4:2:0").weighted).backward()
+        xe = x.clone().requires_grad_()
+        _, grad, _, _ = terms_with_gradient(xe, y, tables, weights=w, sampling="4:2:0", **SETTINGS)
+        assert grad is not None and torch.equal(xg.grad, grad * torch.tensor(3.0)), seed
+    assert len(graphed._graphs) == 1
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_probe_objectives_buffer_is_written_anew_after_each_backward(dtype: torch.dtype) -> None:
+    """The probe objective's kept buffer, scaled by one backward's upstream, is whole again at the next
+    call: each call's probe gradient is that of a new ``weight·(r, 1)`` map times its upstream, bit for
+    bit."""
+    w = 0.05 * 4
+    obj = ProbeObjective(w)
+    for call, upstream in enumerate([2.5, 1.0, -0.3]):
+        grads = []
+        for kept in (True, False):
+            info, g = _probe_info(dtype, (1, 6, 5), seed=call)
+            r = torch.rand((1, 6, 5), generator=g, dtype=torch.float32)
+            if kept:
+                value = obj(info, r)
+            else:  # the map made anew, its product in a new tensor
+                up = torch.stack([r.to(dtype) * w, torch.full_like(r, w, dtype=dtype)], dim=-1)
+                value = with_known_gradient(info["extra"], torch.zeros((), dtype=dtype), up)
+            (upstream * value).backward()
+            grads.append(info["extra_features"].grad)
+        assert torch.equal(grads[0], grads[1]) and grads[0].abs().sum() > 0, call
