@@ -80,6 +80,10 @@ def test_tiny_scene_three_layouts(tmp_path: Path, capsys: Any) -> None:
     assert j["step_peak_bytes"] > g["step_peak_bytes"]
     assert gl["step_peak_bytes"] < j["step_peak_bytes"]  # JO, L_obs and DS live in the pool instead
     assert gl["peaks"]["all"]["bytes"] >= gl["step_peak_bytes"]
+    for r in res.values():  # the backward's own peak: a part of the step's, reached in the backward
+        assert 0 < r["backward_peak_bytes"] <= r["step_peak_bytes"] == r["peaks"]["outside_pool"]["bytes"]
+        assert r["peaks"]["backward"]["bytes"] == r["backward_peak_bytes"]
+        assert r["peaks"]["backward"]["reached_by"]["phase"] == "backward"
     for r in res.values():
         assert r["num_gaussians"] > 0 and (r["width"], r["height"]) == (w, h)
         assert r["step_end_bytes"] <= r["made_bytes"] and r["step_peak_bytes"] <= r["made_bytes"]

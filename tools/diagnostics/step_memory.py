@@ -30,7 +30,9 @@ rasteriser's per-tile pair tensors).
 
 For ``jsgs-graph-layout`` two peaks are kept: of everything, and of everything outside the graph's replay
 (``step_peak_bytes``; on CUDA the replay's intermediates live in the graph's private pool, reserved but not
-allocated memory; ``pool_peak_bytes`` is their largest live total).
+allocated memory; ``pool_peak_bytes`` is their largest live total). A third, ``backward_peak_bytes``, is the
+largest live total outside the pool after an op the autograd engine runs (the backward's own peak; on the
+CPU the step's peak is often in the forward, at ℓ_ph's SSIM, where on CUDA the fused SSIM saves far less).
 
 This is the CPU reference path's accounting. On CUDA gsplat's rasteriser has its own buffers (tile bins,
 sort buffers, per-pixel last-contributor ids) and none of the reference rasteriser's per-tile pair lists;
@@ -183,10 +185,11 @@ class LiveStorages(TorchDispatchMode):
         self.live: dict[int, int] = {}  # index into made -> bytes, while alive
         self._index: dict[int, int] = {}  # storage address -> index into made, while alive
         self.bytes = self.pool_bytes = self.ops = 0
-        self.peak = {"all": 0, "outside_pool": 0, "pool": 0}
-        self.peak_op = {"all": 0, "outside_pool": 0, "pool": 0}
-        self.at_peak: dict[str, list[int]] = {"all": [], "outside_pool": [], "pool": []}
-        self.peak_made = {"all": -1, "outside_pool": -1, "pool": -1}  # the last storage made at each peak
+        kinds = ("all", "outside_pool", "pool", "backward")
+        self.peak = dict.fromkeys(kinds, 0)
+        self.peak_op = dict.fromkeys(kinds, 0)
+        self.at_peak: dict[str, list[int]] = {k: [] for k in kinds}
+        self.peak_made = dict.fromkeys(kinds, -1)  # the last storage made at each peak
 
     def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
         out = func(*args, **(kwargs or {}))
@@ -195,8 +198,10 @@ class LiveStorages(TorchDispatchMode):
         for t in tree_flatten(out)[0]:
             if torch.is_tensor(t) and t.device.type != "meta":
                 self._seen(t, str(func), inputs)
-        for kind, b in (("all", self.bytes), ("outside_pool", self.bytes - self.pool_bytes),
-                        ("pool", self.pool_bytes)):  # fmt: skip
+        outside = self.bytes - self.pool_bytes
+        backward = outside if torch._C._current_autograd_node() is not None else 0
+        for kind, b in (("all", self.bytes), ("outside_pool", outside), ("pool", self.pool_bytes),
+                        ("backward", backward)):  # fmt: skip
             if b > self.peak[kind]:
                 self.peak[kind], self.peak_op[kind], self.at_peak[kind] = b, self.ops, list(self.live)
                 self.peak_made[kind] = len(self.made) - 1
@@ -365,8 +370,8 @@ def _sums(items: Sequence[Made], key: str) -> dict[str, int]:
 
 
 def _peak(mode: LiveStorages, kind: str, top: int) -> dict[str, Any]:
-    """One peak of ``mode`` (``"all"`` or ``"outside_pool"``): its bytes, the op that reached it and what
-    is alive at it, by part, scale and origin, and the largest storages."""
+    """One peak of ``mode`` (``"all"``, ``"outside_pool"`` or ``"backward"``): its bytes, the op that
+    reached it and what is alive at it, by part, scale and origin, and the largest storages."""
     at_peak = [mode.made[i] for i in mode.at_peak[kind]]
     origins: dict[tuple[str, str], list[int]] = {}
     for m in at_peak:
@@ -404,7 +409,8 @@ def summary(cb: MeasureStep, top: int) -> dict[str, Any]:
         "step_peak_bytes": mode.peak["outside_pool"],
         "peak_total_bytes": resident_total + mode.peak["outside_pool"],
         "pool_peak_bytes": mode.peak["pool"],
-        "peaks": {kind: _peak(mode, kind, top) for kind in ("all", "outside_pool")},
+        "backward_peak_bytes": mode.peak["backward"],
+        "peaks": {kind: _peak(mode, kind, top) for kind in ("all", "outside_pool", "backward")},
     }
 
 
@@ -473,15 +479,15 @@ def print_report(doc: dict[str, Any]) -> None:
     print(f"step {doc['step']} of {doc['manifest']}, CPU accounting (MiB; storages counted once)")
     print()
     print(
-        "| method | Gaussians | resident | step peak | resident + peak | graph pool | made in the step | "
-        "left at its end |"
+        "| method | Gaussians | resident | step peak | resident + peak | graph pool | backward peak | "
+        "made in the step | left at its end |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for m, r in res.items():
         print(
             f"| {m} | {r['num_gaussians']} | {_mib(r['resident_total_bytes'])} "
             f"| {_mib(r['step_peak_bytes'])} | {_mib(r['peak_total_bytes'])} | {_mib(r['pool_peak_bytes'])} "
-            f"| {_mib(r['made_bytes'])} | {_mib(r['step_end_bytes'])} |"
+            f"| {_mib(r['backward_peak_bytes'])} | {_mib(r['made_bytes'])} | {_mib(r['step_end_bytes'])} |"
         )
     for m, r in res.items():
         pk = r["peaks"]["outside_pool"]
@@ -506,6 +512,9 @@ def print_report(doc: dict[str, Any]) -> None:
                 f"| {_mib(t['nbytes'])} | {t['shape']} | {t['dtype']} | {t['op']} | {t['phase']} "
                 f"| {t['origin']} | {t['part']} |"
             )
+        bw = r["peaks"]["backward"]
+        print(f"\n{m}: the backward's peak after op {bw['after_op']}; alive at it (MiB): "
+              + ", ".join(f"{part} {_mib(b)}" for part, b in bw["by_part"].items()))  # fmt: skip
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
