@@ -11,8 +11,8 @@ chroma table T^C, chroma sampling)::
                                                       fro
 
 ℓ_ph is the trainer's own photometric loss (same λ_ssim and SSIM padding as the baseline term). A lossless
-view (``jpeg`` null) gets ℓ_ph only: its JSGS terms are logged as 0 and carry no gradient, so the logged
-means are each term's mean contribution per step.
+view (``jpeg`` null) gets ℓ_ph only: its JSGS terms are logged as 0 with weight 0 (nothing enters the loss),
+so the logged means are each term's mean contribution per step.
 
 Ablations (paper Table 2): ``jo``, ``ds``, ``gc`` (method options; ``--no-jo``, ``--no-ds``, ``--no-gc``).
 DS and GC are defined on the JO output, so ``jo: false`` requires ``ds: false`` and ``gc: false``; with all
@@ -260,10 +260,14 @@ class JsgsHook(LossHook):
         self.last = {}
         self._pending.clear()  # a step whose backward never came (see _gc_deferred)
         tab = self.tables.get(ctx.view.index)
-        if tab is None:  # lossless view: ℓ_ph only
-            zero = torch.zeros((), dtype=ctx.render.dtype, device=ctx.render.device)
-            terms0 = {k: zero.clone() for k in self.active_terms()}
-            return HookOutput(terms0, self.weights(), {k: zero.clone() for k in STAT_NAMES} if o.gc else {})
+        if tab is None:  # lossless view: ℓ_ph only; the terms are logged as 0 with weight 0 (nothing to add)
+            names = self.active_terms()
+            stat_names = list(STAT_NAMES) if o.gc else []
+            n = len(names) + len(stat_names)
+            values = torch.zeros(n, dtype=ctx.render.dtype, device=ctx.render.device).unbind()
+            terms0 = dict(zip(names, values[: len(names)], strict=True))
+            stats0: dict[str, float | Tensor] = dict(zip(stat_names, values[len(names) :], strict=True))
+            return HookOutput(terms0, dict.fromkeys(names, 0.0), stats0)
         # every active term and statistic is set below (no placeholder kernels on the JPEG views' path)
         terms: dict[str, Tensor] = {}
         stats: dict[str, float | Tensor] = {}

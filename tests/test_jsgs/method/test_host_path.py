@@ -93,6 +93,40 @@ def test_the_folded_controller_term_gives_the_weighted_terms_step() -> None:
         assert torch.equal(new["grads"][k], g), k
 
 
+def test_a_lossless_views_step_is_the_photometric_step() -> None:
+    """On a lossless view the hook's terms and statistics are zeros logged with weight 0: the step's loss and
+    gradients are those of ℓ_ph alone, bit for bit."""
+    view = make_view(None)
+    hook = new_hook(view)
+    runs = []
+    for with_hook in (True, False):
+        splats = make_splats()
+        target = target_for(view)
+        out = render(splats, hook.extra_channels(0, view, splats))
+        x, y = out.rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
+        terms = {"photometric": photometric_loss(x, y, 0.2, padding="valid")}
+        weights = {"photometric": 0.7}
+        if with_hook:
+            ctx = StepContext(0, view, out.rgb, out.alpha, target, out.info, splats, out.extra, {}, 0)
+            h = hook.losses(ctx)
+            h.check("jsgs")
+            assert set(h.terms) == {"obs", "low", "mid", "fro"} and set(h.stats) == {
+                "gc_visible",
+                "gc_rbar",
+                "gc_damped",
+            }
+            assert all(v.item() == 0.0 for v in (*h.terms.values(), *h.stats.values()))
+            terms.update(h.terms)
+            weights.update(h.weights)
+        loss = weighted_loss(terms, weights)
+        loss.backward()
+        runs.append((loss.item(), {k: p.grad.clone() for k, p in splats.items() if p.grad is not None}))
+    (loss_a, grads_a), (loss_b, grads_b) = runs
+    assert loss_a == loss_b and set(grads_a) == set(grads_b)
+    for k, g in grads_b.items():
+        assert torch.equal(grads_a[k], g), k
+
+
 def test_one_node_carries_several_known_gradients() -> None:
     """``with_known_gradient(x, v, g, x2, g2)``: the value v, and the gradients the sum of two such scalars
     (v and 0) sends, bit for bit, through one node; mismatched pairs are refused."""
