@@ -126,7 +126,9 @@ class GraphedImageTerms:
 
     The observation is an output buffer only in the graphs of calls that ask for it (``observation``; the
     hook's ``keep_last``): the others leave it in the graph's private pool, 12 bytes a pixel less of memory
-    kept for the run. Both kinds compute the same values, gradient and r(p). Given the uint8 training image
+    kept for the run. Both kinds compute the same values, gradient and r(p). The gradient is written over
+    the render's input buffer at the end of the replay (``grad_into_x``; the next call copies the next render
+    in): no output buffer of its own, 12 bytes a pixel less. Given the uint8 training image
     instead of the target (the hook does where the trainer says which it is, ``StepContext.image``), the
     graph copies that in and makes the target inside: 3 bytes a pixel kept instead of 12, the same values.
     """
@@ -171,7 +173,7 @@ class GraphedImageTerms:
         self._check_device(x)
         inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
         fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling,
-                     observation=observation, **self.settings)  # fmt: skip
+                     observation=observation, grad_into_x=True, **self.settings)  # fmt: skip
         if self._pool is None:  # one memory pool shared by all of this object's graphs
             self._pool = torch.cuda.graph_pool_handle()
         graph, outputs = record_graph(fn, x.device, warmups=2, pool=self._pool, error_mode="global")

@@ -115,6 +115,7 @@ def terms_with_gradient(
     *,
     weights: tuple[float, float, float],
     observation: bool = True,
+    grad_into_x: bool = False,
     **settings: Any,
 ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
     """:func:`image_terms` and the gradient of their weighted sum, in one pass (what the graph records).
@@ -128,6 +129,9 @@ def terms_with_gradient(
         weights: (λ_obs, λ_low, λ_mid), the last two 0 without DS.
         observation: whether to return the observation (a graph's output buffer for the rest of the run;
             only ``keep_last`` reads it).
+        grad_into_x: write the gradient over ``x`` and return ``x`` (detached) as the gradient: a graph's
+            render buffer, read by the chain before, then holds the gradient, so the graph keeps no second
+            buffer of the render's size for it (the caller copies the next render in before each replay).
         settings: :func:`jpeg_terms`'s, with ``sampling``.
     Returns:
         values ``(4,)`` (the weighted sum, L_obs, L_low, L_mid), its gradient with respect to ``x`` (None when
@@ -140,6 +144,10 @@ def terms_with_gradient(
     w_obs, w_low, w_mid = weights
     total = w_obs * l_obs + w_low * low + w_mid * mid
     grad = torch.autograd.grad(total, x)[0] if x.requires_grad else None
+    if grad is not None and grad_into_x:
+        with torch.no_grad():
+            x.copy_(grad)
+        grad = x.detach()
     values = torch.stack([total, l_obs, low, mid]).detach()
     return values, grad, r, obs if observation else None
 

@@ -243,7 +243,7 @@ class GraphLayout(GraphedImageTerms):
     ) -> _Recording:
         inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
         fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling,
-                     observation=observation, **self.settings)  # fmt: skip
+                     observation=observation, grad_into_x=True, **self.settings)  # fmt: skip
         outputs = fn()
         return _Recording(partial(_replay_in_pool, fn, outputs), inputs, outputs)
 

@@ -72,7 +72,7 @@ def _eager_recording(
     the function the graph would record on the input buffers and writes its results into the outputs."""
     inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
     fn = partial(terms_with_gradient, weights=self.weights, sampling=sampling, observation=observation,
-                 **self.settings)  # fmt: skip
+                 grad_into_x=True, **self.settings)  # fmt: skip
     outputs = fn(*inputs)
 
     def replay() -> None:
@@ -202,6 +202,29 @@ def test_the_graph_makes_the_target_from_the_uint8_image(monkeypatch: pytest.Mon
         assert torch.equal(steps[1]["grads"][k], g), k
 
 
+def test_the_gradient_is_written_over_the_render_buffer(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``grad_into_x``: the same values and gradient, bit for bit, the gradient in ``x``'s own storage; the
+    graph keeps no gradient buffer of its own, and view after view each replay's gradient is that view's."""
+    x, y, luma, chroma = _view_tensors(7)
+    tables, w = torch.stack([luma, chroma]), (0.2, 0.02, 0.03)
+    xa, xb = x.clone().requires_grad_(), x.clone().requires_grad_()
+    plain = terms_with_gradient(xa, y, tables, weights=w, sampling="4:2:0", **SETTINGS)
+    into = terms_with_gradient(xb, y, tables, weights=w, sampling="4:2:0", grad_into_x=True, **SETTINGS)
+    assert into[1] is not None and plain[1] is not None and torch.equal(into[1], plain[1])
+    assert into[1].data_ptr() == xb.data_ptr() and torch.equal(xb.detach(), plain[1])
+    assert all(torch.equal(a, b) for a, b in zip(into[::2], plain[::2], strict=True))
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    graphed = GraphedImageTerms(weights=w, **SETTINGS)
+    for seed in (7, 8, 7):
+        x, y, luma, chroma = _view_tensors(seed)
+        xg, xe, tables = x.clone().requires_grad_(), x.clone().requires_grad_(), torch.stack([luma, chroma])
+        graphed(xg, y, tables, "4:2:0").weighted.backward()
+        _, grad, _, _ = terms_with_gradient(xe, y, tables, weights=w, sampling="4:2:0", **SETTINGS)
+        assert torch.equal(xg.grad, grad), seed
+    (rec,) = graphed._graphs.values()
+    assert rec.outputs[1] is not None and rec.outputs[1].data_ptr() == rec.inputs[0].data_ptr()
+
+
 def test_a_failed_graph_recording_falls_back_to_eager(monkeypatch: pytest.MonkeyPatch, capsys: Any) -> None:
     """If recording fails (an op that cannot be captured), the step and the rest of the run use the eager
     chain: the same values and gradients, one warning line, and no second attempt."""
@@ -306,6 +329,8 @@ def test_every_recording_runs_on_one_side_stream(monkeypatch: pytest.MonkeyPatch
         terms(x[..., : 32 + 8 * seed].requires_grad_(), y[..., : 32 + 8 * seed], torch.stack([luma, chroma]),
               "4:2:0")  # fmt: skip
     assert ctl.recordings == 4 and len(terms._graphs) == 2 and len(captures) == 6
+    for rec in terms._graphs.values():  # the gradient is written over the render's buffer, no own output
+        assert rec.outputs[1] is not None and rec.outputs[1].data_ptr() == rec.inputs[0].data_ptr()
     assert len(made) == 1 and all(s is made[0] for s in entered if s is not None)
     assert entered.count(made[0]) == 6  # one stream context per recording, warm-ups and capture in it
 
