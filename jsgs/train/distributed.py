@@ -368,12 +368,21 @@ class Exchange:
         return start, start + self.sizes[self.rank]
 
 
-def gather_gaussians(world: World, shard: torch.nn.ParameterDict, names: Sequence[str]) -> Exchange:
+def gather_gaussians(
+    world: World, shard: torch.nn.ParameterDict, names: Sequence[str], sizes: Sequence[int] | None = None
+) -> Exchange:
     """The torch exchange's forward: every process's shard on every process (gloo on the CPU, or NCCL where
     the step's render needs the whole set: a method's extra channels). Its backward is
-    :func:`reduce_gradients` with ``exchange``."""
-    device = shard[names[0]].device
-    sizes = gather_sizes(world, int(shard[names[0]].shape[0]), device)
+    :func:`reduce_gradients` with ``exchange``. ``sizes``: every process's number of Gaussians, by rank,
+    where the caller knows them (the trainer keeps them: :func:`gather_sizes` at setup and after a strategy
+    step that may change them); without them they are gathered first (one more collective and a host
+    read)."""
+    n = int(shard[names[0]].shape[0])
+    if sizes is None:
+        sizes = gather_sizes(world, n, shard[names[0]].device)
+    elif len(sizes) != world.size or sizes[world.rank] != n:
+        raise RuntimeError(f"internal error: shard sizes {list(sizes)} held, this process has {n} Gaussians")
+    sizes = list(sizes)
     full = gather_rows(world, [shard[n] for n in names], sizes)
     params = torch.nn.ParameterDict({n: torch.nn.Parameter(t) for n, t in zip(names, full, strict=True)})
     return Exchange(params, list(names), sizes, world.rank)

@@ -89,6 +89,14 @@ class Densifier:
     ) -> None:
         self.gsplat.step_pre_backward(params, optimizers, state, step, info)
 
+    def may_change_count(self, step: int) -> bool:
+        """Whether :meth:`step_post_backward` at ``step`` may change the number of Gaussians: a refinement
+        step of gsplat's schedule (DefaultStrategy grows and prunes, MCMCStrategy relocates, which keeps the
+        count, and adds). A superset of the steps that do (DefaultStrategy's pause after an opacity reset
+        and a view without gradient are not excluded); every process answers alike."""
+        gs = self.gsplat
+        return gs.refine_start_iter < step < gs.refine_stop_iter and step % gs.refine_every == 0
+
     def step_post_backward(
         self,
         params: torch.nn.ParameterDict,

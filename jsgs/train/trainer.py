@@ -484,7 +484,9 @@ class Trainer:
         #: the torch exchange: the step's strategy statistics for the gradients' all-reduce (distributed.py)
         self._fold_statistics: Callable[[dict[str, Any], int], Tensor | None] | None = None
         self._gathered: dict[str, Any] | None = None  # the shards gathered on rank 0 at a checkpoint point
-        self.sizes: list[int] = []  # every process's number of Gaussians (as of the last step)
+        #: every process's number of Gaussians, by rank: as of the last step; with the torch exchange kept
+        #: current on every process (gathered at setup and after each strategy step that may change them)
+        self.sizes: list[int] = []
         self._signal: str | None = None
         self._stop_everywhere: str | None = None
         self._step_gather: dd.StepGather | None = None  # several processes: the step's values, shared
@@ -1008,6 +1010,8 @@ class Trainer:
                     packed=cfg.render.packed and self.exchange != "gsplat",
                 )
         self._exchange = None  # (the strategy's statistics read its rows)
+        if self.exchange == "torch" and self.strategy.may_change_count(step):  # the next step's shard sizes
+            self.sizes = dd.gather_sizes(self.world, int(splats["means"].shape[0]), self.device)
         result = StepResult(
             step,
             view.name,
@@ -1037,7 +1041,7 @@ class Trainer:
             target = image_target(self.train_images[view.index])
             sh_degree = sh_degree_at(step, cfg)
             if self.exchange == "torch":
-                self._exchange = dd.gather_gaussians(self.world, splats, PARAM_NAMES)
+                self._exchange = dd.gather_gaussians(self.world, splats, PARAM_NAMES, self.sizes)
                 shown = self._exchange.params
             extra_feats = hook.extra_channels(step, view, shown) if hook is not None else None
             extra_kw = hook.render_kwargs(step, view) if hook is not None else None

@@ -401,6 +401,88 @@ def test_sharded_gradients_and_statistics_reduce_to_their_owners(tmp_path: Path)
     mp.spawn(_reductions_worker, args=(str(tmp_path / "store"),), nprocs=2, join=True)
 
 
+#: the all-gathers the torch exchange can make, by torch.distributed's names
+_GATHERS = ("all_gather", "all_gather_into_tensor", "all_gather_single", "all_gather_object")
+
+
+def _collectives_worker(rank: int, port: int, root: str) -> None:
+    """One of two processes training on the torch exchange (the CPU), once with each strategy, every
+    all-gather of each step recorded: the shard sizes (int64) are gathered only after a step of the
+    refinement schedule, and the sizes every process holds are every shard's."""
+    import torch
+    import torch.distributed as dist
+
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.trainer import Trainer
+
+    torch.set_num_threads(1)
+    os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2", MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))  # fmt: skip
+    manifest = Path(root) / "scene" / "manifest.json"
+    calls: list[tuple[str, Any]] = []
+    own = {name: getattr(dist, name) for name in _GATHERS}
+
+    def counted(name: str) -> Any:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            first = args[1] if name != "all_gather_object" and len(args) > 1 else None
+            calls.append((name, getattr(first, "dtype", None)))
+            return own[name](*args, **kwargs)
+
+        return call
+
+    refine = {3, 6, 9}  # refine_start_iter 2, refine_every 3: the steps after which counts may change
+    for strategy in ({"type": "default", "grow_grad2d": 1e-9}, {"type": "mcmc", "cap_max": 400}):
+        cfg = TrainConfig.from_preset("paper", device="cpu", method="gsplat", iterations=10, eval_at=[])
+        for key, value in {**strategy, "refine_start_iter": 2, "refine_every": 3}.items():
+            setattr(cfg.strategy, key, value)
+        trainer = Trainer(manifest, Path(root) / strategy["type"], cfg, log=lambda s: None)
+        trainer.setup()
+        assert trainer.exchange == "torch"
+        held = []
+        for step in range(10):
+            calls.clear()
+            for name in _GATHERS:
+                setattr(dist, name, counted(name))
+            try:
+                trainer.step(step)
+            finally:
+                for name in _GATHERS:
+                    setattr(dist, name, own[name])
+            sizes = [c for c in calls if c[1] == torch.int64]
+            assert len(sizes) == (step in refine), (strategy, step, calls)
+            if step > 0 and step not in refine:  # the parameters and the step's values: nothing else
+                assert [n for n, _ in calls] == ["all_gather_single"] * 2, (strategy, step, calls)
+            everyone: list[Any] = [None, None]
+            dist.all_gather_object(everyone, int(trainer.splats["means"].shape[0]))
+            assert trainer.sizes == everyone, (strategy, step, trainer.sizes, everyone)
+            held.append(everyone)
+        # the refinement changed the shards' sizes, after refinement steps only
+        changed = {s for s in range(1, 10) if held[s] != held[s - 1]}
+        assert changed and changed <= refine, (strategy, held)
+        if trainer.lock is not None:
+            trainer.lock.release()
+        dist.barrier()
+    dist.barrier()
+    os._exit(0)  # (as _reductions_worker)
+
+
+def test_ordinary_steps_gather_no_shard_sizes(scene: Path, tmp_path: Path) -> None:
+    """The torch exchange on two processes (DefaultStrategy growing, MCMCStrategy adding): a step off the
+    refinement schedule makes two all-gathers (the parameters, the step's values) and no gather of the
+    shard sizes; a refinement step gathers them once, after the strategy, and every process then holds
+    every shard's size."""
+    import socket
+
+    import torch.multiprocessing as mp
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    (tmp_path / "scene").symlink_to(scene.parent)
+    mp.spawn(_collectives_worker, args=(port, str(tmp_path)), nprocs=2, join=True)
+
+
 def test_gsplat_exchange_statistics_add_camera_by_camera() -> None:
     """gsplat's exchange hands the owner its Gaussians' projection for every process's camera ([C, N, ...]
     in one ``info``): DefaultStrategy's statistics from it are those of the cameras added one view at a
