@@ -8,7 +8,9 @@ has one process and nothing here communicates.
 How a step is shared (gsplat's simple_trainer with ``world_size``):
 
 - each process owns a shard of the Gaussians (the initial points ``rank::world_size``) with its Adam state
-  and its strategy state; the shards change size independently as the strategy grows and prunes them;
+  and its strategy state; the shards change size independently as the strategy grows and prunes them
+  (every process holds every shard's size: gathered at setup and after each refinement step, the only
+  steps that change them; :meth:`jsgs.train.strategy.Densifier.may_change_count`);
 - each step draws ``world_size`` views from the shared sampler, rank r renders the r-th, from every
   Gaussian, and computes that view's loss with the method's per-view terms (JSGS's JO, DS and Gaussian
   Controller) on that process;

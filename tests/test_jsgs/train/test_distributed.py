@@ -483,6 +483,20 @@ def test_ordinary_steps_gather_no_shard_sizes(scene: Path, tmp_path: Path) -> No
     mp.spawn(_collectives_worker, args=(port, str(tmp_path)), nprocs=2, join=True)
 
 
+def test_held_shard_sizes_are_checked_against_the_shard() -> None:
+    """gather_gaussians with the sizes a process holds: its own entry must be its shard's row count (a size
+    held past a change of the shard is an internal error, never a silently misaligned exchange)."""
+    import torch
+
+    from jsgs.train import distributed as dd
+
+    shard = torch.nn.ParameterDict({"means": torch.nn.Parameter(torch.zeros(2, 3))})
+    ex = dd.gather_gaussians(dd.World(), shard, ["means"], [2])
+    assert ex.sizes == [2] and ex.rows == (0, 2)
+    with pytest.raises(RuntimeError, match="shard sizes"):
+        dd.gather_gaussians(dd.World(), shard, ["means"], [3])
+
+
 def test_gsplat_exchange_statistics_add_camera_by_camera() -> None:
     """gsplat's exchange hands the owner its Gaussians' projection for every process's camera ([C, N, ...]
     in one ``info``): DefaultStrategy's statistics from it are those of the cameras added one view at a
