@@ -278,8 +278,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     command = shlex.join(["python", "benchmarks/view_damage.py", *(sys.argv[1:] if argv is None else argv)])
     try:
-        from jsgs.base.io import write_json_atomic
-        from jsgs.schemas import validate
+        from jsgs.base.io import write_json_checked
 
         doc = analyse(
             args.scenes,
@@ -293,8 +292,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         print(markdown(doc))
         if args.out:
-            validate(doc, "view_damage", str(args.out))
-            write_json_atomic(args.out, doc)
+            write_json_checked(args.out, doc, "view_damage")
     except OSError as e:
         print(f"error: {e.filename or ''}: {e.strerror or e}", file=sys.stderr)
         return 1

@@ -312,6 +312,15 @@ def write_json_atomic(final: str | os.PathLike[str], doc: Any, indent: int | Non
     write_bytes_atomic(final, (json.dumps(doc, indent=indent) + "\n").encode())
 
 
+def write_json_checked(final: str | os.PathLike[str], doc: Any, schema: str) -> None:
+    """Check ``doc`` against ``jsgs/schemas/<schema>.schema.json`` (JsgsError, one line naming ``final``, and
+    nothing written when it is not valid), then :func:`write_json_atomic` it to ``final``."""
+    from jsgs.schemas import validate
+
+    validate(doc, schema, os.fspath(final))
+    write_json_atomic(final, doc)
+
+
 def write_with_atomic(final: str | os.PathLike[str], writer: Callable[[Path], None]) -> None:
     """Call ``writer(tmp_path)`` (e.g. ``img.save``) and move the result onto ``final``."""
     with atomic_path(final) as tmp:

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from jsgs.base.errors import JsgsError
-from jsgs.base.io import write_json_atomic
+from jsgs.base.io import write_json_atomic, write_json_checked
 from jsgs.bench import markdown as report_mod
 from jsgs.bench import results as results_mod
 from jsgs.bench import workers as pool_mod
@@ -202,10 +202,7 @@ def _resolve(
 
 
 def write_bench_json(doc: dict[str, Any], path: Path) -> None:
-    from jsgs.schemas import validate
-
-    validate(doc, "bench", str(path))
-    write_json_atomic(path, doc)
+    write_json_checked(path, doc, "bench")
 
 
 def _bench(settings: BenchSettings) -> dict[str, Any]:

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
-from jsgs.base.io import write_json_atomic
+from jsgs.base.io import write_json_checked
 
 if TYPE_CHECKING:
     import torch
@@ -244,10 +244,7 @@ class MetricsWriter(Callback):
     """Writes ``metrics.json`` (validated against its schema) at every checkpoint point and at the end."""
 
     def _write(self, trainer: TrainerProtocol, doc: dict[str, Any]) -> None:
-        from jsgs.schemas import validate
-
-        validate(doc, "metrics", str(trainer.paths.metrics))
-        write_json_atomic(trainer.paths.metrics, doc)
+        write_json_checked(trainer.paths.metrics, doc, "metrics")
 
     def on_checkpoint(self, trainer: TrainerProtocol, step: int) -> None:
         self._write(trainer, trainer.metrics_doc(trainer.status_at(step), step))

@@ -211,8 +211,7 @@ def main() -> None:
             )
     if args.out:
         import jsgs
-        from jsgs.base.io import write_json_atomic
-        from jsgs.schemas import validate
+        from jsgs.base.io import write_json_checked
 
         doc = {
             "format": "jsgs-overhead",
@@ -225,8 +224,7 @@ def main() -> None:
             "torch": torch.__version__,
             "results": results,
         }
-        validate(doc, "overhead", str(args.out))
-        write_json_atomic(args.out, doc)
+        write_json_checked(args.out, doc, "overhead")
 
 
 if __name__ == "__main__":

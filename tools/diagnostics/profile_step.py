@@ -108,7 +108,7 @@ from bench_train_overhead import build_scene, variant_config  # noqa: E402
 import jsgs  # noqa: E402
 from jsgs.apps.opcount import FREE_OPS  # noqa: E402
 from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
-from jsgs.base.io import write_json_atomic  # noqa: E402
+from jsgs.base.io import write_json_checked  # noqa: E402
 from jsgs.bench.stats import median_interval  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
 from jsgs.train.config import PRESETS, TrainConfig, load_config_file  # noqa: E402
@@ -1035,10 +1035,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print_pairs(doc)
     print_python(doc)
     if args.out:
-        from jsgs.schemas import validate
-
-        validate(doc, "profile_step", str(args.out))
-        write_json_atomic(args.out, doc)
+        write_json_checked(args.out, doc, "profile_step")
     return 0
 
 

@@ -71,7 +71,7 @@ from op_sources import PARTS as OP_PARTS  # noqa: E402
 
 import jsgs  # noqa: E402
 from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
-from jsgs.base.io import write_json_atomic  # noqa: E402
+from jsgs.base.io import write_json_checked  # noqa: E402
 from jsgs.method.graphed import GraphedImageTerms, _Recording  # noqa: E402
 from jsgs.method.image_terms import terms_with_gradient  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
@@ -555,10 +555,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     doc = run(args)
     print_report(doc)
     if args.out:
-        from jsgs.schemas import validate
-
-        validate(doc, "step_memory", str(args.out))
-        write_json_atomic(args.out, doc)
+        write_json_checked(args.out, doc, "step_memory")
     return 0
 
 
