@@ -157,3 +157,29 @@ def edit_manifest(path: Path, fn: Any) -> None:
     doc = json.loads(path.read_text())
     fn(doc)
     path.write_text(json.dumps(doc))
+
+
+def short_jsgs_runs(
+    tmp_path: Path, variants: dict[str, dict[str, Any]], iterations: int = 30
+) -> dict[str, tuple[dict[str, Any], dict[str, torch.Tensor]]]:
+    """Train the ``jsgs`` method for ``iterations`` steps on the synthetic JPEG scene once per variant
+    (``λ_fro = 1`` plus the variant's method options, no densification, so the Gaussians stay matched one
+    to one across runs), each into ``tmp_path/<name>``; returns name -> (the final eval, the final
+    checkpoint's splats)."""
+    from jsgs.train import checkpoint as ckpt
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.trainer import train
+
+    manifest = make_scene(tmp_path / "scene", jpeg_train=True, n_views=9, n_gaussians=60)
+    runs = {}
+    for name, opts in variants.items():
+        c = TrainConfig.from_preset(
+            "paper", method="jsgs", iterations=iterations, eval_at=[iterations], device="cpu"
+        )
+        c.method_options = {"lambda_fro": 1.0, **opts}
+        c.strategy.refine_start_iter = 10**6
+        c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
+        ev = train(manifest, tmp_path / name, c, progress=False)["evals"][-1]
+        checkpoint = tmp_path / name / "checkpoints" / f"step_{iterations:06d}.pt"
+        runs[name] = (ev, ckpt.load_checkpoint(checkpoint)["splats"])
+    return runs

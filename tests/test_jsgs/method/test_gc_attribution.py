@@ -206,22 +206,10 @@ def test_a_short_run_keeps_most_of_the_controllers_effect(tmp_path: Path) -> Non
     λ_fro = 1 so that the controller's effect is well above rounding: with the footprint the opacities end
     within 0.1 and the scales within 0.5 of the distance from the probe's that the run without the controller
     ends at (measured 0.03 and 0.33), and the run's config.json records the attribution."""
-    from _train_scene import make_scene
+    from _train_scene import short_jsgs_runs
 
-    from jsgs.train import checkpoint as ckpt
-    from jsgs.train.trainer import train
-
-    manifest = make_scene(tmp_path / "scene", jpeg_train=True, n_views=9, n_gaussians=60)
-    runs = {}
     variants = {"probe": {}, "footprint": {"gc_attribution": "footprint"}, "off": {"gc": False}}
-    for name, opts in variants.items():
-        c = TrainConfig.from_preset("paper", method="jsgs", iterations=30, eval_at=[30], device="cpu")
-        c.method_options = {"lambda_fro": 1.0, **opts}
-        c.strategy.refine_start_iter = 10**6
-        c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
-        ev = train(manifest, tmp_path / name, c, progress=False)["evals"][-1]
-        splats = ckpt.load_checkpoint(tmp_path / name / "checkpoints" / "step_000030.pt")["splats"]
-        runs[name] = (ev, splats)
+    runs = short_jsgs_runs(tmp_path, variants)
     exact, cheap, off = (runs[n][1] for n in ("probe", "footprint", "off"))
     for n, bound in (("opacities", 0.1), ("scales", 0.5)):
         d_off = (off[n] - exact[n]).norm().item()

@@ -88,22 +88,9 @@ def test_a_short_run_keeps_most_of_the_controllers_effect(tmp_path: Path) -> Non
     λ_fro = 1 so that the controller's effect is well above rounding: with k = 2 the opacities and scales
     end nearer the exact controller's than half the distance the run without the controller ends at, and
     the controller damps about as many Gaussians per controller step."""
-    from _train_scene import make_scene
+    from _train_scene import short_jsgs_runs
 
-    from jsgs.train import checkpoint as ckpt
-    from jsgs.train.config import TrainConfig
-    from jsgs.train.trainer import train
-
-    manifest = make_scene(tmp_path / "scene", jpeg_train=True, n_views=9, n_gaussians=60)
-    runs = {}
-    for name, opts in {"exact": {}, "every2": {"gc_every": 2}, "off": {"gc": False}}.items():
-        c = TrainConfig.from_preset("paper", method="jsgs", iterations=30, eval_at=[30], device="cpu")
-        c.method_options = {"lambda_fro": 1.0, **opts}
-        c.strategy.refine_start_iter = 10**6
-        c.eval.fps_passes, c.eval.fps_warmup, c.eval.save_renders = 1, 0, False
-        ev = train(manifest, tmp_path / name, c, progress=False)["evals"][-1]
-        splats = ckpt.load_checkpoint(tmp_path / name / "checkpoints" / "step_000030.pt")["splats"]
-        runs[name] = (ev, splats)
+    runs = short_jsgs_runs(tmp_path, {"exact": {}, "every2": {"gc_every": 2}, "off": {"gc": False}})
     exact, cheap, off = (runs[n][1] for n in ("exact", "every2", "off"))
     for n in ("opacities", "scales"):
         d_off = (off[n] - exact[n]).norm().item()
