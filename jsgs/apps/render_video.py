@@ -128,7 +128,11 @@ def render_run(
     model = load_run_model(run, device)  # refuses a model that would draw nothing
     views = sorted(model.scene.train_views, key=lambda v: v.name)
     if not views:
-        raise JsgsError(f"{run}: its manifest has no training views")
+        raise JsgsError(
+            f"{run}: its manifest has no training views "
+            f"(was {model.scene.manifest_path} edited after training? render takes "
+            "its cameras and image size from them: give at least one view split 'train' again)"
+        )
     v0 = views[0]
     width, height = size or (v0.width, v0.height)
     check_size(width, height, f"{run}: the training images' size (give --size)")
