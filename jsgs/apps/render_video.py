@@ -126,13 +126,7 @@ def render_run(
         check_frames_folder(out)
 
     model = load_run_model(run, device)  # refuses a model that would draw nothing
-    views = sorted(model.scene.train_views, key=lambda v: v.name)
-    if not views:
-        raise JsgsError(
-            f"{run}: its manifest has no training views "
-            f"(was {model.scene.manifest_path} edited after training? render takes "
-            "its cameras and image size from them: give at least one view split 'train' again)"
-        )
+    views = sorted(model.scene.train_views, key=lambda v: v.name)  # at least one: the scene's check
     v0 = views[0]
     width, height = size or (v0.width, v0.height)
     check_size(width, height, f"{run}: the training images' size (give --size)")

@@ -52,7 +52,9 @@ class RunModel:
 def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
     """Read ``RUN/config.json`` and ``RUN/point_cloud.ply`` and the run's manifest (its cameras).
 
-    JsgsError (one line) when RUN is not a finished run or its manifest has moved."""
+    JsgsError (one line) when RUN is not a finished run, its manifest has moved or its scene cannot be read
+    (saying so when the manifest changed since training: its sha256 differs from ``config.json``'s); the
+    scene has at least one training view (:func:`jsgs.train.data.load_training_scene` refuses one without)."""
     from jsgs.base.ply import load_ply
     from jsgs.train.config import read_run_config
     from jsgs.train.data import load_training_scene
@@ -72,7 +74,10 @@ def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
     manifest = recorded.manifest
     if not manifest.is_file():
         raise JsgsError(f"{run}: its manifest {manifest} is not there any more (the cameras come from it)")
-    scene = load_training_scene(manifest, cfg)
+    try:
+        scene = load_training_scene(manifest, cfg)
+    except JsgsError as e:
+        raise _changed_since_training(manifest, recorded.manifest_sha256, run, e) from None
     dev = resolve_device(device)
     a = load_ply(ply)
     state = {
@@ -81,6 +86,23 @@ def load_run_model(run: str | Path, device: str = "auto") -> RunModel:
     }  # fmt: skip
     splats = splats_from_state({k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in state.items()}, dev)
     return RunModel(run, splats, cfg, scene, dev, resolve_backend(cfg, dev))
+
+
+def _changed_since_training(manifest: Path, recorded_sha256: str, run: Path, error: JsgsError) -> JsgsError:
+    """``error`` (the scene could not be read) as is when ``manifest`` is the one ``run`` was trained on, else
+    one line saying it changed since, with the original reason."""
+    import hashlib
+
+    try:
+        sha = hashlib.sha256(manifest.read_bytes()).hexdigest()
+    except OSError:
+        return error
+    if sha == recorded_sha256:
+        return error
+    reason = str(error).removeprefix(f"{manifest}: ")
+    return JsgsError(
+        f"{manifest}: changed since {run} was trained (sha256 differs from config.json's); {reason}"
+    )
 
 
 def image_size(aspect: float, max_size: int) -> tuple[int, int]:

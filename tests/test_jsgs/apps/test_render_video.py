@@ -160,41 +160,40 @@ def test_render_errors_are_one_line(run: Path, tmp_path: Path) -> None:
         assert r.exit_code == 1 and needle in r.output and r.output.count("\n") == 1, r.output
 
 
+@pytest.mark.parametrize("recorded", ["trained", "edited"])
 def test_a_manifest_edited_to_have_no_training_views_is_one_line(
-    run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    run: Path, tmp_path: Path, recorded: str
 ) -> None:
-    """Only an edit after training leaves a run's manifest without training views. Reading the run refuses
-    such a manifest (the scene's own check, naming it); render's own guard, reached with a scene that has
-    none, says that the manifest was edited and what to do, naming the run and its manifest."""
-    import dataclasses
+    """Only an edit after training leaves a run's manifest without training views; reading the run refuses
+    it (the scene's own check, naming the manifest). When the manifest's sha256 is no longer the one
+    config.json recorded, the line says it changed since training and keeps that reason; when config.json
+    records the edited manifest's sha256, the scene's line is unchanged."""
+    import hashlib
 
-    import jsgs.apps.viewer
-    from jsgs.apps.render_video import render_run
-    from jsgs.base.errors import JsgsError
     from jsgs.cli import main
 
     config = json.loads((run / "config.json").read_text())
     scene = shutil.copytree(Path(config["manifest"]["path"]).parent, tmp_path / "scene")
     copy = shutil.copytree(run, tmp_path / "run")
-    config["manifest"]["path"] = str(scene / "manifest.json")
+    manifest = scene / "manifest.json"
+    config["manifest"]["path"] = str(manifest)
+    edit_manifest(manifest, lambda d: [v.update(split="test") for v in d["views"]])
+    if recorded == "edited":
+        config["manifest"]["sha256"] = hashlib.sha256(manifest.read_bytes()).hexdigest()
+    else:
+        assert config["manifest"]["sha256"] != hashlib.sha256(manifest.read_bytes()).hexdigest()
     (copy / "config.json").write_text(json.dumps(config))
-    edit_manifest(scene / "manifest.json", lambda d: [v.update(split="test") for v in d["views"]])
     r = CliRunner().invoke(main, ["render", str(copy), "--out", str(tmp_path / "x.mp4"), "--device", "cpu"])
     assert r.exit_code == 1 and r.output.count("\n") == 1, r.output
-    assert r.output.startswith(f"error: {scene / 'manifest.json'}: no training views: "), r.output
+    reason = "no training views: "
+    if recorded == "trained":
+        prefix = f"error: {manifest}: changed since {copy} was trained (sha256 differs from config.json's); "
+        assert r.output.startswith(prefix + reason), r.output
+    else:
+        assert r.output.startswith(f"error: {manifest}: {reason}"), r.output
+        assert "changed since" not in r.output, r.output
+    assert "jsgs train needs at least one" in r.output, r.output
     assert not (tmp_path / "x.mp4").exists()
-
-    model = jsgs.apps.viewer.load_run_model(run, "cpu")
-    views = [dataclasses.replace(v, split="test") for v in model.scene.views]
-    model = dataclasses.replace(model, scene=dataclasses.replace(model.scene, views=views))
-    monkeypatch.setattr(jsgs.apps.viewer, "load_run_model", lambda *a, **k: model)
-    with pytest.raises(JsgsError) as e:
-        render_run(run, tmp_path / "y.mp4", device="cpu", progress=False)
-    assert str(e.value) == (
-        f"{run}: its manifest has no training views (was {model.scene.manifest_path} edited after training? "
-        "render takes its cameras and image size from them: give at least one view split 'train' again)"
-    )
-    assert not (tmp_path / "y.mp4").exists()
 
 
 def _siblings(folder: Path) -> list[str]:
