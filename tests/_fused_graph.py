@@ -1,8 +1,10 @@
-"""The CUDA-graph check shared by the fused Triton kernels' GPU tests (``tests/test_jsgs/kernels/
-test_triton_jo.py`` and ``test_triton_color.py``): JO → L_obs → DS and the gradient of their weighted sum,
-recorded as one graph with the kernels under test and replayed for a second view, against the same kernels
-run eagerly (the replay computes what they compute) and against the reference kernels run eagerly (within
-float32 rounding). Prints the largest differences."""
+"""What the fused Triton kernels' tests (``tests/test_jsgs/kernels/test_triton_jo.py`` and
+``test_triton_color.py``) share: JO's value and gradient on one random batch under several kernel settings
+(:func:`observe_with_gradients`), and the CUDA-graph check of their GPU tests (:func:`check_graph_replay`):
+JO → L_obs → DS and the gradient of their weighted sum, recorded as one graph with the kernels under test
+and replayed for a second view, against the same kernels run eagerly (the replay computes what they
+compute) and against the reference kernels run eagerly (within float32 rounding). Prints the largest
+differences."""
 
 from __future__ import annotations
 
@@ -16,6 +18,28 @@ SETTINGS: dict[str, Any] = dict(
     eps_block=1e-6,
 )  # fmt: skip
 WEIGHTS = (0.2, 0.02, 0.03)
+
+
+def observe_with_gradients(
+    seed: int, height: int, width: int, sampling: str, mode: str, variants: list[dict[str, str]]
+) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """``jpeg_observe`` of one random float64 batch of two views (values slightly outside [0, 1], each view
+    with its own tables) and the gradient of a random weighting of it, once per ``variants`` entry (its
+    ``kernel`` / ``color_kernel`` keywords): ``(observation, gradient)`` each."""
+    from jsgs.jpeg.observe import jpeg_observe
+
+    g = torch.Generator().manual_seed(seed)
+    rgb = torch.rand(2, 3, height, width, generator=g, dtype=torch.float64) * 1.1 - 0.05
+    w = torch.randn(2, 3, height, width, generator=g, dtype=torch.float64)
+    luma = torch.randint(1, 80, (2, 8, 8), generator=g).double()
+    chroma = torch.randint(1, 120, (2, 8, 8), generator=g).double()
+    out = []
+    for kernels in variants:
+        x = rgb.clone().requires_grad_()
+        o = jpeg_observe(x, luma, chroma, sampling, mode, **kernels)  # type: ignore[arg-type]
+        (grad,) = torch.autograd.grad((o * w).sum(), x)
+        out.append((o.detach(), grad))
+    return out
 
 
 def check_graph_replay(kernels: dict[str, str], reference: dict[str, str], label: str) -> None:

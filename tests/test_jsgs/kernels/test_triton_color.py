@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import pytest
 import torch
-from _fused_graph import check_graph_replay
+from _fused_graph import check_graph_replay, observe_with_gradients
 
 from jsgs.base.errors import JsgsError
 from jsgs.jpeg.color import kernel_coefficients, rgb_to_ycbcr, ycbcr_to_rgb
@@ -137,17 +137,8 @@ def test_gradcheck_float64(name: str) -> None:
 @pytest.mark.parametrize(("height", "width"), [(37, 53), (16, 32)])
 def test_jpeg_observe_with_the_colour_kernel(mode: str, height: int, width: int) -> None:
     # JO with the fused coding pass, the colour kernel on and off: equal up to float rounding
-    g = torch.Generator().manual_seed(4)
-    rgb = torch.rand(2, 3, height, width, generator=g, dtype=torch.float64) * 1.1 - 0.05
-    w = torch.randn(2, 3, height, width, generator=g, dtype=torch.float64)
-    luma = torch.randint(1, 80, (2, 8, 8), generator=g).double()
-    chroma = torch.randint(1, 120, (2, 8, 8), generator=g).double()
-    out = []
-    for color in ("triton", "torch"):
-        x = rgb.clone().requires_grad_()
-        o = jpeg_observe(x, luma, chroma, "4:2:0", mode, kernel="triton", color_kernel=color)
-        (grad,) = torch.autograd.grad((o * w).sum(), x)
-        out.append((o.detach(), grad))
+    variants = [{"kernel": "triton", "color_kernel": color} for color in ("triton", "torch")]
+    out = observe_with_gradients(4, height, width, "4:2:0", mode, variants)
     torch.testing.assert_close(out[0][0], out[1][0], rtol=0, atol=1e-11)
     torch.testing.assert_close(out[0][1], out[1][1], rtol=0, atol=1e-11)
     assert float(out[1][1].abs().max()) > 0.01

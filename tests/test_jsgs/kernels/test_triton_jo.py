@@ -33,7 +33,7 @@ from typing import Any
 
 import pytest
 import torch
-from _fused_graph import check_graph_replay
+from _fused_graph import check_graph_replay, observe_with_gradients
 
 from jsgs.base.errors import JsgsError
 from jsgs.jpeg.dct import blockify, dct_matrix, unblockify
@@ -265,17 +265,8 @@ def test_gradcheck_float64() -> None:
 @pytest.mark.parametrize(("height", "width"), [(37, 53), (13, 9), (16, 32)])
 def test_jpeg_observe_triton_matches_torch(mode: str, sampling: str, height: int, width: int) -> None:
     # the padding and cropping around the kernels: odd sizes, every sampling, two views with own tables
-    g = torch.Generator().manual_seed(7)
-    rgb = torch.rand(2, 3, height, width, generator=g, dtype=torch.float64) * 1.1 - 0.05
-    w = torch.randn(2, 3, height, width, generator=g, dtype=torch.float64)
-    luma = torch.randint(1, 80, (2, 8, 8), generator=g).double()
-    chroma = torch.randint(1, 120, (2, 8, 8), generator=g).double()
-    out = []
-    for kernel in ("triton", "torch"):
-        x = rgb.clone().requires_grad_()
-        o = jpeg_observe(x, luma, chroma, sampling, mode, kernel=kernel)
-        (grad,) = torch.autograd.grad((o * w).sum(), x)
-        out.append((o.detach(), grad))
+    variants = [{"kernel": "triton"}, {"kernel": "torch"}]
+    out = observe_with_gradients(7, height, width, sampling, mode, variants)
     torch.testing.assert_close(out[0][0], out[1][0], rtol=0, atol=1e-11)
     torch.testing.assert_close(out[0][1], out[1][1], rtol=0, atol=1e-11)
 
