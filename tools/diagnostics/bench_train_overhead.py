@@ -58,6 +58,25 @@ def build_scene(root: Path, size: tuple[int, int], views: int) -> Path:
     return root / "data" / "manifest.json"
 
 
+def report_header(
+    fmt: str, version: int, args: argparse.Namespace, manifest: Path, device: str
+) -> dict[str, Any]:
+    """The first keys of a diagnostics tool's JSON report: its format and version, jsgs's version, the
+    command's settings (paths as text), what it measured on (``manifest``, or without ``args.manifest``
+    the synthetic scene of ``args.size`` and ``args.views`` built there), the device and torch's version."""
+    import jsgs
+
+    return {
+        "format": fmt,
+        "format_version": version,
+        "version": jsgs.__version__,
+        "settings": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
+        "manifest": f"synthetic {args.size}, {args.views} views" if args.manifest is None else str(manifest),
+        "device": device,
+        "torch": torch.__version__,
+    }
+
+
 def variant_config(
     base: TrainConfig, name: str, options: dict[str, Any], iterations: int, device: str
 ) -> TrainConfig:

@@ -103,9 +103,8 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_train_overhead import build_scene, variant_config  # noqa: E402
+from bench_train_overhead import build_scene, report_header, variant_config  # noqa: E402
 
-import jsgs  # noqa: E402
 from jsgs.apps.opcount import FREE_OPS  # noqa: E402
 from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
 from jsgs.base.io import write_json_checked  # noqa: E402
@@ -1010,21 +1009,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for m in methods[1:]:
         diff = kernel_difference(stats[m].kernels, stats[baseline].kernels, args.steps, args.top)
         differences[m] = {"baseline": baseline, **diff}
-    settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
-    return {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "version": jsgs.__version__,
-        "settings": settings,
-        "manifest": f"synthetic {args.size}, {args.views} views" if args.manifest is None else str(manifest),
-        "device": str(device),
-        "torch": torch.__version__,
-        "warmup": args.warmup,
-        "settle": args.settle,
-        "steps": args.steps,
-        "results": results,
-        "differences": differences,
-    } | ({"pairs": pairs} if pairs is not None else {})
+    return (
+        report_header(FORMAT, FORMAT_VERSION, args, manifest, str(device))
+        | {
+            "warmup": args.warmup,
+            "settle": args.settle,
+            "steps": args.steps,
+            "results": results,
+            "differences": differences,
+        }
+        | ({"pairs": pairs} if pairs is not None else {})
+    )
 
 
 @reports_user_errors

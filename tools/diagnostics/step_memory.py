@@ -66,10 +66,9 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_train_overhead import build_scene, variant_config  # noqa: E402
+from bench_train_overhead import build_scene, report_header, variant_config  # noqa: E402
 from op_sources import PARTS as OP_PARTS  # noqa: E402
 
-import jsgs  # noqa: E402
 from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
 from jsgs.base.io import write_json_checked  # noqa: E402
 from jsgs.method.graphed import GraphedImageTerms, _Recording  # noqa: E402
@@ -456,15 +455,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         results = {m: measure(manifest, work, m, args) for m in args.methods.split(",")}
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    settings = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
-    return {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "version": jsgs.__version__,
-        "settings": settings,
-        "manifest": f"synthetic {args.size}, {args.views} views" if args.manifest is None else str(manifest),
-        "device": "cpu",
-        "torch": torch.__version__,
+    return report_header(FORMAT, FORMAT_VERSION, args, manifest, "cpu") | {
         "step": args.warmup,
         "results": results,
     }
