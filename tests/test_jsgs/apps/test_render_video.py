@@ -295,6 +295,22 @@ def test_frames_into_an_empty_folder_or_a_link_to_one(run: Path, tmp_path: Path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "link", "target"]
 
 
+def _killed_inside(writer: str, write: str, out: Path) -> None:
+    """A process that enters ``jsgs.base.io``'s ``writer`` (atomic_folder or atomic_path) for ``out`` as
+    jsgs render, runs ``write`` on what it yields (``work``) and kills itself with SIGKILL inside it."""
+    import signal
+    import subprocess
+    import sys
+
+    code = (
+        f"import os, signal, sys\nfrom jsgs.base.io import {writer}\n"
+        f"with {writer}(sys.argv[1], 'jsgs render') as work:\n"
+        f"    {write}\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    assert subprocess.run([sys.executable, "-c", code, str(out)]).returncode == -signal.SIGKILL
+
+
 def _plant(folder: Path, marker: dict[str, object] | None, content: str = "frame") -> Path:
     from jsgs.base.io import PART_MARKER
 
@@ -356,21 +372,12 @@ def test_leftovers_of_a_killed_render_are_removed_only_when_ours_and_gone(tmp_pa
 def test_render_removes_what_a_killed_render_left(run: Path, tmp_path: Path) -> None:
     """A process killed (SIGKILL) inside atomic_folder leaves its marked ``.part`` folder; the next jsgs
     render into the same folder removes it with a note and warns about an unmarked one, which it keeps."""
-    import signal
-    import subprocess
-    import sys
 
     from jsgs.base.io import PART_MARKER
     from jsgs.cli import main
 
     out = tmp_path / "frames"
-    code = (
-        "import os, signal, sys\nfrom jsgs.base.io import atomic_folder\n"
-        "with atomic_folder(sys.argv[1], 'jsgs render') as work:\n"
-        "    (work / 'frame_00000.png').write_bytes(b'half')\n"
-        "    os.kill(os.getpid(), signal.SIGKILL)\n"
-    )
-    assert subprocess.run([sys.executable, "-c", code, str(out)]).returncode == -signal.SIGKILL
+    _killed_inside("atomic_folder", "(work / 'frame_00000.png').write_bytes(b'half')", out)
     (killed,) = _siblings(out)
     assert json.loads((tmp_path / killed / PART_MARKER).read_text())["what"] == "jsgs render"
     stranger = _plant(tmp_path / ".frames.zzzz0000.part", None, "someone's")
@@ -444,9 +451,6 @@ def test_video_leftovers_are_removed_only_when_ours_and_gone(tmp_path: Path) -> 
 def test_render_removes_what_a_killed_video_render_left(run: Path, tmp_path: Path) -> None:
     """A process killed (SIGKILL) while writing a video leaves the temporary video and its marker; the next
     jsgs render to the same file removes both with a note and warns about an unmarked one, which it keeps."""
-    import signal
-    import subprocess
-    import sys
 
     import imageio.v2 as iio
 
@@ -454,13 +458,7 @@ def test_render_removes_what_a_killed_video_render_left(run: Path, tmp_path: Pat
     from jsgs.cli import main
 
     out = tmp_path / "out.mp4"
-    code = (
-        "import os, signal, sys\nfrom jsgs.base.io import atomic_path\n"
-        "with atomic_path(sys.argv[1], 'jsgs render') as tmp:\n"
-        "    tmp.write_bytes(b'half')\n"
-        "    os.kill(os.getpid(), signal.SIGKILL)\n"
-    )
-    assert subprocess.run([sys.executable, "-c", code, str(out)]).returncode == -signal.SIGKILL
+    _killed_inside("atomic_path", "work.write_bytes(b'half')", out)
     marker, video = _siblings(out)  # ".out.mp4.X.part.jsgs-part.json" sorts first
     assert video.endswith(".part.mp4") and marker == video[: -len(".mp4")] + PART_MARKER
     assert json.loads((tmp_path / marker).read_text())["what"] == "jsgs render"
