@@ -183,7 +183,7 @@ class StrategyConfig:
     cap_max_auto: bool = _f(
         False,
         "mcmc: choose cap_max from the scene when the run starts (jsgs.train.budget: 24 Gaussians per SfM "
-        "point, at most one per 10 training pixels; --cap-max auto); cap_max then holds the choice and "
+        "point, at most one per 30 training pixels; --cap-max auto); cap_max then holds the choice and "
         "config.json derived.budget its inputs.",
     )
     noise_lr: float = _f(
