@@ -48,8 +48,8 @@ import numpy as np
 from jsgs import __version__
 from jsgs.base.errors import JsgsError
 from jsgs.base.io import write_bytes_atomic
+from jsgs.base.schema import validate as schema_validate
 from jsgs.jpeg.tables import CHROMA_SAMPLINGS
-from jsgs.schemas import validate as schema_validate
 
 from .scene import (
     LOSSLESS_FORMATS,

@@ -49,7 +49,7 @@ def _reduced_png(path: Path, factor: int) -> tuple[bytes, tuple[int, int]]:
 def downscale(scene_dir: str | Path, out: str | Path, factor: int = 2, force: bool = False,
               command: str | None = None) -> dict[str, Any]:  # fmt: skip
     """Write the copy of ``scene_dir`` described in the module docstring into ``out``; its record."""
-    from jsgs.schemas import validate as schema_validate
+    from jsgs.base.schema import validate as schema_validate
 
     from . import manifest_writer
     from .scene import write_model_atomic

@@ -27,7 +27,7 @@ from jsgs import __version__
 from jsgs.base.errors import JsgsError
 from jsgs.base.io import write_bytes_atomic
 from jsgs.base.limits import read_json
-from jsgs.schemas import validate as schema_validate
+from jsgs.base.schema import validate as schema_validate
 
 from .scene import JPEG_FORMATS, ColmapScene, ColmapView, image_stem, view_camera
 

@@ -626,7 +626,7 @@ def marker_record(tool: str) -> dict[str, Any]:
     import datetime
 
     import jsgs
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     doc = {
         "format": MARKER_FORMAT,

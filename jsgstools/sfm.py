@@ -76,7 +76,7 @@ def sfm(
 
     import jsgs
     from jsgs.base.io import OutputLock, write_json_atomic
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     say = say or (lambda s: print(s, file=sys.stderr, flush=True))
     photos_dir, out = Path(photos_dir), Path(out)

@@ -170,6 +170,16 @@ def test_the_generic_trainer_does_not_import_the_method() -> None:
     assert not [m for m in reach if m.startswith("jsgs.method")]
 
 
+def test_the_bottom_packages_import_only_themselves() -> None:
+    """``jsgs.base`` imports nothing else of the project but the top package's version, and ``jsgs.schemas``
+    (the schema files, data only) imports nothing at all: no package-level arrow inside the bottom layer."""
+    graph = import_graph()
+    base_out = sorted(f"{m} -> {t}" for m in graph if m.startswith("jsgs.base") for t in graph[m]
+                      if t != "jsgs" and not t.startswith("jsgs.base"))
+    assert base_out == []
+    assert not [t for m in graph if m.startswith("jsgs.schemas") for t in graph[m]]
+
+
 def test_the_finder_sees_a_cycle() -> None:
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": set()}) is None

@@ -183,7 +183,7 @@ def read_path(
     """A camera path JSON written by ``jsgs render`` (taken as it is), or ``viewer_cameras.json`` (its cameras
     are key frames: ``frames`` frames interpolated through them at the run's intrinsics). ``max_cameras``:
     a file holding more is refused before it is validated."""
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     if not path.exists():
         raise JsgsError(f"--path {path}: no such file (or give interpolate, spiral, ellipse, test)")

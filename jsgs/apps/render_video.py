@@ -100,7 +100,7 @@ def render_run(
     from jsgs.apps.viewer import load_run_model, render_rgb
     from jsgs.base.io import clear_file_leftovers, clear_folder_leftovers
     from jsgs.base.run_files import refuse_run_files
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
     from jsgs.train.data import load_image
 
     out = Path(out)

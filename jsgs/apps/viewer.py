@@ -167,7 +167,7 @@ def save_camera(model: RunModel, position: np.ndarray, wxyz: np.ndarray, fov: fl
     import jsgs
     from jsgs.base.io import write_json_atomic
     from jsgs.base.limits import read_json
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     position, wxyz, fov, aspect = check_camera(position, wxyz, fov, aspect)
     path = model.run / "viewer_cameras.json"

@@ -315,7 +315,7 @@ def write_json_atomic(final: str | os.PathLike[str], doc: Any, indent: int | Non
 def write_json_checked(final: str | os.PathLike[str], doc: Any, schema: str) -> None:
     """Check ``doc`` against ``jsgs/schemas/<schema>.schema.json`` (JsgsError, one line naming ``final``, and
     nothing written when it is not valid), then :func:`write_json_atomic` it to ``final``."""
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     validate(doc, schema, os.fspath(final))
     write_json_atomic(final, doc)
@@ -419,7 +419,7 @@ def load_json_record(
     link (``link`` says so), missing, not a regular file (a FIFO is refused at once, never waited on),
     unreadable, empty (a writer killed between creating and filling it), not JSON, or not valid."""
     from jsgs.base.errors import JsgsError
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     if os.path.islink(path):
         return f"{shown}: {link}"
@@ -456,7 +456,7 @@ def writer_record(what: str, target: str | None = None) -> dict[str, Any]:
     import socket
 
     import jsgs
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     doc: dict[str, Any] = {
         "format": WRITER_FORMAT,

@@ -180,7 +180,7 @@ def validate_document(doc: Any, where: str) -> None:
     """Raise JsgsError (one line naming ``where``) unless ``doc`` is a valid manifest: the schema, plus what a
     schema cannot say — finite numbers within the limits of :mod:`jsgs.base.limits` (coordinates, focal
     lengths, principal points), matching point counts, unique view names, rotations that are rotations."""
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     if isinstance(doc, dict) and isinstance(doc.get("points"), dict):
         pts = doc["points"]

@@ -701,7 +701,7 @@ def read_config_document(path: str | Path) -> Any:
 def config_from_document(doc: Any, path: str | Path, base: TrainConfig | None = None) -> TrainConfig:
     """The settings of a ``--config`` document read from ``path``: an earlier run's (validated against the
     schema, taken whole; :func:`is_run_config`) or partial settings over ``base`` (default: the defaults)."""
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     whole = is_run_config(doc)
     if whole:

@@ -134,7 +134,7 @@ def export_run(run: str | Path, out: str | Path, fmt: str = "ply", frame: str = 
     from jsgs.base.io import atomic_path, write_json_atomic
     from jsgs.base.ply import load_ply
     from jsgs.base.run_files import check_gaussians, refuse_run_files
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
     from jsgs.train.config import read_run_config
 
     run, out = Path(run), Path(out)

@@ -755,7 +755,7 @@ class Trainer:
             "settings": to_dict(cfg),
             "derived": derived,
         }
-        from jsgs.schemas import validate
+        from jsgs.base.schema import validate
 
         validate(run_config, "config", str(self.paths.config))
         return run_config
@@ -912,7 +912,7 @@ class Trainer:
     def _check_checkpoint_state(self, state: dict[str, Any]) -> None:
         """The checkpoint's optimizer, scheduler, strategy, generator, sampler, log and evaluation states
         against this run's fresh ones (:func:`jsgs.train.checkpoint.check_state`)."""
-        from jsgs.schemas import load_schema
+        from jsgs.base.schema import load_schema
 
         metrics = load_schema("metrics")
         ckpt.check_state(

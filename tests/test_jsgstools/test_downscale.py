@@ -34,7 +34,7 @@ def _project(cam: object, xyz: np.ndarray, image: object) -> np.ndarray:
 def test_pixels_cameras_and_record(odd_scene: Path, tmp_path: Path) -> None:
     import pycolmap
 
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     before = sorted((p.relative_to(odd_scene), p.stat().st_mtime_ns) for p in odd_scene.rglob("*"))
     out = tmp_path / "half"

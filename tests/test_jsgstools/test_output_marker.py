@@ -14,7 +14,7 @@ from click.testing import CliRunner
 
 import jsgs
 from jsgs.base.errors import JsgsError
-from jsgs.schemas import validate
+from jsgs.base.schema import validate
 from jsgstools.cli import main as tools_main
 from jsgstools.scene import MARKER, MARKER_FORMAT, MARKER_VERSION, load_marker, marker_record, read_marker
 from jsgstools.synth import synth

@@ -67,7 +67,7 @@ def jpeg_scene(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 
 
 def test_sfm_keeps_the_photos_and_registers_them(jpeg_scene: tuple[Path, Path]) -> None:
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     photos, scene = jpeg_scene
     for p in photos.iterdir():

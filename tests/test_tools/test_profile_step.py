@@ -24,7 +24,7 @@ TINY = {
 
 
 def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     cfg = tmp_path / "tiny.json"
     cfg.write_text(json.dumps(TINY))
@@ -179,7 +179,7 @@ def test_bench_graph_host_refuses_without_cuda(capsys: Any) -> None:
 
 
 def test_pairs_interleave_and_report_medians(tmp_path: Path, capsys: Any) -> None:
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     abba = [["gsplat", "jsgs"], ["jsgs", "gsplat"], ["gsplat", "jsgs"]]
     assert ps.pair_order(["gsplat", "jsgs"], 3) == abba
@@ -247,7 +247,7 @@ def test_pairs_doc_on_hand_made_numbers(capsys: Any) -> None:
     for the wall times and for both peak memory figures, and the tables printed from them."""
     import jsonschema
 
-    from jsgs.schemas import load_schema
+    from jsgs.base.schema import load_schema
 
     order = ps.pair_order(["gsplat", "jsgs"], 5)
     walls = {"gsplat": [10.0, 12.0, 11.0, 9.0, 10.0], "jsgs": [13.0, 12.0, 16.5, 9.9, 12.0]}
@@ -349,7 +349,7 @@ def test_step_window_reads_peak_memory_over_the_window(monkeypatch: Any) -> None
 def test_schema_requires_peak_memory_from_version_2() -> None:
     """Version 2 documents must carry the peak memory (null allowed: the CPU); the stored version 1 files
     (without it) still validate."""
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     root = Path(__file__).resolve().parents[2]
     old = json.loads((root / "docs/results/speed/equal_budget/flower_1500.json").read_text())
@@ -370,7 +370,7 @@ def test_schema_requires_peak_memory_from_version_2() -> None:
 def test_schema_requires_start_memory_from_version_3() -> None:
     """Version 3 documents must carry the memory at each run's start and, with pairs, the increments; version
     2 documents (peaks only) still validate."""
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     root = Path(__file__).resolve().parents[2]
     v2 = json.loads((root / "docs/results/speed/equal_budget/flower_1500.json").read_text())

@@ -57,7 +57,7 @@ def test_scale_classes() -> None:
 
 
 def test_tiny_scene_three_layouts(tmp_path: Path, capsys: Any) -> None:
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     out = tmp_path / "memory.json"
     cfg = tmp_path / "few.json"  # few Gaussians: the image terms, not the rasteriser's pairs, make the peak

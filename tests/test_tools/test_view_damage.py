@@ -86,7 +86,7 @@ def test_lower_quality_lower_psnr(synth_doc: tuple[dict[str, Any], Path]) -> Non
 
 def test_json_validates_and_markdown(synth_doc: tuple[dict[str, Any], Path]) -> None:
     from jsgs.base.errors import JsgsError
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     doc, _ = synth_doc
     validate(json.loads(json.dumps(doc)), "view_damage", "doc")
@@ -124,6 +124,6 @@ def test_real_scene_fern(tmp_path: Path) -> None:
     assert by_q[0]["psnr"] < by_q[-1]["psnr"]
     assert 20 < d["mean_psnr"] < 45
     vd_json = json.loads(json.dumps(doc))
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     validate(vd_json, "view_damage", "fern")

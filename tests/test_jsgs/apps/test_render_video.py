@@ -89,8 +89,8 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_video_frames_and_path_round_trip(run: Path, tmp_path: Path) -> None:
     import imageio.v2 as iio
 
+    from jsgs.base.schema import validate
     from jsgs.cli import main
-    from jsgs.schemas import validate
 
     video = tmp_path / "spiral.mp4"
     args = ["render", str(run), "--out", str(video), "--path", "spiral", "--frames", "6", "--fps", "12",

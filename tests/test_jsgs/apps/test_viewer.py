@@ -144,7 +144,7 @@ def _free_port() -> int:
 
 def test_server_answers_and_cameras_are_saved(finished_run: Path) -> None:
     from jsgs.apps.viewer import Viewer
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     model = load_run_model(finished_run, "cpu")
     viewer = Viewer(model, port=_free_port(), max_size=64)

@@ -138,7 +138,7 @@ def test_many_points_bypass_the_schema_validator(
     """50k points are checked by the vectorised point check, never element by element by jsonschema (which
     takes seconds for that many): the schema validator sees empty point lists, and a bad last point is still
     found."""
-    import jsgs.schemas
+    import jsgs.base.schema
 
     doc = json.loads((compressed_scene / "manifest.json").read_text())
     rng = np.random.default_rng(0)
@@ -148,13 +148,13 @@ def test_many_points_bypass_the_schema_validator(
         "rgb": rng.integers(0, 256, (50_000, 3)).tolist(),
     }
     seen: list[int] = []
-    real = jsgs.schemas.validate
+    real = jsgs.base.schema.validate
 
     def spy(d: Any, name: str, where: str) -> None:
         seen.append(len(d["points"]["xyz"]))
         real(d, name, where)
 
-    monkeypatch.setattr(jsgs.schemas, "validate", spy)
+    monkeypatch.setattr(jsgs.base.schema, "validate", spy)
     validate_document(doc, "big.json")
     assert seen == [0]
     doc["points"]["xyz"][-1][2] = float("nan")
@@ -163,7 +163,7 @@ def test_many_points_bypass_the_schema_validator(
 
 
 def test_schema_is_the_shared_one() -> None:
-    from jsgs.schemas import load_schema
+    from jsgs.base.schema import load_schema
 
     schema = load_schema("manifest")
     assert schema["properties"]["format"] == {"const": "jsgs-manifest"}

@@ -27,7 +27,7 @@ from jsgs.base.io import (
     load_writer,
     writer_record,
 )
-from jsgs.schemas import validate
+from jsgs.base.schema import validate
 
 DEAD = 2**22 + 12345  # above Linux's PID limit: no such process
 HOST = socket.gethostname()

@@ -41,7 +41,7 @@ def _bench(scene: Path, out: Path, cfg: Path) -> object:
 
 
 def test_bench_end_to_end(synth_scene: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     cfg = tmp_path / "tiny.json"
     cfg.write_text(json.dumps(TINY))
@@ -255,8 +255,8 @@ def test_prepare_derives_from_the_clean_base(
 def test_report_only_collects_what_is_there(synth_scene: Path, tmp_path: Path) -> None:
     """--report-only trains nothing: runs copied back from elsewhere are collected, the others listed as
     not run (the way results from several GPU calls are merged into one report)."""
+    from jsgs.base.schema import validate
     from jsgs.cli import main
-    from jsgs.schemas import validate
 
     cfg = tmp_path / "tiny.json"
     cfg.write_text(json.dumps(TINY))

@@ -195,9 +195,9 @@ def test_train_cap_max_needs_mcmc(tmp_path: Path, compressed_scene: Path) -> Non
 
 def test_bench_at_equal_budget_end_to_end(synth_scene: Path, tmp_path: Path) -> None:
     """Reference run first, the 0.5x budget resolved from its count, every run under that cap."""
+    from jsgs.base.schema import validate
     from jsgs.cli import main
     from jsgs.method.recipes import RECIPES
-    from jsgs.schemas import validate
 
     cfg = tmp_path / "tiny.json"
     tiny = {"init": {"type": "random", "num_points": 200, "scale": 0.3},

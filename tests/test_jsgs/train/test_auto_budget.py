@@ -85,8 +85,8 @@ def test_cap_max_auto_on_the_command_line() -> None:
 
 
 def test_a_run_records_its_budget_and_resumes_with_it(compressed_scene: Path, tmp_path: Path) -> None:
+    from jsgs.base.schema import validate
     from jsgs.cli import main
-    from jsgs.schemas import validate
 
     cfg = tmp_path / "tiny.json"
     cfg.write_text(json.dumps({"eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False}}))

@@ -100,7 +100,7 @@ def damaged(draw: st.DrawFn, doc: dict[str, Any]) -> tuple[dict[str, Any] | None
 def _read_as_resume_does(trainer: Trainer, path: Path) -> None:
     """Read and restore the checkpoint; when that succeeds, what resuming does next must work too: a step
     and a valid metrics document."""
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     cfg = trainer.cfg
     assert cfg is not None

@@ -111,8 +111,8 @@ def test_colmap_frame_renders_what_was_trained(run: Path) -> None:
 
 def test_cli_export_formats_and_record(run: Path, tmp_path: Path) -> None:
     from jsgs.base.ply import load_ply, property_names, read_ply_vertices
+    from jsgs.base.schema import validate
     from jsgs.cli import main
-    from jsgs.schemas import validate
 
     out = tmp_path / "scene.ply"
     r = CliRunner().invoke(main, ["export", str(run), "--out", str(out)])

@@ -225,7 +225,7 @@ class Recorder(LossHook):
 
 def test_end_to_end_loss_decreases_and_outputs(scene: Path, tmp_path: Path) -> None:
     from jsgs.base.ply import load_ply
-    from jsgs.schemas import validate
+    from jsgs.base.schema import validate
 
     rec = Recorder()
     run = tmp_path / "run"

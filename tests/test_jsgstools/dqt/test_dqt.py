@@ -19,8 +19,8 @@ from jpeg_builders import exif_app1, insert_after_soi
 from PIL import ExifTags, Image, JpegImagePlugin
 
 from jsgs.base.errors import JsgsError
+from jsgs.base.schema import load_schema
 from jsgs.jpeg.tables import BASE_LUMA, ZIGZAG, estimate_quality, ijg_tables
-from jsgs.schemas import load_schema
 from jsgstools.cli.inspect_dqt import inspect_dqt
 from jsgstools.dqt import (
     JpegHeader,

@@ -16,8 +16,8 @@ from click.testing import CliRunner
 from PIL import Image
 
 from jsgs.base.errors import JsgsError
+from jsgs.base.schema import load_schema
 from jsgs.jpeg.tables import ijg_tables
-from jsgs.schemas import load_schema
 from jsgstools.cli.inspect_dqt import inspect_dqt
 from jsgstools.dqt import read_header_from
 from jsgstools.dqt import report as report_module

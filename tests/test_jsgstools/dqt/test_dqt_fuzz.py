@@ -29,8 +29,8 @@ from jpeg_builders import exif_app1, insert_after_soi
 from PIL import Image
 
 from jsgs.base.errors import JsgsError
+from jsgs.base.schema import load_schema
 from jsgs.jpeg.tables import ZIGZAG, ijg_tables
-from jsgs.schemas import load_schema
 from jsgstools.dqt import SAMPLING_NAMES, JpegHeader, parse_header
 
 EXAMPLES = int(os.environ.get("JSGS_FUZZ_EXAMPLES", "300"))
