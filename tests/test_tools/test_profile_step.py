@@ -346,15 +346,19 @@ def test_step_window_reads_peak_memory_over_the_window(monkeypatch: Any) -> None
         ps.StepWindow(torch.device("cuda"), settle=1, steps=1).peak_memory()
 
 
+#: a stored version 1 profile with pairs (no peak memory)
+V1_PROFILE = "docs/results/speed/gc_every_paper_preset/camera_jpeg_mouse_1500_K1.json"
+
+
 def test_schema_requires_peak_memory_from_version_2() -> None:
     """Version 2 documents must carry the peak memory (null allowed: the CPU); the stored version 1 files
     (without it) still validate."""
     from jsgs.base.schema import validate
 
     root = Path(__file__).resolve().parents[2]
-    old = json.loads((root / "docs/results/speed/equal_budget/flower_1500.json").read_text())
+    old = json.loads((root / V1_PROFILE).read_text())
     assert old["format_version"] == 1 and "peak_memory_allocated_bytes" not in old["results"]["jsgs"]
-    validate(old, "profile_step", "flower_1500.json")
+    validate(old, "profile_step", "camera_jpeg_mouse_1500_K1.json")
     new = json.loads(json.dumps(old)) | {"format_version": 2}
     new["pairs"]["peak_memory"] = None
     with pytest.raises(ps.JsgsError, match="'peak_memory_allocated_bytes' is a required property"):
@@ -373,7 +377,7 @@ def test_schema_requires_start_memory_from_version_3() -> None:
     from jsgs.base.schema import validate
 
     root = Path(__file__).resolve().parents[2]
-    v2 = json.loads((root / "docs/results/speed/equal_budget/flower_1500.json").read_text())
+    v2 = json.loads((root / V1_PROFILE).read_text())
     v2["format_version"] = 2
     v2["pairs"]["peak_memory"] = None
     for r in v2["results"].values():

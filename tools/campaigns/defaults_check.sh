@@ -24,7 +24,7 @@
 #   PHASE=4 bash tools/campaigns/defaults_check.sh
 # Each brings back $OUT/dc_<PHASE>.tgz (logs, profiles, every bench's results.csv, report.md and its runs'
 # metrics.json and config.json so far). On the CPU: the bench folders go to tools/results/build_report.py
-# (q1/q4/qf into a results folder of their own; rf/rn beside .res/op_rule_a into docs/results/operating_point).
+# (q1/q4/qf into docs/results/speed/gc_quality/{k1,k4,footprint}; rf/rn beside .res/op_rule_a into docs/results/operating_point).
 set -u
 PHASE=${PHASE:?set PHASE=1, 2, 3 or 4}
 S=/tmp/src D=/tmp/gpudata L=/tmp/dc_logs
