@@ -284,6 +284,13 @@ class SpeedConfig:
         "jsgs/kernels/csrc/ssim.cu on a GPU, as gsplat's simple_trainer uses fused-ssim; the torch twin "
         "elsewhere), torch (separable convolutions everywhere) or cuda (the kernel, or an error).",
     )
+    exchange: Literal["auto", "torch"] = _f(
+        "auto",
+        "On several processes (--gpus N), how a view reaches the other processes' Gaussians: auto (gsplat's "
+        "distributed rasterisation wherever it renders every training view, else the torch exchange) or "
+        "torch (every shard gathered on every process, the gradients all-reduced back to their owners: "
+        "JSGS's Gaussian Controller takes it, so this runs gsplat on the same exchange).",
+    )
 
 
 @dataclass

@@ -766,11 +766,12 @@ class Trainer:
         distributed rasterisation where it can render the run's views (gsplat backend, pinhole cameras, no
         method extra channels, no absgrad, one image size: each process projects its shard for every
         process's camera with its own view's width and height), else the torch exchange (gather the
-        shards, reduce the gradients)."""
+        shards, reduce the gradients); always the torch exchange with ``speed.exchange: torch``."""
         if not self.world.enabled:
             return "none"
         if (
-            self.backend == "gsplat"
+            cfg.speed.exchange == "auto"
+            and self.backend == "gsplat"
             and not (self.hook is not None and self.hook.renders_extra())
             and not cfg.strategy.absgrad
             and all(v.distortion is None for v in self.train_views)

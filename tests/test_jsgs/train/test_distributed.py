@@ -536,7 +536,8 @@ def test_gsplat_exchange_statistics_add_camera_by_camera() -> None:
 
 def test_gsplat_exchange_only_where_it_renders_every_view() -> None:
     """gsplat's exchange projects every process's camera with the calling process's image size and renders
-    without extra channels, distortion or absgrad: anything else takes the torch exchange."""
+    without extra channels, distortion or absgrad: anything else takes the torch exchange, and so does every
+    run with ``speed.exchange: torch``."""
     from types import SimpleNamespace
 
     import torch
@@ -556,6 +557,9 @@ def test_gsplat_exchange_only_where_it_renders_every_view() -> None:
     assert kind([(64, 48), (48, 64)]) == "torch"
     assert kind([(64, 48)], backend="torch") == "torch"
     assert kind([(64, 48)], distortion=torch.zeros(4)) == "torch"
+    assert kind([(64, 48)], world=1) == "none"
+    cfg.speed.exchange = "torch"  # the torch exchange wherever gsplat's would render (one exchange for all)
+    assert kind([(64, 48), (64, 48)]) == "torch"
     assert kind([(64, 48)], world=1) == "none"
 
 
