@@ -20,12 +20,12 @@ How a step is shared (gsplat's simple_trainer with ``world_size``):
   the camera and, in the backward, the gradients back to the owners; where that cannot render the run's views
   (the reference rasterizer, a method's extra channels, lens distortion, absgrad) the torch exchange does
   the same with whole parameters: every shard is gathered on every process (:func:`gather_gaussians`), each
-  process's view's gradients over all of them are all-reduced and each owner keeps its rows
-  (:func:`reduce_gradients`; gloo has no reduce-scatter). Either way a Gaussian's gradient is the mean over
+  process's view's gradients over all of them are summed by a reduce-scatter that leaves each owner the
+  sums of its own rows (:func:`reduce_gradients`). Either way a Gaussian's gradient is the mean over
   the step's views and the learning rates follow gsplat's batch rule for ``world_size`` views;
 - per-Gaussian statistics reach the owner: DefaultStrategy's screen-space gradient sums, counts and radii
   (gsplat's projection runs on the owner, for every process's camera: :func:`per_camera_statistics`; the
-  torch exchange sums them in the gradients' all-reduce, the radii's maximum in one of its own:
+  torch exchange sums them in the gradients' reduce-scatter, the radii's maximum in one of its own:
   :func:`share_strategy_statistics`)
   and the Gaussian Controller's (it runs on the view's process, over the gathered Gaussians, and its
   gradients travel back with the others);
@@ -318,6 +318,20 @@ def _all_gather_tensor(out: Tensor, tensor: Tensor) -> None:
     gather_single(out, tensor)
 
 
+def _reduce_scatter_tensor(out: Tensor, tensor: Tensor) -> None:
+    """``out`` = this process's block of the sum of every process's ``tensor`` (``world_size`` equal blocks,
+    by rank): one reduce-scatter, which moves half the bytes of an all-reduce of ``tensor``. NCCL has one;
+    gloo since torch 2.13 (``reduce_scatter_single``); an older gloo all-reduces ``tensor`` in place and
+    copies the block out (the same sums)."""
+    dist = _dist()
+    scatter_single = getattr(dist, "reduce_scatter_single", None)
+    if scatter_single is None and dist.get_backend() != "nccl":
+        dist.all_reduce(tensor)
+        out.copy_(tensor.view(dist.get_world_size(), -1)[dist.get_rank()])
+        return
+    (scatter_single or dist.reduce_scatter_tensor)(out, tensor)
+
+
 def gather_sizes(world: World, n: int, device: torch.device) -> list[int]:
     """Every process's number of Gaussians, by rank."""
     if not world.enabled:
@@ -402,15 +416,17 @@ def reduce_gradients(
     one's).
 
     With the torch ``exchange`` the gradients of the gathered set (one view's each) are summed over the
-    processes, with the count of the views that rendered and ``also`` (a float32 tensor of the step, summed
-    in place: the strategy's statistics, :func:`share_strategy_statistics`), in one all-reduce, and each
-    process keeps its own rows (gloo has no reduce-scatter: all-reduce, then slice); when no process
-    rendered anything the
-    gradients stay None, as on one process. The count is read on the host (a wait for the all-reduce) only
-    by a process whose own view rendered nothing: one whose view did knows the count is not 0. Without it
-    (gsplat's ``distributed=True`` rasterisation, where every process runs the backward: its all-to-all is
-    a collective) the shards' gradients already hold every view's contribution, summed by gsplat's
-    all-to-all backward: they are divided, and nothing travels."""
+    processes, with the count of the views that rendered and ``also`` (a float32 [K, N_gathered] tensor of
+    the step: the strategy's statistics, :func:`share_strategy_statistics`), in one reduce-scatter, so
+    that each process receives the sums of its own rows only (half the bytes of an all-reduce): the buffer
+    holds one block per process, the process's rows of every gradient and of ``also`` side by side (padded
+    to the largest shard) and the count. ``also``'s rows of this process are overwritten with their sums
+    (its other rows keep this process's own values). When no process rendered anything the gradients stay
+    None, as on one process. The count is read on the host (a wait for the collective) only by a process
+    whose own view rendered nothing: one whose view did knows the count is not 0. Without it (gsplat's
+    ``distributed=True`` rasterisation, where every process runs the backward: its all-to-all is a
+    collective) the shards' gradients already hold every view's contribution, summed by gsplat's all-to-all
+    backward: they are divided, and nothing travels."""
     if not world.enabled:
         return rendered
     if exchange is None:
@@ -419,25 +435,42 @@ def reduce_gradients(
                 p.grad.div_(world.size)
         return True
     full = [exchange.params[n] for n in exchange.names]
-    flat = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1).float() for p in full]
-    count = torch.full((1,), float(rendered), device=shard[0].device)
-    riders = [] if also is None else [also.reshape(-1)]
-    buf = torch.cat([*flat, *riders, count])
-    with collective("the gradient all-reduce"):
-        _dist().all_reduce(buf)
+    device = shard[0].device
+    sizes = exchange.sizes
+    widths = [p[0].numel() for p in full]
+    columns = [p.grad if p.grad is not None else torch.zeros_like(p) for p in full]
     if also is not None:
-        end = buf.numel() - 1
-        also.copy_(buf[end - also.numel() : end].view_as(also))
-    if not rendered and int(round(buf[-1].item())) == 0:
+        widths.append(also.shape[0])
+        columns.append(also.t())
+    width, rows = sum(widths), max(sizes)
+    block = rows * width + 1  # a process's rows of every column, padded, then the count
+    buf = torch.empty(world.size, block, device=device)
+    table = buf[:, : rows * width].view(world.size, rows, width)
+    if rows * world.size != sum(sizes):
+        table.zero_()  # the padding's rows
+    start = 0
+    for r, n in enumerate(sizes):
+        offset = 0
+        for c, w in zip(columns, widths, strict=True):
+            table[r, :n, offset : offset + w] = c[start : start + n].reshape(n, w)
+            offset += w
+        start += n
+    buf[:, -1] = float(rendered)
+    out = buf.new_empty(block)
+    with collective("the gradient reduce-scatter"):
+        _reduce_scatter_tensor(out, buf.view(-1))
+    if not rendered and int(round(out[-1].item())) == 0:
         for p in shard:
             p.grad = None
         return False
     start, stop = exchange.rows
+    mine = out[: rows * width].view(rows, width)[: stop - start]
     offset = 0
-    for p, q in zip(full, shard, strict=True):
-        g = buf[offset : offset + p.numel()].view_as(p)
-        q.grad = (g[start:stop] / world.size).to(q.dtype).contiguous()
-        offset += p.numel()
+    for q, w in zip(shard, widths[: len(shard)], strict=True):
+        q.grad = (mine[:, offset : offset + w] / world.size).reshape(q.shape).to(q.dtype).contiguous()
+        offset += w
+    if also is not None:
+        also[:, start:stop] = mine[:, offset:].t()
     return True
 
 
@@ -513,8 +546,9 @@ def share_strategy_statistics(
 
     Returns ``fold(info, packed, step)``: called after the step's backward, it computes the view's sums and
     counts and returns them (None in a step where the strategy reads none) for :func:`reduce_gradients`'
-    ``also``, which sums them with the gradients in the same all-reduce; the strategy's update of that
-    ``info`` then reads them instead of making an all-reduce of its own (the radii's maximum still does)."""
+    ``also``, which sums this process's rows of them with the gradients in the same reduce-scatter; the
+    strategy's update of that ``info`` then reads them instead of making an all-reduce of its own (the
+    radii's maximum still does)."""
     if not world.enabled or strategy.type != "default":
         return lambda info, packed, step: None
     gs = strategy.gsplat

@@ -481,7 +481,7 @@ class Trainer:
         #: distributed rasterisation) or "torch" (gathered; jsgs.train.distributed)
         self.exchange = "none"
         self._exchange: dd.Exchange | None = None
-        #: the torch exchange: the step's strategy statistics for the gradients' all-reduce (distributed.py)
+        #: the torch exchange: the step's strategy statistics, summed with the gradients (distributed.py)
         self._fold_statistics: Callable[[dict[str, Any], int], Tensor | None] | None = None
         self._gathered: dict[str, Any] | None = None  # the shards gathered on rank 0 at a checkpoint point
         #: every process's number of Gaussians, by rank: as of the last step; with the torch exchange kept
@@ -1086,7 +1086,7 @@ class Trainer:
         self, step: int, view: TrainingView, loss: Tensor, stats: dict[str, Any], info: dict[str, Any]
     ) -> bool:
         """The backward of ``loss`` (on several processes, each Gaussian's gradient then averaged over the
-        step's views on its owner, with the strategy's statistics of ``info`` in the same all-reduce);
+        step's views on its owner, with the strategy's statistics of ``info`` in the same reduce-scatter);
         whether no gradient reached any Gaussian (an empty view: counted in ``stats``, noted once per
         view)."""
         # a view that sees no Gaussian (a camera looking away, everything culled) renders a constant: no

@@ -344,23 +344,36 @@ def _reductions_worker(rank: int, store: str) -> None:
         for key in ("grad2d", "count", "radii"):
             got = torch.cat([parts[0]["state"][key], parts[1]["state"][key]])
             assert torch.allclose(got, ref[key], rtol=1e-5, atol=1e-9), key
-    # the same step with the statistics in the gradients' all-reduce (as the trainer makes it): the same
-    # gradients and statistics, bit for bit, from one SUM all-reduce and the radii's MAX
-    holder["ex"] = ex = dd.gather_gaussians(world, shard, PARAM_NAMES)
-    r = render_view(ex.params, cams[rank], K, 32, 24, 0, cfg, "torch")
-    again = shared.initialize_state(scene_scale=1.0)
-    shared.step_pre_backward(ex.params, {}, again, 0, r.info)
-    (r.rgb - target).abs().mean().backward()
-    assert fold(r.info, False, shared.gsplat.refine_stop_iter) is None  # the strategy reads none then
+    # the same step with the statistics in the gradients' reduce-scatter (as the trainer makes it): the
+    # same gradients and statistics, bit for bit, from one reduce-scatter (the sums of this process's rows)
+    # and the radii's MAX all-reduce; and the same again where gloo has no reduce-scatter (torch < 2.13:
+    # an all-reduce of the same buffer, this process's block copied out)
     ops: list = []
-    all_reduce = dist.all_reduce
-    dist.all_reduce = lambda t, op=dist.ReduceOp.SUM: ops.append(op) or all_reduce(t, op=op)
-    assert dd.reduce_gradients(world, params, True, ex, fold(r.info, False, 0))
-    shared.gsplat._update_state(ex.params, again, r.info, packed=False)
-    dist.all_reduce = all_reduce
-    assert ops == [dist.ReduceOp.SUM, dist.ReduceOp.MAX]
-    assert all(torch.equal(p.grad, g) for p, g in zip(params, mine["grads"], strict=True))
-    assert all(torch.equal(again[k], state[k]) for k in ("grad2d", "count", "radii"))
+    all_reduce, scatter = dist.all_reduce, dd._reduce_scatter_tensor
+    native = getattr(dist, "reduce_scatter_single", None)
+    for fallback in (False, True):
+        holder["ex"] = ex = dd.gather_gaussians(world, shard, PARAM_NAMES)
+        r = render_view(ex.params, cams[rank], K, 32, 24, 0, cfg, "torch")
+        again = shared.initialize_state(scene_scale=1.0)
+        shared.step_pre_backward(ex.params, {}, again, 0, r.info)
+        (r.rgb - target).abs().mean().backward()
+        assert fold(r.info, False, shared.gsplat.refine_stop_iter) is None  # the strategy reads none then
+        ops.clear()
+        dist.all_reduce = lambda t, op=dist.ReduceOp.SUM: ops.append(op) or all_reduce(t, op=op)
+        dd._reduce_scatter_tensor = lambda out, t: ops.append("scatter") or scatter(out, t)
+        if fallback:
+            dist.reduce_scatter_single = None
+        try:
+            assert dd.reduce_gradients(world, params, True, ex, fold(r.info, False, 0))
+            shared.gsplat._update_state(ex.params, again, r.info, packed=False)
+        finally:
+            dist.all_reduce, dd._reduce_scatter_tensor = all_reduce, scatter
+            if native is not None:
+                dist.reduce_scatter_single = native
+        expected = ["scatter", dist.ReduceOp.SUM] if fallback or native is None else ["scatter"]
+        assert ops == [*expected, dist.ReduceOp.MAX], (fallback, ops)
+        assert all(torch.equal(p.grad, g) for p, g in zip(params, mine["grads"], strict=True))
+        assert all(torch.equal(again[k], state[k]) for k in ("grad2d", "count", "radii"))
     # a step where only rank 0's view rendered keeps the gradients everywhere; one where none did, none
     for rendered, anywhere in ((rank == 0, True), (False, False)):
         ex = dd.gather_gaussians(world, shard, PARAM_NAMES)
