@@ -349,8 +349,8 @@ def gather_rows(world: World, tensors: Sequence[Tensor], sizes: Sequence[int]) -
     if not world.enabled:
         return [t.detach() for t in tensors]
     n = tensors[0].shape[0]
-    widths = [t[0].numel() if t.dim() > 1 else 1 for t in tensors]
-    flat = torch.cat([t.detach().reshape(n, -1).float() for t in tensors], dim=1)
+    widths = [math.prod(t.shape[1:]) for t in tensors]
+    flat = torch.cat([t.detach().reshape(n, w).float() for t, w in zip(tensors, widths, strict=True)], dim=1)
     rows = max(sizes)
     if n < rows:
         flat = torch.cat([flat, flat.new_zeros(rows - n, flat.shape[1])])
@@ -359,10 +359,10 @@ def gather_rows(world: World, tensors: Sequence[Tensor], sizes: Sequence[int]) -
         _all_gather_tensor(out, flat.contiguous())
     if rows * world.size != sum(sizes):  # the padding's rows out
         out = torch.cat([o[:s] for o, s in zip(out.split(rows), sizes, strict=True)])
-    full = out
-    parts = full.split(widths, dim=1)
+    parts = out.split(widths, dim=1)
+    total = sum(sizes)
     return [
-        p.reshape(-1, *t.shape[1:]).to(t.dtype).contiguous() for p, t in zip(parts, tensors, strict=True)
+        p.reshape(total, *t.shape[1:]).to(t.dtype).contiguous() for p, t in zip(parts, tensors, strict=True)
     ]
 
 
@@ -385,21 +385,28 @@ class Exchange:
 
 
 def gather_gaussians(
-    world: World, shard: torch.nn.ParameterDict, names: Sequence[str], sizes: Sequence[int] | None = None
+    world: World,
+    shard: torch.nn.ParameterDict,
+    names: Sequence[str],
+    sizes: Sequence[int] | None = None,
+    sh_degree: int | None = None,
 ) -> Exchange:
     """The torch exchange's forward: every process's shard on every process (gloo on the CPU, or NCCL where
     the step's render needs the whole set: a method's extra channels). Its backward is
     :func:`reduce_gradients` with ``exchange``. ``sizes``: every process's number of Gaussians, by rank,
     where the caller knows them (the trainer keeps them: :func:`gather_sizes` at setup and after a strategy
     step that may change them); without them they are gathered first (one more collective and a host
-    read)."""
+    read). ``sh_degree``: the step's SH degree, where known: ``shN``'s bands above it, which the render
+    reads none of and whose gradients are zeros, are left out of the exchange both ways (the gathered
+    ``shN`` holds (sh_degree + 1)² − 1 bands; 45 of a Gaussian's 59 values at degree 0, 36 at 1, 21 at 2)."""
     n = int(shard[names[0]].shape[0])
     if sizes is None:
         sizes = gather_sizes(world, n, shard[names[0]].device)
     elif len(sizes) != world.size or sizes[world.rank] != n:
         raise RuntimeError(f"internal error: shard sizes {list(sizes)} held, this process has {n} Gaussians")
     sizes = list(sizes)
-    full = gather_rows(world, [shard[n] for n in names], sizes)
+    bands = None if sh_degree is None else (sh_degree + 1) ** 2 - 1
+    full = gather_rows(world, [shard[n][:, :bands] if n == "shN" else shard[n] for n in names], sizes)
     params = torch.nn.ParameterDict({n: torch.nn.Parameter(t) for n, t in zip(names, full, strict=True)})
     return Exchange(params, list(names), sizes, world.rank)
 
@@ -466,8 +473,13 @@ def reduce_gradients(
     start, stop = exchange.rows
     mine = out[: rows * width].view(rows, width)[: stop - start]
     offset = 0
-    for q, w in zip(shard, widths[: len(shard)], strict=True):
-        q.grad = (mine[:, offset : offset + w] / world.size).reshape(q.shape).to(q.dtype).contiguous()
+    for p, q, w in zip(full, shard, widths[: len(shard)], strict=True):
+        g = mine[:, offset : offset + w] / world.size
+        if p.shape[1:] == q.shape[1:]:
+            q.grad = g.reshape(q.shape).to(q.dtype).contiguous()
+        else:  # shN's bands above the step's SH degree (gather_gaussians): not rendered, zero gradients
+            q.grad = torch.zeros_like(q)
+            q.grad[:, : p.shape[1]] = g.reshape(stop - start, *p.shape[1:])
         offset += w
     if also is not None:
         also[:, start:stop] = mine[:, offset:].t()

@@ -1042,7 +1042,7 @@ class Trainer:
             target = image_target(self.train_images[view.index])
             sh_degree = sh_degree_at(step, cfg)
             if self.exchange == "torch":
-                self._exchange = dd.gather_gaussians(self.world, splats, PARAM_NAMES, self.sizes)
+                self._exchange = dd.gather_gaussians(self.world, splats, PARAM_NAMES, self.sizes, sh_degree)
                 shown = self._exchange.params
             extra_feats = hook.extra_channels(step, view, shown) if hook is not None else None
             extra_kw = hook.render_kwargs(step, view) if hook is not None else None
