@@ -292,6 +292,7 @@ def test_each_method_brings_its_recipes_and_switches_through_the_registry() -> N
     from jsgs.cli.train import recipes_text  # the help of --preset names each method's recipe
 
     words = "lambda_obs 1, base_by_view, base_noise pixels, base_noise_ref 2, base_noise_exponent 2"
+    words += ", gc_every 4"
     assert recipes_text("mcmc") == f"; for --method jsgs: method_options {words}"
     assert recipes_text("paper") == recipes_text("preview") == ""
 
@@ -305,7 +306,7 @@ def test_the_mcmc_preset_gives_jsgs_its_recipe_under_the_users_options(tmp_path:
     assert command_settings(overrides={"method": "jsgs"}).method_options == recipe
     opts = parse_options(recipe)
     assert (opts.lambda_obs, opts.base_by_view, opts.base_noise) == (1.0, True, "pixels")
-    assert (opts.base_noise_ref, opts.base_noise_exponent) == (2.0, 2.0)
+    assert (opts.base_noise_ref, opts.base_noise_exponent, opts.gc_every) == (2.0, 2.0, 4)
     # gsplat takes no options; the paper preset keeps the paper's weights (the options' own defaults)
     assert command_settings(overrides={"method": "gsplat"}).method_options == {}
     assert command_settings(overrides={"method": "jsgs"}, preset_name="paper").method_options == {}
