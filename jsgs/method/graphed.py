@@ -131,10 +131,19 @@ class GraphedImageTerms:
     in): no output buffer of its own, 12 bytes a pixel less. Given the uint8 training image
     instead of the target (the hook does where the trainer says which it is, ``StepContext.image``), the
     graph copies that in and makes the target inside: 3 bytes a pixel kept instead of 12, the same values.
+
+    The recording's eager warm-up calls run on the device's side stream (:func:`record_graph`), and torch's
+    caching allocator keeps the blocks a stream freed for that stream alone: with ``free_warmup`` (the
+    hook's ``method_options.speed.cuda_graph_free_warmup``, true by default) each recording ends with
+    ``torch.cuda.empty_cache()``, so that memory goes back to the device instead of staying reserved beside
+    the graph's own pool for the rest of the run (one release per recording, none per step).
     """
 
-    def __init__(self, *, weights: tuple[float, float, float], **settings: Any) -> None:
+    def __init__(
+        self, *, weights: tuple[float, float, float], free_warmup: bool = True, **settings: Any
+    ) -> None:
         self.weights = tuple(float(w) for w in weights)
+        self.free_warmup = free_warmup
         self.settings = settings
         self._graphs: dict[tuple[Any, ...], _Recording] = {}
         self._pool: Any = None
@@ -177,6 +186,10 @@ class GraphedImageTerms:
         if self._pool is None:  # one memory pool shared by all of this object's graphs
             self._pool = torch.cuda.graph_pool_handle()
         graph, outputs = record_graph(fn, x.device, warmups=2, pool=self._pool, error_mode="global")
+        if self.free_warmup:
+            # the warm-ups' intermediates were freed into blocks that only the side stream may reuse; the
+            # graph's own live in its pool, which this leaves alone
+            torch.cuda.empty_cache()
         return _Recording(graph.replay, inputs, outputs)
 
 

@@ -157,7 +157,9 @@ class JsgsHook(LossHook):
         if self.cuda_graph:
             w = self.weights()
             image_weights = (w["obs"], w.get("low", 0.0), w.get("mid", 0.0))
-            self._graphed = GraphedImageTerms(weights=image_weights, **self._jpeg_settings)
+            self._graphed = GraphedImageTerms(
+                weights=image_weights, free_warmup=options.speed.cuda_graph_free_warmup, **self._jpeg_settings
+            )
             if self.gc_route == "deferred" and options.speed.cuda_graph_gc and not self._gc_fused:
                 self._gc_graphed = GraphedController(**self._gc_settings)
 

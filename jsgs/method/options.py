@@ -38,6 +38,14 @@ class JsgsSpeed:
         "Replay JO, L_obs and DS and their weighted gradient as one CUDA graph (jsgs.method.graphed): one "
         "launch instead of a few hundred small kernels. auto: on for CUDA without compile; true needs CUDA.",
     )
+    cuda_graph_free_warmup: bool = setting(
+        True,
+        "With cuda_graph: once the image terms' graph is recorded, hand back to the device the memory its "
+        "eager warm-up calls left cached for the recording's side stream (torch.cuda.empty_cache, once per "
+        "recording; torch's caching allocator reuses a stream's freed blocks on that stream alone, so they "
+        "would stay reserved for the run, about the chain's peak memory at the image size). false: keep "
+        "them. The same values either way.",
+    )
     cuda_graph_gc: bool = setting(
         True,
         "With cuda_graph: the deferred Gaussian Controller as a graph of its own too (recorded again "

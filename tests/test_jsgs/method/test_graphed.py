@@ -607,3 +607,49 @@ def test_the_controller_graph_follows_cuda_graph_and_its_own_switch() -> None:
         assert described(gc_kernel="auto")["cuda_graph_gc"] is False
     with pytest.raises(JsgsError, match="cuda_graph_gc must be true or false"):
         parse_options(jsgs_options(cuda_graph_gc="yes"))
+
+
+@pytest.mark.parametrize("free", [True, False])
+def test_the_warm_ups_cached_memory_is_handed_back_after_each_image_terms_recording(
+    monkeypatch: pytest.MonkeyPatch, free: bool
+) -> None:
+    """With ``speed.cuda_graph_free_warmup`` (default true) every recording of the image terms ends with one
+    ``torch.cuda.empty_cache()``, after the capture (the warm-ups' blocks are free by then), and replays
+    release nothing; the controller's recordings (inside the backward) never release; false: no release.
+    The hook passes the setting to its graphs (built for a CUDA device without touching it)."""
+    events: list[str] = []
+
+    class StandInGraph:
+        def capture_begin(self, pool: Any = None, capture_error_mode: str = "global") -> None:
+            events.append("capture")
+
+        def capture_end(self) -> None:
+            events.append("end")
+
+        def replay(self) -> None:
+            events.append("replay")
+
+        def pool(self) -> None:
+            return None
+
+    _no_cuda_streams(monkeypatch)
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", StandInGraph)
+    monkeypatch.setattr(torch.cuda, "empty_cache", lambda: events.append("empty_cache"))
+    monkeypatch.setattr(GraphedImageTerms, "_check_device", staticmethod(lambda x: None))
+    terms = GraphedImageTerms(weights=(0.2, 0.02, 0.03), free_warmup=free, **SETTINGS)
+    for seed in (0, 1, 1):  # two image sizes: two recordings, then a replay
+        x, y, luma, chroma = _view_tensors(seed, dtype=torch.float32)
+        terms(x[..., : 32 + 8 * seed].requires_grad_(), y[..., : 32 + 8 * seed], torch.stack([luma, chroma]),
+              "4:2:0")  # fmt: skip
+    per_recording = ["capture", "end", *(["empty_cache"] if free else []), "replay"]
+    assert events == per_recording * 2 + ["replay"]
+    events.clear()
+    ctl = GraphedController(weight=0.05, near_plane=0.01, eps_proj=1e-6, tau_s=1.0)
+    probe, logits, log_scales, means, quats, viewmat, K = _controller_inputs(50, 0, "cpu")
+    ctl(probe, logits, log_scales, means, quats, viewmat, K, 160, 120)
+    assert ctl.recordings == 1 and "empty_cache" not in events
+    view = make_view(30, "4:2:0")
+    tables = {view.index: new_hook(view).tables[view.index]}
+    opts = {"gc_kernel": "torch"} | ({} if free else {"cuda_graph_free_warmup": False})
+    hook = JsgsHook(parse_options(jsgs_options(**opts)), tables, device=torch.device("cuda"))
+    assert hook._graphed is not None and hook._graphed.free_warmup is free

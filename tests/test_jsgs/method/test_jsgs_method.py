@@ -264,7 +264,9 @@ def target_for(view: TrainingView) -> torch.Tensor:
     return torch.tensor(ref_pillow_jpeg(img, j.luma_table, j.chroma_table, j.sampling), dtype=D)[None]
 
 
-SPEED_KEYS = ("compile", "cuda_graph", "cuda_graph_gc", "gc_kernel", "fused_jo", "fused_color")
+SPEED_KEYS = (
+    "compile", "cuda_graph", "cuda_graph_free_warmup", "cuda_graph_gc", "gc_kernel", "fused_jo", "fused_color"
+)
 
 
 def jsgs_options(**options: Any) -> dict[str, Any]:
