@@ -15,7 +15,7 @@
 # profile's peak memory rows and paired step times.
 set -u
 M=${MANIFEST:-.gpuM/jpeg_mouse/manifest.json} P=tools/diagnostics/profile_step.py
-WARMUP=${WARMUP:-1500} PAIRS=${PAIRS:-3} TL=${TL:-200}
+WARMUP=${WARMUP:-1500} PAIRS=${PAIRS:-3} TL=${TL:-190}
 bash scripts/gpu_run.sh true > "$OUT/build.log" 2>&1
 for v in free:true keep:false; do
     name=camera_jpeg_mouse_${WARMUP}_${v%%:*}
