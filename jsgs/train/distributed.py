@@ -426,14 +426,14 @@ def reduce_gradients(
     processes, with the count of the views that rendered and ``also`` (a float32 [K, N_gathered] tensor of
     the step: the strategy's statistics, :func:`share_strategy_statistics`), in one reduce-scatter, so
     that each process receives the sums of its own rows only (half the bytes of an all-reduce): the buffer
-    holds one block per process, the process's rows of every gradient and of ``also`` side by side (padded
-    to the largest shard) and the count. ``also``'s rows of this process are overwritten with their sums
-    (its other rows keep this process's own values). When no process rendered anything the gradients stay
-    None, as on one process. The count is read on the host (a wait for the collective) only by a process
-    whose own view rendered nothing: one whose view did knows the count is not 0. Without it (gsplat's
-    ``distributed=True`` rasterisation, where every process runs the backward: its all-to-all is a
-    collective) the shards' gradients already hold every view's contribution, summed by gsplat's all-to-all
-    backward: they are divided, and nothing travels."""
+    is one row per Gaussian (its gradients, its ``also`` and this process's rendered flag, whose sum is the
+    count), one concatenation, each process's rows padded to the largest shard. ``also``'s rows of this
+    process are overwritten with their sums (its other rows keep this process's own values). When no
+    process rendered anything the gradients stay None, as on one process. The count is read on the host (a
+    wait for the collective) only by a process whose own view rendered nothing: one whose view did knows
+    the count is not 0. Without it (gsplat's ``distributed=True`` rasterisation, where every process runs
+    the backward: its all-to-all is a collective) the shards' gradients already hold every view's
+    contribution, summed by gsplat's all-to-all backward: they are divided, and nothing travels."""
     if not world.enabled:
         return rendered
     if exchange is None:
@@ -449,29 +449,28 @@ def reduce_gradients(
     if also is not None:
         widths.append(also.shape[0])
         columns.append(also.t())
-    width, rows = sum(widths), max(sizes)
-    block = rows * width + 1  # a process's rows of every column, padded, then the count
-    buf = torch.empty(world.size, block, device=device)
-    table = buf[:, : rows * width].view(world.size, rows, width)
-    if rows * world.size != sum(sizes):
-        table.zero_()  # the padding's rows
-    start = 0
-    for r, n in enumerate(sizes):
-        offset = 0
-        for c, w in zip(columns, widths, strict=True):
-            table[r, :n, offset : offset + w] = c[start : start + n].reshape(n, w)
-            offset += w
-        start += n
-    buf[:, -1] = float(rendered)
-    out = buf.new_empty(block)
+    width, rows, total = sum(widths), max(sizes), sum(sizes)
+    # one row per Gaussian: its gradients, its statistics and whether this process's view rendered (summed:
+    # the count of the views that rendered); the processes' rows padded to the largest shard, so that each
+    # process's block is ``rows`` rows
+    flag = torch.full((total, 1), float(rendered), device=device)
+    table = torch.cat([*(c.reshape(total, w) for c, w in zip(columns, widths, strict=True)), flag], dim=1)
+    if rows * world.size != total:
+        pad = table.new_zeros(rows, width + 1)
+        pieces, start = [], 0
+        for n in sizes:
+            pieces += [table[start : start + n], pad[: rows - n]]
+            start += n
+        table = torch.cat(pieces)
+    out = table.new_empty(rows, width + 1)
     with collective("the gradient reduce-scatter"):
-        _reduce_scatter_tensor(out, buf.view(-1))
-    if not rendered and int(round(out[-1].item())) == 0:
+        _reduce_scatter_tensor(out.view(-1), table.view(-1))
+    if not rendered and int(round(out[0, -1].item())) == 0:
         for p in shard:
             p.grad = None
         return False
     start, stop = exchange.rows
-    mine = out[: rows * width].view(rows, width)[: stop - start]
+    mine = out[: stop - start]
     offset = 0
     for p, q, w in zip(full, shard, widths[: len(shard)], strict=True):
         g = mine[:, offset : offset + w] / world.size
@@ -482,7 +481,7 @@ def reduce_gradients(
             q.grad[:, : p.shape[1]] = g.reshape(stop - start, *p.shape[1:])
         offset += w
     if also is not None:
-        also[:, start:stop] = mine[:, offset:].t()
+        also[:, start:stop] = mine[:, offset:width].t()
     return True
 
 

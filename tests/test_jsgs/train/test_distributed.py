@@ -375,7 +375,7 @@ def _reductions_worker(rank: int, store: str) -> None:
         assert all(torch.equal(p.grad, g) for p, g in zip(params, mine["grads"], strict=True))
         assert all(torch.equal(again[k], state[k]) for k in ("grad2d", "count", "radii"))
     # the same step with the step's SH degree (0) given to the exchange, as the trainer gives it: shN's 45
-    # values per Gaussian stay home both ways (14 of 59 gathered and reduced; the one-row count aside) and
+    # values per Gaussian stay home both ways (14 of 59 gathered and reduced, with the rendered flag) and
     # every gradient is the same, bit for bit (shN's: zeros, as the render reads none of it)
     moved: list = []
     gather_tensor = dd._all_gather_tensor
@@ -389,7 +389,7 @@ def _reductions_worker(rank: int, store: str) -> None:
         dd._all_gather_tensor, dd._reduce_scatter_tensor = gather_tensor, scatter
     assert ex.params["shN"].shape == (31, 0, 3)
     assert params[PARAM_NAMES.index("shN")].grad.shape == (16 - rank, 15, 3)
-    assert moved == [16 * 14, 2 * (16 * 14 + 1)], moved
+    assert moved == [16 * 14, 2 * 16 * (14 + 1)], moved
     assert all(torch.equal(p.grad, g) for p, g in zip(params, mine["grads"], strict=True))
     # a step where only rank 0's view rendered keeps the gradients everywhere; one where none did, none
     for rendered, anywhere in ((rank == 0, True), (False, False)):
