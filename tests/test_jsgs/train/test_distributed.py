@@ -103,6 +103,37 @@ def test_two_processes_write_one_run_and_match_one_process(scene: Path, tmp_path
 
 
 @pytest.mark.slow
+def test_two_machines_by_torchrun_train_what_two_processes_do(scene: Path, tmp_path: Path) -> None:
+    """torchrun's multi-machine launch (``--nnodes 2 --node-rank K``, one process each, both started here:
+    LOCAL_RANK 0 on both, RANK 0 and 1) trains the same model, bit for bit, as ``--processes 2`` on one
+    machine, and writes the run once (rank 0)."""
+    import socket
+
+    cfg = _settings(tmp_path)
+    common = ["--preset", "paper", "--config", str(cfg), "--method", "gsplat", "--iterations", "6",
+              "--eval-at", "6", "--quiet"]  # fmt: skip
+    _ok(_train(scene, tmp_path / "local", *common[:-1], processes=2))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    nodes = [
+        subprocess.Popen(
+            [sys.executable, "-m", "torch.distributed.run", "--nnodes", "2", "--node-rank", str(k),
+             "--nproc-per-node", "1", "--master-addr", "127.0.0.1", "--master-port", str(port),
+             "-m", "jsgs.cli", "train", str(scene), "--out", str(tmp_path / "nodes"), *common],
+            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        for k in (0, 1)
+    ]
+    outs = [n.communicate(timeout=300) for n in nodes]
+    assert [n.returncode for n in nodes] == [0, 0], outs
+    local, two = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("local", "nodes"))
+    assert (local["world_size"], two["world_size"], two["status"]) == (2, 2, "complete")
+    ply = [(tmp_path / d / "point_cloud.ply").read_bytes() for d in ("local", "nodes")]
+    assert ply[0] == ply[1]
+
+
+@pytest.mark.slow
 def test_jsgs_on_two_processes_matches_one_process(tmp_path: Path) -> None:
     """JSGS on JPEG views (the torch exchange, the Gaussian Controller's gradients sent back to the owners)
     at equal views seen (2 x 20 steps against 40): the test PSNR within 1 dB of one process's, both having
