@@ -48,7 +48,7 @@ print(json.dumps(out))
 PY
             timeout "${TL:-560}" python3 -m jsgs.cli train .gpu3/$scene/manifest.json --out "$run" --force \
                 --method $method --config "$run.settings.json" --iterations $steps \
-                --eval-at $((steps / 5)),$steps --seed 0 --quiet --gpus "$n" >"$run.log" 2>&1
+                --eval-at $((steps >= 10 ? steps / 5 : 1)),$steps --seed 0 --quiet --gpus "$n" >"$run.log" 2>&1
             tail -n 2 "$run.log"
         done
     done
