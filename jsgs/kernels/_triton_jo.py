@@ -53,11 +53,14 @@ except ImportError:  # pragma: no cover - depends on the environment
 
 #: 8x8 blocks per Triton program (the M dimension of its 64 x 64 products) and warps per program of mode
 #: paper's coding pass, chosen by ``benchmarks/bench_jpeg_ops.py --fused-jo`` (both kernels, fwd + bwd, on an
-#: H200, triton 3.6): at 1440x1920 16/4 0.515 ms, 16/8 0.816, 32/4 0.604, 32/8 0.523, 64/8 0.722; at 504x378
-#: 16/4 0.122, 16/8 0.117, 32/4 0.104, 32/8 0.150, 64/8 0.116. Of the settings no slower than 16/8 at both
-#: sizes (32/4, 64/8; 16/4 and 32/8 are faster at 1440x1920 only) 32/4 is the faster at both, though ptxas
-#: reports it spilling registers on sm_90 where 16/8 does not.
-BLOCKS_PER_PROGRAM = 32
+#: H100, torch 2.11, triton 3.6; ms): at 1440x1920 16/4 0.517, 16/8 0.817, 32/4 0.615, 32/8 0.524, 64/8 0.780;
+#: at 504x378 16/4 0.072, 16/8 0.072, 32/4 0.079, 32/8 0.103, 64/8 0.119. 16/4 is the H100's fastest at both
+#: sizes (another H100 run: 0.52 against 32/4's 0.62 ms at 1440x1920). On an H200 it was the fastest at
+#: 1440x1920 too (0.515 against 32/4's 0.604) and slower at 504x378 (0.122 against 0.104). ptxas for sm_90
+#: (``tests/test_jsgs/kernels/test_triton_jo.py::test_coding_pass_spills_little_on_sm90``): at 32/4 the
+#: backward kernel keeps 32 registers and spills about 10 KB per thread (an 8 KB stack frame), at 16/4 it
+#: spills about 100 bytes, the forward none.
+BLOCKS_PER_PROGRAM = 16
 WARPS = 4
 #: The same for mode float's coding pass (ptxas: no spills on sm_90) and for DS.
 FLOAT_BLOCKS_PER_PROGRAM = 16
