@@ -725,3 +725,59 @@ def test_the_settings_check_sees_unknown_names() -> None:
     code = "`strategy.cap_max`, `loss.base_wieght`, `method_options.speed.fused_jo`, `method_options.tabels`"
     assert _unknown_settings(code + " jsgs/train/config.py, `speed.ssim_kernel`") == [
         "loss.base_wieght", "method_options.tabels"]  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------------------
+# docs/results/README.md's index: every results folder reached, and each row's status its folder's own
+
+RESULTS = ROOT / "docs" / "results"
+STATUS_WORDS = ("current", "partial", "superseded", "rejected", "not re-measured")
+
+
+def _status_words(text: str) -> set[str]:
+    """The status words of a status text (``current, partial (CPU only)``), parenthesised asides left out."""
+    text = re.sub(r"\([^)]*\)", "", text.replace("*", ""))
+    return {w for w in STATUS_WORDS if re.search(rf"\b{w}\b", text, re.IGNORECASE)}
+
+
+def _folder_status(readme: Path) -> set[str]:
+    """The status a results folder's README opens with (``**Status: current, partial** — ...``)."""
+    m = re.search(r"Status:\**\s*(.*?)(?:—|\. |\n)", readme.read_text())
+    assert m, f"{readme.relative_to(ROOT)}: no 'Status:' line"
+    return _status_words(m[1])
+
+
+def test_results_index_is_the_folders() -> None:
+    """Every results folder with a README is linked from docs/results/README.md or from its parent folder's
+    README, every page directly in docs/results from the index, and each index row's status (current,
+    partial, superseded, rejected, not re-measured) is the one its folder's README states."""
+    index = (RESULTS / "README.md").read_text()
+    unlinked = []
+    for readme in sorted(RESULTS.rglob("README.md")):
+        folder = readme.parent
+        if folder == RESULTS or "paper_protocol/runs" in str(folder):
+            continue
+        rel = folder.relative_to(RESULTS).as_posix()
+        parent = folder.parent / "README.md"
+        in_parent = parent.is_file() and f"]({folder.name}/" in parent.read_text()
+        if f"]({rel}/" not in index and not in_parent:
+            unlinked.append(f"{rel}/")
+    for page in sorted(RESULTS.glob("*.md")):
+        if page.name != "README.md" and f"]({page.name})" not in index:
+            unlinked.append(page.name)
+    assert not unlinked, f"docs/results/README.md does not reach {unlinked}"
+    differ = []
+    for row in re.findall(r"^\| \[.*$", index, re.M):
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        for target in re.findall(r"\]\(([\w/.-]+/README\.md)\)", cells[0]):
+            own, said = _folder_status(RESULTS / target), _status_words(cells[1])
+            if own != said:
+                differ.append(f"{target}: index {sorted(said)}, folder {sorted(own)}")
+    assert not differ, "docs/results/README.md's statuses differ from the folders':\n" + "\n".join(differ)
+
+
+def test_the_status_check_reads_statuses() -> None:
+    assert _status_words("current, partial (CPU only)") == {"current", "partial"}
+    assert _status_words("current (some files superseded)") == {"current"}
+    assert _status_words("superseded (`ref2/`) / rejected variant (`ref1/`)") == {"superseded", "rejected"}
+    assert _status_words("**current, not re-measured**") == {"current", "not re-measured"}

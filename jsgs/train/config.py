@@ -288,7 +288,7 @@ class SpeedConfig:
         "auto",
         "On several processes (--gpus N), how a view reaches the other processes' Gaussians: auto (gsplat's "
         "distributed rasterisation wherever it renders every training view, else the torch exchange) or "
-        "torch (every shard gathered on every process, the gradients all-reduced back to their owners: "
+        "torch (every shard gathered on every process, the gradients reduce-scattered back to their owners: "
         "JSGS's Gaussian Controller takes it, so this runs gsplat on the same exchange).",
     )
 
@@ -970,7 +970,7 @@ def _derived_schema() -> dict[str, Any]:
                 "enum": ["gsplat", "torch"],
                 "description": "On several processes, how a view reaches the other shards' "
                 "Gaussians (gsplat: rasterization(..., distributed=True), non-packed; torch: the "
-                "shards gathered on every process, the gradients all-reduced back to their owners).",
+                "shards gathered on every process, the gradients reduce-scattered back to their owners).",
             },
             "notes": {"type": "array", "items": {"type": "string"}},
             "ssim_kernel": {

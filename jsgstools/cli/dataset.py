@@ -227,9 +227,9 @@ def validate_cmd(scene: Path, test_every: int, analyze: bool) -> None:
 
     Checks: every registered image exists (exact name, or the only file with the same stem), its size matches
     its camera at one downscale factor for the whole scene (reported), camera models are pinhole
-    (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV are a warning: they need undistortion, which compress does),
-    poses are finite, names are unique, points3D is non-empty. Prints a summary and exits 0, or lists every
-    problem, one line each, and exits 1."""
+    (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV are a warning: compress undistorts them; the trainer renders
+    the first three on the photos' own grid), poses are finite, names are unique, points3D is non-empty.
+    Prints a summary and exits 0, or lists every problem, one line each, and exits 1."""
     from jsgstools.validate import validate_scene
 
     report = validate_scene(scene, decode=True, analyze=analyze, test_every=test_every)
