@@ -781,3 +781,21 @@ def test_the_status_check_reads_statuses() -> None:
     assert _status_words("current (some files superseded)") == {"current"}
     assert _status_words("superseded (`ref2/`) / rejected variant (`ref1/`)") == {"superseded", "rejected"}
     assert _status_words("**current, not re-measured**") == {"current", "not re-measured"}
+
+
+def test_auto_budget_in_training_md_is_the_code() -> None:
+    """docs/training.md's `--cap-max auto` formula names the rule's constants, and each row of its table
+    (views × W×H, SfM points, budget) is what jsgs.train.budget.auto_budget gives for that scene."""
+    from jsgs.train.budget import GAUSSIANS_PER_POINT, PIXELS_PER_GAUSSIAN, auto_budget
+
+    text = (ROOT / "docs" / "training.md").read_text()
+    assert _numbers(r"cap_max = min\((\d+) × SfM points, training pixels / (\d+)\)", text) == [
+        GAUSSIANS_PER_POINT, PIXELS_PER_GAUSSIAN]  # fmt: skip
+    rows = re.findall(r"^\| [^|]*\((\d+) × (\d+)×(\d+)\) \| ([\d,]+) \|[^\n]*\| ([\d,]+) \|$", text, re.M)
+    assert len(rows) >= 4, "docs/training.md: the auto budget's table is no longer found"
+    bad = []
+    for views, w, h, points, budget in rows:
+        got = auto_budget(int(points.replace(",", "")), [(int(w), int(h))] * int(views)).cap_max
+        if got != int(budget.replace(",", "")):
+            bad.append(f"{views} × {w}×{h}, {points} points: {budget}, code {got:,}")
+    assert not bad, "docs/training.md's auto budgets differ from the code's:\n" + "\n".join(bad)
