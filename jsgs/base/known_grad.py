@@ -22,17 +22,18 @@ from torch import Tensor
 
 class _KnownGradient(torch.autograd.Function):
     @staticmethod
-    def forward(ctx: Any, value: Tensor, scratch: bool, *pairs: Tensor) -> Tensor:
+    def forward(ctx: Any, value: Tensor, scratch: bool, own_value: bool, *pairs: Tensor) -> Tensor:
         # (x, grad) pairs; the gradients kept as an attribute, not saved for backward: the caller may own
         # their memory (a graph's static output, rewritten by its next replay after this step's backward);
         # read in the backward
         ctx.grads = pairs[1::2]
         ctx.scratch = scratch
-        return value.detach().clone()
+        # an input returned as it is becomes a view of it (autograd's rule): no copy
+        return value if own_value else value.detach().clone()
 
     @staticmethod
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, ...]:
-        out: list[Tensor | None] = [None, None]
+        out: list[Tensor | None] = [None, None, None]
         if not ctx.scratch:
             for g in ctx.grads:
                 out += [grad_out * g, None]
@@ -49,7 +50,7 @@ class _KnownGradient(torch.autograd.Function):
 
 
 def with_known_gradient(
-    x: Tensor, value: Tensor, grad: Tensor, *more: Tensor, scratch: bool = False
+    x: Tensor, value: Tensor, grad: Tensor, *more: Tensor, scratch: bool = False, own_value: bool = False
 ) -> Tensor:
     """A 0-dim tensor equal to ``value`` whose gradient with respect to ``x`` is ``grad`` (and with respect
     to each further ``x_k`` in ``more = (x_2, grad_2, x_3, grad_3, ...)`` its ``grad_k``): one autograd node
@@ -65,9 +66,11 @@ def with_known_gradient(
             (a graph's output buffer, rewritten by its next replay): the backward writes ``upstream * grad``
             over each and hands that on, so no product of the image's size is allocated in the backward
             (the same values: a product of two numbers in either order). One backward only.
+        own_value: ``value`` is the caller's own tensor, not written again while the scalar is in use (a
+            copy the caller made): the result is a view of it instead of a copy (one kernel fewer).
     Returns:
-        0-dim tensor, a copy of ``value``; ``backward`` sends ``upstream * grad`` to ``x`` (and
-        ``upstream * grad_k`` to each ``x_k``).
+        0-dim tensor, a copy of ``value`` (with ``own_value``, a view of it); ``backward`` sends
+        ``upstream * grad`` to ``x`` (and ``upstream * grad_k`` to each ``x_k``).
     """
     if value.dim() != 0:
         raise ValueError(f"value must be 0-dim, got shape {tuple(value.shape)}")
@@ -77,4 +80,6 @@ def with_known_gradient(
     for xk, gk in zip(pairs[::2], pairs[1::2], strict=True):
         if gk.shape != xk.shape:
             raise ValueError(f"grad must have x's shape {tuple(xk.shape)}, got {tuple(gk.shape)}")
-    return _KnownGradient.apply(value, scratch, *pairs)
+    if own_value and value.requires_grad:
+        raise ValueError("own_value: value must not require grad (it is not differentiated)")
+    return _KnownGradient.apply(value, scratch, own_value, *pairs)

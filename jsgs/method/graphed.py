@@ -175,7 +175,11 @@ class GraphedImageTerms:
         pairs = ((x, grad) if grad is not None else ()) + (more(r) if more is not None else ())
         # the gradients are scratch: the graph's buffer is rewritten by the next replay, the probe's
         # upstream buffer by the next call (jsgs.method.pooling.ProbeObjective)
-        weighted = with_known_gradient(pairs[0], values[0], *pairs[1:], scratch=True) if pairs else values[0]
+        # the weighted sum: a view of the caller's copy of the values, no copy of its own
+        weighted = (
+            with_known_gradient(pairs[0], values[0], *pairs[1:], scratch=True, own_value=True)
+            if pairs else values[0]
+        )  # fmt: skip
         return ImageTerms(weighted, values[1:], r, obs)
 
     def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str, observation: bool) -> _Recording:

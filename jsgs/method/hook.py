@@ -128,6 +128,8 @@ class JsgsHook(LossHook):
         self._pending: dict[str, Any] = {}
         # λ_fro times the probe objective, with its kept buffer (jsgs.method.pooling.ProbeObjective)
         self._probe_objective: Any = None
+        # (n, dtype, device) -> n zeros to log (:meth:`_zeros`)
+        self._kept_zeros: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
         from jsgs.jpeg.losses import photometric_loss
         from jsgs.jpeg.observe import jpeg_observe
         from jsgs.jpeg.supervision import dct_supervision
@@ -266,7 +268,7 @@ class JsgsHook(LossHook):
             names = self.active_terms()
             stat_names = list(STAT_NAMES) if o.gc else []
             n = len(names) + len(stat_names)
-            values = torch.zeros(n, dtype=ctx.render.dtype, device=ctx.render.device).unbind()
+            values = self._zeros(n, ctx.render).unbind()
             terms0 = dict(zip(names, values[: len(names)], strict=True))
             stats0: dict[str, float | Tensor] = dict(zip(stat_names, values[len(names) :], strict=True))
             return HookOutput(terms0, dict.fromkeys(names, 0.0), stats0)
@@ -332,8 +334,7 @@ class JsgsHook(LossHook):
                 if self.keep_last:
                     self.last["ds"] = sup
         if o.gc and not self.gc_at(ctx.step):  # a step between the controller's: logged as 0
-            zeros = torch.zeros(1 + len(STAT_NAMES), dtype=ctx.render.dtype, device=ctx.render.device)
-            terms["fro"], *zero_stats = zeros.unbind()
+            terms["fro"], *zero_stats = self._zeros(1 + len(STAT_NAMES), ctx.render).unbind()
             stats.update(zip(STAT_NAMES, zero_stats, strict=True))
             if folded_loss is not None:  # a value to log only: nothing to weight and add to the loss
                 folded = folded | {"fro"}
@@ -359,6 +360,16 @@ class JsgsHook(LossHook):
         return HookOutput(terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab, ctx.step))
 
     # ------------------------------------------------------------------------------------------------
+    def _zeros(self, n: int, like: Tensor) -> Tensor:
+        """``n`` zeros in ``like``'s dtype and device, made once and kept: the values logged as 0 (lossless
+        views, the steps between the controller's). Only read (packed into the step's logged values), never
+        written, so every such step shares them instead of filling new ones."""
+        key = (n, like.dtype, like.device)
+        zeros = self._kept_zeros.get(key)
+        if zeros is None:
+            zeros = self._kept_zeros[key] = torch.zeros(n, dtype=like.dtype, device=like.device)
+        return zeros
+
     def _camera(self, ctx: StepContext) -> tuple[Tensor, Tensor, int, int]:
         """The view's world-to-camera [4, 4] and K [3, 3] in the parameters' dtype (the view's own
         per-device copies: a host-to-device copy inside the backward would stall the GPU queue), width,

@@ -75,6 +75,27 @@ def test_between_its_steps_there_is_no_probe_and_no_controller() -> None:
         assert_same_step(cheap, off, skip=("terms", "weights", "stats"))
 
 
+def test_the_steps_between_share_one_kept_zero_tensor() -> None:
+    """The zeros logged between the controller's steps (``fro`` and the statistics) are one tensor the hook
+    keeps, read only: no new tensor (and no fill kernel) per step, still 0 after the steps' backwards."""
+    view = make_view(50, "4:2:0")
+    hook = new_hook(view, gc_every=4)
+    splats = make_splats()
+    target = target_for(view)
+    seen = set()
+    for step in (1, 2, 3, 5, 6):
+        out = render(splats, hook.extra_channels(step, view, splats))
+        ctx = StepContext(step, view, out.rgb, out.alpha, target, out.info, splats, out.extra, {}, 0)
+        h = hook.losses(ctx)
+        x, y = out.rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)
+        terms = {"photometric": photometric_loss(x, y, 0.2, padding="valid"), **h.terms}
+        weighted_loss(terms, {"photometric": 1.0, **h.weights}, h.folded, h.folded_loss).backward()
+        zeros = [h.terms["fro"], *(h.stats[n] for n in STAT_NAMES)]
+        seen |= {t.untyped_storage().data_ptr() for t in zeros}
+        assert all(t.item() == 0.0 for t in zeros), step
+    assert len(seen) == 1
+
+
 def test_gc_every_is_validated() -> None:
     assert parse_options({}).gc_every == 1
     assert parse_options({"gc_every": 3}).gc_every == 3

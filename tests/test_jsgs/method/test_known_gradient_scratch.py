@@ -81,3 +81,22 @@ def test_the_probe_objectives_buffer_is_written_anew_after_each_backward(dtype: 
             (upstream * value).backward()
             grads.append(info["extra_features"].grad)
         assert torch.equal(grads[0], grads[1]) and grads[0].abs().sum() > 0, call
+
+
+def test_an_owned_value_is_returned_as_a_view() -> None:
+    """``own_value``: the scalar is a view of the caller's value (no copy), with the same gradients as the
+    copying form; a value that needs grad is refused."""
+    grads = []
+    for own in (False, True):
+        gen = torch.Generator().manual_seed(3)
+        a = torch.rand(2, 3, generator=gen).requires_grad_()
+        g = torch.randn(2, 3, generator=gen)
+        values = torch.tensor([0.25, 1.5, 2.0])
+        s = with_known_gradient(a * 2.0, values[0], g, own_value=own)
+        assert s.item() == 0.25
+        assert (s.untyped_storage().data_ptr() == values.untyped_storage().data_ptr()) == own
+        (3.0 * s).backward()
+        grads.append(a.grad)
+    assert torch.equal(grads[0], grads[1]) and grads[1].abs().sum() > 0
+    with pytest.raises(ValueError, match="own_value"):
+        with_known_gradient(a, torch.tensor(1.0, requires_grad=True), g, own_value=True)
