@@ -2,34 +2,44 @@
 # (JSGS with the preset's recipe as it is, gc_every 4 included; the fused kernels at their launch settings;
 # the image terms as one CUDA graph), 6 interleaved pairs of 100-step windows after 1,500 steps (40k
 # Gaussians) and after 6,000 (the full budget, 300k), one profile per GPU on one machine of 2 GPUs, side by
-# side, in one call (about 80 s of CUDA builds, then each profile bounded by `timeout`). The GPU tests of
-# the graphed image terms and of the kernels run after the 1,500-step profile, on its GPU (they read their
-# own numbers; the 6,000-step profile shares the host with them for its last minutes).
+# side, in one call (about 80 s of CUDA builds, then every part bounded by `timeout`, about 520 s at most).
+# Then, on GPU 0, the GPU tests of the graphed image terms and of the kernels; on GPU 1, a Chrome trace of a
+# 40-step window after 1,500 steps (profile_step.py --trace) and trace_gaps.py on it: where the device waits
+# for the host in each method's step (the synchronising calls' share of JSGS's extra host time included).
+# The tests and the trace share the host with the other GPU's last profile minutes: read the trace as
+# shares, not as wall times.
 # On the CPU first (.gpuF/ is ignored, as every .gpu*/ folder):
 #   bash scripts/gpu_prepare.sh      # the wheels in .whl
 #   .venv/bin/jsgstools compress ../shared/scenes/llff_flower --out .gpuF/flower_gaussian --schedule gaussian \
 #       --seed 0
 # then one call on kind nvidia-h100-x2, carrying [".whl", ".gpuF"]:
 #   bash tools/campaigns/flower_profiles.sh
-# It writes $OUT/flower_{1500,6000}.{json,txt}, $OUT/gpu_tests.log and $OUT/build.log, and prints each
-# profile's paired rows. The profiles belong in docs/results/speed/equal_budget/ (whose flower_*.json ran
-# with gc_every 1 and 32 blocks / 4 warps per program in the coding pass).
+# It brings back $OUT/flower_profiles.tgz (flower_{1500,6000}.{json,txt}, gpu_tests.log, trace_1500.{json,txt},
+# gaps_1500.txt, build.log; not the traces themselves) and prints each profile's paired rows. The profiles
+# belong in docs/results/speed/equal_budget/ (whose flower_*.json ran with gc_every 1 and 32 blocks / 4
+# warps per program in the coding pass).
 set -u
 F=${MANIFEST:-.gpuF/flower_gaussian/manifest.json} P=tools/diagnostics/profile_step.py
-PAIRS=${PAIRS:-6} TL=${TL:-240}
-bash scripts/gpu_run.sh true > "$OUT/build.log" 2>&1
+PAIRS=${PAIRS:-6} TL=${TL:-240} L=/tmp/flower_logs T=/tmp/flower_traces
+mkdir -p $L $T
+bash scripts/gpu_run.sh true > $L/build.log 2>&1
 profile() {  # profile GPU WARMUP: the profile after WARMUP steps on GPU
     CUDA_VISIBLE_DEVICES=$1 timeout "$TL" bash scripts/gpu_run.sh python3 $P --manifest "$F" --device cuda \
         --preset mcmc --warmup "$2" --steps 100 --pairs "$PAIRS" --no-fresh --jsgs-options '{}' \
-        --out "$OUT/flower_$2.json" > "$OUT/flower_$2.txt" 2>&1
+        --out $L/flower_$2.json > $L/flower_$2.txt 2>&1
 }
 (profile 0 1500; CUDA_VISIBLE_DEVICES=0 timeout 200 bash scripts/gpu_run.sh python3 -m pytest -m "gpu or slow" \
     -rs -p no:cacheprovider tests/test_jsgs/method/test_graphed.py tests/test_jsgs/kernels/test_triton_jo.py \
-    > "$OUT/gpu_tests.log" 2>&1) &
-profile 1 6000 &
+    > $L/gpu_tests.log 2>&1) &
+(profile 1 6000; CUDA_VISIBLE_DEVICES=1 timeout 170 bash scripts/gpu_run.sh python3 $P --manifest "$F" \
+    --device cuda --preset mcmc --warmup 1500 --steps 40 --python-top 40 --trace $T --out $L/trace_1500.json \
+    > $L/trace_1500.txt 2>&1; timeout 60 python3 tools/diagnostics/trace_gaps.py $T/gsplat.trace.json \
+    $T/jsgs.trace.json --steps 40 --top 30 > $L/gaps_1500.txt 2>&1) &
 wait
 for w in 1500 6000; do
     echo "== flower_$w"
-    grep -E "^\| (gsplat|jsgs) \| [0-9.]+, " "$OUT/flower_$w.txt"
+    grep -E "^\| (gsplat|jsgs) \| [0-9.]+, " $L/flower_$w.txt
 done
-tail -n 3 "$OUT/gpu_tests.log"
+tail -n 3 $L/gpu_tests.log
+head -n 4 $L/gaps_1500.txt
+tar czf "$OUT/flower_profiles.tgz" -C $L .
