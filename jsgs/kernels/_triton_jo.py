@@ -57,7 +57,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 #: at 504x378 16/4 0.072, 16/8 0.072, 32/4 0.079, 32/8 0.103, 64/8 0.119. 16/4 is the H100's fastest at both
 #: sizes (another H100 run: 0.52 against 32/4's 0.62 ms at 1440x1920). On an H200 it was the fastest at
 #: 1440x1920 too (0.515 against 32/4's 0.604) and slower at 504x378 (0.122 against 0.104). ptxas for sm_90
-#: (``tests/test_jsgs/kernels/test_triton_jo.py::test_kernels_spill_little_on_sm90``): at 32/4 the
+#: (``tests/test_jsgs/kernels/test_triton_jo.py::test_kernels_compile_for_sm90``): at 32/4 the
 #: backward kernel keeps 32 registers and spills about 10 KB per thread (an 8 KB stack frame), at 16/4 it
 #: spills about 100 bytes, the forward none.
 BLOCKS_PER_PROGRAM = 16

@@ -437,36 +437,23 @@ def test_fused_jo_setting() -> None:
      "_ds_delta_backward", "_color_affine", "_color_affine:strided"],
 )  # fmt: skip
 def test_kernels_compile_for_sm90(name: str) -> None:
-    """Each kernel compiles to a cubin for an H100 (sm_90) with the launch settings it runs with, on any
-    machine (Triton ships ptxas): what the interpreter cannot check (layouts, dot lowering, shared memory)."""
-    kernel = _compile_sm90(name)
-    assert kernel.asm["cubin"] and "tf32" not in kernel.asm["ptx"]  # float32 products, no TF32
-    if name.startswith("_color_"):  # an affine map: products and sums, no float division at all
-        assert not re.search(r"\b(div|rcp)\.[a-z.]*f32", kernel.asm["ptx"])
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(
-    not triton_available() or interpreting(), reason="needs Triton, without TRITON_INTERPRET (compiles only)"
-)
-@pytest.mark.parametrize(
-    "name",
-    ["_paper_forward", "_paper_backward", "_float_forward", "_float_backward", "_ds_delta_forward",
-     "_ds_delta_backward", "_color_affine", "_color_affine:strided"],
-)  # fmt: skip
-def test_kernels_spill_little_on_sm90(name: str) -> None:
-    """Each kernel at its launch settings (e.g. ``BLOCKS_PER_PROGRAM`` / ``WARPS``) keeps its work in
-    registers on an H100: ptxas (Triton's) reports at most 256 bytes of spill stores per thread (mode
-    paper's backward about 100, the others none). At 32 blocks and 4 warps mode paper's backward kernel
-    spilled about 10 KB per thread (an 8 KB stack frame, 32 registers), and it timed slower than at 16
-    and 4."""
+    """Each kernel compiles to a cubin for an H100 (sm_90) with the launch settings it runs with (e.g.
+    ``BLOCKS_PER_PROGRAM`` / ``WARPS``), on any machine (Triton ships ptxas): what the interpreter cannot
+    check (layouts, dot lowering, shared memory). Its products are float32 (no TF32), the colour maps divide
+    nowhere, and it keeps its work in registers: ptxas reports at most 256 bytes of spill stores per thread
+    (mode paper's backward about 100, the others none). At 32 blocks and 4 warps mode paper's backward kernel
+    spilled about 10 KB per thread (an 8 KB stack frame, 32 registers) and timed slower than at 16 and 4."""
     import subprocess
     import tempfile
 
     from triton.backends.nvidia.compiler import get_ptxas
 
+    kernel = _compile_sm90(name)
+    assert kernel.asm["cubin"] and "tf32" not in kernel.asm["ptx"]  # float32 products, no TF32
+    if name.startswith("_color_"):  # an affine map: products and sums, no float division at all
+        assert not re.search(r"\b(div|rcp)\.[a-z.]*f32", kernel.asm["ptx"])
     with tempfile.NamedTemporaryFile("w", suffix=".ptx") as f:
-        f.write(_compile_sm90(name).asm["ptx"])
+        f.write(kernel.asm["ptx"])
         f.flush()
         run = subprocess.run(
             [get_ptxas(90).path, "-v", "--gpu-name", "sm_90a", f.name, "-o", "/dev/null"],
