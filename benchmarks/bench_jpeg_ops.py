@@ -17,7 +17,12 @@ whole JO + L_obs + DS chain with its gradient replayed as one CUDA graph (what a
 twin vs fused; then JO's two colour conversions (``addmm``) vs their elementwise kernel
 (``method_options.speed.fused_color``): alone, inside the fused JO, and in the graph; last, mode paper's
 coding-pass kernels alone per launch setting, against the twin block by block (``tie_flip_agreement``:
-blocks off by one quantizer tie flip are counted apart from real disagreements).
+blocks off by one quantizer tie flip are counted apart from real disagreements); and those kernels on the
+step's own launches (:func:`coding_launches`: the luma and the chroma launch JO makes, beside the three-plane
+one above, each alone, with its Triton specialisation and, on CUDA, its binary's registers and spills).
+``--coding-launches`` (with ``--fused-jo``) prints only that table per size:
+
+    .venv/bin/python benchmarks/bench_jpeg_ops.py --fused-jo --coding-launches --device cuda --sizes 504x378
 
 Fidelity: PSNR of each mode's output against Pillow's (libjpeg-turbo's) decode of Pillow's encode, on
 photographs from ../shared/scenes, per quality and sampling; for mode "exact" also the share of bit-exact
@@ -34,6 +39,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -292,6 +298,7 @@ def _fused_jo_size(width: int, height: int, args: argparse.Namespace, device: to
     _time_rows(rows, device, args)
     _time_rows(colour_rows, device, args)
     _blocks_per_program(planes, tab, p_grad, args, device)
+    coding_launches(width, height, args, device)
 
 
 def _time_rows(
@@ -332,6 +339,129 @@ def _blocks_per_program(
         cells.append(f"{bn}/{warps}: {ms:.3f} ms (max |fused - twin| {a.largest:.1e}; {a.describe()})")
     print(f"mode paper's coding-pass kernels alone (fwd + bwd), by blocks per program / warps (used: "
           f"{BLOCKS_PER_PROGRAM}/{WARPS}), against the twin block by block: " + ", ".join(cells))
+
+
+def _device_ms(fn: Callable[[], object], device: torch.device, n: int, warmup: int) -> float:
+    """Milliseconds per call of ``fn`` on the device: on CUDA ``n`` calls recorded as one CUDA graph and
+    replayed (a training step replays its kernels so; no host launch time between them), else
+    :func:`_loop_ms`."""
+    if device.type != "cuda":
+        return _loop_ms(fn, device, n, warmup)
+    for _ in range(max(warmup, 1)):
+        fn()
+    torch.cuda.synchronize(device)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        for _ in range(n):
+            fn()
+    graph.replay()
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    start.record()
+    graph.replay()
+    end.record()
+    end.synchronize()
+    return start.elapsed_time(end) / n
+
+
+class _KernelRecorder:
+    """Stands in for one of ``jsgs.kernels._triton_jo``'s Triton kernels and keeps what its launches return
+    (the compiled kernel on CUDA: its registers and spills; None under the interpreter)."""
+
+    def __init__(self, kernel: Any) -> None:
+        self.kernel, self.compiled = kernel, []
+
+    def __getitem__(self, grid: Any) -> Callable[..., Any]:
+        def launch(*args: Any, **kwargs: Any) -> Any:
+            compiled = self.kernel[grid](*args, **kwargs)
+            self.compiled.append(compiled)
+            return compiled
+
+        return launch
+
+
+def _registers(tj: Any, name: str, fn: Callable[[], object]) -> str:
+    """``fn()`` run once with kernel ``name`` recorded: "registers / spills" of the binary it launched."""
+    recorder = _KernelRecorder(getattr(tj, name))
+    setattr(tj, name, recorder)
+    try:
+        fn()
+    finally:
+        setattr(tj, name, recorder.kernel)
+    last = recorder.compiled[-1] if recorder.compiled else None
+    regs, spills = getattr(last, "n_regs", None), getattr(last, "n_spills", None)
+    return "n/a" if regs is None else f"{regs} / {spills}"
+
+
+def _specialisation(names: list[str], values: tuple[int, ...]) -> str:
+    """How Triton's launcher specialises these integer arguments (equal to 1: compiled in as a constant;
+    divisible by 16: that hint), those that are neither named: one binary per specialisation, and ptxas
+    allocates registers per binary."""
+    ones = [n for n, v in zip(names, values, strict=True) if v == 1 and not n.endswith("_w")]
+    odd = [n for n, v in zip(names, values, strict=True) if v != 1 and v % 16]
+    return f"=1: {', '.join(ones) or '-'}; not /16: {', '.join(odd) or '-'}"
+
+
+def coding_launches(width: int, height: int, args: argparse.Namespace, device: torch.device) -> None:
+    """Mode paper's coding-pass kernels timed on exactly the tensors a training step hands them: JO with the
+    fused kernels (and the colour kernel) on a ``width`` x ``height`` view, its backward's launches recorded
+    (the padded luma plane, then the two chroma planes; their layout, the saved output and the incoming
+    gradient as the chain passes them), then each launch alone, forward and backward, at 16 and 32 blocks
+    per program and 4 warps, beside the three-plane launch of the rows above (``8 (H // 8) x 8 (W // 8)``,
+    one table). On CUDA each time is a CUDA graph of ``--repeats`` launches replayed (device time, as the
+    step's graph runs them); the registers / spills per thread are the binary's (CUDA only). ns/block is
+    the backward's time per 8x8 block."""
+    from jsgs.kernels import _triton_jo as tj
+
+    gen = torch.Generator().manual_seed(1)
+    rgb = torch.rand(1, 3, height, width, generator=gen).to(device)
+    weight = torch.randn(1, 3, height, width, generator=gen).to(device)
+    luma, chroma = (torch.tensor(t, dtype=torch.float32, device=device) for t in ijg_tables(args.quality))
+    launches: list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]] = []
+    backward = tj.paper_code_backward
+
+    def record(planes: torch.Tensor, tables: torch.Tensor, out: torch.Tensor, grad: torch.Tensor,
+               *rest: Any) -> torch.Tensor:  # fmt: skip
+        launches.append(("", planes.detach(), tables, out.detach(), grad.detach()))
+        return backward(planes, tables, out, grad, *rest)
+
+    tj.paper_code_backward = record
+    try:
+        x = rgb.clone().requires_grad_()
+        y = jpeg_observe(x, luma, chroma, args.sampling, "paper", kernel="triton", color_kernel="triton")
+        torch.autograd.grad(y, x, weight)
+    finally:
+        tj.paper_code_backward = backward
+    launches = [("step, luma" if p.shape[1] == 1 else "step, chroma", p, q, o, g)  # the luma plane first
+                for _, p, q, o, g in sorted(launches, key=lambda item: item[1].shape[1])]
+    planes = (255 * torch.rand(1, 3, 8 * (height // 8), 8 * (width // 8), generator=gen)).to(device)
+    q = luma.reshape(1, 64).contiguous()
+    out = tj.paper_code_forward(planes, q)
+    launches.append(("bench, 3 planes", planes, q, out, torch.randn_like(planes)))
+    names = [a for a in tj._paper_backward.arg_names if not a.endswith("_ptr") and a != "BN"]
+    print(f"mode paper's coding-pass kernels on the step's own launches at {width}x{height} "
+          f"({args.sampling}), each alone (used: {tj.BLOCKS_PER_PROGRAM}/{tj.WARPS})")
+    print("| blocks/warps | launch | planes | strides (planes; out, grad) | specialisation | blocks | fwd ms "
+          "| bwd ms | bwd ns/block | bwd registers / spills |")
+    print("|---|---|---|---|---|---:|---:|---:|---:|---|")
+    for bn, warps in ((16, 4), (32, 4)):
+        for label, p, tab, out, grad in launches:
+            _, launch = tj._grid_args(p, bn)
+            values = (*launch, *p.stride(), *out.stride(), *grad.stride())
+
+            def fwd(p: torch.Tensor = p, tab: torch.Tensor = tab, bn: int = bn, warps: int = warps) -> None:
+                tj.paper_code_forward(p, tab, bn, warps)
+
+            def bwd(p: torch.Tensor = p, tab: torch.Tensor = tab, out: torch.Tensor = out,
+                    grad: torch.Tensor = grad, bn: int = bn, warps: int = warps) -> None:  # fmt: skip
+                tj.paper_code_backward(p, tab, out, grad, bn, warps)
+
+            regs = _registers(tj, "_paper_backward", bwd)
+            t_fwd, t_bwd = (_device_ms(f, device, args.repeats, args.warmup) for f in (fwd, bwd))
+            same = out.stride() == grad.stride() == p.stride()
+            strides = f"{p.stride()}; " + ("alike" if same else f"{out.stride()}, {grad.stride()}")
+            spec = _specialisation(names, values)
+            print(f"| {bn}/{warps} | {label} | {tuple(p.shape)} | {strides} | {spec} | {launch[0]} | "
+                  f"{t_fwd:.4f} | {t_bwd:.4f} | {1e6 * t_bwd / launch[0]:.2f} | {regs} |", flush=True)
 
 
 @dataclass
@@ -433,7 +563,10 @@ def run_fused_jo(args: argparse.Namespace) -> None:
           f"{args.repeats} timed calls after {args.warmup} warm-up calls")  # fmt: skip
     for size in args.sizes.split(","):
         width, height = (int(v) for v in size.lower().split("x"))
-        _fused_jo_size(width, height, args, device)
+        if args.coding_launches:
+            coding_launches(width, height, args, device)
+        else:
+            _fused_jo_size(width, height, args, device)
 
 
 def _photos(n: int) -> list[np.ndarray]:
@@ -504,7 +637,11 @@ def main() -> None:
     p.add_argument("--samplings", default="4:2:0,4:2:2,4:4:4")
     p.add_argument("--fused-jo", action="store_true", help="the fused Triton JO against its twin")
     p.add_argument("--sizes", default="1440x1920,504x378", help="--fused-jo: image sizes, width x height")
+    p.add_argument("--coding-launches", action="store_true",
+                   help="with --fused-jo: only the coding-pass kernels on the step's own launches")
     args = p.parse_args()
+    if args.coding_launches and not args.fused_jo:
+        p.error("--coding-launches goes with --fused-jo")
     if args.fused_jo:
         run_fused_jo(args)
     else:

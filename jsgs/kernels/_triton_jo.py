@@ -56,10 +56,13 @@ except ImportError:  # pragma: no cover - depends on the environment
 #: H100, torch 2.11, triton 3.6; ms): at 1440x1920 16/4 0.517, 16/8 0.817, 32/4 0.615, 32/8 0.524, 64/8 0.780;
 #: at 504x378 16/4 0.072, 16/8 0.072, 32/4 0.079, 32/8 0.103, 64/8 0.119. 16/4 is the H100's fastest at both
 #: sizes (another H100 run: 0.52 against 32/4's 0.62 ms at 1440x1920). On an H200 it was the fastest at
-#: 1440x1920 too (0.515 against 32/4's 0.604) and slower at 504x378 (0.122 against 0.104). ptxas for sm_90
-#: (``tests/test_jsgs/kernels/test_triton_jo.py::test_kernels_compile_for_sm90``): at 32/4 the
-#: backward kernel keeps 32 registers and spills about 10 KB per thread (an 8 KB stack frame), at 16/4 it
-#: spills about 100 bytes, the forward none.
+#: 1440x1920 too (0.515 against 32/4's 0.604) and slower at 504x378 (0.122 against 0.104). Triton compiles one
+#: binary per specialisation of the integer arguments (1: a constant; divisible by 16: a hint), and ptxas
+#: for sm_90 allocates registers per binary (``tests/test_jsgs/kernels/test_triton_jo.py``'s sm_90 tests): at
+#: 32/4 the backward's binary for llff_flower's luma launch (one plane, 63 blocks a row) keeps 32 registers
+#: and spills about 11.7 KB per thread (a 9 KB stack frame), the other launches' about 1 KB at 255 registers;
+#: in flower's step that backward took 0.29 ms for 4,560 blocks. At 16/4 every launch of the step spills at
+#: most 12 bytes, the forward none.
 BLOCKS_PER_PROGRAM = 16
 WARPS = 4
 #: The same for mode float's coding pass (ptxas: no spills on sm_90) and for DS.

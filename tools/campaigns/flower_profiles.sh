@@ -2,8 +2,11 @@
 # (JSGS with the preset's recipe as it is, gc_every 4 included; the fused kernels at their launch settings;
 # the image terms as one CUDA graph), 6 interleaved pairs of 100-step windows after 1,500 steps (40k
 # Gaussians) and after 6,000 (the full budget, 300k), one profile per GPU on one machine of 2 GPUs, side by
-# side, in one call (about 80 s of CUDA builds, then every part bounded by `timeout`, about 520 s at most).
-# Then, on GPU 0, the GPU tests of the graphed image terms and of the kernels; on GPU 1, a Chrome trace of a
+# side, in one call (about 80 s of CUDA builds, then every part bounded by `timeout`, about 560 s at most).
+# Then, on GPU 0, the GPU tests of the graphed image terms and of the kernels (72 s last time) and the coding
+# pass's kernels timed on the step's own launches (bench_jpeg_ops.py --fused-jo --coding-launches: flower's and
+# jpeg_mouse's luma and chroma launches and the benchmark's three-plane one, each alone as a CUDA graph of 50,
+# at 16 and 32 blocks per program, with each binary's registers and spills); on GPU 1, a Chrome trace of a
 # 40-step window after 1,500 steps (profile_step.py --trace) and trace_gaps.py on it: where the device waits
 # for the host in each method's step (the synchronising calls' share of JSGS's extra host time included).
 # The tests and the trace share the host with the other GPU's last profile minutes: read the trace as
@@ -14,10 +17,11 @@
 #       --seed 0
 # then one call on kind nvidia-h100-x2, carrying [".whl", ".gpuF"]:
 #   bash tools/campaigns/flower_profiles.sh
-# It brings back $OUT/flower_profiles.tgz (flower_{1500,6000}.{json,txt}, gpu_tests.log, trace_1500.{json,txt},
-# gaps_1500.txt, build.log; not the traces themselves) and prints each profile's paired rows. The profiles
-# belong in docs/results/speed/equal_budget/ (whose flower_*.json ran with gc_every 1 and 32 blocks / 4
-# warps per program in the coding pass).
+# It brings back $OUT/flower_profiles.tgz (flower_{1500,6000}.{json,txt}, gpu_tests.log, coding_launches.txt,
+# trace_1500.{json,txt}, gaps_1500.txt, build.log; not the traces themselves) and prints each profile's paired
+# rows and the coding-launch rows. The profiles belong in docs/results/speed/equal_budget/ (whose
+# flower_*.json ran with gc_every 1 and 32 blocks / 4 warps per program in the coding pass, where flower's luma
+# launch compiles to a backward binary spilling ~11.7 KB per thread; compare `_paper_backward` there).
 set -u
 F=${MANIFEST:-.gpuF/flower_gaussian/manifest.json} P=tools/diagnostics/profile_step.py
 PAIRS=${PAIRS:-6} TL=${TL:-240} L=/tmp/flower_logs T=/tmp/flower_traces
@@ -28,9 +32,11 @@ profile() {  # profile GPU WARMUP: the profile after WARMUP steps on GPU
         --preset mcmc --warmup "$2" --steps 100 --pairs "$PAIRS" --no-fresh --jsgs-options '{}' \
         --out $L/flower_$2.json > $L/flower_$2.txt 2>&1
 }
-(profile 0 1500; CUDA_VISIBLE_DEVICES=0 timeout 200 bash scripts/gpu_run.sh python3 -m pytest -m "gpu or slow" \
+(profile 0 1500; CUDA_VISIBLE_DEVICES=0 timeout 150 bash scripts/gpu_run.sh python3 -m pytest -m "gpu or slow" \
     -rs -p no:cacheprovider tests/test_jsgs/method/test_graphed.py tests/test_jsgs/kernels/test_triton_jo.py \
-    > $L/gpu_tests.log 2>&1) &
+    > $L/gpu_tests.log 2>&1; CUDA_VISIBLE_DEVICES=0 timeout 90 bash scripts/gpu_run.sh python3 \
+    benchmarks/bench_jpeg_ops.py --fused-jo --coding-launches --device cuda --repeats 50 --sizes 504x378,1440x1920 \
+    > $L/coding_launches.txt 2>&1) &
 (profile 1 6000; CUDA_VISIBLE_DEVICES=1 timeout 170 bash scripts/gpu_run.sh python3 $P --manifest "$F" \
     --device cuda --preset mcmc --warmup 1500 --steps 40 --python-top 40 --trace $T --out $L/trace_1500.json \
     > $L/trace_1500.txt 2>&1; timeout 60 python3 tools/diagnostics/trace_gaps.py $T/gsplat.trace.json \
@@ -41,5 +47,6 @@ for w in 1500 6000; do
     grep -E "^\| (gsplat|jsgs) \| [0-9.]+, " $L/flower_$w.txt
 done
 tail -n 3 $L/gpu_tests.log
+grep -E "^\| (16|32)/4 \| " $L/coding_launches.txt
 head -n 4 $L/gaps_1500.txt
 tar czf "$OUT/flower_profiles.tgz" -C $L .
