@@ -14,7 +14,8 @@
 # metrics.json and config.json (never checkpoints). Repeat the same call on the warm machine (the bench
 # folder $OUT_DIR, default .res/op_<PART>, stays there) until its log says every run is complete; a run cut
 # on a machine that went cold starts again. Scenes: SCENES (default all four); e.g. SCENES=llff_flower.
-# On the CPU: extract each op_<PART>.tgz into .res/op_<PART> and gather them with
+# ITERS and EVAL_AT replace the 30,000 steps and the bench's evaluation steps (tiny values make a CPU dry run of
+# a campaign that calls this script). On the CPU: extract each op_<PART>.tgz into .res/op_<PART> and gather them with
 #   .venv/bin/python tools/results/build_report.py docs/results/operating_point .res/op_time .res/op_rule
 set -u
 cd "$(dirname "$0")/../.."
@@ -32,7 +33,7 @@ case $P in
 esac
 # 30,000 steps (the mcmc preset's length), evaluations at 3000, 7000, 10000, 15000, ..., 30000 (the bench's)
 python3 -m jsgs.cli bench $SCENES --out "$B" --strategy mcmc "${ARGS[@]}" --time-limit "${TL:-400}" \
-    --quiet 2>&1 | tail -30
+    ${ITERS:+--iterations "$ITERS"} ${EVAL_AT:+--eval-at "$EVAL_AT"} --quiet 2>&1 | tail -30
 cd "$B" && tar czf "$OUT/op_$P.tgz" results.csv report.md bench.json \
     $(ls runs/*/*/*/*/*/metrics.json runs/*/*/*/*/*/config.json 2>/dev/null) 2>/dev/null
 ls -la "$OUT"

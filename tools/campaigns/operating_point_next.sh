@@ -1,0 +1,190 @@
+# What the operating point (docs/results/operating_point/README.md) still lacks, on one machine of 4 GPUs
+# over three or four chained calls, in order of priority:
+#   (a) the equal-time table at the retuned auto budgets (--budgets auto: flower 184k, fern 108k, cup 222k,
+#       mouse 107k): gsplat (trained GSPLAT_STEPS = 1.5 x the 30,000 steps, so the table interpolates), JSGS
+#       (the mcmc preset's recipe, gc_every 4) and the clean ceiling, gaussian schedule, seeds 0 and 1
+#       (operating_point.sh PART=time): one bench per scene and seed, jobs a_<scene>_s<seed>; the cup's and
+#       the mouse's clean ceilings, whose budgets did not change, are the queued jobs ac_cup and ac_mouse;
+#   (b) a second seed (B_SEEDS, 1) at fixed budgets, JSGS (operating_point.sh PART=rule): b_fern (100k),
+#       b_mouse100 and b_mouse300 (custom_myhan_mouse), to tell the mouse's +0.0065 LPIPS miss from seed noise.
+#       The fixed budgets' seed 0 trained with gc_every 1; these runs, like (a)'s, with the preset's gc_every
+#       4, so the mouse's seed 1 at 100k compares with (a)'s mouse seed 1 under one recipe;
+#   (c) the uniform and descending schedules: gsplat (1.5x) and JSGS at the auto budgets, c_<scene>_s<seed>.
+# Each GPU is a lane, run detached (setsid) from a copy of the tree in /tmp/src, so it goes on between calls:
+# first its two pinned (a) benches side by side with all their runs at once, so that each gsplat run shares
+# its GPU with its JSGS pair the whole time (LANES, GPU:job,job):
+#   GPU 0: cup s0 + fern s0   GPU 1: cup s1 + fern s1   GPU 2: flower s0 + mouse s0   GPU 3: flower s1 + mouse s1
+# (5 runs per GPU; a row's runs_per_device counts its own bench's runs only), then, one at a time, the first
+# job of QUEUE (ac_cup ac_mouse b_fern b_mouse100 b_mouse300, then c_* seed 0, then 1) whose estimate fits before
+# STOP_AT (1200), the seconds after PHASE 1 began at which every bench stops (--time-limit: runs still going
+# stop at their last evaluation, which comes back), once its data has come. A lane ends when none fits.
+# What fits: a GPU trains about 230 steps/s of flower, 245 of fern, 155 of the mouse and 140 of the cup,
+# however many runs share it (the H100/H200 runs in docs/results/operating_point, 2 to 5 per GPU). (a)
+# without ac_* is then 3,810 GPU-seconds, 941-965 per GPU: the lanes end about 1,100 s after PHASE 1 began,
+# about 20-21 minutes of device time with the machine's start and the last call (STOP_AT caps it at about
+# 22; GSPLAT_STEPS=1.3 would save about 70 s per GPU). No queued job fits by default. STOP_AT=1600 (about 28
+# minutes, near the 30 that a machine is held) adds ac_cup, ac_mouse, b_fern and b_mouse100, one per freed
+# GPU. The rest needs a machine of its own, with LANES="0: 1: 2: 3:" (no pinned jobs): QUEUE="b_fern
+# b_mouse100 b_mouse300 ac_cup ac_mouse" STOP_AT=800 (about 15 minutes), QUEUE="c_fern_s0 c_flower_s0
+# c_mouse_s0 c_cup_s0" STOP_AT=1250 ((c) at seed 0, about 23 minutes).
+# On the CPU first, in the checkout the device tool sends (folders that .gitignore's .gpu*/ ignores):
+#   bash scripts/gpu_prepare.sh      # the wheels in .whl (7 MiB)
+#   GPU_DIR=.gpuOP1 GPU_SCENES="custom_kwrous_cup llff_fern" bash scripts/gpu_prepare.sh       # 27 MiB
+#   GPU_DIR=.gpuOP2 GPU_SCENES="llff_flower custom_myhan_mouse" bash scripts/gpu_prepare.sh && \
+#       rm .gpuOP2/alexnet_features.pth                                                      # 23 MiB
+# (with the ~25 MiB tree, the first call carries about 59 MiB of the 64), then calls of kind nvidia-h100-x4,
+# each started within 30 s of the last one's end (the machine goes back after 30 s idle, the lanes with it):
+#   PHASE=1 bash tools/campaigns/operating_point_next.sh   # carry [".whl", ".gpuOP1"]: copies the tree and
+#                                                          # the data, builds (~80 s), starts the lanes
+#   PHASE=2 bash tools/campaigns/operating_point_next.sh   # carry [".gpuOP2"]: its data, then waits WAIT (480)
+#   PHASE=3 bash tools/campaigns/operating_point_next.sh   # waits WAIT (540) or until every lane is done
+# and PHASE=3 again while status.txt says a lane is running; then give the machine back. A PHASE=1 on a warm
+# machine ends the lanes an earlier one started. Each call brings back $OUT/opn_<PHASE>.tgz: lanes.log (each
+# job's start, end and time limit), status.txt, each job's log and bench_<job>.tar (results.csv, report.md,
+# bench.json, its runs' metrics.json and config.json so far; never checkpoints). On the CPU, from the last one:
+#   mkdir -p .res/opn_x && tar xzf opn_3.tgz -C .res/opn_x && for t in .res/opn_x/bench_*.tar; do \
+#       j=$(basename "$t" .tar); mkdir -p ".res/opn/${j#bench_}" && tar xf "$t" -C ".res/opn/${j#bench_}"; done
+#   .venv/bin/python tools/results/build_report.py docs/results/operating_point/auto30 .res/opn/*
+# (a folder of its own: in docs/results/operating_point its auto rows would replace the earlier table's,
+# which trained at 552k and 242k with gc_every 1).
+# A CPU dry run: GPU_RUN names a stand-in for scripts/gpu_run.sh (one that puts the venv's python3 first on
+# PATH), CARRY1 and CARRY2 the carried folders, FLOWER, FERN, CUP and MOUSE tiny scenes in them (jsgstools
+# synth 48x36, then gpu_prepare.sh's clean base), ITERS=40 EVAL_AT=20,40 the steps, EST_PCT and OVERHEAD the
+# estimates, SRC, DATA, LOGS and BENCHES the folders in /tmp; tests/test_tools/test_operating_point_next.py
+# runs the lanes, the queue and the archive with a stand-in that fakes the benches.
+set -u
+cd "$(dirname "$0")/../.."
+PHASE=${PHASE:?set PHASE=1, 2 or 3}
+export S=${SRC:-/tmp/src} D=${DATA:-/tmp/opn_data} L=${LOGS:-/tmp/opn_logs} B=${BENCHES:-/tmp/opn}
+export GPU_RUN=${GPU_RUN:-scripts/gpu_run.sh} GS=${GSPLAT_STEPS:-1.5} BS=${B_SEEDS:-1}
+export FLOWER=${FLOWER:-llff_flower} FERN=${FERN:-llff_fern}
+export CUP=${CUP:-custom_kwrous_cup} MOUSE=${MOUSE:-custom_myhan_mouse}
+export EST_PCT=${EST_PCT:-100} OVERHEAD=${OVERHEAD:-40} POLL=${POLL:-5}
+export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-/tmp/torch_ext} JSGS_LPIPS_WEIGHTS=$D/alexnet_features.pth
+LANES=${LANES:-0:a_cup_s0,a_fern_s0 1:a_cup_s1,a_fern_s1 2:a_flower_s0,a_mouse_s0 3:a_flower_s1,a_mouse_s1}
+QUEUE=${QUEUE:-ac_cup ac_mouse b_fern b_mouse100 b_mouse300 c_fern_s0 c_flower_s0 c_mouse_s0 c_cup_s0 \
+c_fern_s1 c_flower_s1 c_mouse_s1 c_cup_s1}
+
+spec() {  # spec JOB: its operating_point.sh settings (J_*) and J_EST, its seconds on a GPU of its own
+    J_PART=time J_SCHED=gaussian J_BUDGETS=100k J_SEEDS=${1##*_s} J_JOBS=2
+    case $1 in
+        a_flower_s[01]) J_SCENE=$FLOWER J_SCHED=gaussian,clean J_JOBS=3 J_EST=460 ;;
+        a_fern_s[01]) J_SCENE=$FERN J_SCHED=gaussian,clean J_JOBS=3 J_EST=430 ;;
+        a_cup_s[01]) J_SCENE=$CUP J_EST=540 ;;
+        a_mouse_s[01]) J_SCENE=$MOUSE J_EST=490 ;;
+        ac_cup) J_SCENE=$CUP J_SCHED=clean J_SEEDS=0,1 J_EST=400 ;;
+        ac_mouse) J_SCENE=$MOUSE J_SCHED=clean J_SEEDS=0,1 J_EST=360 ;;
+        b_fern) J_PART=rule J_SCENE=$FERN J_SEEDS=$BS J_JOBS=1 J_EST=200 ;;
+        b_mouse100) J_PART=rule J_SCENE=$MOUSE J_SEEDS=$BS J_JOBS=1 J_EST=290 ;;
+        b_mouse300) J_PART=rule J_SCENE=$MOUSE J_BUDGETS=300k J_SEEDS=$BS J_JOBS=1 J_EST=450 ;;
+        c_flower_s[01]) J_SCENE=$FLOWER J_SCHED=uniform,descending J_JOBS=4 J_EST=650 ;;
+        c_fern_s[01]) J_SCENE=$FERN J_SCHED=uniform,descending J_JOBS=4 J_EST=610 ;;
+        c_cup_s[01]) J_SCENE=$CUP J_SCHED=uniform,descending J_JOBS=4 J_EST=1070 ;;
+        c_mouse_s[01]) J_SCENE=$MOUSE J_SCHED=uniform,descending J_JOBS=4 J_EST=970 ;;
+        *) echo "error: job $1: not one of a_*, ac_*, b_*, c_*" >&2; return 2 ;;
+    esac
+}
+left() { echo $(($(cat $L/t_stop) - $(date +%s))); }
+ready() { [ -f "$D/bench/data/$1/.ready" ]; }
+bench() {  # bench JOB GPU: operating_point.sh for JOB on GPU, with the time left as its --time-limit
+    spec "$1" || return
+    local tl; tl=$(left)
+    if [ "$tl" -lt $((OVERHEAD + 20)) ]; then echo "$(date +%T) $1: not started, ${tl} s left" >> $L/lanes.log; return; fi
+    echo "$(date +%T) start $1 on GPU $2 (time limit $tl s, estimate $((J_EST * EST_PCT / 100)) s)" >> $L/lanes.log
+    mkdir -p $B/out_$1
+    (cd $S && CUDA_VISIBLE_DEVICES=$2 PART=$J_PART SCENES=$J_SCENE SEEDS=$J_SEEDS SCHEDULES=$J_SCHED \
+        RULE_BUDGETS=$J_BUDGETS JOBS=$J_JOBS GSPLAT_STEPS=$GS TL=$tl GPU_DIR=$D OUT_DIR=$B/$1 OUT=$B/out_$1 \
+        timeout $((tl + 150)) bash $GPU_RUN bash tools/campaigns/operating_point.sh > $L/$1.log 2>&1 < /dev/null)
+    echo "$(date +%T) end $1 on GPU $2 (rc $?)" >> $L/lanes.log
+}
+take() {  # the first queued job whose estimate fits the time left and whose data is here (taken off the
+    # queue); status 3: one fits but its data has not come yet; 1: none fits
+    exec 9> $L/queue.lock && flock 9
+    local j tl rc=1; tl=$(left)
+    for j in $(cat $L/queue); do
+        spec "$j" 2> /dev/null || continue
+        [ $((J_EST * EST_PCT / 100 + OVERHEAD)) -le "$tl" ] || continue
+        if ready "$J_SCENE"; then
+            grep -vx "$j" $L/queue > $L/queue.new; mv $L/queue.new $L/queue
+            echo "$j"; return 0
+        fi
+        rc=3
+    done
+    return $rc
+}
+lane() {  # lane GPU JOBS: the pinned JOBS (comma-separated) side by side, each once its data is here; then the queue
+    local g=$1 j
+    for j in ${2//,/ }; do
+        spec "$j" || continue
+        (while ! ready "$J_SCENE" && [ "$(left)" -gt 0 ]; do sleep $POLL; done; bench "$j" "$g") &
+    done
+    wait
+    while true; do
+        j=$(take) && { bench "$j" "$g"; continue; }
+        [ $? -eq 3 ] || break
+        sleep "$POLL"
+    done
+    echo "$(date +%T) lane $g done" >> $L/lanes.log
+    touch $L/lane_$g.done
+}
+carry() {  # carry FOLDER: its LPIPS weights and clean bases into $D, each scene marked ready once whole
+    [ -f "$1/alexnet_features.pth" ] && cp "$1/alexnet_features.pth" $D/
+    local s
+    for s in "$1"/bench/data/*/; do
+        s=$(basename "$s")
+        rm -rf "$D/bench/data/.$s" && cp -r "$1/bench/data/$s" "$D/bench/data/.$s" \
+            && mv "$D/bench/data/.$s" "$D/bench/data/$s" && touch "$D/bench/data/$s/.ready"
+    done
+}
+wait_lanes() {  # wait_lanes SECONDS: until every lane is done or SECONDS have passed
+    local end=$((SECONDS + $1)) n
+    n=$(cat $L/lanes_n)
+    while [ $SECONDS -lt $end ] && [ "$(ls $L/lane_*.done 2> /dev/null | wc -l)" -lt "$n" ]; do sleep $POLL; done
+}
+case $PHASE in
+    lane) echo $$ >> $L/lane_pids; lane "$LANE_GPU" "$LANE_JOBS"; exit ;;
+    1)
+        for j in $(printf '%s\n' $LANES | cut -d: -f2- | tr ',' ' ') $QUEUE; do spec "$j" || exit 2; done
+        # lanes of an earlier PHASE 1 on this machine (each leads its own process group: setsid) would take the
+        # new queue
+        for p in $(cat $L/lane_pids 2> /dev/null); do kill -- -"$p" 2> /dev/null; done
+        rm -rf $S $D $L $B && mkdir -p $S $D/bench/data $L $B
+        echo $(($(date +%s) + ${STOP_AT:-1200})) > $L/t_stop
+        tar cf - --exclude='./.gpu*' --exclude=./.res --exclude=./.torch_ext . | tar xf - -C $S
+        carry "${CARRY1:-.gpuOP1}"
+        printf '%s\n' $QUEUE > $L/queue
+        (cd $S && timeout 300 bash $GPU_RUN true) > $L/build.log 2>&1 || { echo "build failed:"; tail -20 $L/build.log; }
+        n=0
+        for l in $LANES; do
+            n=$((n + 1))
+            # the command alone in the background (not the subshell): nothing of the call waits for the lane
+            (cd $S || exit; LANE_GPU=${l%%:*} LANE_JOBS=${l#*:} PHASE=lane setsid nohup \
+                bash tools/campaigns/operating_point_next.sh > $L/lane_${l%%:*}.log 2>&1 < /dev/null &)
+        done
+        echo $n > $L/lanes_n
+        ;;
+    2)
+        carry "${CARRY2:-.gpuOP2}"
+        wait_lanes "${WAIT:-480}"
+        ;;
+    *) wait_lanes "${WAIT:-540}" ;;
+esac
+{
+    echo "phase $PHASE at $(date +%T): $(left) s to the stop; lanes done: $(ls $L/lane_*.done 2> /dev/null | wc -l) of $(cat $L/lanes_n)"
+    echo "queue left: $(tr '\n' ' ' < $L/queue)"
+    for b in "$B"/*/; do
+        [ -d "$b/runs" ] || continue
+        echo "$(basename "$b"): $(grep -l '"status": "complete"' "$b"/runs/*/*/*/*/*/metrics.json 2> /dev/null \
+            | wc -l) runs complete, $(ls "$b"/runs/*/*/*/*/*/metrics.json 2> /dev/null | wc -l) started"
+    done
+} > $L/status.txt
+command -v nvidia-smi > /dev/null && nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv \
+    > $L/smi_$PHASE.txt 2>&1
+for b in "$B"/*/; do
+    [ -d "$b/runs" ] || continue
+    (cd "$b" && tar cf - $(ls results.csv report.md bench.json runs/*/*/*/*/*/metrics.json \
+        runs/*/*/*/*/*/config.json 2> /dev/null)) > $L/bench_$(basename "$b").tar
+done
+tar czf "$OUT/opn_$PHASE.tgz" -C $L --exclude=./queue.lock .
+cat $L/status.txt $L/lanes.log 2> /dev/null
+ls -la "$OUT"
