@@ -17,7 +17,8 @@ export PYTHONPATH=/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1 O
 export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-$PWD/.torch_ext} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
 export MAX_JOBS=${MAX_JOBS:-16} JSGS_LPIPS_DOWNLOAD=0
 if [ -z "${JSGS_LPIPS_WEIGHTS:-}" ] && [ -f "${GPU_DIR:-.gpu}/alexnet_features.pth" ]; then
-    export JSGS_LPIPS_WEIGHTS=$PWD/${GPU_DIR:-.gpu}/alexnet_features.pth
+    JSGS_LPIPS_WEIGHTS=$(cd "${GPU_DIR:-.gpu}" && pwd)/alexnet_features.pth  # GPU_DIR relative or absolute
+    export JSGS_LPIPS_WEIGHTS
 fi
 # Build (or load) gsplat's and jsgs's CUDA extensions once, under a lock, before the command: runs started side by
 # side on an empty build folder would each try to build them, and all but one fail.

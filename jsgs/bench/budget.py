@@ -301,8 +301,8 @@ class BudgetReport:
             fixed = sorted(b for (s, h, m, b) in self.final if (s, h, m) == (sc, sch, method) and b != AUTO)
             runs = {b: self.final[(sc, sch, method, b)] for b in [*fixed, AUTO]}
             seeds = sorted(set.intersection(*(set(v) for v in runs.values())))
-            if not fixed or not seeds:
-                continue
+            if not fixed or not seeds or any(runs[b][s].get("lpips") is None for b in runs for s in seeds):
+                continue  # LPIPS not measured (no backbone weights, or views too small for AlexNet)
 
             def mean(b: Budget, k: str, runs: dict[Budget, Any] = runs, seeds: list[int] = seeds) -> float:
                 return statistics.fmean(float(runs[b][s][k]) for s in seeds)

@@ -156,3 +156,10 @@ def test_the_auto_rule_table_on_hand_made_numbers(tmp_path: Path) -> None:
     assert "| 1.33 | **not met** |" in b
     report = write_report(back, tmp_path, [], [], plots=False).read_text()
     assert "### The scene-sized budget (auto) against fixed budgets (JSGS)" in report
+
+    # without LPIPS (no backbone weights, or views smaller than AlexNet takes) the table leaves the scene out
+    for r in back:
+        if r["scene"] == "b":
+            r["lpips"] = None
+    lines = BudgetReport(back).auto_rule()
+    assert len(lines) == 3 and "| a |" in lines[2]
