@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jsgs.base.camera import DISTORTION_MODELS
 from jsgs.base.errors import JsgsError
 from jsgs.base.limits import MAX_COORDINATE
 from jsgs.base.world import coincidence, normalization_refusal
@@ -258,9 +259,16 @@ def _check_cameras(scene: ColmapScene, report: ValidationReport) -> None:
     for cid, cam in sorted(scene.cameras.items()):
         where = f"{scene.rel(scene.model_dir)}: camera {cid}"
         if cam.model in UNDISTORTABLE_MODELS:
+            jpeg_only = (
+                "a JPEG-only scene trains as it is, on the photos' own grid"
+                if cam.model in DISTORTION_MODELS
+                else "a JPEG-only scene cannot train with it (the trainer renders "
+                f"{', '.join(DISTORTION_MODELS)}): model the camera as OPENCV "
+                "(jsgstools sfm --camera-model OPENCV)"
+            )
             report.warnings.append(
                 f"{where}: {cam.model} with distortion {list(cam.distortion)}: compress undistorts it to "
-                "PINHOLE before encoding; a JPEG-only scene trains as it is, on the photos' own grid"
+                f"PINHOLE before encoding; {jpeg_only}"
             )
         elif cam.model not in PINHOLE_MODELS:
             report.problems.append(

@@ -12,6 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: the distorted COLMAP camera models the trainer renders on the photo's own grid (OpenCV's radial-tangential
+#: (k1, k2, p1, p2), on both backends); any other distortion must be undistorted before training
+DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
 
 @dataclass(frozen=True)
 class Distortion:

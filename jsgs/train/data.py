@@ -19,16 +19,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from jsgs.base.camera import Camera
+from jsgs.base.camera import DISTORTION_MODELS, Camera
 from jsgs.base.errors import JsgsError
 from jsgs.base.limits import MAX_POINT_DISTANCE, MIN_VIEW_SIDE
 from jsgs.base.manifest import JpegState, Manifest, ManifestView
 from jsgs.base.world import camera_extent, coincidence
 from jsgs.train.config import TrainConfig
 from jsgs.train.normalize import normalize_world
-
-#: the distorted COLMAP camera models the trainer renders (reference rasterizer: OpenCV's radial-tangential)
-DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
 @dataclass

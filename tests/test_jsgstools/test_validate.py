@@ -218,6 +218,13 @@ def test_camera_models(synth_scene: Path, tmp_path: Path) -> None:
     code, out = _run(scene)
     assert code == 0, out
     assert "warning:" in out and "SIMPLE_RADIAL with distortion [0.01]: compress undistorts it" in out
+    assert "a JPEG-only scene trains as it is" in out
+    # FULL_OPENCV: compress undistorts it, the trainer does not render it (a JPEG-only scene cannot train)
+    scene = _copy(synth_scene, tmp_path / "full")
+    _edit_model(scene, set_model("FULL_OPENCV", [54.4, 54.4, 32.0, 24.0, 0.01, 0, 0, 0, 0.001, 0, 0, 0]))
+    code, out = _run(scene)
+    assert code == 0, out
+    assert "FULL_OPENCV with distortion" in out and "a JPEG-only scene cannot train with it" in out
     # a fisheye model: not supported
     scene = _copy(synth_scene, tmp_path / "fisheye")
     _edit_model(scene, set_model("OPENCV_FISHEYE", [54.4, 54.4, 32.0, 24.0, 0.01, 0, 0, 0]))
