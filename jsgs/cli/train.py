@@ -243,7 +243,8 @@ def train_command(
         if doc.get("reference") in ("jpeg", "mixed"):
             summary += " (test views against their JPEGs: no lossless copy)"
     click.echo(summary)
-    names = ("metrics.json", "config.json", "point_cloud.ply", "renders/", "checkpoints/")
+    names = ("metrics.json", "config.json", "point_cloud.ply", "point_cloud_colmap.ply", "renders/",
+             "checkpoints/")
     click.echo(f"outputs in {out}/ ({', '.join(n for n in names if (out / n.rstrip('/')).exists())})")
 
 
