@@ -54,8 +54,9 @@ def interval_shares(train: dict[str, Any], quality: dict[str, int | None], low: 
         return q is not None and q <= low
 
     def total(names: list[str], key: str | None) -> float:
+        # a term's mean is over the steps that computed it (``skipped``: the others)
         return sum(
-            per_view[n]["steps"]
+            (per_view[n]["steps"] - (0 if key is None else per_view[n].get("skipped", {}).get(key, 0)))
             * (per_view[n]["loss"] if key is None else per_view[n]["terms"].get(key, 0.0))
             for n in names
         )

@@ -47,7 +47,8 @@ same controller code as the probe's gradient (``jsgs.method.pooling.probe_grad_f
 
 With ``gc_every`` k > 1 the controller runs on the steps with ``step % k == 0`` only, weighted k·λ_fro there
 (on those steps it is the exact controller with that weight); the other steps render no probe, and their
-``fro`` term and GC statistics are logged as 0, as on lossless views.
+``fro`` term and GC statistics are 0 (nothing enters the loss) and named in ``HookOutput.skipped``: the
+progress bar shows the latest controller step's values and the logged means are over the controller's steps.
 """
 
 from __future__ import annotations
@@ -130,6 +131,8 @@ class JsgsHook(LossHook):
         self._probe_objective: Any = None
         # (n, dtype, device) -> n zeros to log (:meth:`_zeros`)
         self._kept_zeros: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
+        # what the steps between the controller's leave out of the logs (:meth:`_skipped`)
+        self._gc_skipped = frozenset(("fro", *STAT_NAMES))
         from jsgs.jpeg.losses import photometric_loss
         from jsgs.jpeg.observe import jpeg_observe
         from jsgs.jpeg.supervision import dct_supervision
@@ -271,7 +274,7 @@ class JsgsHook(LossHook):
             values = self._zeros(n, ctx.render).unbind()
             terms0 = dict(zip(names, values[: len(names)], strict=True))
             stats0: dict[str, float | Tensor] = dict(zip(stat_names, values[len(names) :], strict=True))
-            return HookOutput(terms0, dict.fromkeys(names, 0.0), stats0)
+            return HookOutput(terms0, dict.fromkeys(names, 0.0), stats0, skipped=self._skipped(ctx.step))
         # every active term and statistic is set below (no placeholder kernels on the JPEG views' path)
         terms: dict[str, Tensor] = {}
         stats: dict[str, float | Tensor] = {}
@@ -333,7 +336,7 @@ class JsgsHook(LossHook):
                 r_map = sup.pixel_score  # [1, H, W], detached
                 if self.keep_last:
                     self.last["ds"] = sup
-        if o.gc and not self.gc_at(ctx.step):  # a step between the controller's: logged as 0
+        if o.gc and not self.gc_at(ctx.step):  # a step between the controller's: 0, skipped in the logs
             terms["fro"], *zero_stats = self._zeros(1 + len(STAT_NAMES), ctx.render).unbind()
             stats.update(zip(STAT_NAMES, zero_stats, strict=True))
             if folded_loss is not None:  # a value to log only: nothing to weight and add to the loss
@@ -357,7 +360,15 @@ class JsgsHook(LossHook):
                         objective = self._probe()(ctx.info, r_map)
                         folded_loss = objective if folded_loss is None else folded_loss + objective
                 stats.update(gc_stats)
-        return HookOutput(terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab, ctx.step))
+        return HookOutput(
+            terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab, ctx.step),
+            self._skipped(ctx.step),
+        )  # fmt: skip
+
+    def _skipped(self, step: int) -> frozenset[str]:
+        """The controller's term and statistics on the steps between the controller's (any view, so that every
+        process of a run skips the same names at a step): logged as 0, left out of the logs."""
+        return self._gc_skipped if self.opts.gc and not self.gc_at(step) else frozenset()
 
     # ------------------------------------------------------------------------------------------------
     def _zeros(self, n: int, like: Tensor) -> Tensor:

@@ -39,13 +39,15 @@ if TYPE_CHECKING:
 @dataclass
 class StepResult:
     """What one training step logged: ``step`` (0-based), the view's name, the total loss, the terms and
-    statistics (host floats, read after the backward)."""
+    statistics (host floats, read after the backward), and the terms and statistics the step did not compute
+    (``HookOutput.skipped``: their values are placeholders)."""
 
     step: int
     view: str
     loss: float
     terms: dict[str, float]
     stats: dict[str, float]
+    skipped: frozenset[str] = frozenset()
 
 
 class TrainerProtocol(Protocol):
@@ -120,8 +122,10 @@ class ProgressBar(Callback):
     training time to the end at that pace (``ETA``), on the trainer's training clock (evaluations and
     checkpoints do not count): a MCMC model grows and its steps get slower, so the recent pace projects
     better than the mean since the start. After the run's first :attr:`ESTIMATE_AFTER` steps, one line
-    estimates the whole training time at that pace (a lower bound when the model grows). Evaluation lines go
-    to the bar or the trainer's log; ``enabled`` false: only those."""
+    estimates the whole training time at that pace (a lower bound when the model grows). A term or statistic
+    the step did not compute (:attr:`StepResult.skipped`) shows its latest computed value and that step
+    (1-based, as the line counts): ``fro=0.0051@29``; none before one was computed. Evaluation lines go to the
+    bar or the trainer's log; ``enabled`` false: only those."""
 
     #: the steps after which the start estimate is printed
     ESTIMATE_AFTER = 10
@@ -134,6 +138,9 @@ class ProgressBar(Callback):
         self.bar: Any = None
         self._mark: tuple[float, int] = (0.0, 0)  # (training seconds, steps done) at the last report
         self._start: tuple[float, int] = (0.0, 0)  # (training seconds, steps done) when this process began
+        # the latest step of each set of skipped names (a hook's are few: JSGS's controller, none): where a
+        # skipped value's latest computed one is, at one dict write per step
+        self._latest: dict[frozenset[str], StepResult] = {}
 
     def _pace(self, trainer: TrainerProtocol, done: int) -> str:
         """``12.3 ms/step, ETA 5:07`` over the steps since the last report; moves the mark."""
@@ -173,10 +180,25 @@ class ProgressBar(Callback):
             "plus evaluations"
         )
 
+    def _held(self, name: str) -> str:
+        """``=value@step`` of the latest step that computed ``name`` ("" where none did)."""
+        steps = [r for skipped, r in self._latest.items() if name not in skipped]
+        if not steps:
+            return ""
+        r = max(steps, key=lambda r: r.step)
+        value = r.terms[name] if name in r.terms else r.stats.get(name)
+        return "" if value is None else f"={value:.4g}@{r.step + 1}"
+
     def _summary(self, trainer: TrainerProtocol, result: StepResult) -> str:
         parts = [f"loss={result.loss:.4f}", f"#G={trainer.num_gaussians()}"]
-        parts += [f"{k}={v:.4g}" for k, v in result.terms.items() if k not in ("photometric",)]
-        parts += [f"{k}={v:.4g}" for k, v in result.stats.items()]
+        for part in (result.terms, result.stats):
+            for k, v in part.items():
+                if k == "photometric" and part is result.terms:
+                    continue
+                if k not in result.skipped:
+                    parts.append(f"{k}={v:.4g}")
+                elif held := self._held(k):
+                    parts.append(k + held)
         return " ".join(parts)
 
     def on_step_end(self, trainer: TrainerProtocol, result: StepResult) -> None:
@@ -185,6 +207,7 @@ class ProgressBar(Callback):
         if not self.enabled:
             return
         done = result.step + 1
+        self._latest[result.skipped] = result
         estimate = self._estimate(trainer, done)
         if estimate is not None:
             if self.bar is not None:

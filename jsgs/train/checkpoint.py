@@ -407,6 +407,11 @@ def _check_log(value: Any, where: str) -> None:
         d = value[part]
         if not isinstance(d, Mapping) or not all(isinstance(k, str) and _is_num(v) for k, v in d.items()):
             raise _Bad(f"{where}.{part}", "expected names with finite numbers")
+    skipped = value.get("skipped", {})
+    if not isinstance(skipped, Mapping) or not all(
+        isinstance(k, str) and _is_int(v) and 0 <= v <= value["steps"] for k, v in skipped.items()
+    ):
+        raise _Bad(f"{where}.skipped", "expected names with step counts")
     per_view = value.get("per_view", {})
     if not isinstance(per_view, Mapping):
         raise _Bad(f"{where}.per_view", "not a dict")

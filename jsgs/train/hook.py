@@ -12,7 +12,9 @@ statistics to log. The total loss is::
 
 Every term (base ones included) is checked for NaN/Inf each step; a bad one stops the run naming the term and
 the step. Term values and stats are shown on the progress bar and averaged into ``RUN/metrics.json`` between
-evaluations (``train`` of each entry of ``evals``).
+evaluations (``train`` of each entry of ``evals``). A value the method did not compute at a step (a part of it
+that runs on some steps only; ``HookOutput.skipped``) is left out of both: the progress bar shows the latest
+computed value with its step, the means are over the steps that computed it.
 
 A hook may also ask for extra rasterised channels (:meth:`LossHook.extra_channels`): per-Gaussian features
 [N, E] that are composited with the same weights t * alpha as the colours, in the *same* rasterisation
@@ -97,6 +99,9 @@ class HookOutput:
     #: this step's multiplier on the weight of the baseline's l_ph (``loss.base_weight``): a method may
     #: trust some views' pixels less than others
     base_scale: float = 1.0
+    #: terms and stats this step did not compute (a part of the method that runs on some steps only): their
+    #: values are placeholders (a term's enters the loss as it is), which the logs leave out
+    skipped: frozenset[str] = frozenset()
 
     def check(self, hook_name: str) -> None:
         missing = sorted(set(self.terms) - set(self.weights))
@@ -106,6 +111,9 @@ class HookOutput:
         if unknown or (self.folded and self.folded_loss is None):
             what = f"folds {unknown[0]!r}, which it does not return" if unknown else "returns no folded_loss"
             raise JsgsError(f"method {hook_name}: {what}")
+        stray = sorted(self.skipped - set(self.terms) - set(self.stats))
+        if stray:
+            raise JsgsError(f"method {hook_name}: skips {stray[0]!r}, which it does not return")
         clash = sorted(set(self.terms) & RESERVED_TERMS)
         if clash:
             raise JsgsError(f"method {hook_name}: loss term name {clash[0]!r} is reserved")

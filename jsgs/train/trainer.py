@@ -114,6 +114,8 @@ class TrainingInterrupted(JsgsError):
 class LogAccumulator:
     """Sums of each logged value since the last evaluation (floats, so the averages are exact to resume).
 
+    ``skipped`` counts the steps that did not compute a term or statistic (``HookOutput.skipped``): its sum
+    leaves them out and its mean is over the other steps (a value no step computed has no mean).
     ``per_view`` holds one accumulator per training view (by name) for the loss and the terms, so a run
     shows which views its loss comes from (whether the worst JPEGs dominate training)."""
 
@@ -122,29 +124,47 @@ class LogAccumulator:
     terms: dict[str, float] = field(default_factory=dict)
     stats: dict[str, float] = field(default_factory=dict)
     per_view: dict[str, LogAccumulator] = field(default_factory=dict)
+    skipped: dict[str, int] = field(default_factory=dict)
 
     def add(
-        self, loss: float, terms: dict[str, float], stats: dict[str, float], view: str | None = None
+        self,
+        loss: float,
+        terms: dict[str, float],
+        stats: dict[str, float],
+        view: str | None = None,
+        skipped: frozenset[str] = frozenset(),
     ) -> None:
         self.steps += 1
         self.loss += loss
-        for k, v in terms.items():
-            self.terms[k] = self.terms.get(k, 0.0) + v
-        for k, v in stats.items():
-            self.stats[k] = self.stats.get(k, 0.0) + v
+        for part, sums in ((terms, self.terms), (stats, self.stats)):
+            for k, v in part.items():
+                if k in skipped:
+                    self.skipped[k] = self.skipped.get(k, 0) + 1
+                    sums.setdefault(k, 0.0)
+                else:
+                    sums[k] = sums.get(k, 0.0) + v
         if view is not None:
-            self.per_view.setdefault(view, LogAccumulator()).add(loss, terms, {})
+            self.per_view.setdefault(view, LogAccumulator()).add(loss, terms, {}, skipped=skipped)
+
+    def _mean(self, sums: dict[str, float]) -> dict[str, float]:
+        counts = {k: self.steps - self.skipped.get(k, 0) for k in sums}
+        return {k: v / counts[k] for k, v in sums.items() if counts[k] > 0}
 
     def means(self) -> dict[str, Any]:
-        n = max(self.steps, 1)
         views = {name: acc.means() for name, acc in sorted(self.per_view.items())}
-        return {
+        out = {
             "steps": self.steps,
-            "loss": self.loss / n if self.steps else None,
-            "terms": {k: v / n for k, v in self.terms.items()},
-            "stats": {k: v / n for k, v in self.stats.items()},
-            "per_view": {name: {k: m[k] for k in ("steps", "loss", "terms")} for name, m in views.items()},
+            "loss": self.loss / self.steps if self.steps else None,
+            "terms": self._mean(self.terms),
+            "stats": self._mean(self.stats),
+            "per_view": {
+                name: {k: m[k] for k in ("steps", "loss", "terms", "skipped") if k in m}
+                for name, m in views.items()
+            },
         }
+        if self.skipped:
+            out["skipped"] = dict(self.skipped)
+        return out
 
     def state(self) -> dict[str, Any]:
         return {
@@ -153,13 +173,16 @@ class LogAccumulator:
             "terms": dict(self.terms),
             "stats": dict(self.stats),
             "per_view": {k: v.state() for k, v in self.per_view.items()},
+            "skipped": dict(self.skipped),
         }
 
     @classmethod
     def from_state(cls, s: dict[str, Any]) -> LogAccumulator:
-        # checkpoints written before per-view sums existed resume with none for that interval
+        # checkpoints written before per-view sums (or skipped counts) existed resume with none for that
+        # interval
         per_view = {k: cls.from_state(v) for k, v in s.get("per_view", {}).items()}
-        return cls(int(s["steps"]), float(s["loss"]), dict(s["terms"]), dict(s["stats"]), per_view)
+        skipped = {k: int(v) for k, v in s.get("skipped", {}).items()}
+        return cls(int(s["steps"]), float(s["loss"]), dict(s["terms"]), dict(s["stats"]), per_view, skipped)
 
 
 def _versions() -> dict[str, Any]:
@@ -961,6 +984,7 @@ class Trainer:
             terms, weights = base_terms(rgb, target, shown, cfg)
         stats: dict[str, Any] = {}
         folded: frozenset[str] = frozenset()
+        skipped: frozenset[str] = frozenset()
         folded_loss = None
         if self.hook is not None:
             with profiler.phase("hook"):
@@ -977,7 +1001,7 @@ class Trainer:
                     sh_degree=sh_degree,
                     image=self.train_images[view.index],
                 )
-                stats, folded, folded_loss = self._hook_terms(ctx, cfg, terms, weights)
+                stats, folded, folded_loss, skipped = self._hook_terms(ctx, cfg, terms, weights)
         loss = weighted_loss(terms, weights, folded, folded_loss)
         empty = self._backward(step, view, loss, stats, r.info)
         names = list(terms)
@@ -1019,12 +1043,13 @@ class Trainer:
             loss_v,
             dict(zip(names, term_v, strict=True)),
             dict(zip(stats, stat_v, strict=True)),
+            skipped,
         )
-        if self.world.enabled:
+        if self.world.enabled:  # (a hook skips names by the step alone: the same on every process)
             for v_name, v_loss, v_terms, v_stats in views:
-                self.acc.add(v_loss, dict(zip(names, v_terms, strict=True)), v_stats, v_name)
+                self.acc.add(v_loss, dict(zip(names, v_terms, strict=True)), v_stats, v_name, skipped)
         else:
-            self.acc.add(result.loss, result.terms, result.stats, view.name)
+            self.acc.add(result.loss, result.terms, result.stats, view.name, skipped)
         return result
 
     def _render_step(
@@ -1070,9 +1095,9 @@ class Trainer:
 
     def _hook_terms(
         self, ctx: StepContext, cfg: TrainConfig, terms: dict[str, Tensor], weights: dict[str, float]
-    ) -> tuple[dict[str, Any], frozenset[str], Tensor | None]:
+    ) -> tuple[dict[str, Any], frozenset[str], Tensor | None, frozenset[str]]:
         """The method's terms and weights added to ``terms`` and ``weights`` (its base scale applied to the
-        photometric weight); its stats, the terms it folds and their folded loss."""
+        photometric weight); its stats, the terms it folds, their folded loss and the names it skipped."""
         assert self.hook is not None
         hout: HookOutput = self.hook.losses(ctx)
         hout.check(cfg.method)
@@ -1080,7 +1105,7 @@ class Trainer:
         weights.update(hout.weights)
         if hout.base_scale != 1.0:
             weights["photometric"] *= hout.base_scale
-        return dict(hout.stats), hout.folded, hout.folded_loss
+        return dict(hout.stats), hout.folded, hout.folded_loss, hout.skipped
 
     def _backward(
         self, step: int, view: TrainingView, loss: Tensor, stats: dict[str, Any], info: dict[str, Any]

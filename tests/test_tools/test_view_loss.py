@@ -39,6 +39,15 @@ def test_shares_by_hand() -> None:
     assert vl.interval_shares(_train(), QUALITY, 29)["steps"] == pytest.approx(2 / 10)
 
 
+def test_a_term_some_steps_skipped_is_summed_over_the_steps_that_computed_it() -> None:
+    train = _train()
+    train["per_view"]["a"] |= {"steps": 4, "terms": {"photometric": 0.4, "fro": 0.3}, "skipped": {"fro": 3}}
+    train["per_view"]["c"] |= {"terms": {"photometric": 0.1, "fro": 0.1}, "skipped": {"fro": 2}}
+    s = vl.interval_shares(train, QUALITY, 30)
+    assert s["fro"] == pytest.approx(0.3 / (0.3 + 0.1))  # one step of each computed it
+    assert s["photometric"] == pytest.approx((1.6 + 0.2) / (1.6 + 0.2 + 0.3 + 0.2))
+
+
 def test_missing_log_and_unknown_views() -> None:
     assert vl.interval_shares({"steps": 3, "per_view": {}}, QUALITY, 30) is None
     with pytest.raises(JsgsError, match="not training views"):

@@ -118,5 +118,72 @@ def test_a_short_run_keeps_most_of_the_controllers_effect(tmp_path: Path) -> Non
         assert d_off > 1e-3, n  # the controller did something
         assert (cheap[n] - exact[n]).norm().item() < 0.5 * d_off, n
     damped = runs["exact"][0]["train"]["stats"]["gc_damped"]
-    damped_cheap = 2 * runs["every2"][0]["train"]["stats"]["gc_damped"]  # logged as 0 between its steps
+    damped_cheap = runs["every2"][0]["train"]["stats"]["gc_damped"]  # a mean over the controller's steps
     assert damped > 0 and damped_cheap == pytest.approx(damped, rel=0.3)
+
+
+def _gc_every_run(root: Path, stop_at: int | None = None, resume: bool = False) -> tuple[Any, ...]:
+    """The mcmc preset's recipe (``gc_every`` 4) for 10 steps on the synthetic JPEG scene (the controller at
+    0-based steps 0, 4 and 8; the run ends on a step between): the metrics document, each step's
+    StepResult and the plain progress lines."""
+    from _train_scene import make_scene
+
+    from jsgs.train.callbacks import Callback, ProgressBar, StepResult
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.trainer import train
+
+    class Record(Callback):
+        def on_step_end(self, trainer: Any, result: StepResult) -> None:
+            steps.append(result)
+
+    steps: list[StepResult] = []
+    lines: list[str] = []
+    manifest = root / "scene" / "manifest.json"
+    if not manifest.exists():
+        make_scene(root / "scene", jpeg_train=True, n_views=9, n_gaussians=60)
+    cfg = None
+    if not resume:
+        cfg = TrainConfig.from_preset("mcmc", method="jsgs", iterations=10, eval_at=[10], device="cpu")
+        cfg.eval.fps_passes, cfg.eval.fps_warmup, cfg.eval.save_renders = 1, 0, False
+        assert cfg.method_options["gc_every"] == 4
+    callbacks = [ProgressBar(True, terminal=False), Record()]
+    doc = train(
+        manifest, root / "run", cfg, resume=resume, stop_at=stop_at, progress=False, callbacks=callbacks,
+        log=lines.append,
+    )  # fmt: skip
+    return doc, steps, [s for s in lines if s.startswith("train: step")]
+
+
+def test_between_the_controllers_steps_the_logs_show_its_values_not_zeros(tmp_path: Path) -> None:
+    """The steps between the controller's name its term and statistics skipped (their values, 0, are left out
+    of the logs; the loss and the parameters are the ones without logging, which the checkpoints' tests
+    check): the progress line shows the latest controller step's values with that step, and the
+    evaluation's means of them are over the controller's steps (nonzero where it damped Gaussians)."""
+    doc, steps, lines = _gc_every_run(tmp_path)
+    gc_names = {"fro", *STAT_NAMES}
+    assert [s.skipped == (set() if s.step % 4 == 0 else gc_names) for s in steps] == [True] * 10
+    ran = [s for s in steps if not s.skipped]
+    assert [s.step for s in ran] == [0, 4, 8] and all(s.stats["gc_damped"] > 0 for s in ran)
+    train = doc["evals"][-1]["train"]
+    assert train["steps"] == 10 and train["skipped"] == dict.fromkeys(gc_names, 7)
+    for n in STAT_NAMES:
+        assert train["stats"][n] == pytest.approx(sum(s.stats[n] for s in ran) / 3, rel=1e-12), n
+    assert train["terms"]["fro"] == pytest.approx(sum(s.terms["fro"] for s in ran) / 3, rel=1e-12)
+    assert train["stats"]["gc_damped"] > 0 and train["terms"]["fro"] > 0
+    # the loss mean is over every step (the steps between add λ_fro·0)
+    assert train["loss"] == pytest.approx(sum(s.loss for s in steps) / 10, rel=1e-12)
+    assert sum(v["skipped"]["fro"] for v in train["per_view"].values() if "skipped" in v) == 7
+    last = lines[-1]
+    assert last.startswith("train: step 10/10") and steps[-1].step == 9
+    for n in STAT_NAMES:
+        assert f" {n}={ran[-1].stats[n]:.4g}@9" in last, (n, last)
+    assert f" fro={ran[-1].terms['fro']:.4g}@9" in last and "=0 " not in last + " "
+
+
+def test_a_resumed_run_logs_the_same_means(tmp_path: Path) -> None:
+    """The skipped counts travel in the checkpoint: stopped after 6 steps and resumed, the evaluation's means
+    are the uninterrupted run's."""
+    whole = _gc_every_run(tmp_path / "a")[0]["evals"][-1]["train"]
+    _gc_every_run(tmp_path / "b", stop_at=6)
+    resumed = _gc_every_run(tmp_path / "b", resume=True)[0]["evals"][-1]["train"]
+    assert resumed == whole
