@@ -187,3 +187,38 @@ def test_a_resumed_run_logs_the_same_means(tmp_path: Path) -> None:
     _gc_every_run(tmp_path / "b", stop_at=6)
     resumed = _gc_every_run(tmp_path / "b", resume=True)[0]["evals"][-1]["train"]
     assert resumed == whole
+
+
+def test_skipping_changes_the_logs_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same run with nothing skipped (the controller's 0s logged as values): every step's loss, term and
+    statistic value and the final checkpoint (Gaussians, optimizer state) are the same, bit for bit; only the
+    logged means of the skipped names differ."""
+    from jsgs.train import checkpoint as ckpt
+
+    doc, steps, _ = _gc_every_run(tmp_path / "skip")
+    monkeypatch.setattr(JsgsHook, "_skipped", lambda self, step: frozenset())
+    doc0, steps0, _ = _gc_every_run(tmp_path / "zeros")
+    assert [(s.loss, s.terms, s.stats) for s in steps] == [(s.loss, s.terms, s.stats) for s in steps0]
+    assert all(s.skipped for s in steps if s.step % 4) and not any(s.skipped for s in steps0)
+    a, b = (
+        ckpt.load_checkpoint(p / "run/checkpoints/step_000010.pt")
+        for p in (tmp_path / "skip", tmp_path / "zeros")
+    )
+
+    def same(x: Any, y: Any, where: str) -> None:
+        if isinstance(x, dict):
+            assert x.keys() == y.keys(), where
+            for k in x:
+                same(x[k], y[k], f"{where}.{k}")
+        elif isinstance(x, list | tuple):
+            assert len(x) == len(y), where
+            for i, (u, v) in enumerate(zip(x, y, strict=True)):
+                same(u, v, f"{where}[{i}]")
+        else:
+            assert torch.equal(x, y) if isinstance(x, torch.Tensor) else x == y, where
+
+    same(a["splats"], b["splats"], "splats")
+    same(a["optimizers"], b["optimizers"], "optimizers")
+    train, train0 = doc["evals"][-1]["train"], doc0["evals"][-1]["train"]
+    assert train["loss"] == train0["loss"] and "skipped" not in train0
+    assert train["stats"]["gc_damped"] == pytest.approx(10 / 3 * train0["stats"]["gc_damped"], rel=1e-12)
