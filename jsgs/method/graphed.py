@@ -174,7 +174,7 @@ class GraphedImageTerms:
         values = values.clone()  # the caller's: logged after the step, when the next replay may have run
         pairs = ((x, grad) if grad is not None else ()) + (more(r) if more is not None else ())
         # the gradients are scratch: the graph's buffer is rewritten by the next replay, the probe's
-        # upstream buffer by the next call (jsgs.method.pooling.ProbeObjective)
+        # upstream map is made for this call alone (jsgs.method.pooling.ProbeObjective)
         # the weighted sum: a view of the caller's copy of the values, no copy of its own
         weighted = (
             with_known_gradient(pairs[0], values[0], *pairs[1:], scratch=True, own_value=True)

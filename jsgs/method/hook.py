@@ -127,7 +127,7 @@ class JsgsHook(LossHook):
         self.last: dict[str, Any] = {}
         # the rasterisation outputs of the step whose deferred GC waits for its backward
         self._pending: dict[str, Any] = {}
-        # λ_fro times the probe objective, with its kept buffer (jsgs.method.pooling.ProbeObjective)
+        # λ_fro times the probe objective (jsgs.method.pooling.ProbeObjective: its map made at each call)
         self._probe_objective: Any = None
         # (n, dtype, device) -> n zeros to log (:meth:`_zeros`)
         self._kept_zeros: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
@@ -406,8 +406,8 @@ class JsgsHook(LossHook):
         return ft.loss, {"gc_visible": s.visible, "gc_rbar": s.rbar_mean, "gc_damped": s.damped}
 
     def _probe(self) -> Any:
-        """λ_fro times the probe objective, with its kept buffer (:class:`jsgs.method.pooling.ProbeObjective`;
-        its probe gradient λ_fro·(o·S_r, ν) is divided out in fro_from_probe_grad)."""
+        """λ_fro times the probe objective (:class:`jsgs.method.pooling.ProbeObjective`; its map made at each
+        call, its probe gradient λ_fro·(o·S_r, ν) is divided out in fro_from_probe_grad)."""
         if self._probe_objective is None:
             from jsgs.method.pooling import ProbeObjective
 

@@ -129,20 +129,21 @@ def probe_objective(info: dict, r: Tensor) -> Tensor:
 
 
 class ProbeObjective:
-    """``weight · probe_objective(info, r)`` step after step, with the upstream map ``weight·(r, 1)`` in one
-    buffer kept from call to call: two kernels per step (``weight·r`` written into channel 0, ``weight`` into
-    channel 1; the zero value is set when the buffer is made), where :func:`probe_objective` and a loss
-    weight take five (a pad's fill and copy, the zero, and the weight's multiplication forward and backward).
+    """``weight · probe_objective(info, r)`` step after step, with the upstream map ``weight·(r, 1)`` made
+    at each call: two kernels per step (``weight·r`` written into channel 0, ``weight`` into channel 1; the
+    zero value is made once and kept), where :func:`probe_objective` and a loss weight take five (a pad's fill
+    and copy, the zero, and the weight's multiplication forward and backward).
 
     The probe's gradient is ``weight·(o·S_r, ν)`` with the same rounding as ``weight * probe_objective(...)``
-    in the loss (``weight·r`` rounded once; the backward multiplies by the loss's upstream 1). The buffer is
+    in the loss (``weight·r`` rounded once; the backward multiplies by the loss's upstream 1). The map is
     the returned scalar's known gradient, read in its backward, which writes the upstream times it over it
-    (``scratch``: no product of the image's size in the backward): each call's objective is valid until the
-    next call (a training step's backward comes before the next step's forward), for one backward."""
+    (``scratch``: no product of the image's size in the backward) and hands it on, for one backward. The map
+    is not kept between calls (8 bytes a pixel in float32): it lives from the call (after the trainer's
+    ℓ_ph, past that forward's peak) to the rasteriser's backward, and the steps that render no probe hold
+    none; a new buffer is an allocation, no kernel."""
 
     def __init__(self, weight: float = 1.0) -> None:
         self.weight = float(weight)
-        self._up: Tensor | None = None
         self._zero: Tensor | None = None
 
     def __call__(self, info: dict, r: Tensor) -> Tensor:
@@ -151,15 +152,14 @@ class ProbeObjective:
         return with_known_gradient(ch, self._zero, up, scratch=True)
 
     def upstream(self, info: dict, r: Tensor) -> tuple[Tensor, Tensor]:
-        """The rendered probe channels and their known gradient ``weight·(r, 1)`` (the buffer, written
+        """The rendered probe channels and their known gradient ``weight·(r, 1)`` (a new buffer, written
         now): the objective's (tensor, gradient) pair, for a caller that puts it on a node of its own
         (:func:`jsgs.base.known_grad.with_known_gradient`) unscaled. The buffer is scratch for that node
-        (``scratch``: its backward writes the upstream times it over it), so both channels are written
-        anew at every call."""
+        (``scratch``: its backward writes the upstream times it over it)."""
         ch = _checked_channels(info, r)
-        up = self._up
-        if up is None or up.shape != ch.shape or up.dtype != ch.dtype or up.device != ch.device:
-            up = self._up = torch.empty(ch.shape, dtype=ch.dtype, device=ch.device)
+        up = torch.empty(ch.shape, dtype=ch.dtype, device=ch.device)
+        zero = self._zero
+        if zero is None or zero.dtype != ch.dtype or zero.device != ch.device:
             self._zero = ch.new_zeros(())
         torch.mul(r.detach().to(ch.dtype), self.weight, out=up[..., 0])
         up[..., 1].fill_(self.weight)
