@@ -5,6 +5,7 @@ unweighted, and the extra channels' background as one zero tensor."""
 
 from __future__ import annotations
 
+import weakref
 from typing import Any
 
 import pytest
@@ -36,8 +37,9 @@ def _probe_info(dtype: torch.dtype, shape: tuple[int, int, int], seed: int) -> t
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_weighted_probe_objective_is_the_weight_times_the_objective(dtype: torch.dtype) -> None:
     """``ProbeObjective(w)`` gives the probe the gradient of ``w * probe_objective`` in a loss, bit for bit,
-    call after call through its kept buffer, and makes a new buffer when the image size changes; its value
-    is 0, a new tensor each call."""
+    call after call and when the image size changes; its value is 0, a new tensor each call. Between calls
+    it holds no map of the image's size (only its 0-dim zero): the map lives from the call to the
+    backward that consumes it."""
     w = 0.05 * 4  # λ_fro · gc_every, as the hook weights it
     obj = ProbeObjective(w)
     for call, shape in enumerate([(1, 6, 5), (1, 6, 5), (1, 4, 3)]):
@@ -52,6 +54,12 @@ def test_the_weighted_probe_objective_is_the_weight_times_the_objective(dtype: t
             grads.append(info["extra_features"].grad)
         assert torch.equal(grads[0], grads[1]) and grads[1].abs().sum() > 0, call
     assert obj(info, r) is not obj(info, r)
+    kept = [v for v in vars(obj).values() if isinstance(v, torch.Tensor)]
+    assert [t.dim() for t in kept] == [0]
+    _, up = obj.upstream(info, r)
+    gone = weakref.ref(up)
+    del up
+    assert gone() is None
 
 
 def _step(hook: Any, view: Any, old_form: bool) -> dict[str, Any]:
