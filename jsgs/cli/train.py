@@ -131,7 +131,12 @@ def _parse_steps(text: str) -> list[int]:
 @click.option("--force", is_flag=True, help="Overwrite the outputs of an earlier run in RUN.")
 @click.option("--seed", type=int, default=None, help="Random seed [default: 42].")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-@click.option("--profile", is_flag=True, help="Record per-phase times (synchronises the device; slower).")
+@click.option(
+    "--profile",
+    is_flag=True,
+    help="Record per-phase times and, on CUDA, per-phase peak allocated memory (synchronises the device; "
+    "slower).",
+)
 @click.option(
     "--viewer",
     "viewer_port",

@@ -34,10 +34,27 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+#: device -> the largest ``max_memory_allocated`` read just before a :func:`reset_peak_allocated`
+_EARLIER_PEAKS: dict[torch.device, int] = {}
+
+
+def reset_peak_allocated(device: torch.device, forget: bool = False) -> None:
+    """``torch.cuda.reset_peak_memory_stats(device)``, remembering the peak it clears so that
+    :func:`peak_memory` still reports the run's (a phase profiler resets at every phase); ``forget``: the run
+    begins here (nothing earlier counts)."""
+    if forget:
+        _EARLIER_PEAKS.pop(device, None)
+    else:
+        peak = int(torch.cuda.max_memory_allocated(device))
+        _EARLIER_PEAKS[device] = max(_EARLIER_PEAKS.get(device, 0), peak)
+    torch.cuda.reset_peak_memory_stats(device)
+
+
 def peak_memory(device: torch.device) -> tuple[int, str]:
     """(bytes, kind) of the peak memory so far (see the module docstring)."""
     if device.type == "cuda":
-        return int(torch.cuda.max_memory_allocated(device)), "cuda_max_allocated"
+        peak = max(int(torch.cuda.max_memory_allocated(device)), _EARLIER_PEAKS.get(device, 0))
+        return peak, "cuda_max_allocated"
     import resource
 
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss

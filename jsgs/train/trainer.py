@@ -63,7 +63,7 @@ from jsgs.train.data import (
     load_train_images,
     load_training_scene,
 )
-from jsgs.train.evaluate import evaluate, synchronize
+from jsgs.train.evaluate import evaluate, reset_peak_allocated, synchronize
 from jsgs.train.hook import HookOutput, LossHook, StepContext, make_hook
 from jsgs.train.model import (
     PARAM_NAMES,
@@ -488,7 +488,7 @@ class Trainer:
         self.command = command
         self.hook = hook
         self.callbacks = list(callbacks)
-        self.profiler = Profiler(False, torch.device("cpu"))
+        self.profiler = Profiler(False, torch.device("cpu"), memory=True)
         self.evals: list[dict[str, Any]] = []
         self.acc = LogAccumulator()
         self.train_time = 0.0
@@ -626,7 +626,7 @@ class Trainer:
                     "with"
                 )
         if device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(device)
+            reset_peak_allocated(device, forget=True)
             # IEEE float32 convolutions for the whole run (SSIM in the losses and metrics;
             # jsgs.base.precision), also where torch.compile'd code cannot enter jsgs.base.precision's context
             torch.backends.cudnn.allow_tf32 = False
@@ -1315,6 +1315,7 @@ class Trainer:
             "time_per_iteration_s": self.train_time / max(step, 1) if step else None,
             "runs_per_device": runs_per_device(),
             "profile_ms_per_step": self.profiler.summary(),
+            "profile_peak_memory_bytes": self.profiler.peak_memory(),
             "evals": self.evals,
         }
 
