@@ -17,6 +17,7 @@
 #       --seed 0
 # then one call on kind nvidia-h100-x2, carrying [".whl", ".gpuF"]:
 #   bash tools/campaigns/flower_profiles.sh
+# (G0 and G1, default 0 and 1, name the two GPUs, e.g. G0=2 G1=3 beside another campaign on a 4-GPU machine.)
 # It brings back $OUT/flower_profiles.tgz (flower_{1500,6000}.{json,txt}, gpu_tests.log, coding_launches.txt,
 # trace_1500.{json,txt}, gaps_1500.txt, build.log; not the traces themselves) and prints each profile's paired
 # rows and the coding-launch rows. The profiles belong in docs/results/speed/equal_budget/ (whose
@@ -24,7 +25,7 @@
 # launch compiles to a backward binary spilling ~11.7 KB per thread; compare `_paper_backward` there).
 set -u
 F=${MANIFEST:-.gpuF/flower_gaussian/manifest.json} P=tools/diagnostics/profile_step.py
-PAIRS=${PAIRS:-6} TL=${TL:-240} L=/tmp/flower_logs T=/tmp/flower_traces
+PAIRS=${PAIRS:-6} TL=${TL:-240} L=/tmp/flower_logs T=/tmp/flower_traces G0=${G0:-0} G1=${G1:-1}
 mkdir -p $L $T
 bash scripts/gpu_run.sh true > $L/build.log 2>&1
 profile() {  # profile GPU WARMUP: the profile after WARMUP steps on GPU
@@ -32,12 +33,12 @@ profile() {  # profile GPU WARMUP: the profile after WARMUP steps on GPU
         --preset mcmc --warmup "$2" --steps 100 --pairs "$PAIRS" --no-fresh --jsgs-options '{}' \
         --out $L/flower_$2.json > $L/flower_$2.txt 2>&1
 }
-(profile 0 1500; CUDA_VISIBLE_DEVICES=0 timeout 150 bash scripts/gpu_run.sh python3 -m pytest -m "gpu or slow" \
+(profile $G0 1500; CUDA_VISIBLE_DEVICES=$G0 timeout 150 bash scripts/gpu_run.sh python3 -m pytest -m "gpu or slow" \
     -rs -p no:cacheprovider tests/test_jsgs/method/test_graphed.py tests/test_jsgs/kernels/test_triton_jo.py \
-    > $L/gpu_tests.log 2>&1; CUDA_VISIBLE_DEVICES=0 timeout 90 bash scripts/gpu_run.sh python3 \
+    > $L/gpu_tests.log 2>&1; CUDA_VISIBLE_DEVICES=$G0 timeout 90 bash scripts/gpu_run.sh python3 \
     benchmarks/bench_jpeg_ops.py --fused-jo --coding-launches --device cuda --repeats 50 --sizes 504x378,1440x1920 \
     > $L/coding_launches.txt 2>&1) &
-(profile 1 6000; CUDA_VISIBLE_DEVICES=1 timeout 170 bash scripts/gpu_run.sh python3 $P --manifest "$F" \
+(profile $G1 6000; CUDA_VISIBLE_DEVICES=$G1 timeout 170 bash scripts/gpu_run.sh python3 $P --manifest "$F" \
     --device cuda --preset mcmc --warmup 1500 --steps 40 --python-top 40 --trace $T --out $L/trace_1500.json \
     > $L/trace_1500.txt 2>&1; timeout 60 python3 tools/diagnostics/trace_gaps.py $T/gsplat.trace.json \
     $T/jsgs.trace.json --steps 40 --top 30 > $L/gaps_1500.txt 2>&1) &

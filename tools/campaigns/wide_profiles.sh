@@ -19,6 +19,7 @@
 #       --schedule gaussian --seed 0
 # then one call on kind nvidia-h100-x2, carrying [".whl", ".gpuW"]:
 #   bash tools/campaigns/wide_profiles.sh
+# (G0 and G1, default 0 and 1, name the two GPUs, e.g. G0=2 G1=3 beside another campaign on a 4-GPU machine.)
 # It brings back $OUT/wide_profiles.tgz (jpeg_mouse_half_{1500,9300}.{json,txt}, build.log) and prints each
 # profile's paired rows. The profiles belong in docs/results/speed/equal_budget/.
 # A rehearsal on the CPU (the paths, the manifest, the archive) in a copy of the tree whose
@@ -37,8 +38,8 @@ profile() {  # profile GPU WARMUP SECONDS: the profile after WARMUP steps on GPU
     echo "exit status $? after $SECONDS s" >> $L/jpeg_mouse_half_$2.txt
 }
 left=$((END - SECONDS))
-profile 0 "$W0" $((left < 300 ? left : 300)) &
-profile 1 "$W1" "$left" &
+profile "${G0:-0}" "$W0" $((left < 300 ? left : 300)) &
+profile "${G1:-1}" "$W1" "$left" &
 wait
 for w in $W0 $W1; do
     echo "== jpeg_mouse_half_$w"
