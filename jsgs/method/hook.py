@@ -336,34 +336,47 @@ class JsgsHook(LossHook):
                 r_map = sup.pixel_score  # [1, H, W], detached
                 if self.keep_last:
                     self.last["ds"] = sup
-        if o.gc and not self.gc_at(ctx.step):  # a step between the controller's: 0, skipped in the logs
-            terms["fro"], *zero_stats = self._zeros(1 + len(STAT_NAMES), ctx.render).unbind()
-            stats.update(zip(STAT_NAMES, zero_stats, strict=True))
-            if folded_loss is not None:  # a value to log only: nothing to weight and add to the loss
-                folded = folded | {"fro"}
-        elif o.gc:
-            assert r_map is not None
-            with self.profiler.phase("gc"):
-                if o.gc_attribution == "footprint":
-                    terms["fro"], gc_stats = self._gc_footprint(ctx, r_map)
-                    if folded_loss is not None:  # a value to log (no gradient): nothing to add to the loss
-                        folded = folded | {"fro"}
-                elif self.gc_route == "now":
-                    fro, gc_stats = self._gc_now(ctx, r_map)
-                    terms["fro"] = fro
-                else:
-                    # the objective is λ_fro·(probe objective) already: it joins the folded loss unweighted
-                    # (already in it where it rode on the graph's node)
-                    terms["fro"], gc_stats = self._gc_deferred(ctx)
-                    folded = folded | {"fro"}
-                    if not probe_pair:
-                        objective = self._probe()(ctx.info, r_map)
-                        folded_loss = objective if folded_loss is None else folded_loss + objective
-                stats.update(gc_stats)
+        if o.gc:
+            folded, folded_loss = self._controller_terms(ctx, r_map, bool(probe_pair), terms, stats, folded,
+                                                         folded_loss)  # fmt: skip
         return HookOutput(
             terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab, ctx.step),
             self._skipped(ctx.step),
         )  # fmt: skip
+
+    def _controller_terms(
+        self, ctx: StepContext, r_map: Tensor | None, probe_rode: bool, terms: dict[str, Tensor],
+        stats: dict[str, float | Tensor], folded: frozenset[str], folded_loss: Tensor | None,
+    ) -> tuple[frozenset[str], Tensor | None]:
+        """The Gaussian Controller's part of :meth:`losses` on a JPEG view: its ``fro`` term and statistics
+        into ``terms`` / ``stats``; returns the folded names and loss with the controller's share. Between
+        the controller's steps its values are the kept zeros (skipped in the logs); ``probe_rode``: the
+        deferred objective already rode on the image terms' graph node."""  # fmt: skip
+        if not self.gc_at(ctx.step):  # a step between the controller's: 0, skipped in the logs
+            terms["fro"], *zero_stats = self._zeros(1 + len(STAT_NAMES), ctx.render).unbind()
+            stats.update(zip(STAT_NAMES, zero_stats, strict=True))
+            if folded_loss is not None:  # a value to log only: nothing to weight and add to the loss
+                folded = folded | {"fro"}
+            return folded, folded_loss
+        assert r_map is not None
+        with self.profiler.phase("gc"):
+            if self.opts.gc_attribution == "footprint":
+                terms["fro"], gc_stats = self._gc_footprint(ctx, r_map)
+                if folded_loss is not None:  # a value to log (no gradient): nothing to add to the loss
+                    folded = folded | {"fro"}
+            elif self.gc_route == "now":
+                fro, gc_stats = self._gc_now(ctx, r_map)
+                terms["fro"] = fro
+            else:
+                # the objective is λ_fro·(probe objective) already: it joins the folded loss unweighted
+                # (already in it where it rode on the graph's node)
+                terms["fro"], gc_stats = self._gc_deferred(ctx)
+                folded = folded | {"fro"}
+                if not probe_rode:
+                    objective = self._probe()(ctx.info, r_map)
+                    folded_loss = objective if folded_loss is None else folded_loss + objective
+            stats.update(gc_stats)
+        return folded, folded_loss
 
     def _skipped(self, step: int) -> frozenset[str]:
         """The controller's term and statistics on the steps between the controller's (any view, so that every
