@@ -354,13 +354,7 @@ def _device_ms(fn: Callable[[], object], device: torch.device, n: int, warmup: i
     with torch.cuda.graph(graph):
         for _ in range(n):
             fn()
-    graph.replay()
-    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    start.record()
-    graph.replay()
-    end.record()
-    end.synchronize()
-    return start.elapsed_time(end) / n
+    return _loop_ms(graph.replay, device, 1, 1) / n  # one warm replay, then one timed
 
 
 class _KernelRecorder:
