@@ -23,10 +23,14 @@
 #   .venv/bin/jsgstools compress ../shared/scenes/llff_flower --out .gpuScale/llff_flower --schedule gaussian \
 #       --seed 0 && rm -rf .gpuScale/llff_flower/sparse
 #   cp ../shared/lpips/alexnet_features.pth .gpuScale/
+#   mkdir -p .gpuScale2 && mv .gpuScale/llff_flower .gpuScale2/
 #   the wheels in .whl (scripts/gpu_prepare.sh's pip download line)
-# then two calls, the second started within 30 s of the first one's end (kind nvidia-h100-x4):
+# (the tree, the wheels and both scenes are over the 64 MiB a call carries: the flower, needed only after the
+# mouse's runs, comes with the second call, and the driver waits for it), then two calls, the second started
+# within 30 s of the first one's end (kind nvidia-h100-x4):
 #   PHASE=1 bash tools/campaigns/scale_check.sh     # carry [".whl", ".gpuScale"]
-#   PHASE=2 bash tools/campaigns/scale_check.sh
+#   PHASE=2 bash tools/campaigns/scale_check.sh     # carry [".gpuScale2"]
+# (PHASE=2 again, with no carry, while the driver has not ended.)
 # (SRC, DATA, LOGS, SCALE_RES, MOUSE, BIG, MOUSE_ITERS and BIG_ITERS change the folders in /tmp, the two scenes'
 # specs, as scale.sh's SCENES, and their ITERS.) Each brings back $OUT/scale_<PHASE>.tgz: the logs, scale.md (the table of every run finished so far) and
 # every run's metrics.json, config.json, settings and log (no models, renders or checkpoints).
@@ -35,7 +39,7 @@ PHASE=${PHASE:?set PHASE=1 or 2}
 export S=${SRC:-/tmp/src} L=${LOGS:-/tmp/scale_logs} RES=${SCALE_RES:-/tmp/scale_res}
 export M=${MOUSE:-jpeg_mouse:300000} MI=${MOUSE_ITERS:-4000}
 export F=${BIG:-llff_flower:1000000:random} FI=${BIG_ITERS:-2000}
-D=${DATA:-/tmp/scaledata}
+export D=${DATA:-/tmp/scaledata}
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext JSGS_LPIPS_WEIGHTS=$D/alexnet_features.pth
 mkdir -p $L
 case $PHASE in
@@ -63,6 +67,7 @@ scale 2,3 $M jsgs 2 $MI 120
 wait
 scale 0,1,2,3 $M gsplat 4 $MI 100
 scale 0,1,2,3 $M jsgs 4 $MI 100
+i=0; while [ ! -f $D/${F%%:*}/manifest.json ] && [ $i -lt 120 ]; do sleep 5; i=$((i + 1)); done
 (scale 0 $F jsgs 1 $FI 200) & (scale 1 $F gsplat 1 $FI 200) & (scale 2,3 $F jsgs 2 $FI 200) &
 wait
 (scale 0,1 $F gsplat 2 $FI 200) & (scale 2,3 $F gsplat:torch 2 $FI 200) &
@@ -77,6 +82,9 @@ EOF
     while [ $SECONDS -lt $end ] && [ ! -f $L/driver_end ]; do sleep 10; done
     ;;
   2)
+    if [ -d .gpuScale2 ]; then  # the second scene: whole folders moved in, so the driver never sees half a copy
+        rm -rf $D/.in && cp -r .gpuScale2 $D/.in && mv $D/.in/* $D/ && rmdir $D/.in
+    fi
     end=$((SECONDS + ${WAIT:-500}))
     while [ $SECONDS -lt $end ] && [ ! -f $L/driver_end ]; do sleep 10; done
     ;;
