@@ -150,7 +150,7 @@ def _budget(b: Any) -> str:
 def _share(p: Pair) -> str:
     if p.share is None and p.gsplat_share is None:
         return "unstated"
-    if p.share == p.gsplat_share:
+    if p.share == p.gsplat_share or p.gsplat_share is None:  # the same, or no gsplat run to share with
         return str(p.share)
     return f"{p.share} / {p.gsplat_share}"
 

@@ -1,6 +1,7 @@
 """tools/results/build_report.py: the results folders rebuild byte for byte; --baseline: a folder of
 one recipe's JSGS runs gets the other folder's gsplat runs of the same cells and the clean runs of the same
-scenes and budgets, with their settings, and nothing else."""
+scenes and budgets, with their settings, and nothing else; a folder of scene-sized (auto) budgets names
+what auto was and JSGS's gc_every, and refuses the auto runs of two rules."""
 
 from __future__ import annotations
 
@@ -47,6 +48,60 @@ def test_baseline_brings_the_cells_gsplat_and_clean_runs(tmp_path: Path) -> None
     want = {f"a/{sch}/gsplat/mcmc-100000/s{s}" for sch in ("uniform", "clean") for s in (0, 1)}
     assert set(configs) == want
     assert (target / "report.md").is_file()
+
+
+def _bench(folder: Path, rows: list[dict], caps: dict[tuple[str, str], tuple[int, int | None]]) -> None:
+    """A bench folder: ``rows`` and the config.json of each of their runs (``caps``: (method, budget) -> its
+    cap_max and, for an auto run, the rule's pixels per Gaussian, else None); JSGS at auto with gc_every 4."""
+    folder.mkdir()
+    write_csv(rows, folder / "results.csv")
+    for r in rows:
+        cap, ppg = caps[(r["method"], str(r["budget"]))]
+        opts = {"gc_every": 4} if r["method"] == "jsgs" and r["budget"] == "auto" else {}
+        settings = {"strategy": {"cap_max": cap}, "method_options": opts}
+        doc = {"settings": settings, "versions": {}, "command": "x", "derived": {"device": "cuda"}}
+        if ppg is not None:
+            doc["derived"]["budget"] = {"cap_max": cap, "pixels_per_gaussian": ppg}
+        run = folder / "runs" / br.run_key(r)
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "config.json").write_text(json.dumps(doc))
+
+
+def _auto_row(method: str, seed: int, cap: int) -> dict:
+    return {**_row("a", "gaussian", method, seed, 0.1), "budget": "auto", "num_gaussians": cap}
+
+
+def test_auto_budgets_are_named_and_two_rules_refused(tmp_path: Path) -> None:
+    target = tmp_path / "op"
+    new = {
+        ("gsplat", "auto"): (184000, 30),
+        ("jsgs", "auto"): (184000, 30),
+        ("jsgs", "100000"): (100000, None),
+    }
+    rows = [_auto_row(m, s, 184000) for m in ("gsplat", "jsgs") for s in (0, 1)]
+    _bench(tmp_path / "new", [*rows, _row("a", "gaussian", "jsgs", 1, 0.1)], new)
+    br.main(target, [tmp_path / "new"])
+    report = (target / "report.md").read_text()
+    rule = (
+        "`auto` (`--cap-max auto`): a 184,000 Gaussians, the rule's choice at 30 training pixels per Gaussian"
+    )
+    assert rule in report
+    gc = "Controller in its 3 runs: gc_every 1 in 1 (budgets 100,000); gc_every 4 in 2 (budgets auto)."
+    assert gc in report
+    configs = json.loads((target / "configs.json").read_text())
+    recorded = configs["a/gaussian/jsgs/mcmc-auto/s0"]["derived"]
+    assert recorded == {"budget": {"cap_max": 184000, "pixels_per_gaussian": 30}}
+    assert "derived" not in configs["a/gaussian/jsgs/mcmc-100000/s1"]
+    # seed 2 trained under another rule (552,000 for the same scene): refused, the folder left as it was
+    before = {p.name: p.read_bytes() for p in target.iterdir() if p.is_file()}
+    old = {("gsplat", "auto"): (552000, 10), ("jsgs", "auto"): (552000, 10)}
+    _bench(tmp_path / "old", [_auto_row(m, 2, 552000) for m in ("gsplat", "jsgs")], old)
+    refusal = (
+        r"^build_report.py: a: its auto runs trained at different budgets \(184,000, 552,000\): gather each "
+    )
+    with pytest.raises(SystemExit, match=refusal + "rule's runs into a folder of its own$"):
+        br.main(target, [tmp_path / "old"])
+    assert {p.name: p.read_bytes() for p in target.iterdir() if p.is_file()} == before
 
 
 def test_refuses_results_without_budget_columns(tmp_path: Path) -> None:

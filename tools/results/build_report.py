@@ -6,8 +6,12 @@ bench's own report code, first adding the runs of bench folders brought back fro
     .venv/bin/python tools/results/build_report.py --step 7000 docs/results/budget/captures .res/captures
 
 A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``tools/campaigns/confirm.sh``
-or ``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``); its runs
-replace the rows and settings of the same scene, schedule, method, budget and seed. The tables are computed
+or ``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``: settings,
+versions, command and, for the scene-sized budget, ``derived.budget``, the rule's inputs and choice); its runs
+replace the rows and settings of the same scene, schedule, method, budget and seed. Where results.csv holds
+``auto`` rows, report.md's header names what ``auto`` was per scene and JSGS's ``gc_every`` per budget (from
+configs.json), and the auto runs of one scene that trained at different budgets (two versions of the rule)
+stop it with one line: gather those into folders of their own. The tables are computed
 at the last step (10,000), or at ``--step N`` (for runs that all stopped earlier); runs that stopped before
 it are listed as such; ``--step auto`` compares each scene, at each budget, at the last evaluation every
 one of its runs reached (:func:`jsgs.bench.budget.common_steps`).
@@ -25,14 +29,17 @@ a folder of JSGS runs of one recipe then holds its own comparison (what ``blocki
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
+from collections import defaultdict
 from pathlib import Path
 
 from jsgs.base.io import write_bytes_atomic
 from jsgs.bench.budget import common_steps
 from jsgs.bench.markdown import write_report
 from jsgs.bench.results import read_csv, write_csv
+from jsgs.method.options import JsgsOptions
 
 
 def key(r: dict) -> tuple:
@@ -57,6 +64,69 @@ def baseline(folder: Path, cells: set[tuple[str, str, str]]) -> tuple[list[dict]
     return rows, {k: known[k] for k in {run_key(r) for r in rows} if k in known}
 
 
+def run_config(doc: dict) -> dict:
+    """What configs.json keeps of a run's config.json: settings, versions, command and, where the run chose
+    its budget from the scene (``--cap-max auto``), the rule's inputs and choice (``derived.budget``)."""
+    out = {k: doc[k] for k in ("settings", "versions", "command")}
+    rule = doc.get("derived", {}).get("budget")
+    if rule is not None:
+        out["derived"] = {"budget": rule}
+    return out
+
+
+def _gc_every(settings: dict) -> int:
+    """JSGS's ``gc_every`` in a run's settings (not recorded: the options' default)."""
+    default = {f.name: f.default for f in dataclasses.fields(JsgsOptions)}["gc_every"]
+    return int(settings.get("method_options", {}).get("gc_every", default))
+
+
+def _budgets(budgets: set[str]) -> str:
+    """Budgets as the tables name them, the fixed ones in order, then ``auto``."""
+    order = sorted(budgets, key=lambda b: (not b.isdigit(), int(b) if b.isdigit() else 0))
+    return ", ".join(f"{int(b):,}" if b.isdigit() else b for b in order)
+
+
+def auto_notes(rows: list[dict], configs: dict) -> list[str]:
+    """Header lines saying what the ``auto`` budget was per scene (the rule's choice and its pixels per
+    Gaussian, from configs.json) and JSGS's ``gc_every`` per budget; none without ``auto`` rows. SystemExit
+    (one line) where one scene's auto runs trained at different budgets."""
+    auto_scenes = {r["scene"] for r in rows if str(r["budget"]) == "auto"}
+    if not auto_scenes:
+        return []
+    caps: dict[str, set[int]] = defaultdict(set)
+    ppg: set[int | None] = set()
+    gc: dict[int, list[str]] = defaultdict(list)  # gc_every -> the budget of each JSGS run
+    for run, c in configs.items():
+        scene, _, method, budget, _ = run.split("/")
+        if method == "jsgs":
+            gc[_gc_every(c["settings"])].append(budget.removeprefix("mcmc-"))
+        if budget == "mcmc-auto" and scene in auto_scenes:
+            caps[scene].add(int(c["settings"]["strategy"]["cap_max"]))
+            ppg.add(c.get("derived", {}).get("budget", {}).get("pixels_per_gaussian"))
+    for scene, v in sorted(caps.items()):
+        if len(v) > 1:
+            sys.exit(f"build_report.py: {scene}: its auto runs trained at different budgets "
+                     f"({', '.join(f'{n:,}' for n in sorted(v))}): gather each rule's runs into a folder of "
+                     "its own")  # fmt: skip
+    chosen = ", ".join(f"{s} {min(v):,}" for s, v in sorted(caps.items())) or "no run's settings recorded"
+    known = sorted(p for p in ppg if p is not None)
+    rule = (
+        f"at {' / '.join(map(str, known))} training pixels per Gaussian"
+        if known
+        else "its pixels per Gaussian"
+    )
+    rule += " (not recorded for every run)" if None in ppg and known else "" if known else " not recorded"
+    lines = [f"Budget `auto` (`--cap-max auto`): {chosen} Gaussians, the rule's choice {rule} (each run's "
+             "`derived.budget` in configs.json)."]  # fmt: skip
+    if gc:
+        n = sum(len(v) for v in gc.values())
+        parts = "; ".join(
+            f"gc_every {k} in {len(v)} (budgets {_budgets(set(v))})" for k, v in sorted(gc.items())
+        )
+        lines.append(f"JSGS's Gaussian Controller in its {n} runs: {parts}.")
+    return lines
+
+
 def budget_csv(path: Path) -> list[dict]:
     """``path``'s rows; SystemExit (one line) where it is not an equal-budget bench's results.csv (one made
     before the ``strategy`` and ``budget`` columns, e.g. ``paper_protocol/``'s DefaultStrategy runs)."""
@@ -79,7 +149,7 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
         for c in sorted(f.glob("runs/*/*/*/mcmc-*/s*/config.json")):
             doc = json.loads(c.read_text())
             run = str(c.parent.relative_to(f / "runs"))
-            configs[run] = {k: doc[k] for k in ("settings", "versions", "command")}
+            configs[run] = run_config(doc)
     if base is not None:
         cells = {(r["scene"], r["schedule"], str(r["budget"])) for r in rows if r["method"] == "jsgs"}
         extra, extra_cfg = baseline(base, cells)
@@ -87,13 +157,15 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
         rows += [r for r in extra if key(r) not in have]
         configs = {**extra_cfg, **configs}
     rows.sort(key=lambda r: (*key(r), int(r["step"])))
+    notes = auto_notes(rows, configs)  # before anything is written: it may refuse
     target.mkdir(parents=True, exist_ok=True)
     write_csv(rows, csv)
     write_bytes_atomic(cfg, (json.dumps(dict(sorted(configs.items())), indent=1) + "\n").encode())
     header = [
         f"Every equal-budget run of `{target.name}` (`jsgs bench --strategy mcmc`), gathered from the GPU "
         "calls that ran them by `tools/results/build_report.py`; every run's settings and versions in "
-        "configs.json, every evaluation in results.csv."
+        "configs.json, every evaluation in results.csv.",
+        *(["", *notes] if notes else []),
     ]
     at: int | dict[tuple[str, int], int] | None = common_steps(rows) if step == "auto" else None
     if isinstance(step, int):

@@ -76,6 +76,9 @@ def test_a_loss_at_equal_time_fails_the_targets() -> None:
 def test_no_gsplat_run_and_jsgs_before_gsplats_first_evaluation() -> None:
     rows = [_row("jsgs", 0, 200, 25.0, 0.17, 22.8)]
     assert pairs(rows)[0].note == "no gsplat run"
+    # its runs per device are its own (not "3 / None": there is no gsplat run to share with)
+    alone = [_row("jsgs", 0, 200, 25.0, 0.17, 22.8, runs_per_device=3)]
+    assert "| 3 | no gsplat run |" in "\n".join(table(pairs(alone)))
     rows += [_row("gsplat", 0, 100, 30.0, 0.30, 20.0), _row("gsplat", 0, 200, 40.0, 0.2, 22.0)]
     assert "before gsplat's first evaluation" in pairs(rows)[0].note
 
