@@ -1,15 +1,20 @@
 """tools/campaigns/operating_point_next.sh on the CPU, with a stand-in for scripts/gpu_run.sh that fakes each
 bench (no training): the lanes start each pinned bench once its carried data has come, take the queued jobs
 in order where their estimates fit before the stop, and every call brings back one archive with each bench's
-files; a job name the script does not know stops it with one line."""
+files; a job name the script does not know, a first carry without the LPIPS weights and a later call that
+finds no lanes (a fresh machine) stop it with one line. Slow: the same with real benches (40 steps on tiny
+synthetic scenes), gathered into a report (PHASE=gather), a bench cut before its report included."""
 
 from __future__ import annotations
 
+import io
+import json
 import os
 import re
 import shutil
 import signal
 import subprocess
+import sys
 import tarfile
 import time
 from collections.abc import Iterator
@@ -139,3 +144,111 @@ def test_an_unknown_job_stops_it_with_one_line(campaign: tuple[Path, dict[str, s
     assert p.returncode == 2
     assert p.stderr.strip().splitlines() == ["error: job d_fern: not one of a_*, ac_*, b_*, c_*"]
     assert not Path(env["SRC"]).exists()
+
+
+def test_a_call_on_a_fresh_machine_or_without_weights_stops_with_one_line(
+    campaign: tuple[Path, dict[str, str]],
+) -> None:
+    repo, env = campaign
+    p = _phase(repo, env, "2", WAIT="1")
+    assert p.returncode == 3
+    assert p.stderr.strip().splitlines() == [
+        f"error: no lanes on this machine ({env['LOGS']}/lanes_n): the machine of PHASE=1 went back (more "
+        "than 30 s idle?) and this call got a fresh one; start again with PHASE=1"
+    ]
+    (Path(env["CARRY1"]) / "alexnet_features.pth").unlink()
+    p = _phase(repo, env, "1")
+    assert p.returncode == 2 and not Path(env["SRC"]).exists()
+    assert (
+        p.stderr.strip()
+        == f"error: {env['CARRY1']}/alexnet_features.pth: no LPIPS weights in the first carry"
+    )
+
+
+def _cut(archive: Path, job: str) -> None:
+    """``archive`` as a call would have sent it had it ended while ``job``'s bench was still training: its
+    report gone, its gsplat run's metrics.json still running."""
+    with tarfile.open(archive) as t:
+        members = {m.name: t.extractfile(m).read() for m in t.getmembers() if m.isfile()}  # type: ignore[union-attr]
+    with tarfile.open(fileobj=io.BytesIO(members[f"./bench_{job}.tar"])) as b:
+        files = {m.name: b.extractfile(m).read() for m in b.getmembers() if m.isfile()}  # type: ignore[union-attr]
+    files = {k: v for k, v in files.items() if k.startswith("runs/")}
+    for k in [k for k in files if "/gsplat/" in k and k.endswith("metrics.json")]:
+        doc = json.loads(files[k])
+        files[k] = json.dumps({**doc, "status": "running"}).encode()
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode="w") as b:
+        for k, v in files.items():
+            info = tarfile.TarInfo(k)
+            info.size = len(v)
+            b.addfile(info, io.BytesIO(v))
+    members[f"./bench_{job}.tar"] = buf.getvalue()
+    with tarfile.open(archive, "w:gz") as t:
+        for k, v in members.items():
+            info = tarfile.TarInfo(k)
+            info.size = len(v)
+            t.addfile(info, io.BytesIO(v))
+
+
+@pytest.mark.slow
+@pytest.mark.needs_data
+def test_a_tiny_campaign_trains_and_gathers_into_a_report(tmp_path: Path) -> None:
+    """PHASE 1 and 3 with real benches (40 steps, two 48x36 synthetic scenes, one lane each and a queued fixed
+    budget), then PHASE=gather on the last archive with one bench cut before its report: the folder has the
+    equal-time table, the auto budget, and each run's settings with the rule and JSGS's gc_every."""
+    from jsgstools.compress import compress
+    from jsgstools.synth import synth
+
+    weights = ROOT.parent / "shared" / "lpips" / "alexnet_features.pth"
+    if not weights.is_file():
+        pytest.skip(f"needs {weights}")
+    repo = tmp_path / "repo"
+    (repo / "tools").mkdir(parents=True)
+    for d in ("jsgs", "jsgstools", "tools/results"):
+        (repo / d).symlink_to(ROOT / d)
+    shutil.copytree(ROOT / "tools" / "campaigns", repo / "tools" / "campaigns")
+    for i, s in enumerate(("cup", "fern")):
+        synth(tmp_path / "scenes" / s, views=8, size=(48, 36), seed=i, point_density=0.3)
+        base = tmp_path / "c1" / "bench" / "data" / s / "clean_s0"
+        compress(tmp_path / "scenes" / s, base, "clean", seed=0, jobs=1)
+        shutil.rmtree(base / "images"), shutil.rmtree(base / "sparse")
+    shutil.copy(weights, tmp_path / "c1" / "alexnet_features.pth")
+    (tmp_path / "c2").mkdir()
+    py = tmp_path / "venv" / "bin" / "python3"
+    py.parent.mkdir(parents=True)
+    py.write_text(f'#!/bin/sh\nexec {sys.executable} "$@"\n')
+    py.chmod(0o755)
+    (tmp_path / "gpu_run.sh").write_text(
+        f'export PATH={py.parent}:$PATH PYTHONPATH=$PWD OMP_NUM_THREADS=1 JSGS_LPIPS_DOWNLOAD=0\nexec "$@"\n'
+    )
+    folders = {"SRC": "src", "DATA": "data", "LOGS": "logs", "BENCHES": "b", "GPU_RUN": "gpu_run.sh",
+               "CARRY1": "c1", "CARRY2": "c2", "SCENE_DIR": "scenes", "VENV": "venv"}  # fmt: skip
+    env = {**os.environ, **{k: str(tmp_path / v) for k, v in folders.items()}, "POLL": "0.2"}
+    env.update(CUP="cup", FERN="fern", ITERS="40", EVAL_AT="20,40", EST_PCT="1", OVERHEAD="5", STOP_AT="500")
+    env.update(LANES="0:a_cup_s0 1:a_fern_s1", QUEUE="b_fern", PYTHONPATH=str(ROOT))
+    for phase, wait in (("1", "0"), ("3", "400")):
+        (tmp_path / f"out{phase}").mkdir()
+        p = _phase(repo, {**env, "OUT": str(tmp_path / f"out{phase}")}, phase, WAIT=wait)
+        assert p.returncode == 0, p.stdout + p.stderr
+    status = _archive({"OUT": str(tmp_path / "out3")}, "3")["status.txt"].decode()
+    assert "lanes done: 2 of 2" in status and "a_cup_s0: 2 runs complete, 2 started" in status, status
+    assert "a_fern_s1: 3 runs complete" in status and "b_fern: 1 runs complete" in status, status
+    archive = tmp_path / "out3" / "opn_3.tgz"
+    _cut(archive, "a_cup_s0")
+    target = tmp_path / "auto30"
+    p = _phase(repo, env, "gather", ARCHIVE=str(archive), GATHER=str(tmp_path / "g"), TARGET=str(target))
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert "a_cup_s0: no results.csv (the calls ended before its report): collected from its runs" in p.stdout
+    report = (target / "report.md").read_text()
+    assert "## Equal training time" in report and "the rule's choice at 30 training pixels" in report
+    assert (
+        "| cup | gaussian | auto | jsgs | 0 | 40 |" in report
+    )  # compared with the cut gsplat run's evaluations
+    assert "| fern | gaussian | auto | jsgs | 1 | 40 |" in report
+    assert "gc_every 4 in 3 (budgets 100,000, auto)" in report
+    rows = (target / "results.csv").read_text().splitlines()
+    assert rows[0].startswith("scene,schedule,method,seed,strategy,budget,step,")
+    assert {r.split(",")[5] for r in rows[1:]} == {"auto", "100000"}
+    configs = json.loads((target / "configs.json").read_text())
+    assert configs["cup/gaussian/jsgs/mcmc-auto/s0"]["settings"]["method_options"]["gc_every"] == 4
+    assert configs["fern/clean/gsplat/mcmc-auto/s1"]["derived"]["budget"]["pixels_per_gaussian"] == 30

@@ -1,10 +1,11 @@
 # What the operating point (docs/results/operating_point/README.md) still lacks, on one machine of 4 GPUs
 # over three or four chained calls, in order of priority:
-#   (a) the equal-time table at the retuned auto budgets (--budgets auto: flower 184k, fern 108k, cup 222k,
-#       mouse 107k): gsplat (trained GSPLAT_STEPS = 1.5 x the 30,000 steps, so the table interpolates), JSGS
-#       (the mcmc preset's recipe, gc_every 4) and the clean ceiling, gaussian schedule, seeds 0 and 1
-#       (operating_point.sh PART=time): one bench per scene and seed, jobs a_<scene>_s<seed>; the cup's and
-#       the mouse's clean ceilings, whose budgets did not change, are the queued jobs ac_cup and ac_mouse;
+#   (a) the equal-time table at the retuned auto budgets (--budgets auto, 30 training pixels per Gaussian:
+#       flower 184k, fern 108k, cup 222k, mouse 107k): gsplat (trained GSPLAT_STEPS = 1.5 x the 30,000 steps,
+#       so the table interpolates), JSGS (the mcmc preset's recipe, gc_every 4) and the clean ceiling, gaussian
+#       schedule, seeds 0 and 1 (operating_point.sh PART=time): one bench per scene and seed, jobs
+#       a_<scene>_s<seed>; the cup's and the mouse's clean ceilings, whose budgets did not change, are the
+#       queued jobs ac_cup and ac_mouse;
 #   (b) a second seed (B_SEEDS, 1) at fixed budgets, JSGS (operating_point.sh PART=rule): b_fern (100k),
 #       b_mouse100 and b_mouse300 (custom_myhan_mouse), to tell the mouse's +0.0065 LPIPS miss from seed noise.
 #       The fixed budgets' seed 0 trained with gc_every 1; these runs, like (a)'s, with the preset's gc_every
@@ -19,39 +20,58 @@
 # STOP_AT (1200), the seconds after PHASE 1 began at which every bench stops (--time-limit: runs still going
 # stop at their last evaluation, which comes back), once its data has come. A lane ends when none fits.
 # What fits: a GPU trains about 230 steps/s of flower, 245 of fern, 155 of the mouse and 140 of the cup,
-# however many runs share it (the H100/H200 runs in docs/results/operating_point, 2 to 5 per GPU). (a)
-# without ac_* is then 3,810 GPU-seconds, 941-965 per GPU: the lanes end about 1,100 s after PHASE 1 began,
-# about 20-21 minutes of device time with the machine's start and the last call (STOP_AT caps it at about
-# 22; GSPLAT_STEPS=1.3 would save about 70 s per GPU). No queued job fits by default. STOP_AT=1600 (about 28
-# minutes, near the 30 that a machine is held) adds ac_cup, ac_mouse, b_fern and b_mouse100, one per freed
-# GPU. The rest needs a machine of its own, with LANES="0: 1: 2: 3:" (no pinned jobs): QUEUE="b_fern
-# b_mouse100 b_mouse300 ac_cup ac_mouse" STOP_AT=800 (about 15 minutes), QUEUE="c_fern_s0 c_flower_s0
-# c_mouse_s0 c_cup_s0" STOP_AT=1250 ((c) at seed 0, about 23 minutes).
-# On the CPU first, in the checkout the device tool sends (folders that .gitignore's .gpu*/ ignores):
-#   bash scripts/gpu_prepare.sh      # the wheels in .whl (7 MiB)
-#   GPU_DIR=.gpuOP1 GPU_SCENES="custom_kwrous_cup llff_fern" bash scripts/gpu_prepare.sh       # 27 MiB
-#   GPU_DIR=.gpuOP2 GPU_SCENES="llff_flower custom_myhan_mouse" bash scripts/gpu_prepare.sh && \
-#       rm .gpuOP2/alexnet_features.pth                                                      # 23 MiB
-# (with the ~25 MiB tree, the first call carries about 59 MiB of the 64), then calls of kind nvidia-h100-x4,
-# each started within 30 s of the last one's end (the machine goes back after 30 s idle, the lanes with it):
-#   PHASE=1 bash tools/campaigns/operating_point_next.sh   # carry [".whl", ".gpuOP1"]: copies the tree and
-#                                                          # the data, builds (~80 s), starts the lanes
-#   PHASE=2 bash tools/campaigns/operating_point_next.sh   # carry [".gpuOP2"]: its data, then waits WAIT (480)
-#   PHASE=3 bash tools/campaigns/operating_point_next.sh   # waits WAIT (540) or until every lane is done
-# and PHASE=3 again while status.txt says a lane is running; then give the machine back. A PHASE=1 on a warm
-# machine ends the lanes an earlier one started. Each call brings back $OUT/opn_<PHASE>.tgz: lanes.log (each
-# job's start, end and time limit), status.txt, each job's log and bench_<job>.tar (results.csv, report.md,
-# bench.json, its runs' metrics.json and config.json so far; never checkpoints). On the CPU, from the last one:
-#   mkdir -p .res/opn_x && tar xzf opn_3.tgz -C .res/opn_x && for t in .res/opn_x/bench_*.tar; do \
-#       j=$(basename "$t" .tar); mkdir -p ".res/opn/${j#bench_}" && tar xf "$t" -C ".res/opn/${j#bench_}"; done
-#   .venv/bin/python tools/results/build_report.py docs/results/operating_point/auto30 .res/opn/*
-# (a folder of its own: in docs/results/operating_point its auto rows would replace the earlier table's,
-# which trained at 552k and 242k with gc_every 1).
-# A CPU dry run: GPU_RUN names a stand-in for scripts/gpu_run.sh (one that puts the venv's python3 first on
-# PATH), CARRY1 and CARRY2 the carried folders, FLOWER, FERN, CUP and MOUSE tiny scenes in them (jsgstools
-# synth 48x36, then gpu_prepare.sh's clean base), ITERS=40 EVAL_AT=20,40 the steps, EST_PCT and OVERHEAD the
-# estimates, SRC, DATA, LOGS and BENCHES the folders in /tmp; tests/test_tools/test_operating_point_next.py
-# runs the lanes, the queue and the archive with a stand-in that fakes the benches.
+# however many runs share it (the H100/H200 runs in docs/results/operating_point, 2 to 5 per GPU, at the
+# earlier rule's larger flower and fern budgets). (a) without ac_* is then 3,810 GPU-seconds, 941-965 per GPU:
+# the lanes end about 1,100 s after PHASE 1 began, about 20-21 minutes of device time with the machine's start
+# and the last call (STOP_AT caps it at about 22; GSPLAT_STEPS=1.3 would save about 70 s per GPU). No queued job
+# fits by default. STOP_AT=1600 (about 28 minutes, near the 30 that a machine is held) adds ac_cup, ac_mouse,
+# b_fern and b_mouse100, one per freed GPU. The rest needs a machine of its own, with LANES="0: 1: 2: 3:" (no
+# pinned jobs): QUEUE="b_fern b_mouse100 b_mouse300 ac_cup ac_mouse" STOP_AT=800 (about 15 minutes),
+# QUEUE="c_fern_s0 c_flower_s0 c_mouse_s0 c_cup_s0" STOP_AT=1250 ((c) at seed 0, about 23 minutes).
+#
+# THE RUN, step by step (about 21 minutes of a session's 30; every call timeout_s 600; the machine goes back
+# after 30 s idle, and the lanes with it, so each call starts right after the last one's reply):
+#   0. On the CPU, in /work/main (the checkout the device tool sends; `git status --porcelain` prints nothing),
+#      check that each call's tree and carries stay under 64 MiB (67,108,864 bytes):
+#        t=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1); du -sb .whl .gpuOP1 .gpuOP2
+#      call 1 = t + .whl + .gpuOP1, call 2 = t + .gpuOP2. Measured: t 26,255,739, .whl 7,030,231, .gpuOP1
+#      28,609,419 (cup, fern, the LPIPS weights), .gpuOP2 24,070,457 (flower, mouse): 61,895,389 (59.0 MiB)
+#      and 50,326,196 (48.0 MiB), so the tree may grow by 5 MB at most. Should the folders be missing:
+#        bash scripts/gpu_prepare.sh      # the wheels in .whl
+#        GPU_DIR=.gpuOP1 GPU_SCENES="custom_kwrous_cup llff_fern" bash scripts/gpu_prepare.sh
+#        GPU_DIR=.gpuOP2 GPU_SCENES="llff_flower custom_myhan_mouse" bash scripts/gpu_prepare.sh && \
+#            rm .gpuOP2/alexnet_features.pth
+#   1. run kind nvidia-h100-x4, carry [".whl", ".gpuOP1"]: PHASE=1 bash tools/campaigns/operating_point_next.sh
+#      (copies the tree and the data, builds, ~80 s, starts the lanes: its reply shows lanes.log with the
+#      "start a_cup_s<i>/a_fern_s<i>" lines; "build failed" there: give the machine back, build.log says why)
+#   2. run, carry [".gpuOP2"]: PHASE=2 bash tools/campaigns/operating_point_next.sh (its data, then 480 s)
+#   3. run: PHASE=3 bash tools/campaigns/operating_point_next.sh  (waits up to 540 s, until every lane is done)
+#      and again while its status.txt says "lanes done: k of 4" with k < 4 (the stop, STOP_AT, is 20 minutes
+#      after PHASE 1 began); then give_back.
+#   After each reply, copy its archive at once: cp <files_at>/opn_<PHASE>.tgz /work/main/.res/ (the last
+#   call's holds every bench as it stood). A call answered "error: no lanes on this machine" got a fresh
+#   machine (the last one went back): start again at 1 only if 21 minutes are left, else gather what came.
+#   Fewer GPUs lent (a refusal of nvidia-h100-x4): nvidia-h100-x2 (or nvidia-h200-x2) with, at step 1,
+#   LANES="0:a_fern_s0,a_flower_s0 1:a_fern_s1,a_flower_s1" (flower and fern, both seeds, ~890 s per GPU: the
+#   same three calls); one GPU: LANES="0:a_fern_s0,a_flower_s0".
+#   4. On the CPU, in /work/main:
+#        ARCHIVE=.res/opn_3.tgz PHASE=gather bash tools/campaigns/operating_point_next.sh
+#      puts each bench in .res/opn/<job> (GATHER, a new folder), collects the runs of a bench that the calls
+#      ended before its report (operating_point.sh REPORT_ONLY=1, the scenes from ../shared/scenes), and builds
+#      docs/results/operating_point/auto30 (TARGET) with tools/results/build_report.py (add STEP=auto where runs
+#      stopped early: each scene at its last common evaluation): results.csv (budget column `auto`), report.md
+#      (the equal-time table; its header names the auto budgets, the rule's 30 pixels per Gaussian and
+#      gc_every), configs.json, plots/. Then write auto30/README.md and the parent README's headline from it.
+#      A folder of its own: the parent folder's auto rows trained at the earlier rule's budgets (flower 552k,
+#      fern 242k) with gc_every 1, and build_report.py refuses one scene's auto runs of two rules.
+# A CPU dry run (about 3 minutes of 2 cores): tiny scenes (`jsgstools synth OUT --size 48x36 --views 8
+# --point-density 0.3`, then the clean base as gpu_prepare.sh makes it) in two carry folders, the LPIPS weights
+# in the first; GPU_RUN a stand-in for scripts/gpu_run.sh that puts the venv's python3 first on PATH and the
+# cwd on PYTHONPATH; FLOWER, FERN, CUP and MOUSE their names; ITERS=40 EVAL_AT=20,40 EST_PCT=5 OVERHEAD=10;
+# SRC, DATA, LOGS, BENCHES, CARRY1, CARRY2 and OUT (one per call) in a folder of your own; PHASE 1, 2, 3, then
+# PHASE=gather with SCENE_DIR the scenes and VENV the venv. tests/test_tools/test_operating_point_next.py runs
+# the lanes, the queue and the archive with a stand-in that fakes the benches, and (slow) two real lanes and
+# the gather.
 set -u
 cd "$(dirname "$0")/../.."
 PHASE=${PHASE:?set PHASE=1, 2 or 3}
@@ -141,10 +161,34 @@ wait_lanes() {  # wait_lanes SECONDS: until every lane is done or SECONDS have p
     n=$(cat $L/lanes_n)
     while [ $SECONDS -lt $end ] && [ "$(ls $L/lane_*.done 2> /dev/null | wc -l)" -lt "$n" ]; do sleep $POLL; done
 }
+gather() {  # on the CPU: the benches of ARCHIVE (the last call's opn_<PHASE>.tgz) into GATHER (a new folder),
+    # each one cut before its report collected from its runs (operating_point.sh REPORT_ONLY=1), then TARGET
+    local a=${ARCHIVE:?set ARCHIVE to the opn_PHASE.tgz of the last call} g=${GATHER:-.res/opn} t j
+    local target=${TARGET:-docs/results/operating_point/auto30} benches=()
+    [ ! -e "$g" ] || { echo "error: GATHER=$g: already there; name a new folder" >&2; return 2; }
+    mkdir -p "$g/archive" && tar xzf "$a" -C "$g/archive" || { echo "error: ARCHIVE=$a: not a .tgz" >&2; return 2; }
+    for t in "$g"/archive/bench_*.tar; do
+        [ -e "$t" ] || continue
+        j=$(basename "$t" .tar) && j=${j#bench_}
+        mkdir -p "$g/$j" && tar xf "$t" -C "$g/$j" && spec "$j" || return 2
+        if [ ! -f "$g/$j/results.csv" ]; then
+            echo "$j: no results.csv (the calls ended before its report): collected from its runs"
+            PART=$J_PART SCENES=$J_SCENE SEEDS=$J_SEEDS SCHEDULES=$J_SCHED RULE_BUDGETS=$J_BUDGETS JOBS=$J_JOBS \
+                GSPLAT_STEPS=$GS OUT_DIR=$g/$j REPORT_ONLY=1 bash tools/campaigns/operating_point.sh
+        fi
+        if [ -f "$g/$j/results.csv" ]; then benches+=("$g/$j"); else echo "$j: left out (no run to collect)"; fi
+    done
+    [ ${#benches[@]} -gt 0 ] || { echo "error: ARCHIVE=$a: no bench in it" >&2; return 2; }
+    python3 tools/results/build_report.py ${STEP:+--step "$STEP"} "$target" "${benches[@]}"
+}
 case $PHASE in
+    gather) PATH=$(cd "${VENV:-.venv}/bin" && pwd):$PATH; gather; exit ;;
     lane) echo $$ >> $L/lane_pids; lane "$LANE_GPU" "$LANE_JOBS"; exit ;;
     1)
         for j in $(printf '%s\n' $LANES | cut -d: -f2- | tr ',' ' ') $QUEUE; do spec "$j" || exit 2; done
+        # without them every run would stop at its first evaluation (the campaign's measure is LPIPS)
+        [ -f "${CARRY1:-.gpuOP1}/alexnet_features.pth" ] || {
+            echo "error: ${CARRY1:-.gpuOP1}/alexnet_features.pth: no LPIPS weights in the first carry" >&2; exit 2; }
         # lanes of an earlier PHASE 1 on this machine (each leads its own process group: setsid) would take the
         # new queue
         for p in $(cat $L/lane_pids 2> /dev/null); do kill -- -"$p" 2> /dev/null; done
@@ -163,6 +207,8 @@ case $PHASE in
         done
         echo $n > $L/lanes_n
         ;;
+    *) [ -f "$L/lanes_n" ] || { echo "error: no lanes on this machine ($L/lanes_n): the machine of PHASE=1 went" \
+        "back (more than 30 s idle?) and this call got a fresh one; start again with PHASE=1" >&2; exit 3; } ;;&
     2)
         carry "${CARRY2:-.gpuOP2}"
         wait_lanes "${WAIT:-480}"
