@@ -36,7 +36,8 @@
 #        t=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1); du -sb .whl .gpuOP1 .gpuOP2
 #      the first call = t + .whl + .gpuOP1, the second = t + .gpuOP2. Measured: t 26,255,739, .whl
 #      7,030,231, .gpuOP1 28,609,419 (cup, fern, the LPIPS weights), .gpuOP2 24,070,457 (flower, mouse):
-#      61,895,389 (59.0 MiB) and 50,326,196 (48.0 MiB), so the tree may grow by 5 MB at most. Should the folders be missing:
+#      61,895,389 (59.0 MiB) and 50,326,196 (48.0 MiB), so the tree may grow by 5 MB at most. Should the
+#      folders be missing (they are made from ../shared):
 #        bash scripts/gpu_prepare.sh      # the wheels in .whl
 #        GPU_DIR=.gpuOP1 GPU_SCENES="custom_kwrous_cup llff_fern" bash scripts/gpu_prepare.sh
 #        GPU_DIR=.gpuOP2 GPU_SCENES="llff_flower custom_myhan_mouse" bash scripts/gpu_prepare.sh && \
@@ -52,8 +53,8 @@
 #   call's holds every bench as it stood). A call answered "error: no lanes on this machine" got a fresh
 #   machine (the last one went back): start again at 1 only if 21 minutes are left, else gather what came.
 #   Fewer GPUs lent (a refusal of nvidia-h100-x4): nvidia-h100-x2 (or nvidia-h200-x2) with, at step 1,
-#   LANES="0:a_fern_s0,a_flower_s0 1:a_fern_s1,a_flower_s1" (flower and fern, both seeds, ~890 s per GPU: the
-#   same three calls); one GPU: LANES="0:a_fern_s0,a_flower_s0".
+#   LANES="0:a_fern_s0,a_flower_s0 1:a_fern_s1,a_flower_s1" PHASE=1 ... (flower and fern, both seeds, ~890 s
+#   per GPU: the same three calls); one GPU: LANES="0:a_fern_s0,a_flower_s0".
 #   4. On the CPU, in /work/main:
 #        ARCHIVE=.res/opn_3.tgz PHASE=gather bash tools/campaigns/operating_point_next.sh
 #      puts each bench in .res/opn/<job> (GATHER, a new folder), collects the runs of a bench that the calls
@@ -61,7 +62,9 @@
 #      docs/results/operating_point/auto30 (TARGET) with tools/results/build_report.py (add STEP=auto where runs
 #      stopped early: each scene at its last common evaluation): results.csv (budget column `auto`), report.md
 #      (the equal-time table; its header names the auto budgets, the rule's 30 pixels per Gaussian and
-#      gc_every), configs.json, plots/. Then write auto30/README.md and the parent README's headline from it.
+#      gc_every), configs.json, plots/. Then write auto30/README.md (opening with a `**Status: ...**` line, linked
+#      from operating_point/README.md: tests/test_docs.py) with the targets at the retuned budgets, saying that
+#      5 runs shared each GPU at first (a row's runs_per_device counts its own bench's: 2 or 3).
 #      A folder of its own: the parent folder's auto rows trained at the earlier rule's budgets (flower 552k,
 #      fern 242k) with gc_every 1, and build_report.py refuses one scene's auto runs of two rules.
 # A CPU dry run (about 3 minutes of 2 cores): tiny scenes (`jsgstools synth OUT --size 48x36 --views 8
@@ -74,7 +77,7 @@
 # the gather.
 set -u
 cd "$(dirname "$0")/../.."
-PHASE=${PHASE:?set PHASE=1, 2 or 3}
+PHASE=${PHASE:?set PHASE=1, 2 or 3 (on the GPU machine) or gather (on the CPU)}
 export S=${SRC:-/tmp/src} D=${DATA:-/tmp/opn_data} L=${LOGS:-/tmp/opn_logs} B=${BENCHES:-/tmp/opn}
 export GPU_RUN=${GPU_RUN:-scripts/gpu_run.sh} GS=${GSPLAT_STEPS:-1.5} BS=${B_SEEDS:-1}
 export FLOWER=${FLOWER:-llff_flower} FERN=${FERN:-llff_fern}
