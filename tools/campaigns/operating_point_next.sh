@@ -197,7 +197,7 @@ case $PHASE in
         for p in $(cat $L/lane_pids 2> /dev/null); do kill -- -"$p" 2> /dev/null; done
         rm -rf $S $D $L $B && mkdir -p $S $D/bench/data $L $B
         echo $(($(date +%s) + ${STOP_AT:-1200})) > $L/t_stop
-        tar cf - --exclude='./.gpu*' --exclude=./.res --exclude=./.torch_ext . | tar xf - -C $S
+        tar cf - --exclude='./.gpu*' --exclude=./.res --exclude=./.torch_ext --exclude=./.venv . | tar xf - -C $S
         carry "${CARRY1:-.gpuOP1}"
         printf '%s\n' $QUEUE > $L/queue
         (cd $S && timeout 300 bash $GPU_RUN true) > $L/build.log 2>&1 || { echo "build failed:"; tail -20 $L/build.log; }
