@@ -34,9 +34,9 @@
 #   0. On the CPU, in /work/main (the checkout the device tool sends; `git status --porcelain` prints nothing),
 #      check that each call's tree and carries stay under 64 MiB (67,108,864 bytes):
 #        t=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1); du -sb .whl .gpuOP1 .gpuOP2
-#      the first call = t + .whl + .gpuOP1, the second = t + .gpuOP2. Measured: t 26,255,739, .whl
+#      the first call = t + .whl + .gpuOP1, the second = t + .gpuOP2. Measured: t 26,286,500, .whl
 #      7,030,231, .gpuOP1 28,609,419 (cup, fern, the LPIPS weights), .gpuOP2 24,070,457 (flower, mouse):
-#      61,895,389 (59.0 MiB) and 50,326,196 (48.0 MiB), so the tree may grow by 5 MB at most. Should the
+#      61,926,150 (59.1 MiB) and 50,356,957 (48.0 MiB), so the tree may grow by 5 MB at most. Should the
 #      folders be missing (they are made from ../shared):
 #        bash scripts/gpu_prepare.sh      # the wheels in .whl
 #        GPU_DIR=.gpuOP1 GPU_SCENES="custom_kwrous_cup llff_fern" bash scripts/gpu_prepare.sh
