@@ -284,12 +284,14 @@ class SpeedConfig:
         "jsgs/kernels/csrc/ssim.cu on a GPU, as gsplat's simple_trainer uses fused-ssim; the torch twin "
         "elsewhere), torch (separable convolutions everywhere) or cuda (the kernel, or an error).",
     )
-    exchange: Literal["auto", "torch"] = _f(
-        "auto",
-        "On several processes (--gpus N), how a view reaches the other processes' Gaussians: auto (gsplat's "
-        "distributed rasterisation wherever it renders every training view, else the torch exchange) or "
-        "torch (every shard gathered on every process, the gradients reduce-scattered back to their owners: "
-        "JSGS's Gaussian Controller takes it, so this runs gsplat on the same exchange).",
+    exchange: Literal["torch", "gsplat"] = _f(
+        "torch",
+        "On several processes (--gpus N), how a view reaches the other processes' Gaussians: torch (every "
+        "shard gathered on every process, the gradients reduce-scattered back to their owners; any method, "
+        "camera and image sizes; the faster on 2 GPUs at 1,000,000 Gaussians: docs/results/scale) or gsplat "
+        "(gsplat's distributed rasterisation, rasterization(..., distributed=True), where it renders every "
+        "training view: gsplat backend, pinhole cameras, one image size, no extra render channels such as "
+        "JSGS's Gaussian Controller's, no absgrad; elsewhere the torch exchange, with a note saying why).",
     )
 
 
@@ -547,11 +549,31 @@ def from_dict(doc: dict[str, Any], where: str = "config", base: TrainConfig | No
     return cfg
 
 
+#: Values that files written by earlier versions hold for a setting, by (section, key), and the value of
+#: today that does the same: ``speed.exchange: auto`` chose gsplat's distributed rasterisation where it
+#: renders every training view, which ``gsplat`` does.
+_RECORDED_VALUES: dict[tuple[str, str], dict[str, str]] = {("speed", "exchange"): {"auto": "gsplat"}}
+
+
+def current_values(settings: Any) -> Any:
+    """A recorded settings object with the values of :data:`_RECORDED_VALUES` replaced by today's (a copy;
+    anything else is returned as it is)."""
+    if not isinstance(settings, dict):
+        return settings
+    out = dict(settings)
+    for (section, key), values in _RECORDED_VALUES.items():
+        part = out.get(section)
+        if isinstance(part, dict) and isinstance(part.get(key), str) and part[key] in values:
+            out[section] = {**part, key: values[part[key]]}
+    return out
+
+
 def recorded_settings(settings: Any, where: str) -> TrainConfig:
     """The complete settings a run recorded (``RUN/config.json`` or a checkpoint's ``settings``). A key that a
     file written before the key existed lacks takes the value of that time: the ``paper`` preset's, which
-    were then the defaults."""
-    return from_dict(settings, where, base=TrainConfig.from_preset("paper"))
+    were then the defaults; a value that a setting has under another name today is read as that
+    (:func:`current_values`)."""
+    return from_dict(current_values(settings), where, base=TrainConfig.from_preset("paper"))
 
 
 #: The preview preset's training length (steps).
@@ -712,6 +734,8 @@ def config_from_document(doc: Any, path: str | Path, base: TrainConfig | None = 
 
     whole = is_run_config(doc)
     if whole:
+        if "settings" in doc:
+            doc = {**doc, "settings": current_values(doc["settings"])}
         validate(doc, "config", str(path))
         settings = doc["settings"]
     else:

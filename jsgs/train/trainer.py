@@ -684,12 +684,10 @@ class Trainer:
         elif self.exchange == "gsplat":
             dd.per_camera_statistics(self.strategy, self.world)
         dd.keep_a_gaussian_per_shard(self.strategy, self.world)
-        sizes = {(v.width, v.height) for v in self.train_views}
-        if self.exchange == "torch" and self.backend == "gsplat" and len(sizes) > 1:
+        if self.exchange == "torch" and cfg.speed.exchange == "gsplat":
             self.say(
-                f"note: the training views have {len(sizes)} image sizes: the processes exchange the "
-                "Gaussians with torch (gsplat's distributed rasterisation projects every process's camera at "
-                "one size)"
+                f"note: speed.exchange gsplat: gsplat's distributed rasterisation cannot render this run's "
+                f"views ({self._gsplat_cannot(cfg)}); the processes exchange the Gaussians with torch"
             )
         if self.world.enabled and self.strategy.cap_max is not None:
             # one global budget: each process grows its shard to its share
@@ -785,23 +783,30 @@ class Trainer:
 
     # -- the shards ------------------------------------------------------------------------------------
     def _exchange_kind(self, cfg: TrainConfig) -> str:
-        """How each process's view reaches the other processes' Gaussians (``self.exchange``): gsplat's
-        distributed rasterisation where it can render the run's views (gsplat backend, pinhole cameras, no
-        method extra channels, no absgrad, one image size: each process projects its shard for every
-        process's camera with its own view's width and height), else the torch exchange (gather the
-        shards, reduce the gradients); always the torch exchange with ``speed.exchange: torch``."""
+        """How each process's view reaches the other processes' Gaussians (``self.exchange``): the torch
+        exchange (gather the shards, reduce-scatter the gradients), or with ``speed.exchange: gsplat``
+        gsplat's distributed rasterisation where it can render the run's views (:meth:`_gsplat_cannot`);
+        "none" on one process."""
         if not self.world.enabled:
             return "none"
-        if (
-            cfg.speed.exchange == "auto"
-            and self.backend == "gsplat"
-            and not (self.hook is not None and self.hook.renders_extra())
-            and not cfg.strategy.absgrad
-            and all(v.distortion is None for v in self.train_views)
-            and len({(v.width, v.height) for v in self.train_views}) == 1
-        ):
+        if cfg.speed.exchange == "gsplat" and self._gsplat_cannot(cfg) is None:
             return "gsplat"
         return "torch"
+
+    def _gsplat_cannot(self, cfg: TrainConfig) -> str | None:
+        """Why gsplat's distributed rasterisation cannot render this run's training views, or None where it
+        can: it needs the gsplat backend, pinhole cameras, no method extra channels, no absgrad and one
+        image size (each process projects its shard for every process's camera with its own view's width
+        and height)."""
+        sizes = {(v.width, v.height) for v in self.train_views}
+        reasons = (
+            (self.backend != "gsplat", f"the {self.backend} backend"),
+            (self.hook is not None and self.hook.renders_extra(), "the method renders extra channels"),
+            (cfg.strategy.absgrad, "strategy.absgrad"),
+            (any(v.distortion is not None for v in self.train_views), "lens distortion"),
+            (len(sizes) > 1, f"{len(sizes)} image sizes (it projects every process's camera at one size)"),
+        )
+        return next((why for cannot, why in reasons if cannot), None)
 
     def _exchange_rows(self) -> tuple[int, int]:
         assert self._exchange is not None

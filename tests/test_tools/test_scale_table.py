@@ -1,6 +1,6 @@
 """tools/results/scale_table.py: views per second over the whole run and between the first and the last
-evaluation, the first steps' extra seconds, and each speed-up over the method's 1-GPU run (a run on the torch
-exchange against the method's plain 1-GPU run)."""
+evaluation, the first steps' extra seconds, and each speed-up over the method's 1-GPU run (a run that named
+its exchange against the method's plain 1-GPU run)."""
 
 from __future__ import annotations
 
@@ -41,6 +41,7 @@ def test_rates_and_speed_ups(tmp_path: Path) -> None:
     # two GPUs: 500 steps in 6.1 s, 1.7 s at step 100: 11 ms a step after it, 0.6 s extra before it
     _run(tmp_path, "gsplat", 2, [(100, 1.7), (500, 6.1)], "gsplat")
     _run(tmp_path, "gsplat_torch", 2, [(100, 1.9), (500, 6.3)], "torch")
+    _run(tmp_path, "gsplat_gsplat", 2, [(100, 1.9), (500, 6.3)], "gsplat")
     _run(tmp_path, "jsgs", 2, [(500, 6.0)], "torch")  # no 1-GPU run, one evaluation
     text = st.table(tmp_path)
     assert _cells(text, "gsplat", 1)[5:10] == ["95.2", "1.00", "100.0", "1.00", "0.50"]
@@ -50,4 +51,6 @@ def test_rates_and_speed_ups(tmp_path: Path) -> None:
     # against gsplat's 1-GPU run: 2 / (6.3 / 500) = 158.7, 1.67x; 2 / 0.011 again
     assert _cells(text, "gsplat_torch", 2)[5:10] == ["158.7", "1.67", "181.8", "1.82", "0.80"]
     assert _cells(text, "gsplat_torch", 2)[14] == "torch"
+    assert _cells(text, "gsplat_gsplat", 2)[5:10] == _cells(text, "gsplat_torch", 2)[5:10]
+    assert _cells(text, "gsplat_gsplat", 2)[14] == "gsplat"
     assert _cells(text, "jsgs", 2)[5:10] == ["166.7", "n/a", "n/a", "n/a", "n/a"]

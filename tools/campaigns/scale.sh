@@ -2,13 +2,14 @@
 # throughput in training views per second and the test metrics at equal views seen, for gsplat and JSGS, on the
 # mcmc preset.
 #   SCENES="jpeg_mouse:300000" GPUS="1 2" bash scripts/gpu_run.sh bash tools/campaigns/scale.sh
-#   SCENES="llff_flower:1000000:random" METHODS="gsplat gsplat:torch jsgs" bash scripts/gpu_run.sh \
+#   SCENES="llff_flower:1000000:random" METHODS="gsplat gsplat:gsplat jsgs" bash scripts/gpu_run.sh \
 #       bash tools/campaigns/scale.sh
 # Each scene is name:cap_max[:random], its manifest .gpu3/<name>/manifest.json (jpeg_mouse at camera resolution:
 # its manifest as `jsgstools manifest --analyze` writes it, no downscale); `random` starts from cap_max random
 # Gaussians (init.type random), so the run holds cap_max Gaussians from its first step (a 1,000,000-Gaussian
-# scene). METHODS (default "gsplat jsgs") picks the methods; METHOD:torch trains METHOD on the torch exchange
-# (`speed.exchange: torch`, the exchange JSGS's Gaussian Controller takes) into METHOD_torch. GPUS (default
+# scene). METHODS (default "gsplat jsgs") picks the methods, each on the torch exchange (`speed.exchange`'s
+# default); METHOD:gsplat trains METHOD with `speed.exchange: gsplat` (gsplat's distributed rasterisation
+# where it renders every training view) into METHOD_gsplat, METHOD:torch names the default. GPUS (default
 # "1 2"; add 4 on a machine with four GPUs: `--gpus N` takes the first N of CUDA_VISIBLE_DEVICES) picks the
 # runs; ITERS (default 6000) is the one-GPU length: N GPUs run ITERS/N steps with every step-counted setting
 # (the strategy's refine_*, the SH degree's interval) divided by N, as gsplat's steps_scaler, so every run
@@ -32,16 +33,16 @@ for e in ${SCENES:-jpeg_mouse:300000}; do
             mkdir -p "$(dirname "$run")"
             steps=$((ITERS / n))
             # the mcmc preset's step settings, divided by n
-            python3 - "$n" "$cap" "${init:-sfm}" "${exchange:-auto}" > "$run.settings.json" <<'PY'
+            python3 - "$n" "$cap" "${init:-sfm}" "${exchange:-}" > "$run.settings.json" <<'PY'
 import json, sys
 from jsgs.train.config import TrainConfig, to_dict
-n, cap, init, exchange = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
+n, cap, init, exchange = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4] or None
 d = to_dict(TrainConfig.from_preset("mcmc"))
 s = d["strategy"]
 out = {"strategy": {**{k: max(1, s[k] // n) for k in ("refine_start_iter", "refine_stop_iter", "refine_every")},
                     "cap_max": cap},
        "render": {"sh_degree_interval": max(1, d["render"]["sh_degree_interval"] // n)},
-       "speed": {"exchange": exchange}, "eval": {"save_renders": False}}
+       "speed": {"exchange": exchange or d["speed"]["exchange"]}, "eval": {"save_renders": False}}
 if init == "random":
     out["init"] = {"type": "random", "num_points": cap}
 print(json.dumps(out))

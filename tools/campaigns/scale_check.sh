@@ -4,9 +4,9 @@
 #   - the several-GPU GPU tests (GPUs 0-1): gsplat's exchange against one GPU, and gsplat's exchange against
 #     the torch exchange at equal steps (the torch exchange's reduce-scatter and SH bands on NCCL);
 #   - scale.sh on jpeg_mouse at camera resolution (ITERS 4000: 1, 2 and 4 GPUs, gsplat and JSGS) and on flower
-#     at 1,000,000 random Gaussians (ITERS 2000: 1, 2 and 4 GPUs, gsplat on its own exchange, gsplat on the
-#     torch exchange and JSGS, which takes the torch exchange), each run evaluated after a fifth of its
-#     steps and at its end (views/s over the whole run and after the first evaluation).
+#     at 1,000,000 random Gaussians (ITERS 2000: 1, 2 and 4 GPUs, gsplat and JSGS on the torch exchange, the
+#     default, and gsplat on its own exchange, `gsplat:gsplat`, on 2 GPUs), each run evaluated after a fifth
+#     of its steps and at its end (views/s over the whole run and after the first evaluation).
 # Runs on disjoint GPUs go side by side (each table row says which GPUs its run had; the GPUs it did not
 # use may have run another run); every 4-GPU run has the machine to itself. In order:
 #   GPUs 0-1 the GPU tests | GPU 2 mouse gsplat g1 and GPU 3 mouse JSGS g1, then GPUs 2-3 mouse gsplat g2,
@@ -14,7 +14,7 @@
 #   all 4: mouse gsplat g4, mouse JSGS g4
 #   GPU 0 1M JSGS g1 | GPU 1 1M gsplat g1 | GPUs 2-3 1M JSGS g2
 #   GPUs 0-1 1M gsplat g2 (gsplat's exchange) | GPUs 2-3 1M gsplat g2 (torch exchange)
-#   all 4: 1M JSGS g4, 1M gsplat g4 (gsplat's exchange against the torch one is measured at 2 GPUs)
+#   all 4: 1M JSGS g4, 1M gsplat g4 (torch exchange; gsplat's exchange on 4 GPUs: docs/results/scale)
 # about 12 minutes in all (a 1M run's setup, the exact nearest neighbours of 1,000,000 points on every
 # process, takes 55-85 s).
 # On the CPU first (folders that .gitignore's .gpu*/ ignores; about 45 MiB with the wheels):
@@ -70,7 +70,7 @@ scale 0,1,2,3 $M jsgs 4 $MI 100
 i=0; while [ ! -f $D/${F%%:*}/manifest.json ] && [ $i -lt 120 ]; do sleep 5; i=$((i + 1)); done
 (scale 0 $F jsgs 1 $FI 200) & (scale 1 $F gsplat 1 $FI 200) & (scale 2,3 $F jsgs 2 $FI 200) &
 wait
-(scale 0,1 $F gsplat 2 $FI 200) & (scale 2,3 $F gsplat:torch 2 $FI 200) &
+(scale 0,1 $F gsplat:gsplat 2 $FI 200) & (scale 2,3 $F gsplat 2 $FI 200) &
 wait
 scale 0,1,2,3 $F jsgs 4 $FI 200
 scale 0,1,2,3 $F gsplat 4 $FI 200

@@ -3,11 +3,11 @@
     python3 tools/results/scale_table.py .res/scale
 
 ROOT holds ROOT/SCENE/METHOD/gN/ (a `jsgs train --gpus N` run folder: metrics.json, config.json); METHOD is
-the trained method, with `_torch` appended where the run was made to take the torch exchange
-(`speed.exchange: torch`). Per run: its GPUs, steps, views seen, views per second over the whole run (N
-views per step / the training seconds per step: setup and evaluations left out, the first steps in) and the
-speed-up over the same method's 1-GPU run (METHOD's own g1, else the g1 of the method without `_torch`: on
-one GPU there is no exchange); where the run was evaluated more than once (scale.sh evaluates after the
+the trained method, with `_torch` or `_gsplat` appended where the run named its exchange
+(`speed.exchange`). Per run: its GPUs, steps, views seen, views per second over the whole run (N views per
+step / the training seconds per step: setup and evaluations left out, the first steps in) and the speed-up
+over the same method's 1-GPU run (METHOD's own g1, else the g1 of the method without the exchange's suffix:
+on one GPU there is no exchange); where the run was evaluated more than once (scale.sh evaluates after the
 first fifth and at the end), the same after the first evaluation (the steps between the first and the last
 evaluation: the run's rate once kernels are loaded, collectives connected and memory pools grown) and the
 seconds the steps up to the first evaluation took beyond that rate (the run's fixed cost); the last
@@ -59,7 +59,8 @@ def table(root: Path) -> str:
             lines.append(f"| {scene} | {method} | {n} | {m['step']} | | {m['status']} |")
             continue
         whole, steady, fixed = rates(m)
-        base = runs.get((scene, method, 1)) or runs.get((scene, method.removesuffix("_torch"), 1))
+        plain = method.removesuffix("_torch").removesuffix("_gsplat")
+        base = runs.get((scene, method, 1)) or runs.get((scene, plain, 1))
         base_whole = base_steady = None
         if base is not None and base["metrics"]["status"] == "complete":
             base_whole, base_steady, _ = rates(base["metrics"])

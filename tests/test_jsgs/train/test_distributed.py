@@ -198,10 +198,18 @@ def test_mcmc_and_jsgs_on_two_processes(tmp_path: Path) -> None:
 
     scene = make_scene(tmp_path / "jscene", n_views=6, jpeg_train=True)
     cfg = _settings(tmp_path, refine_start_iter=2, refine_every=3, cap_max=60)
+    # gsplat's exchange asked for where it cannot render (the CPU's reference rasterizer, JSGS's extra
+    # channels): the torch exchange, with a note that says why
+    cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "speed": {"exchange": "gsplat"}}))
     run = tmp_path / "run"
     r = _train(scene, run, "--method", "jsgs", "--config", str(cfg), "--iterations", "12", "--eval-at", "12",
                processes=2)  # fmt: skip
     _ok(r)
+    note = (
+        "note: speed.exchange gsplat: gsplat's distributed rasterisation cannot render this run's views (the "
+        "torch backend); the processes exchange the Gaussians with torch"
+    )
+    assert r.stderr.count(note) == 1, r.stderr
     m = json.loads((run / "metrics.json").read_text())
     assert m["world_size"] == 2 and m["num_gaussians"] == 60
     assert json.loads((run / "config.json").read_text())["derived"]["exchange"] == "torch"
@@ -595,10 +603,11 @@ def test_gsplat_exchange_statistics_add_camera_by_camera() -> None:
         assert torch.allclose(state[key], ref[key]), key
 
 
-def test_gsplat_exchange_only_where_it_renders_every_view() -> None:
-    """gsplat's exchange projects every process's camera with the calling process's image size and renders
-    without extra channels, distortion or absgrad: anything else takes the torch exchange, and so does every
-    run with ``speed.exchange: torch``."""
+def test_torch_exchange_by_default_and_gsplats_where_asked_and_it_renders() -> None:
+    """Every method takes the torch exchange unless ``speed.exchange: gsplat`` asks for gsplat's distributed
+    rasterisation, which it gets where that renders every training view (gsplat backend, one image size,
+    no distortion, no extra channels, no absgrad: it projects every process's camera with the calling
+    process's image size); elsewhere the torch exchange, and the reason the run's note gives."""
     from types import SimpleNamespace
 
     import torch
@@ -609,19 +618,31 @@ def test_gsplat_exchange_only_where_it_renders_every_view() -> None:
 
     cfg = TrainConfig.from_preset("paper", device="cpu")
 
-    def kind(sizes: list[tuple[int, int]], backend: str = "gsplat", world: int = 2, **view: object) -> str:
+    def trainer(sizes: list[tuple[int, int]], backend: str, world: int, extra: bool, **view: object) -> Any:
         views = [SimpleNamespace(width=w, height=h, distortion=view.get("distortion")) for w, h in sizes]
-        t = SimpleNamespace(world=dd.World(0, world, 0), backend=backend, hook=None, train_views=views)
-        return Trainer._exchange_kind(t, cfg)  # type: ignore[arg-type]
+        hook = SimpleNamespace(renders_extra=lambda: extra)
+        t = SimpleNamespace(world=dd.World(0, world, 0), backend=backend, hook=hook, train_views=views)
+        t._gsplat_cannot = lambda c: Trainer._gsplat_cannot(t, c)  # type: ignore[arg-type]
+        return t
 
-    assert kind([(64, 48), (64, 48)]) == "gsplat"
-    assert kind([(64, 48), (48, 64)]) == "torch"
-    assert kind([(64, 48)], backend="torch") == "torch"
-    assert kind([(64, 48)], distortion=torch.zeros(4)) == "torch"
-    assert kind([(64, 48)], world=1) == "none"
-    cfg.speed.exchange = "torch"  # the torch exchange wherever gsplat's would render (one exchange for all)
-    assert kind([(64, 48), (64, 48)]) == "torch"
-    assert kind([(64, 48)], world=1) == "none"
+    def kind(sizes: list[tuple[int, int]], backend: str = "gsplat", world: int = 2, extra: bool = False,
+             **view: object) -> tuple[str, str | None]:  # fmt: skip
+        t = trainer(sizes, backend, world, extra, **view)
+        return Trainer._exchange_kind(t, cfg), Trainer._gsplat_cannot(t, cfg)  # type: ignore[arg-type]
+
+    assert cfg.speed.exchange == "torch"
+    assert kind([(64, 48), (64, 48)]) == ("torch", None)  # gsplat's could render, the default is torch
+    assert kind([(64, 48)], world=1)[0] == "none"
+    cfg.speed.exchange = "gsplat"
+    assert kind([(64, 48), (64, 48)]) == ("gsplat", None)
+    sizes = "2 image sizes (it projects every process's camera at one size)"
+    assert kind([(64, 48), (48, 64)]) == ("torch", sizes)
+    assert kind([(64, 48)], backend="torch") == ("torch", "the torch backend")
+    assert kind([(64, 48)], distortion=torch.zeros(4)) == ("torch", "lens distortion")
+    assert kind([(64, 48)], extra=True) == ("torch", "the method renders extra channels")
+    assert kind([(64, 48)], world=1)[0] == "none"
+    cfg.strategy.absgrad = True
+    assert kind([(64, 48)]) == ("torch", "strategy.absgrad")
 
 
 def test_checkpoint_shards_merge_and_split_back() -> None:
@@ -1068,11 +1089,12 @@ def test_gsplat_exchange_on_the_cpu_sends_gradients_and_statistics_to_their_owne
 
 @pytest.mark.gpu
 def test_two_gpus_train_with_gsplats_exchange(scene: Path, tmp_path: Path) -> None:
-    """`jsgs train --gpus 2` with the gsplat baseline: gsplat's exchange, one run folder, and the test PSNR
-    within 0.2 dB of the torch exchange's on the same two GPUs at the same 200 steps (the same views in the
-    same order, the same rasterizer, gradients that agree: the test above), both having learnt more than
-    1 dB; the SH degree rises every 50 steps, so view-dependent colours (evaluated on each Gaussian's owner
-    for every process's camera) are trained too. JSGS (the Gaussian Controller) takes the torch exchange.
+    """`jsgs train --gpus 2` with the gsplat baseline on gsplat's exchange (``speed.exchange: gsplat``), one
+    run folder, and the test PSNR within 0.2 dB of the torch exchange's (the default) on the same two GPUs
+    at the same 200 steps (the same views in the same order, the same rasterizer, gradients that agree: the
+    test above), both having learnt more than 1 dB; the SH degree rises every 50 steps, so view-dependent
+    colours (evaluated on each Gaussian's owner for every process's camera) are trained too. JSGS asking
+    for gsplat's exchange takes the torch exchange (the Gaussian Controller's extra channels).
 
     Not compared with one GPU at equal views seen: on this scene, 400 steps against 2 x 200, the batch of two
     views lands 2.0 dB lower with either exchange (gsplat's on GPUs, the torch exchange on the CPU), where
@@ -1086,10 +1108,8 @@ def test_two_gpus_train_with_gsplats_exchange(scene: Path, tmp_path: Path) -> No
         "render": {"sh_degree_interval": 50},
     }
     cfg, cfg_torch = tmp_path / "cuda.json", tmp_path / "cuda_torch.json"
-    cfg.write_text(json.dumps(settings))
-    # absgrad takes the torch exchange and changes nothing else here: it is read by DefaultStrategy's
-    # refinement, which --preset paper starts at step 500
-    cfg_torch.write_text(json.dumps({**settings, "strategy": {"absgrad": True}}))
+    cfg.write_text(json.dumps({**settings, "speed": {"exchange": "gsplat"}}))
+    cfg_torch.write_text(json.dumps(settings))  # the default exchange: torch
     two, torch_two, jsgs_two = tmp_path / "two", tmp_path / "torch", tmp_path / "jsgs"
     common = ["--preset", "paper", "--device", "cuda", "--gpus", "2"]
     steps = ["--iterations", "200", "--eval-at", "20,200"]

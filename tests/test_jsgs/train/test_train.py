@@ -955,3 +955,22 @@ def test_degenerate_cameras_give_one_line_and_no_warning(scene: Path, tmp_path: 
         f"error: {manifest}: world normalisation failed: {why[0]}; set scene.normalize_world to false to "
         "train in the manifest's own units\n"
     )
+
+
+def test_a_recorded_exchange_auto_reads_as_gsplat(tmp_path: Path) -> None:
+    """A run recorded with ``speed.exchange: auto`` (gsplat's distributed rasterisation where it renders
+    every training view, else torch) reads as ``gsplat``, which does that: its config.json loads (schema and
+    settings) and its checkpoints' settings compare equal; other values and settings are kept."""
+    from jsgs.train.config import current_values, recorded_settings
+
+    recorded = ROOT / "docs" / "results" / "scale" / "runs" / "h200" / "llff_flower" / "gsplat" / "g2"
+    doc = json.loads((recorded / "config.json").read_text())
+    assert doc["settings"]["speed"]["exchange"] == "auto"
+    cfg = load_config_file(recorded / "config.json")
+    assert cfg.speed.exchange == "gsplat" and cfg.strategy.cap_max == 1_000_000
+    assert recorded_settings(doc["settings"], "ckpt") == cfg
+    settings = to_dict(TrainConfig())
+    assert settings["speed"]["exchange"] == "torch" and current_values(settings) == settings
+    assert current_values(None) is None
+    with pytest.raises(JsgsError, match="speed.exchange must be one of"):
+        from_dict({"speed": {"exchange": "auto"}})  # a --config file of settings says what it means
