@@ -132,6 +132,13 @@ class GraphedImageTerms:
     instead of the target (the hook does where the trainer says which it is, ``StepContext.image``), the
     graph copies that in and makes the target inside: 3 bytes a pixel kept instead of 12, the same values.
 
+    Recordings of equal sizes share their buffers: the render's, the target's, the tables' and r(p)'s of
+    one recording are views of this object's buffer of that many elements and dtype (:meth:`_buffer`), so
+    the graphs of a scene whose views come in two orientations (W×H and H×W: one recording each) keep one
+    set, 19 bytes a pixel instead of 38. r(p) is written into its shared buffer inside the graph (one copy
+    of H×W values), not left in the graph's pool. Only one replay's results are valid at a time, whichever
+    graph made them (the contract above: valid until the next call).
+
     The recording's eager warm-up calls run on the device's side stream (:func:`record_graph`), and torch's
     caching allocator keeps the blocks a stream freed for that stream alone: with ``free_warmup`` (the
     hook's ``method_options.speed.cuda_graph_free_warmup``, true by default) each recording ends with
@@ -147,6 +154,9 @@ class GraphedImageTerms:
         self.settings = settings
         self._graphs: dict[tuple[Any, ...], _Recording] = {}
         self._pool: Any = None
+        # (role, elements, dtype, device) -> the flat buffer that every recording's buffer of that role and
+        # size views
+        self._memory: dict[tuple[str, int, torch.dtype, torch.device], Tensor] = {}
 
     @staticmethod
     def _check_device(x: Tensor) -> None:
@@ -182,11 +192,46 @@ class GraphedImageTerms:
         )  # fmt: skip
         return ImageTerms(weighted, values[1:], r, obs)
 
+    def _buffer(self, role: str, like: Tensor, shape: tuple[int, ...] | None = None) -> Tensor:
+        """A tensor of ``shape`` (default ``like``'s) and ``like``'s dtype and device, holding ``like``'s
+        values where it has that shape, on this object's flat buffer for ``role`` (render, target, tables,
+        r) of that many elements: made on first use, then shared by every recording that asks for the same
+        role and size (never by two buffers of one recording)."""
+        shape = tuple(like.shape) if shape is None else shape
+        numel = 1
+        for d in shape:
+            numel *= d
+        key = (role, numel, like.dtype, like.device)
+        flat = self._memory.get(key)
+        if flat is None:
+            flat = self._memory[key] = torch.empty(numel, dtype=like.dtype, device=like.device)
+        if shape != tuple(like.shape):
+            return flat.view(shape).detach()  # a tensor of its own on the shared memory, not an autograd view
+        # laid out as a clone of ``like`` would be (the chain's arithmetic, and so its rounding, follows the
+        # layout: a channels-last render stays channels-last)
+        strides = torch.empty_like(like, device="meta").stride()
+        buf = flat.as_strided(shape, strides).detach()
+        with torch.no_grad():
+            buf.copy_(like)
+        return buf
+
+    def _recorded_function(
+        self, x: Tensor, y: Tensor, tables: Tensor, sampling: str, observation: bool
+    ) -> tuple[Callable[[], Any], tuple[Tensor, Tensor, Tensor]]:
+        """What a new recording records, :func:`terms_with_gradient` on its input buffers (which hold ``x``,
+        ``y`` and ``tables`` now) with r(p) written into its shared buffer, and those input buffers."""
+        inputs = (
+            self._buffer("render", x).requires_grad_(x.requires_grad), self._buffer("target", y),
+            self._buffer("tables", tables),
+        )  # fmt: skip
+        r_into = self._buffer("r", x, (x.shape[0], *x.shape[2:]))
+        fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling,
+                     observation=observation, grad_into_x=True, r_into=r_into, **self.settings)  # fmt: skip
+        return fn, inputs
+
     def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str, observation: bool) -> _Recording:
         self._check_device(x)
-        inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
-        fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling,
-                     observation=observation, grad_into_x=True, **self.settings)  # fmt: skip
+        fn, inputs = self._recorded_function(x, y, tables, sampling, observation)
         if self._pool is None:  # one memory pool shared by all of this object's graphs
             self._pool = torch.cuda.graph_pool_handle()
         graph, outputs = record_graph(fn, x.device, warmups=2, pool=self._pool, error_mode="global")

@@ -116,6 +116,7 @@ def terms_with_gradient(
     weights: tuple[float, float, float],
     observation: bool = True,
     grad_into_x: bool = False,
+    r_into: Tensor | None = None,
     **settings: Any,
 ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
     """:func:`image_terms` and the gradient of their weighted sum, in one pass (what the graph records).
@@ -132,6 +133,8 @@ def terms_with_gradient(
         grad_into_x: write the gradient over ``x`` and return ``x`` (detached) as the gradient: a graph's
             render buffer, read by the chain before, then holds the gradient, so the graph keeps no second
             buffer of the render's size for it (the caller copies the next render in before each replay).
+        r_into: ``(1, H, W)``, where given: r(p) is written into it and it is returned as r(p) (a graph's
+            buffer shared with the graphs of other image shapes of as many pixels).
         settings: :func:`jpeg_terms`'s, with ``sampling``.
     Returns:
         values ``(4,)`` (the weighted sum, L_obs, L_low, L_mid), its gradient with respect to ``x`` (None when
@@ -148,6 +151,9 @@ def terms_with_gradient(
         with torch.no_grad():
             x.copy_(grad)
         grad = x.detach()
+    if r_into is not None:
+        r_into.copy_(r)
+        r = r_into
     values = torch.stack([total, l_obs, low, mid]).detach()
     return values, grad, r, obs if observation else None
 

@@ -72,7 +72,6 @@ from op_sources import PARTS as OP_PARTS  # noqa: E402
 from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
 from jsgs.base.io import write_json_checked  # noqa: E402
 from jsgs.method.graphed import GraphedImageTerms, _Recording  # noqa: E402
-from jsgs.method.image_terms import terms_with_gradient  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
 from jsgs.train.config import PRESETS, TrainConfig, load_config_file  # noqa: E402
 from jsgs.train.trainer import train  # noqa: E402
@@ -234,15 +233,15 @@ class GraphLayout(GraphedImageTerms):
     only: the graph's input and output buffers are kept as a recording keeps them, and each replay runs the
     recorded function (:func:`jsgs.method.image_terms.terms_with_gradient`) eagerly in
     :func:`_replay_in_pool` and copies its results into the outputs. What that function makes is what the
-    graph's private pool holds on CUDA. The values and gradients are the eager chain's
+    graph's private pool holds on CUDA; the buffers are the graph's own (:meth:`GraphedImageTerms._buffer`:
+    shared by the recordings of equal sizes, e.g. a scene's two orientations). The values and gradients are
+    the eager chain's
     (``tests/test_jsgs/method/test_graphed.py`` tests this contract)."""
 
     def _record(
         self, x: torch.Tensor, y: torch.Tensor, tables: torch.Tensor, sampling: str, observation: bool
     ) -> _Recording:
-        inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
-        fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling,
-                     observation=observation, grad_into_x=True, **self.settings)  # fmt: skip
+        fn, inputs = self._recorded_function(x, y, tables, sampling, observation)
         outputs = fn()
         return _Recording(partial(_replay_in_pool, fn, outputs), inputs, outputs)
 

@@ -70,13 +70,11 @@ def _eager_recording(
 ) -> _Recording:
     """GraphedImageTerms._record without CUDA: the same input and output buffers, and a "replay" that runs
     the function the graph would record on the input buffers and writes its results into the outputs."""
-    inputs = (x.detach().clone().requires_grad_(x.requires_grad), y.detach().clone(), tables.clone())
-    fn = partial(terms_with_gradient, weights=self.weights, sampling=sampling, observation=observation,
-                 grad_into_x=True, **self.settings)  # fmt: skip
-    outputs = fn(*inputs)
+    fn, inputs = self._recorded_function(x, y, tables, sampling, observation)
+    outputs = fn()
 
     def replay() -> None:
-        for buf, new in zip(outputs, fn(*inputs), strict=True):
+        for buf, new in zip(outputs, fn(), strict=True):
             if buf is not None:
                 buf.copy_(new)
 
@@ -200,6 +198,48 @@ def test_the_graph_makes_the_target_from_the_uint8_image(monkeypatch: pytest.Mon
     assert steps[0]["terms"] == steps[1]["terms"] and steps[0]["stats"] == steps[1]["stats"]
     for k, g in steps[0]["grads"].items():
         assert torch.equal(steps[1]["grads"][k], g), k
+
+
+def _kept_bytes(graphed: GraphedImageTerms) -> int:
+    """Bytes of every storage the object's recordings keep (inputs and outputs), each storage once."""
+    storages = {}
+    for rec in graphed._graphs.values():
+        for t in (*rec.inputs, *rec.outputs):
+            if t is not None:
+                storages[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
+    return sum(storages.values())
+
+
+def test_two_orientations_share_one_set_of_buffers(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Views of W×H and H×W (a scene shot in both orientations) get a recording each, on one set of
+    buffers: the render's (channels-last, as the trainer's render is), the uint8 image's, the tables' and
+    r(p)'s, 19 bytes a pixel in all, where a set per recording kept 38. View after view, in either order,
+    each call's values, gradient and r(p) are the eager function's bit for bit."""
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    w = (0.2, 0.02, 0.03)
+    graphed = GraphedImageTerms(weights=w, **SETTINGS)
+    h, wd = 24, 40
+    g = torch.Generator().manual_seed(11)
+    for i, (hh, ww) in enumerate([(h, wd), (wd, h), (wd, h), (h, wd), (wd, h)]):
+        render = torch.rand(1, hh, ww, 3, generator=g)  # [1, H, W, 3] as rendered, permuted as the hook does
+        image = torch.randint(0, 256, (hh, ww, 3), generator=g, dtype=torch.uint8)
+        tables = torch.randint(1, 80, (2, 8, 8), generator=g).float()
+        x = render.permute(0, 3, 1, 2).requires_grad_()
+        out = graphed(x, image, tables, "4:2:0")
+        xe = render.clone().permute(0, 3, 1, 2).requires_grad_()
+        values, grad, r, _ = terms_with_gradient(xe, image, tables, weights=w, sampling="4:2:0", **SETTINGS)
+        assert torch.equal(out.values, values[1:]) and torch.equal(out.weighted.detach(), values[0]), i
+        assert torch.equal(out.r, r), i
+        out.weighted.backward()
+        assert torch.equal(x.grad, grad), i
+    assert len(graphed._graphs) == 2
+    a, b = graphed._graphs.values()
+    assert a.inputs[0].stride() == (3 * h * wd, 1, 3 * wd, 3)  # channels-last, as the render
+    for buf_a, buf_b in zip((*a.inputs, a.outputs[2]), (*b.inputs, b.outputs[2]), strict=True):
+        assert buf_a.data_ptr() == buf_b.data_ptr()
+    pixels = h * wd
+    values_bytes = 2 * 4 * 4  # each recording's four values
+    assert _kept_bytes(graphed) == 19 * pixels + 2 * 64 * 4 + values_bytes  # was 38 a pixel, two tables
 
 
 def test_the_gradient_is_written_over_the_render_buffer(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -517,6 +557,29 @@ def test_gpu_graph_replays_equal_eager_for_every_view(mode: str) -> None:
     assert len(graphed._graphs) == 1  # one image size, one sampling: one graph
     for value, tensor in kept:
         assert tensor.tolist() == value
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_gpu_two_orientations_replay_on_shared_buffers() -> None:
+    """Real graphs for W×H and H×W views in turn, on one set of buffers: each replay's values, r(p) and
+    render gradient equal the eager function's, whichever graph ran before it."""
+    w = (0.2, 0.02, 0.03)
+    graphed = GraphedImageTerms(weights=w, **SETTINGS)
+    g = torch.Generator().manual_seed(12)
+    for hh, ww in [(40, 64), (64, 40), (64, 40), (40, 64), (64, 40)]:
+        render = torch.rand(1, hh, ww, 3, generator=g).cuda()
+        image = torch.randint(0, 256, (hh, ww, 3), generator=g, dtype=torch.uint8).cuda()
+        tables = torch.randint(1, 80, (2, 8, 8), generator=g).float().cuda()
+        x, xe = (render.clone().permute(0, 3, 1, 2).requires_grad_() for _ in range(2))
+        out = graphed(x, image, tables, "4:2:0")
+        values, grad, r, _ = terms_with_gradient(xe, image, tables, weights=w, sampling="4:2:0", **SETTINGS)
+        torch.testing.assert_close(out.values, values[1:], rtol=1e-6, atol=1e-7)
+        torch.testing.assert_close(out.r, r, rtol=1e-6, atol=1e-7)
+        out.weighted.backward()
+        torch.testing.assert_close(x.grad, grad, rtol=1e-5, atol=1e-8)
+    a, b = graphed._graphs.values()
+    assert all(s.data_ptr() == t.data_ptr() for s, t in zip(a.inputs, b.inputs, strict=True))
 
 
 def train_jsgs_variants(tmp_path: Path, variants: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
