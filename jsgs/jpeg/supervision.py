@@ -206,7 +206,13 @@ def dct_supervision(
     loss_mid = block_error.sum(dim=(1, 2)) / (n_blocks * w_sum + eps_loss)
     block_score = block_error / (w_sum[:, None, None] + eps_block)
 
-    nby, nbx = block_score.shape[1], block_score.shape[2]
-    pix = block_score.detach()[:, :, None, :, None].expand(b, nby, 8, nbx, 8).reshape(b, nby * 8, nbx * 8)
-    pixel_score = torch.nn.functional.pad(pix, (0, width - nbx * 8, 0, height - nby * 8))
+    pixel_score = pixel_score_of(block_score, height, width)
     return DctSupervision(delta, pen, w, w_mid, block_error, loss_low, loss_mid, block_score, pixel_score)
+
+
+def pixel_score_of(block_score: Tensor, height: int, width: int) -> Tensor:
+    """r(p) ``(B, H, W)``, detached, from the block scores r_b ``(B, H // 8, W // 8)``: r_b on the pixels of
+    its block, 0 on the last H mod 8 rows and W mod 8 columns (no block holds them)."""
+    b, nby, nbx = block_score.shape
+    pix = block_score.detach()[:, :, None, :, None].expand(b, nby, 8, nbx, 8).reshape(b, nby * 8, nbx * 8)
+    return torch.nn.functional.pad(pix, (0, width - nbx * 8, 0, height - nby * 8))

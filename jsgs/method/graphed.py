@@ -46,7 +46,8 @@ class ImageTerms(NamedTuple):
     - ``weighted``: 0-dim, λ_obs·L_obs + λ_low·L_low + λ_mid·L_mid, differentiable with respect to the render
       (its gradient was computed in the same replay; the backward only scales it);
     - ``values``: ``(3,)`` L_obs, L_low, L_mid (0 without DS), detached, the caller's own copy;
-    - ``r``: ``(1, H, W)`` the block-score map r(p), detached (0 without DS and GC);
+    - ``r``: ``(1, H // 8, W // 8)`` the block scores r_b, detached (0 without DS and GC); the block-score
+      map r(p) is r_b on each block's pixels (:func:`jsgs.jpeg.supervision.pixel_score_of`);
     - ``obs``: ``(1, 3, H, W)`` the observation, detached; None unless the call asks for it.
 
     ``r`` and ``obs`` live in the graph's memory: valid until the next call (the step's backward included).
@@ -132,12 +133,13 @@ class GraphedImageTerms:
     instead of the target (the hook does where the trainer says which it is, ``StepContext.image``), the
     graph copies that in and makes the target inside: 3 bytes a pixel kept instead of 12, the same values.
 
-    Recordings of equal sizes share their buffers: the render's, the target's, the tables' and r(p)'s of
+    The graph keeps r(p) as its block scores r_b (one value per 8×8 block: 1/64 of r(p)'s 4 bytes a pixel;
+    the hook makes r(p) from them where the controller reads it, the probe's map straight from them).
+    Recordings of equal sizes share their buffers: the render's, the target's, the tables' and r_b's of
     one recording are views of this object's buffer of that many elements and dtype (:meth:`_buffer`), so
     the graphs of a scene whose views come in two orientations (W×H and H×W: one recording each) keep one
-    set, 19 bytes a pixel instead of 38. r(p) is written into its shared buffer inside the graph (one copy
-    of H×W values), not left in the graph's pool. Only one replay's results are valid at a time, whichever
-    graph made them (the contract above: valid until the next call).
+    set, 15 bytes a pixel instead of 30; r_b is written into its shared buffer inside the graph. Only one
+    replay's results are valid at a time, whichever graph made them (valid until the next call).
 
     The recording's eager warm-up calls run on the device's side stream (:func:`record_graph`), and torch's
     caching allocator keeps the blocks a stream freed for that stream alone: with ``free_warmup`` (the
@@ -168,10 +170,10 @@ class GraphedImageTerms:
         more: Callable[[Tensor], tuple[Tensor, ...]] | None = None, observation: bool = False,
     ) -> ImageTerms:  # fmt: skip
         """``x``, ``y``: ``(1, 3, H, W)`` render and target; ``tables``: ``(2, 8, 8)`` luma and chroma;
-        ``more``: called with r(p) after the replay, further (tensor, gradient) pairs whose known gradients
-        ride on ``weighted``'s node (:func:`~jsgs.base.known_grad.with_known_gradient`); ``observation``:
-        also return the observation (else ``obs`` is None). ``y`` may be the ``(H, W, 3)`` uint8 training
-        image the target is made from (:func:`~jsgs.method.image_terms.terms_with_gradient`)."""
+        ``more``: called with r_b (``ImageTerms.r``) after the replay, further (tensor, gradient) pairs
+        whose known gradients ride on ``weighted``'s node (:func:`~jsgs.base.known_grad.with_known_gradient`);
+        ``observation``: also return the observation (else ``obs`` is None). ``y`` may be the ``(H, W, 3)``
+        uint8 training image the target is made from (:func:`.terms_with_gradient`)."""
         key = (tuple(x.shape), x.dtype, y.dtype, sampling, x.requires_grad, observation)
         rec = self._graphs.get(key)
         if rec is None:
@@ -224,9 +226,10 @@ class GraphedImageTerms:
             self._buffer("render", x).requires_grad_(x.requires_grad), self._buffer("target", y),
             self._buffer("tables", tables),
         )  # fmt: skip
-        r_into = self._buffer("r", x, (x.shape[0], *x.shape[2:]))
+        r_into = self._buffer("r", x, (x.shape[0], x.shape[2] // 8, x.shape[3] // 8))
         fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling,
-                     observation=observation, grad_into_x=True, r_into=r_into, **self.settings)  # fmt: skip
+                     observation=observation, grad_into_x=True, r_into=r_into, r_blocks=True,
+                     **self.settings)  # fmt: skip
         return fn, inputs
 
     def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str, observation: bool) -> _Recording:

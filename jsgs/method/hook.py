@@ -60,6 +60,7 @@ import torch
 from torch import Tensor
 
 from jsgs.base.errors import JsgsError
+from jsgs.jpeg.supervision import pixel_score_of
 from jsgs.kernels import (
     controller_matrix,
     fro_from_probe_grad,
@@ -316,11 +317,13 @@ class JsgsHook(LossHook):
             if o.ds:
                 terms["low"], terms["mid"] = low, mid
             folded, folded_loss = frozenset(terms), graphed.weighted
-            r_map = graphed.r
+            # the graph keeps r_b; r(p) is made only where the controller reads it (not where the probe's
+            # map rode on the graph's node, made from r_b)
+            if o.gc and self.gc_at(ctx.step) and not probe_pair:
+                r_map = pixel_score_of(graphed.r, x.shape[2], x.shape[3])
             if self.keep_last:
                 assert graphed.obs is not None
                 self.last["observation"] = graphed.obs.clone()
-                r_map = r_map.clone()
         else:
             obs, terms["obs"], sup = jpeg_terms(
                 x, y, tab.luma, tab.chroma, sampling=tab.sampling, phase=self.profiler.phase, first=tab.first,
@@ -358,13 +361,15 @@ class JsgsHook(LossHook):
             if folded_loss is not None:  # a value to log only: nothing to weight and add to the loss
                 folded = folded | {"fro"}
             return folded, folded_loss
-        assert r_map is not None
+        assert r_map is not None or probe_rode
         with self.profiler.phase("gc"):
             if self.opts.gc_attribution == "footprint":
+                assert r_map is not None
                 terms["fro"], gc_stats = self._gc_footprint(ctx, r_map)
                 if folded_loss is not None:  # a value to log (no gradient): nothing to add to the loss
                     folded = folded | {"fro"}
             elif self.gc_route == "now":
+                assert r_map is not None
                 fro, gc_stats = self._gc_now(ctx, r_map)
                 terms["fro"] = fro
             else:
@@ -373,6 +378,7 @@ class JsgsHook(LossHook):
                 terms["fro"], gc_stats = self._gc_deferred(ctx)
                 folded = folded | {"fro"}
                 if not probe_rode:
+                    assert r_map is not None
                     objective = self._probe()(ctx.info, r_map)
                     folded_loss = objective if folded_loss is None else folded_loss + objective
             stats.update(gc_stats)

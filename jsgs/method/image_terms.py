@@ -117,6 +117,7 @@ def terms_with_gradient(
     observation: bool = True,
     grad_into_x: bool = False,
     r_into: Tensor | None = None,
+    r_blocks: bool = False,
     **settings: Any,
 ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
     """:func:`image_terms` and the gradient of their weighted sum, in one pass (what the graph records).
@@ -133,8 +134,10 @@ def terms_with_gradient(
         grad_into_x: write the gradient over ``x`` and return ``x`` (detached) as the gradient: a graph's
             render buffer, read by the chain before, then holds the gradient, so the graph keeps no second
             buffer of the render's size for it (the caller copies the next render in before each replay).
-        r_into: ``(1, H, W)``, where given: r(p) is written into it and it is returned as r(p) (a graph's
-            buffer shared with the graphs of other image shapes of as many pixels).
+        r_into: where given, r(p) (or r_b) is written into it and it is returned (a graph's buffer, shared
+            with the graphs of other image shapes of as many pixels).
+        r_blocks: return the block scores r_b ``(1, H // 8, W // 8)`` instead of r(p) (which is r_b on each
+            block's pixels, 0 on the rest: :func:`jsgs.jpeg.supervision.pixel_score_of`), 1/64 of its size.
         settings: :func:`jpeg_terms`'s, with ``sampling``.
     Returns:
         values ``(4,)`` (the weighted sum, L_obs, L_low, L_mid), its gradient with respect to ``x`` (None when
@@ -151,6 +154,8 @@ def terms_with_gradient(
         with torch.no_grad():
             x.copy_(grad)
         grad = x.detach()
+    if r_blocks:  # each block's top-left pixel holds its r_b
+        r = r[:, : r.shape[1] // 8 * 8 : 8, : r.shape[2] // 8 * 8 : 8]
     if r_into is not None:
         r_into.copy_(r)
         r = r_into

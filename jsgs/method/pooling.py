@@ -96,14 +96,15 @@ def _sums_from_probe_grad(grad: Tensor, info: dict) -> PooledSums:
     return sums_from_probe_grad(grad if grad.dim() == 3 else grad[None], _opacities(info))
 
 
-def _checked_channels(info: dict, r: Tensor) -> Tensor:
-    """The rendered probe channels ``info["extra"]`` [C, H, W, 2], checked against ``r`` [C, H, W]."""
+def _checked_channels(info: dict, r: Tensor, blocks: bool = False) -> Tensor:
+    """The rendered probe channels ``info["extra"]`` [C, H, W, 2], checked against ``r`` [C, H, W] (or,
+    with ``blocks``, its block scores [C, H // 8, W // 8] too)."""
     ch = info.get("extra")
     probe = info.get("extra_features")
     if ch is None or probe is None or ch.shape[-1] != 2 or not probe.requires_grad:
         raise ValueError("probe pooling needs rasterize(..., extra=new_probe(...))")
     C, H, W, _ = ch.shape
-    if r.shape != (C, H, W):
+    if r.shape != (C, H, W) and not (blocks and r.shape == (C, H // 8, W // 8)):
         raise ValueError(f"r must be [C, H, W] = {(C, H, W)}, got {tuple(r.shape)}")
     return ch
 
@@ -155,13 +156,25 @@ class ProbeObjective:
         """The rendered probe channels and their known gradient ``weight·(r, 1)`` (a new buffer, written
         now): the objective's (tensor, gradient) pair, for a caller that puts it on a node of its own
         (:func:`jsgs.base.known_grad.with_known_gradient`) unscaled. The buffer is scratch for that node
-        (``scratch``: its backward writes the upstream times it over it)."""
-        ch = _checked_channels(info, r)
+        (``scratch``: its backward writes the upstream times it over it). ``r``: r(p) ``[C, H, W]``, or the
+        block scores r_b ``[C, H // 8, W // 8]`` it is made of (the same map: r_b on each 8×8 block's
+        pixels, 0 on the rest; ``weight·r_b`` written onto each block's pixels, one kernel more where H or W
+        is not a multiple of 8, which zeroes the rest first)."""
+        ch = _checked_channels(info, r, blocks=True)
         up = torch.empty(ch.shape, dtype=ch.dtype, device=ch.device)
         zero = self._zero
         if zero is None or zero.dtype != ch.dtype or zero.device != ch.device:
             self._zero = ch.new_zeros(())
-        torch.mul(r.detach().to(ch.dtype), self.weight, out=up[..., 0])
+        r0 = up[..., 0]
+        C, H, W = r0.shape
+        rd = r.detach().to(ch.dtype)
+        if rd.shape[1:] != (H, W):  # r_b: each block's pixels, a strided view of the channel
+            nby, nbx = rd.shape[1:]
+            if nby * 8 != H or nbx * 8 != W:
+                r0.zero_()
+            r0 = r0[:, : nby * 8, : nbx * 8].unflatten(2, (nbx, 8)).unflatten(1, (nby, 8))
+            rd = rd[:, :, None, :, None].expand(C, nby, 8, nbx, 8)
+        torch.mul(rd, self.weight, out=r0)
         up[..., 1].fill_(self.weight)
         return ch, up
 

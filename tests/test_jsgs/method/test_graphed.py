@@ -15,7 +15,7 @@ from test_jsgs_method import jsgs_options, make_splats, make_view, new_hook, tar
 from jsgs.base.errors import JsgsError
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
-from jsgs.jpeg.supervision import dct_supervision
+from jsgs.jpeg.supervision import dct_supervision, pixel_score_of
 from jsgs.kernels import fro_from_probe_grad, packed_fro_stats
 from jsgs.kernels._triton_jo import triton_available
 from jsgs.method import graphed as graphed_module
@@ -98,17 +98,22 @@ def test_terms_with_gradient_is_the_gradient_of_the_weighted_sum() -> None:
     assert none[1] is None and torch.equal(none[0], values)
 
 
-@pytest.mark.parametrize("ds", [True, False])
+@pytest.mark.parametrize(
+    ("ds", "gc"),
+    [(True, {}), (False, {}), (True, {"gc_attribution": "footprint"}), (True, {"lambda_fro": 0.0})],
+)
 def test_the_hooks_graphed_branch_gives_the_eager_terms_and_gradients(
-    monkeypatch: pytest.MonkeyPatch, ds: bool
+    monkeypatch: pytest.MonkeyPatch, ds: bool, gc: dict[str, Any]
 ) -> None:
     """The hook's cuda_graph branch through GraphedImageTerms with its recording replaced by an eager one on
     the CPU (buffers and all): the eager hook's terms, statistics and gradients, the image terms folded into
-    one weighted term whose gradient was computed ahead, and nothing the step keeps aliasing the buffers."""
+    one weighted term whose gradient was computed ahead, and nothing the step keeps aliasing the buffers. The
+    controller's routes that read r(p) (the footprint attribution; λ_fro 0, pooled at once) make it from the
+    graph's block scores; the deferred probe's map is made from them directly."""
     view = make_view(30, "4:2:0")
-    eager = train_step(new_hook(view, ds=ds), view)
+    eager = train_step(new_hook(view, ds=ds, **gc), view)
     monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
-    hook = new_hook(view, ds=ds)
+    hook = new_hook(view, ds=ds, **gc)
     w = hook.weights()
     hook._graphed = GraphedImageTerms(
         weights=(w["obs"], w.get("low", 0.0), w.get("mid", 0.0)), **hook._jpeg_settings
@@ -151,6 +156,7 @@ def test_the_observation_is_a_graph_output_only_when_asked_for(monkeypatch: pyte
     xe = x.clone().requires_grad_()
     eager = terms_with_gradient(xe, y, tables, weights=w, sampling="4:2:0", **SETTINGS)
     assert torch.equal(b.obs, eager[3]) and torch.equal(a.values, b.values) and torch.equal(a.r, b.r)
+    assert torch.equal(pixel_score_of(a.r, 37, 53), eager[2])
     assert torch.equal(torch.autograd.grad(a.weighted, xa)[0], torch.autograd.grad(b.weighted, xb)[0])
     view = make_view(30, "4:2:0")
     steps = {}
@@ -213,8 +219,9 @@ def _kept_bytes(graphed: GraphedImageTerms) -> int:
 def test_two_orientations_share_one_set_of_buffers(monkeypatch: pytest.MonkeyPatch) -> None:
     """Views of W×H and H×W (a scene shot in both orientations) get a recording each, on one set of
     buffers: the render's (channels-last, as the trainer's render is), the uint8 image's, the tables' and
-    r(p)'s, 19 bytes a pixel in all, where a set per recording kept 38. View after view, in either order,
-    each call's values, gradient and r(p) are the eager function's bit for bit."""
+    the block scores', 15 bytes a pixel and 4 bytes a block in all, where a set per recording with r(p)
+    kept 38 bytes a pixel. View after view, in either order, each call's values, gradient and r_b are the
+    eager function's bit for bit, and r_b makes its r(p)."""
     monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
     w = (0.2, 0.02, 0.03)
     graphed = GraphedImageTerms(weights=w, **SETTINGS)
@@ -229,7 +236,7 @@ def test_two_orientations_share_one_set_of_buffers(monkeypatch: pytest.MonkeyPat
         xe = render.clone().permute(0, 3, 1, 2).requires_grad_()
         values, grad, r, _ = terms_with_gradient(xe, image, tables, weights=w, sampling="4:2:0", **SETTINGS)
         assert torch.equal(out.values, values[1:]) and torch.equal(out.weighted.detach(), values[0]), i
-        assert torch.equal(out.r, r), i
+        assert out.r.shape == (1, hh // 8, ww // 8) and torch.equal(pixel_score_of(out.r, hh, ww), r), i
         out.weighted.backward()
         assert torch.equal(x.grad, grad), i
     assert len(graphed._graphs) == 2
@@ -237,9 +244,9 @@ def test_two_orientations_share_one_set_of_buffers(monkeypatch: pytest.MonkeyPat
     assert a.inputs[0].stride() == (3 * h * wd, 1, 3 * wd, 3)  # channels-last, as the render
     for buf_a, buf_b in zip((*a.inputs, a.outputs[2]), (*b.inputs, b.outputs[2]), strict=True):
         assert buf_a.data_ptr() == buf_b.data_ptr()
-    pixels = h * wd
+    pixels, blocks = h * wd, (h // 8) * (wd // 8)
     values_bytes = 2 * 4 * 4  # each recording's four values
-    assert _kept_bytes(graphed) == 19 * pixels + 2 * 64 * 4 + values_bytes  # was 38 a pixel, two tables
+    assert _kept_bytes(graphed) == 15 * pixels + 4 * blocks + 2 * 64 * 4 + values_bytes  # was 38 a pixel
 
 
 def test_the_gradient_is_written_over_the_render_buffer(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -548,7 +555,7 @@ def test_gpu_graph_replays_equal_eager_for_every_view(mode: str) -> None:
             total_e = w[0] * out_e[0] + w[1] * out_e[1] + w[2] * out_e[2]
             torch.testing.assert_close(out_g.values, torch.stack(out_e[:3]).detach(), rtol=1e-6, atol=1e-7)
             torch.testing.assert_close(out_g.weighted, total_e.detach(), rtol=1e-6, atol=1e-7)
-            torch.testing.assert_close(out_g.r, out_e[3], rtol=1e-6, atol=1e-7)
+            torch.testing.assert_close(pixel_score_of(out_g.r, 37, 53), out_e[3], rtol=1e-6, atol=1e-7)
             torch.testing.assert_close(out_g.obs, out_e[4], rtol=1e-6, atol=1e-7)
             (3.0 * out_g.weighted).backward()  # an upstream factor other than 1 is applied too
             (3.0 * total_e).backward()
@@ -575,7 +582,7 @@ def test_gpu_two_orientations_replay_on_shared_buffers() -> None:
         out = graphed(x, image, tables, "4:2:0")
         values, grad, r, _ = terms_with_gradient(xe, image, tables, weights=w, sampling="4:2:0", **SETTINGS)
         torch.testing.assert_close(out.values, values[1:], rtol=1e-6, atol=1e-7)
-        torch.testing.assert_close(out.r, r, rtol=1e-6, atol=1e-7)
+        torch.testing.assert_close(pixel_score_of(out.r, hh, ww), r, rtol=1e-6, atol=1e-7)
         out.weighted.backward()
         torch.testing.assert_close(x.grad, grad, rtol=1e-5, atol=1e-8)
     a, b = graphed._graphs.values()

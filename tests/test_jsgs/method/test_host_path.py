@@ -15,6 +15,7 @@ from test_jsgs_method import make_splats, make_view, new_hook, render, target_fo
 
 from jsgs.base.known_grad import with_known_gradient
 from jsgs.jpeg.losses import photometric_loss
+from jsgs.jpeg.supervision import pixel_score_of
 from jsgs.method.graphed import GraphedImageTerms
 from jsgs.method.pooling import ProbeObjective, probe_objective
 from jsgs.train.hook import StepContext
@@ -60,6 +61,24 @@ def test_the_weighted_probe_objective_is_the_weight_times_the_objective(dtype: t
     gone = weakref.ref(up)
     del up
     assert gone() is None
+
+
+@pytest.mark.parametrize("shape", [(1, 16, 24), (1, 19, 27), (1, 5, 7)])
+def test_the_probe_map_from_block_scores_is_the_map_from_r(shape: tuple[int, int, int]) -> None:
+    """The upstream map made from the block scores r_b (what the image terms' graph keeps) equals the one
+    made from r(p) bit for bit, with and without rows and columns outside the full blocks (and with no
+    block at all)."""
+    w = 0.2
+    obj = ProbeObjective(w)
+    info, g = _probe_info(torch.float32, shape, seed=3)
+    c, h, wd = shape
+    blocks = torch.rand(c, h // 8, wd // 8, generator=g)
+    r = pixel_score_of(blocks, h, wd)
+    _, from_r = obj.upstream(info, r)
+    _, from_blocks = obj.upstream(info, blocks)
+    assert torch.equal(from_blocks, from_r) and from_r.shape == (*shape, 2)
+    with pytest.raises(ValueError, match="r must be"):
+        obj.upstream(info, blocks[:, :, :-1] if wd >= 16 else torch.zeros(c, h, wd + 1))
 
 
 def _step(hook: Any, view: Any, old_form: bool) -> dict[str, Any]:
