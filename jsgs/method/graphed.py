@@ -38,6 +38,7 @@ from torch import Tensor
 from jsgs.base.errors import one_line
 from jsgs.base.known_grad import with_known_gradient
 from jsgs.method.image_terms import terms_with_gradient
+from jsgs.train.data import stacked_image
 
 
 class ImageTerms(NamedTuple):
@@ -173,14 +174,23 @@ class GraphedImageTerms:
         ``more``: called with r_b (``ImageTerms.r``) after the replay, further (tensor, gradient) pairs
         whose known gradients ride on ``weighted``'s node (:func:`~jsgs.base.known_grad.with_known_gradient`);
         ``observation``: also return the observation (else ``obs`` is None). ``y`` may be the ``(H, W, 3)``
-        uint8 training image the target is made from (:func:`.terms_with_gradient`)."""
-        key = (tuple(x.shape), x.dtype, y.dtype, sampling, x.requires_grad, observation)
+        uint8 training image the target is made from (:func:`.terms_with_gradient`); where it is one image
+        of a stack of them (:func:`jsgs.train.data.stacked_image`, as the trainer loads them), the graph
+        reads it from the stack by index: no buffer of the image's size and no copy."""
+        stacked = stacked_image(y) if y.dtype == torch.uint8 and y.dim() == 3 else None
+        stack = None if stacked is None else (stacked[0].data_ptr(), tuple(stacked[0].shape))
+        key = (tuple(x.shape), x.dtype, y.dtype, sampling, x.requires_grad, stack, observation)
         rec = self._graphs.get(key)
         if rec is None:
             rec = self._graphs[key] = self._record(x, y, tables, sampling, observation)
         with torch.no_grad():  # the render's buffer is a leaf that needs grad (the recorded gradient's input)
-            for buf, src in zip(rec.inputs, (x, y, tables), strict=True):
-                buf.copy_(src)
+            x_buf, y_buf, tables_buf = rec.inputs
+            x_buf.copy_(x)
+            if stacked is None:
+                y_buf.copy_(y)
+            else:  # the image's index in the stack: a fill, no host-to-device copy
+                y_buf.fill_(stacked[1])
+            tables_buf.copy_(tables)
         rec.replay()
         values, grad, r, obs = rec.outputs
         values = values.clone()  # the caller's: logged after the step, when the next replay may have run
@@ -221,16 +231,23 @@ class GraphedImageTerms:
         self, x: Tensor, y: Tensor, tables: Tensor, sampling: str, observation: bool
     ) -> tuple[Callable[[], Any], tuple[Tensor, Tensor, Tensor]]:
         """What a new recording records, :func:`terms_with_gradient` on its input buffers (which hold ``x``,
-        ``y`` and ``tables`` now) with r(p) written into its shared buffer, and those input buffers."""
-        inputs = (
-            self._buffer("render", x).requires_grad_(x.requires_grad), self._buffer("target", y),
-            self._buffer("tables", tables),
-        )  # fmt: skip
+        ``y`` and ``tables`` now; for an image of a stack, its index in the stack instead of ``y``) with r_b
+        written into its shared buffer, and those input buffers."""
+        stacked = stacked_image(y) if y.dtype == torch.uint8 and y.dim() == 3 else None
+        if stacked is None:
+            y_buf = y_in = self._buffer("target", y)
+            y_index = None
+        else:
+            index = torch.full((1,), stacked[1], dtype=torch.int64, device=y.device)
+            y_in, y_buf = stacked[0], self._buffer("index", index)
+            y_index = y_buf
+        x_buf = self._buffer("render", x).requires_grad_(x.requires_grad)
+        tables_buf = self._buffer("tables", tables)
         r_into = self._buffer("r", x, (x.shape[0], x.shape[2] // 8, x.shape[3] // 8))
-        fn = partial(terms_with_gradient, *inputs, weights=self.weights, sampling=sampling,
-                     observation=observation, grad_into_x=True, r_into=r_into, r_blocks=True,
+        fn = partial(terms_with_gradient, x_buf, y_in, tables_buf, weights=self.weights, sampling=sampling,
+                     observation=observation, grad_into_x=True, r_into=r_into, r_blocks=True, y_index=y_index,
                      **self.settings)  # fmt: skip
-        return fn, inputs
+        return fn, (x_buf, y_buf, tables_buf)
 
     def _record(self, x: Tensor, y: Tensor, tables: Tensor, sampling: str, observation: bool) -> _Recording:
         self._check_device(x)

@@ -118,6 +118,7 @@ def terms_with_gradient(
     grad_into_x: bool = False,
     r_into: Tensor | None = None,
     r_blocks: bool = False,
+    y_index: Tensor | None = None,
     **settings: Any,
 ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
     """:func:`image_terms` and the gradient of their weighted sum, in one pass (what the graph records).
@@ -136,6 +137,8 @@ def terms_with_gradient(
             buffer of the render's size for it (the caller copies the next render in before each replay).
         r_into: where given, r(p) (or r_b) is written into it and it is returned (a graph's buffer, shared
             with the graphs of other image shapes of as many pixels).
+        y_index: ``(1,)`` int64 on ``y``'s device, where given: ``y`` is a ``(V, H, W, 3)`` uint8 stack of
+            training images and the image is ``y[y_index]`` (a graph reads it from the trainer's stack).
         r_blocks: return the block scores r_b ``(1, H // 8, W // 8)`` instead of r(p) (which is r_b on each
             block's pixels, 0 on the rest: :func:`jsgs.jpeg.supervision.pixel_score_of`), 1/64 of its size.
         settings: :func:`jpeg_terms`'s, with ``sampling``.
@@ -144,6 +147,8 @@ def terms_with_gradient(
         ``x`` needs none), r(p) ``(1, H, W)`` and the observation ``(1, 3, H, W)`` (None without
         ``observation``), all detached. The values do not depend on ``observation``.
     """
+    if y_index is not None:
+        y = y.index_select(0, y_index)[0]
     if y.dtype == torch.uint8:
         y = image_target(y).permute(0, 3, 1, 2)
     l_obs, low, mid, r, obs = image_terms(x, y, tables[0], tables[1], **settings)

@@ -350,11 +350,33 @@ def load_image(path: Path, width: int, height: int, what: str) -> Tensor:
 
 
 def load_train_images(scene: TrainingScene, device: torch.device) -> dict[int, Tensor]:
-    """view index -> [H, W, 3] uint8 on ``device`` for every training view (observed images)."""
-    return {
-        v.index: load_image(v.image, v.width, v.height, f"training image of view {v.name!r}").to(device)
-        for v in scene.train_views
-    }
+    """view index -> [H, W, 3] uint8 on ``device`` for every training view (observed images). The images of
+    one size are one ``[V, H, W, 3]`` tensor on the device, each view's image a view of it
+    (:func:`stacked_image`): the same memory, and a consumer that needs its input at a fixed address (JSGS's
+    CUDA graph of the image terms) reads any view's image from it by index, with no buffer and copy of its
+    own. Each image is decoded and copied into its place in turn (no second copy of them all on the host)."""
+    sizes: dict[tuple[int, int], list[TrainingView]] = {}
+    for v in scene.train_views:
+        sizes.setdefault((v.height, v.width), []).append(v)
+    out: dict[int, Tensor] = {}
+    for (h, w), views in sizes.items():
+        stack = torch.empty((len(views), h, w, 3), dtype=torch.uint8, device=device)
+        for i, v in enumerate(views):
+            stack[i].copy_(load_image(v.image, v.width, v.height, f"training image of view {v.name!r}"))
+            out[v.index] = stack[i]
+    return {v.index: out[v.index] for v in scene.train_views}
+
+
+def stacked_image(image: Tensor) -> tuple[Tensor, int] | None:
+    """``(stack, i)`` where ``image`` [H, W, 3] is exactly ``stack[i]`` of a ``[V, H, W, 3]`` tensor (as
+    :func:`load_train_images` makes them), else None."""
+    base = image._base
+    if base is None or base.dim() != 4 or base.shape[1:] != image.shape or not base.is_contiguous():
+        return None
+    offset = image.storage_offset() - base.storage_offset()
+    if not image.is_contiguous() or offset % image.numel():
+        return None
+    return base, offset // image.numel()
 
 
 def image_target(image: Tensor) -> Tensor:

@@ -71,11 +71,13 @@ def test_tiny_scene_three_layouts(tmp_path: Path, capsys: Any) -> None:
     g, j, gl = res["gsplat"], res["jsgs"], res["jsgs-graph-layout"]
     h, w = 48, 64
 
-    # the graph layout keeps its input buffers (render, which then holds its gradient: 3 HW floats; the uint8
-    # training image the target is made from: 3 HW bytes; the two 8x8 tables) and outputs (the four values,
-    # r_b: one float a block; no observation without keep_last): 15 bytes a pixel (19 with r(p))
+    # the graph layout keeps its input buffers (render, which then holds its gradient: 3 HW floats; the index
+    # of the step's image in the trainer's stack of them, which it reads in place; the two 8x8 tables) and
+    # outputs (the four values, r_b: one float a block; no observation without keep_last): 12 bytes a pixel
+    # (15 with a copy of the image, 19 with r(p) too)
     extra = gl["resident_bytes"]["method hook"] - j["resident_bytes"]["method hook"]
-    assert extra == 3 * h * w * 4 + 3 * h * w + (h // 8) * (w // 8) * 4 + 2 * 64 * 4 + 4 * 4
+    assert extra == 3 * h * w * 4 + 8 + (h // 8) * (w // 8) * 4 + 2 * 64 * 4 + 4 * 4
+    assert gl["resident_bytes"]["training images"] == j["resident_bytes"]["training images"] == 3 * h * w * 3
     assert g["resident_bytes"]["method hook"] == 0
     assert gl["pool_peak_bytes"] > 0 and j["pool_peak_bytes"] == g["pool_peak_bytes"] == 0
     assert j["step_peak_bytes"] > g["step_peak_bytes"]

@@ -23,7 +23,7 @@ from jsgs.method.graphed import GraphedController, GraphedImageTerms, _Recording
 from jsgs.method.hook import JsgsHook
 from jsgs.method.image_terms import image_terms, terms_with_gradient
 from jsgs.method.options import parse_options, use_cuda_graph
-from jsgs.train.data import image_target
+from jsgs.train.data import image_target, stacked_image
 
 SETTINGS = dict(
     mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
@@ -247,6 +247,32 @@ def test_two_orientations_share_one_set_of_buffers(monkeypatch: pytest.MonkeyPat
     pixels, blocks = h * wd, (h // 8) * (wd // 8)
     values_bytes = 2 * 4 * 4  # each recording's four values
     assert _kept_bytes(graphed) == 15 * pixels + 4 * blocks + 2 * 64 * 4 + values_bytes  # was 38 a pixel
+
+
+def test_an_image_of_the_trainers_stack_is_read_in_place(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Training images loaded as the trainer loads them (one [V, H, W, 3] tensor per image size, each view's
+    image a view of it): the graph reads the step's image from that tensor by index (a one-element index
+    buffer, no image buffer and no copy), view after view with the values, gradient and r_b of the copied
+    image bit for bit; a standalone image is still copied in."""
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    w = (0.2, 0.02, 0.03)
+    g = torch.Generator().manual_seed(13)
+    stack = torch.randint(0, 256, (3, 24, 40, 3), generator=g, dtype=torch.uint8)
+    assert stacked_image(stack[2]) is not None and stacked_image(stack[2])[1] == 2
+    assert stacked_image(stack[1].clone()) is None and stacked_image(stack[1][:, :20]) is None
+    in_place, copied = (GraphedImageTerms(weights=w, **SETTINGS) for _ in range(2))
+    tables = torch.randint(1, 80, (2, 8, 8), generator=g).float()
+    for i in (1, 0, 2, 1):
+        render = torch.rand(1, 24, 40, 3, generator=g)
+        xa, xb = (render.clone().permute(0, 3, 1, 2).requires_grad_() for _ in range(2))
+        a, b = in_place(xa, stack[i], tables, "4:2:0"), copied(xb, stack[i].clone(), tables, "4:2:0")
+        assert torch.equal(a.values, b.values) and torch.equal(a.r, b.r), i
+        a.weighted.backward()
+        b.weighted.backward()
+        assert torch.equal(xa.grad, xb.grad), i
+    (rec,) = in_place._graphs.values()
+    assert rec.inputs[1].dtype == torch.int64 and rec.inputs[1].numel() == 1
+    assert _kept_bytes(copied) - _kept_bytes(in_place) == 3 * 24 * 40 - 8
 
 
 def test_the_gradient_is_written_over_the_render_buffer(monkeypatch: pytest.MonkeyPatch) -> None:
