@@ -34,9 +34,10 @@ How a step is shared (gsplat's simple_trainer with ``world_size``):
   MCMCStrategy's global budget ``cap_max`` is split into shares (:func:`shard_cap`), each shard relocating
   and growing within its own, so the run's count never exceeds the budget;
 - the logged values, the finiteness of every process's terms, gradients and parameters and the stop signals
-  (Ctrl-C, SIGTERM) are gathered to every process once per step, after the optimizer's step is queued, in
-  one all-gather of a tensor (:class:`StepGather`; a NaN or a signal anywhere stops all of them alike, after
-  the same step);
+  (Ctrl-C, SIGTERM) reach every process once per step and are read on the host once, after the optimizer's
+  step is queued (:class:`StepGather`; a NaN or a signal anywhere stops all of them alike, after the same
+  step): with the torch exchange in the gradients' reduce-scatter, which sums every process's row into
+  every process's block (:meth:`StepGather.rider`), else in one all-gather of a tensor;
 - rank 0 alone evaluates, writes the run folder (config.json, metrics.json, checkpoints, renders, PLY) and
   holds its lock: at each checkpoint point the shards (Gaussians, Adam moments, strategy sums, every
   process's generators) are gathered to it (:func:`merge_shards`) and written as one checkpoint in one
@@ -53,6 +54,7 @@ from __future__ import annotations
 import datetime
 import math
 import os
+import struct
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -376,6 +378,9 @@ class Exchange:
     names: list[str]  # the order of reduce_gradients' shard (a ParameterDict sorts its keys)
     sizes: list[int]
     rank: int
+    #: every process's :meth:`StepGather.rider` row, [world_size, length], as the gradients' reduce-scatter
+    #: delivered them (on the device, unread), where the step sent them with its gradients
+    riders: Tensor | None = None
 
     @property
     def rows(self) -> tuple[int, int]:
@@ -417,6 +422,7 @@ def reduce_gradients(
     rendered: bool,
     exchange: Exchange | None = None,
     also: Tensor | None = None,
+    rider: Tensor | None = None,
 ) -> bool:
     """Each shard's gradient (``shard``: in the order of ``exchange.names``), the mean over the step's
     ``world_size`` views; returns whether some process's view reached a Gaussian (``rendered``: this
@@ -431,9 +437,14 @@ def reduce_gradients(
     process are overwritten with their sums (its other rows keep this process's own values). When no
     process rendered anything the gradients stay None, as on one process. The count is read on the host (a
     wait for the collective) only by a process whose own view rendered nothing: one whose view did knows
-    the count is not 0. Without it (gsplat's ``distributed=True`` rasterisation, where every process runs
-    the backward: its all-to-all is a collective) the shards' gradients already hold every view's
-    contribution, summed by gsplat's all-to-all backward: they are divided, and nothing travels."""
+    the count is not 0. ``rider`` (this process's :meth:`StepGather.rider` row, float32, the same length on
+    every process) travels in the flag column, which holds the count in each block's first row only: each
+    block's entries after it hold every process's rider at its rank's place (zeros at the others'), so the
+    sums each process receives are every process's riders, exactly (a value plus zeros), in
+    ``exchange.riders``; blocks are padded to hold them. Without ``exchange`` (gsplat's ``distributed=True``
+    rasterisation, where every process runs the backward: its all-to-all is a collective) the shards'
+    gradients already hold every view's contribution, summed by gsplat's all-to-all backward: they are
+    divided, and nothing travels."""
     if not world.enabled:
         return rendered
     if exchange is None:
@@ -453,18 +464,31 @@ def reduce_gradients(
     # one row per Gaussian: its gradients, its statistics and whether this process's view rendered (summed:
     # the count of the views that rendered); the processes' rows padded to the largest shard, so that each
     # process's block is ``rows`` rows
-    flag = torch.full((total, 1), float(rendered), device=device)
+    if rider is None:  # the flag in every row, zeros in the padding
+        flag = torch.full((total, 1), float(rendered), device=device)
+    else:  # each block's flag column: the count's entry, then every process's rider at its rank's place
+        length = rider.numel()
+        rows = max(rows, 1 + world.size * length)
+        column = rider.new_zeros(rows)
+        column[0] = float(rendered)
+        column[1 + world.rank * length : 1 + (world.rank + 1) * length] = rider
+        flag = torch.cat([column[:n] for n in sizes])[:, None]
     table = torch.cat([*(c.reshape(total, w) for c, w in zip(columns, widths, strict=True)), flag], dim=1)
-    if rows * world.size != total:
-        pad = table.new_zeros(rows, width + 1)
+    if rows * world.size != total:  # each block's rows after its shard's: zeros, and the flag column's rest
+        least = min(sizes)
+        pad = table.new_zeros(rows - least, width + 1)
+        if rider is not None:
+            pad[:, -1] = column[least:]
         pieces, start = [], 0
         for n in sizes:
-            pieces += [table[start : start + n], pad[: rows - n]]
+            pieces += [table[start : start + n], pad[n - least :]]
             start += n
         table = torch.cat(pieces)
     out = table.new_empty(rows, width + 1)
     with collective("the gradient reduce-scatter"):
         _reduce_scatter_tensor(out.view(-1), table.view(-1))
+    if rider is not None:
+        exchange.riders = out[1 : 1 + world.size * rider.numel(), -1].reshape(world.size, -1)
     if not rendered and int(round(out[0, -1].item())) == 0:
         for p in shard:
             p.grad = None
@@ -501,13 +525,58 @@ class StepGather:
     holds alike; a layout not in it yet (the first step, a process whose view logs another statistic) is
     sent once, by an object gather that every process makes in the same step, seeing the same rows. The
     row's length grows (for every process alike, with a second all-gather in that step) when a process's
-    values outgrow it. float64 holds float32 values and integers below 2**53 exactly."""
+    values outgrow it. float64 holds float32 values and integers below 2**53 exactly.
+
+    The torch exchange sends the same values without this all-gather: :meth:`rider` makes the row another
+    collective carries (the gradients' reduce-scatter, :func:`reduce_gradients`) and :meth:`unpack` reads
+    every process's back; a row that cannot ride (a new layout, too long) makes every process call this
+    one in that step."""
 
     def __init__(self, world: World, capacity: int = 64) -> None:
         self.world = world
         self.capacity = capacity
         self.layouts: dict[Any, int] = {}  # the same on every process: extended only after a collective
         self.table: list[Any] = []
+        #: the float32 values a :meth:`rider` row holds after its head (the same on every process)
+        self.rider_capacity = capacity
+
+    def rider(self, layout: Any, host: Sequence[float], values: Tensor) -> Tensor:
+        """This process's row of the step for another collective to carry (:func:`reduce_gradients`'
+        ``rider``), on ``values``' device, float32, ``3 + rider_capacity`` long: ``[layout, number of host
+        values, number of values, *host values, *values]``, each host value as three float32 that sum to
+        it exactly, ``values`` as float32 (their own type: the trainer's are float32). A layout not in the
+        table yet, a row longer than the capacity or a host value three float32 do not hold gives
+        ``[-1, needed length]``: every process then makes :meth:`__call__` (:meth:`unpack`)."""
+        index = self.layouts.get(layout, -1)
+        pieces = [piece for x in host for piece in _three_float32(x)]
+        values = values.detach().reshape(-1).to(torch.float32)
+        needed = len(pieces) + values.numel()
+        exact = all(sum(pieces[i : i + 3]) == x for i, x in zip(range(0, len(pieces), 3), host, strict=True))
+        if index < 0 or needed > self.rider_capacity or not exact:
+            head = [-1.0, float(needed), 0.0]
+            values = values[:0]
+        else:
+            head = [float(index), float(len(host)), float(values.numel()), *pieces]
+        device = values.device
+        row = torch.tensor(head, dtype=torch.float32, pin_memory=device.type == "cuda")
+        row = torch.cat([row.to(device, non_blocking=True), values])
+        return torch.cat([row, row.new_zeros(3 + self.rider_capacity - row.numel())])
+
+    def unpack(self, riders: Sequence[Sequence[float]]) -> list[tuple[Any, list[float]]] | None:
+        """Every process's (layout, host values followed by values) from every process's :meth:`rider` row,
+        by rank (read on the host), as :meth:`__call__` returns them; None where some process's row asks
+        for the full gather (its capacity then grows, for every process alike, to the longest asked)."""
+        if any(r[0] < 0 for r in riders):
+            longest = max(int(r[1]) for r in riders if r[0] < 0)
+            self.rider_capacity = max(self.rider_capacity, longest)
+            return None
+        out = []
+        for r in riders:
+            n_host, n_values = int(r[1]), int(r[2])
+            host = [r[3 + 3 * i] + r[4 + 3 * i] + r[5 + 3 * i] for i in range(n_host)]
+            start = 3 + 3 * n_host
+            out.append((self.table[int(r[0])], [*host, *r[start : start + n_values]]))
+        return out
 
     def __call__(self, layout: Any, host: Sequence[float], values: Tensor) -> list[tuple[Any, list[float]]]:
         """Every process's (layout, host values followed by ``values``), by rank."""
@@ -543,6 +612,21 @@ class StepGather:
         with collective("a training step"):
             _all_gather_tensor(out, row)
         return out.view(self.world.size, width).tolist()
+
+
+def _three_float32(x: float) -> list[float]:
+    """Three float32 values whose sum (left to right, in float64) is ``x`` where float32's range allows
+    (53 bits of mantissa in 3 x 24)."""
+    pieces = []
+    rest = x
+    for _ in range(3):
+        try:
+            piece = struct.unpack("f", struct.pack("f", rest))[0]
+        except OverflowError:
+            piece = math.nan
+        pieces.append(piece)
+        rest = rest - piece
+    return pieces
 
 
 def share_strategy_statistics(

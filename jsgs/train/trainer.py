@@ -513,6 +513,9 @@ class Trainer:
         self._signal: str | None = None
         self._stop_everywhere: str | None = None
         self._step_gather: dd.StepGather | None = None  # several processes: the step's values, shared
+        #: the torch exchange sends the step's values in the gradients' reduce-scatter (False: in an
+        #: all-gather of their own after the optimizer's step; the same values either way)
+        self.fold_step_values = True
         self._view_names: dict[int, str] = {}
 
     # -- events ---------------------------------------------------------------------------------------
@@ -1008,9 +1011,16 @@ class Trainer:
                 )
                 stats, folded, folded_loss, skipped = self._hook_terms(ctx, cfg, terms, weights)
         loss = weighted_loss(terms, weights, folded, folded_loss)
-        empty = self._backward(step, view, loss, stats, r.info)
         names = list(terms)
-        grad_names, packed = self._pack_step_values(loss, terms, names, stats)
+
+        def pack(grads: torch.nn.ParameterDict | None) -> tuple[list[str], Tensor, Tensor | None]:
+            grad_names, packed = self._pack_step_values(loss, terms, names, stats, grads)
+            if grads is None:
+                return grad_names, packed, None
+            row = self._step_row(view, names, weights, stats, grad_names)
+            return grad_names, packed, self._values_gather().rider(*row, packed)
+
+        empty, grad_names, packed = self._backward(step, view, loss, stats, r.info, pack)
         with profiler.phase("optimizer"):
             for o in self.optimizers.values():
                 o.step()
@@ -1113,12 +1123,17 @@ class Trainer:
         return dict(hout.stats), hout.folded, hout.folded_loss, hout.skipped
 
     def _backward(
-        self, step: int, view: TrainingView, loss: Tensor, stats: dict[str, Any], info: dict[str, Any]
-    ) -> bool:
+        self, step: int, view: TrainingView, loss: Tensor, stats: dict[str, Any], info: dict[str, Any],
+        pack: Callable[[torch.nn.ParameterDict | None], tuple[list[str], Tensor, Tensor | None]],
+    ) -> tuple[bool, list[str], Tensor]:  # fmt: skip
         """The backward of ``loss`` (on several processes, each Gaussian's gradient then averaged over the
         step's views on its owner, with the strategy's statistics of ``info`` in the same reduce-scatter);
         whether no gradient reached any Gaussian (an empty view: counted in ``stats``, noted once per
-        view)."""
+        view), and the step's values (``pack``: :meth:`_pack_step_values` over the gradients of the
+        Gaussians given, None for this process's shard after the reduction, and the step's
+        :meth:`jsgs.train.distributed.StepGather.rider` row for those given). The torch exchange packs them
+        before the reduce-scatter, over the gradients of this process's view (every Gaussian's), and sends
+        the row in its flag column (:attr:`fold_step_values`); otherwise they are packed after it."""
         # a view that sees no Gaussian (a camera looking away, everything culled) renders a constant: no
         # gradient reaches any parameter, so the step only logs itself
         empty = not loss.requires_grad
@@ -1143,15 +1158,23 @@ class Trainer:
             params = [self.splats[n] for n in PARAM_NAMES]
             fold = self._fold_statistics
             also = fold(info, step) if fold is not None else None
+            if self._exchange is not None and self.fold_step_values:
+                grad_names, packed, rider = pack(self._exchange.params)
+                empty = not dd.reduce_gradients(self.world, params, not empty, self._exchange, also, rider)
+                return empty, grad_names, packed
             empty = not dd.reduce_gradients(self.world, params, not empty, self._exchange, also)
-        return empty
+        grad_names, packed, _ = pack(None)
+        return empty, grad_names, packed
 
     def _pack_step_values(
-        self, loss: Tensor, terms: dict[str, Tensor], names: list[str], stats: dict[str, Any]
-    ) -> tuple[list[str], Tensor]:
+        self, loss: Tensor, terms: dict[str, Tensor], names: list[str], stats: dict[str, Any],
+        grads: torch.nn.ParameterDict | None = None,
+    ) -> tuple[list[str], Tensor]:  # fmt: skip
         """The names of the parameters with a gradient, and every logged value, each gradient's L1 norm and
         each parameter's L1 norm in one tensor on the device (read in one host sync after the optimizer's
-        kernels are queued)."""
+        kernels are queued). The gradients are ``grads``' (the torch exchange's gathered Gaussians, before
+        the reduction: this process's view's, whose sums over the processes are the shards' gradients, so
+        that a non-finite one is non-finite in some process's view) or the shard's."""
         # every logged value, each gradient's L1 norm and each parameter's L1 norm (NaN/Inf wherever a value
         # is), packed on the device and read in one host sync per step, *after* the optimizer's kernels are
         # queued: the host issues the update while the device finishes the backward. A non-finite step has
@@ -1163,10 +1186,11 @@ class Trainer:
         # once, as the optimizer's own step does) and the same stack and host read as before: no extra sync,
         # no extra launch per parameter.
         splats = self.splats
-        grad_names = [n for n in PARAM_NAMES if splats[n].grad is not None]
+        grads = splats if grads is None else grads
+        grad_names = [n for n in PARAM_NAMES if grads[n].grad is not None]
         with torch.no_grad():
             norms = torch._foreach_norm(
-                [*(splats[n].grad for n in grad_names), *(splats[n] for n in PARAM_NAMES)], 1
+                [*(grads[n].grad for n in grad_names), *(splats[n] for n in PARAM_NAMES)], 1
             )
         packed = torch.stack(
             [loss.detach().float()]
@@ -1194,21 +1218,20 @@ class Trainer:
         stats: dict[str, Any], grad_names: list[str], packed: Tensor,
     ) -> list[tuple[str, float, list[float], dict[str, float]]]:  # fmt: skip
         """Several processes: every process's logged values on every process (``packed``, each process's
-        :meth:`_pack_step_values`, with its view, loss weights, stop signal and Gaussian count: one
-        all-gather of a tensor, :class:`jsgs.train.distributed.StepGather`), each checked for NaN/Inf (all
+        :meth:`_pack_step_values`, with its view, loss weights, stop signal and Gaussian count: the rows the
+        gradients' reduce-scatter brought, else one all-gather of a tensor,
+        :class:`jsgs.train.distributed.StepGather`; read on the host once), each checked for NaN/Inf (all
         of them stop alike), a stop signal that reached any of them shared, every process's Gaussian count
         noted; each process's (view name, loss, terms, stats)."""
         import signal
 
-        if self._step_gather is None:
-            self._step_gather = dd.StepGather(self.world)
-            self._view_names = {v.index: v.name for v in self.train_views}
-        layout = (tuple(names), tuple(stats), tuple(grad_names))
-        code = signal.Signals[self._signal].value if self._signal is not None else 0
-        host = [float(view.index), float(code), float(self.splats["means"].shape[0])]
-        host += [float(weights.get(n, 0.0)) for n in names]
+        gather = self._values_gather()
+        riders = self._exchange.riders if self._exchange is not None else None
+        rows = gather.unpack(riders.tolist()) if riders is not None else None
+        if rows is None:
+            rows = gather(*self._step_row(view, names, weights, stats, grad_names), packed)
         everyone = []
-        for (v_names, v_stats, v_grads), row in self._step_gather(layout, host, packed):
+        for (v_names, v_stats, v_grads), row in rows:
             v_names = list(v_names)
             n_host = 3 + len(v_names)
             v_weights = dict(zip(v_names, row[3:n_host], strict=True))
@@ -1218,6 +1241,10 @@ class Trainer:
         self._stop_everywhere = dd.stop_request(
             [signal.Signals(int(h[1])).name if h[1] else None for h, *_ in everyone]
         )
+        # every process's parameters first (a non-finite one is the cause: its rows' gradients in every
+        # process's view are not finite either), then each process's terms and gradients
+        for *_, (_, _, _, _, p_v) in everyone:
+            _finite_check(step, [], [], [], [], p_v, self.last_checkpoint)
         for _, v_names, _, v_grads, (v_loss, v_terms, _, g_v, p_v) in everyone:
             v_values = [*v_terms, v_loss]
             _finite_check(step, [*v_names, "loss"], v_values, list(v_grads), g_v, p_v, self.last_checkpoint)
@@ -1226,6 +1253,25 @@ class Trainer:
             (self._view_names[int(h[0])], v_loss, v_terms, dict(zip(v_stats, v_stat, strict=True)))
             for h, _, v_stats, _, (v_loss, v_terms, v_stat, _, _) in everyone
         ]
+
+    def _values_gather(self) -> dd.StepGather:
+        if self._step_gather is None:
+            self._step_gather = dd.StepGather(self.world)
+            self._view_names = {v.index: v.name for v in self.train_views}
+        return self._step_gather
+
+    def _step_row(
+        self, view: TrainingView, names: list[str], weights: dict[str, float], stats: dict[str, Any],
+        grad_names: list[str],
+    ) -> tuple[Any, list[float]]:  # fmt: skip
+        """This process's layout of the step's values and its host values for :class:`dd.StepGather`: its
+        view, stop signal, Gaussian count and loss weights."""
+        import signal
+
+        code = signal.Signals[self._signal].value if self._signal is not None else 0
+        host = [float(view.index), float(code), float(self.splats["means"].shape[0])]
+        host += [float(weights.get(n, 0.0)) for n in names]
+        return (tuple(names), tuple(stats), tuple(grad_names)), host
 
     def training_seconds(self) -> float:
         """Seconds spent training so far, the step in progress included (evaluations and checkpoints do not

@@ -15,6 +15,8 @@ from typing import Any
 
 import pytest
 from _train_scene import make_scene
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -453,6 +455,31 @@ def _reductions_worker(rank: int, store: str) -> None:
     assert sent == [lay] and values.capacity == 8 and values.table == [("a",), ("b", "c")]
     assert got[0][1] == [0.0, 0.0] and got[1][1] == [1.0, *range(10, 17)]
     dd.gather = object_gather  # type: ignore[assignment]
+    # the step's values in the gradients' reduce-scatter instead (its flag column; the shards of 16 and 15
+    # rows padded to hold both rows): the same gradients bit for bit, each process's row delivered to both,
+    # exactly, whether or not the views rendered
+    host = [0.1 * (rank + 1), 1.0 / 3.0, float(2**40 + rank)]
+    sent_values = torch.tensor([float(rank), -2.5, float("nan")])
+    # (a row longer than the capacity asks for the all-gather, and the capacity grows on both processes)
+    ex = dd.gather_gaussians(world, shard, PARAM_NAMES)
+    assert not dd.reduce_gradients(world, params, False, ex, rider=values.rider(lay, host, sent_values))
+    assert values.unpack(ex.riders.tolist()) is None and values.rider_capacity == 3 * 3 + 3
+    for rendered, anywhere in ((True, True), (False, False)):
+        ex = dd.gather_gaussians(world, shard, PARAM_NAMES)
+        for p in params:
+            p.grad = None
+        if rendered:
+            one_view(ex.params, Densifier(cfg.strategy), shared.initialize_state(scene_scale=1.0), rank)
+        rider = values.rider(lay, host, sent_values)
+        assert rider.dtype == torch.float32 and rider.numel() == 3 + values.rider_capacity
+        assert dd.reduce_gradients(world, params, rendered, ex, rider=rider) is anywhere
+        if rendered:
+            assert all(torch.equal(p.grad, g) for p, g in zip(params, mine["grads"], strict=True))
+        rows = values.unpack(ex.riders.tolist())
+        assert rows is not None and [r[0] for r in rows] == [("a",), ("b", "c")]
+        for r, (_, row) in enumerate(rows):
+            assert row[:3] == [0.1 * (r + 1), 1.0 / 3.0, float(2**40 + r)], row
+            assert row[3:5] == [float(r), -2.5] and row[5] != row[5] and len(row) == 6, row
     # both processes leave together, then skip the interpreter's teardown: with gloo's threads alive a
     # process aborts there now and then ("terminate called without an active exception": 3 in 45 runs on 2
     # cores, with or without destroy_process_group; none in 25 runs that leave this way)
@@ -470,76 +497,134 @@ def test_sharded_gradients_and_statistics_reduce_to_their_owners(tmp_path: Path)
     mp.spawn(_reductions_worker, args=(str(tmp_path / "store"),), nprocs=2, join=True)
 
 
-#: the all-gathers the torch exchange can make, by torch.distributed's names
-_GATHERS = ("all_gather", "all_gather_into_tensor", "all_gather_single", "all_gather_object")
+#: every collective of torch.distributed a step could make, by name
+_COLLECTIVES = (
+    "all_gather", "all_gather_into_tensor", "all_gather_single", "all_gather_object", "all_reduce",
+    "reduce_scatter", "reduce_scatter_tensor", "reduce_scatter_single", "broadcast", "broadcast_object_list",
+    "barrier", "gather", "gather_object", "scatter", "all_to_all", "all_to_all_single",
+)  # fmt: skip
+
+
+def _counted_steps(trainer: Any, steps: int, calls: list, check: Any) -> list[Any]:
+    """``steps`` steps of ``trainer``, each step's collectives (name, dtype of its tensor) and host reads
+    (``Tensor.tolist`` / ``Tensor.item`` called by the trainer and jsgs.train.distributed: the step's own;
+    the reference rasterizer's, the optimizer's and the view sampler's, of CPU tensors on a GPU too, are
+    left out) appended to ``calls`` as a list; the
+    steps' results (``check()`` after each step, not counted)."""
+    import torch
+    import torch.distributed as dist
+
+    own = {name: getattr(dist, name) for name in _COLLECTIVES if hasattr(dist, name)}
+    reads = {name: getattr(torch.Tensor, name) for name in ("tolist", "item")}
+
+    def collective(name: str) -> Any:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            tensor = next((a for a in args if isinstance(a, torch.Tensor)), None)
+            calls[-1].append((name, getattr(tensor, "dtype", None)))
+            return own[name](*args, **kwargs)
+
+        return call
+
+    def read(name: str) -> Any:
+        def call(self: Any, *args: Any) -> Any:
+            if Path(sys._getframe(1).f_code.co_filename).name in ("trainer.py", "distributed.py"):
+                calls[-1].append((name, "host read"))
+            return reads[name](self, *args)
+
+        return call
+
+    results = []
+    for step in range(steps):
+        calls.append([])
+        for name in own:
+            setattr(dist, name, collective(name))
+        for name in reads:
+            setattr(torch.Tensor, name, read(name))
+        try:
+            results.append(trainer.step(step))
+        finally:
+            for name, fn in own.items():
+                setattr(dist, name, fn)
+            for name, fn in reads.items():
+                setattr(torch.Tensor, name, fn)
+        check()
+    return results
 
 
 def _collectives_worker(rank: int, port: int, root: str) -> None:
     """One of two processes training on the torch exchange (the CPU), once with each strategy, every
-    all-gather of each step recorded: the shard sizes (int64) are gathered only after a step of the
-    refinement schedule, and the sizes every process holds are every shard's."""
+    collective and host read of each step recorded; then again with the step's values in an all-gather of
+    their own, which trains the same model and logs the same values, bit for bit."""
     import torch
     import torch.distributed as dist
 
     from jsgs.train.config import TrainConfig
-    from jsgs.train.trainer import Trainer
+    from jsgs.train.model import PARAM_NAMES
+    from jsgs.train.trainer import Trainer, TrainingDiverged
 
     torch.set_num_threads(1)
     os.environ.update(RANK=str(rank), LOCAL_RANK=str(rank), WORLD_SIZE="2", MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))  # fmt: skip
     manifest = Path(root) / "scene" / "manifest.json"
-    calls: list[tuple[str, Any]] = []
-    own = {name: getattr(dist, name) for name in _GATHERS}
-
-    def counted(name: str) -> Any:
-        def call(*args: Any, **kwargs: Any) -> Any:
-            first = args[1] if name != "all_gather_object" and len(args) > 1 else None
-            calls.append((name, getattr(first, "dtype", None)))
-            return own[name](*args, **kwargs)
-
-        return call
-
     refine = {3, 6, 9}  # refine_start_iter 2, refine_every 3: the steps after which counts may change
     for strategy in ({"type": "default", "grow_grad2d": 1e-9}, {"type": "mcmc", "cap_max": 400}):
-        cfg = TrainConfig.from_preset("paper", device="cpu", method="gsplat", iterations=10, eval_at=[])
-        for key, value in {**strategy, "refine_start_iter": 2, "refine_every": 3}.items():
-            setattr(cfg.strategy, key, value)
-        trainer = Trainer(manifest, Path(root) / strategy["type"], cfg, log=lambda s: None)
-        trainer.setup()
-        assert trainer.exchange == "torch"
-        held = []
-        for step in range(10):
-            calls.clear()
-            for name in _GATHERS:
-                setattr(dist, name, counted(name))
-            try:
-                trainer.step(step)
-            finally:
-                for name in _GATHERS:
-                    setattr(dist, name, own[name])
-            sizes = [c for c in calls if c[1] == torch.int64]
-            assert len(sizes) == (step in refine), (strategy, step, calls)
-            if step > 0 and step not in refine:  # the parameters and the step's values: nothing else
-                assert [n for n, _ in calls] == ["all_gather_single"] * 2, (strategy, step, calls)
-            everyone: list[Any] = [None, None]
-            dist.all_gather_object(everyone, int(trainer.splats["means"].shape[0]))
-            assert trainer.sizes == everyone, (strategy, step, trainer.sizes, everyone)
-            held.append(everyone)
+        runs = []
+        for fold in (True, False):
+            cfg = TrainConfig.from_preset("paper", device="cpu", method="gsplat", iterations=10, eval_at=[])
+            for key, value in {**strategy, "refine_start_iter": 2, "refine_every": 3}.items():
+                setattr(cfg.strategy, key, value)
+            trainer = Trainer(manifest, Path(root) / f"{strategy['type']}{fold}", cfg, log=lambda s: None)
+            trainer.setup()
+            trainer.fold_step_values = fold
+            assert trainer.exchange == "torch"
+            calls: list = []
+            held: list = []
+
+            def check(trainer: Any = trainer, held: list = held, kind: str = strategy["type"]) -> None:
+                everyone: list[Any] = [None, None]  # every process holds every shard's size
+                dist.all_gather_object(everyone, int(trainer.splats["means"].shape[0]))
+                assert trainer.sizes == everyone, (kind, trainer.sizes, everyone)
+                held.append(everyone)
+
+            runs.append((trainer, _counted_steps(trainer, 10, calls, check)))
+            if trainer.lock is not None:
+                trainer.lock.release()
+            if not fold:
+                continue
+            for step, made in enumerate(calls[1:], start=1):
+                # every step: the parameters' all-gather, then the gradients' reduce-scatter, which brings
+                # every process's logged values (read on the host once); a step of the refinement schedule
+                # then gathers the shard sizes (int64, read on the host)
+                expected = [("all_gather_single", torch.float32), ("reduce_scatter_single", torch.float32),
+                            ("tolist", "host read")]  # fmt: skip
+                if step in refine:
+                    expected += [("all_gather_single", torch.int64), ("tolist", "host read")]
+                assert made == expected, (strategy, step, made)
+        (one, one_results), (two, two_results) = runs
+        assert one_results == two_results, strategy  # every view's logged values, bit for bit
+        assert one.acc.state() == two.acc.state(), strategy
+        assert all(torch.equal(one.splats[n], two.splats[n]) for n in PARAM_NAMES), strategy
         # the refinement changed the shards' sizes, after refinement steps only
         changed = {s for s in range(1, 10) if held[s] != held[s - 1]}
         assert changed and changed <= refine, (strategy, held)
-        if trainer.lock is not None:
-            trainer.lock.release()
+        # a parameter that is NaN on rank 1 alone stops both processes after the same step, by the values
+        # the reduce-scatter brought
+        if rank == 1:
+            with torch.no_grad():
+                one.splats["opacities"][0] = float("nan")
+        with pytest.raises(TrainingDiverged, match="iteration 10: parameter 'opacities'"):
+            one.step(10)
         dist.barrier()
     dist.barrier()
     os._exit(0)  # (as _reductions_worker)
 
 
-def test_ordinary_steps_gather_no_shard_sizes(scene: Path, tmp_path: Path) -> None:
-    """The torch exchange on two processes (DefaultStrategy growing, MCMCStrategy adding): a step off the
-    refinement schedule makes two all-gathers (the parameters, the step's values) and no gather of the
-    shard sizes; a refinement step gathers them once, after the strategy, and every process then holds
-    every shard's size."""
+def test_a_steps_collectives_and_host_reads(scene: Path, tmp_path: Path) -> None:
+    """The torch exchange on two processes (DefaultStrategy growing, MCMCStrategy adding): an ordinary step
+    makes two collectives, the parameters' all-gather and the gradients' reduce-scatter, which also brings
+    every process's logged values, read on the host once; a refinement step adds the all-gather of the
+    shard sizes and its read, after the strategy, and every process then holds every shard's size. The
+    same runs with the logged values in an all-gather of their own train and log the same, bit for bit."""
     import socket
 
     import torch.multiprocessing as mp
@@ -550,6 +635,49 @@ def test_ordinary_steps_gather_no_shard_sizes(scene: Path, tmp_path: Path) -> No
         port = s.getsockname()[1]
     (tmp_path / "scene").symlink_to(scene.parent)
     mp.spawn(_collectives_worker, args=(port, str(tmp_path)), nprocs=2, join=True)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(allow_nan=False, allow_infinity=False, min_value=-1e30, max_value=1e30))
+def test_a_host_value_rides_as_three_float32_exactly(x: float) -> None:
+    """A float64 host value (a loss weight, a Gaussian count) as the three float32 a rider row carries:
+    their sum is the value, bit for bit, where float32's range allows (tiny values may not: those rows ask
+    for the all-gather, below)."""
+    import torch
+
+    from jsgs.train import distributed as dd
+
+    pieces = dd._three_float32(x)
+    assert all(float(torch.tensor(p, dtype=torch.float32)) == p for p in pieces)
+    if x == 0.0 or abs(x) >= 1e-20:
+        assert sum(pieces) == x
+
+
+def test_a_rider_row_that_cannot_ride_asks_for_the_all_gather() -> None:
+    """A rider row (:meth:`StepGather.rider`) of a layout not in the table, of a host value three float32 do
+    not hold (NaN, beyond float32's range) or longer than the capacity asks for the all-gather: unpack gives
+    None, and the capacity grows to the longest row asked for; rows that ride unpack to what the all-gather
+    gives."""
+    import math
+
+    import torch
+
+    from jsgs.train import distributed as dd
+
+    gathers = [dd.StepGather(dd.World(r, 2, r), capacity=8) for r in (0, 1)]
+    for g in gathers:
+        g.layouts, g.table = {"a": 0}, ["a"]
+    values = torch.tensor([1.5, float("inf")])
+    assert gathers[0].rider("new", [1.0], values)[:2].tolist() == [-1.0, 5.0]
+    for host in ([math.nan], [1e300], [1.0, 2.0, 3.0]):
+        row = gathers[0].rider("a", host, values)
+        assert row[0] == -1.0 and row.numel() == 3 + 8, host
+    riders = [g.rider("a", [0.1, 7.0], values).tolist() for g in gathers]
+    assert [r[:3] for r in riders] == [[0.0, 2.0, 2.0]] * 2
+    assert gathers[1].unpack(riders) == [("a", [0.1, 7.0, 1.5, math.inf])] * 2
+    too_long = gathers[0].rider("a", [1.0, 2.0, 3.0], values).tolist()
+    for g in gathers:
+        assert g.unpack([riders[0], too_long]) is None and g.rider_capacity == 11
 
 
 def test_held_shard_sizes_are_checked_against_the_shard() -> None:
