@@ -469,10 +469,11 @@ def reduce_gradients(
     else:  # each block's flag column: the count's entry, then every process's rider at its rank's place
         length = rider.numel()
         rows = max(rows, 1 + world.size * length)
-        column = rider.new_zeros(rows)
-        column[0] = float(rendered)
-        column[1 + world.rank * length : 1 + (world.rank + 1) * length] = rider
-        flag = torch.cat([column[:n] for n in sizes])[:, None]
+        before, after = world.rank * length, rows - 1 - (world.rank + 1) * length
+        flag = rider.new_full((1,), float(rendered))
+        column = torch.cat([flag, rider.new_zeros(before), rider, rider.new_zeros(after)])
+        equal = rows * world.size == total
+        flag = (column.repeat(world.size) if equal else torch.cat([column[:n] for n in sizes])).unsqueeze(1)
     table = torch.cat([*(c.reshape(total, w) for c, w in zip(columns, widths, strict=True)), flag], dim=1)
     if rows * world.size != total:  # each block's rows after its shard's: zeros, and the flag column's rest
         least = min(sizes)
@@ -543,13 +544,13 @@ class StepGather:
     def rider(self, layout: Any, host: Sequence[float], values: Tensor) -> Tensor:
         """This process's row of the step for another collective to carry (:func:`reduce_gradients`'
         ``rider``), on ``values``' device, float32, ``3 + rider_capacity`` long: ``[layout, number of host
-        values, number of values, *host values, *values]``, each host value as three float32 that sum to
-        it exactly, ``values`` as float32 (their own type: the trainer's are float32). A layout not in the
+        values, number of values, *host values, zeros, *values]``, each host value as three float32 that
+        sum to it exactly, ``values`` (1-D) as float32 (the trainer's are float32). A layout not in the
         table yet, a row longer than the capacity or a host value three float32 do not hold gives
-        ``[-1, needed length]``: every process then makes :meth:`__call__` (:meth:`unpack`)."""
+        ``[-1, needed length, zeros]``: every process then makes :meth:`__call__` (:meth:`unpack`)."""
         index = self.layouts.get(layout, -1)
         pieces = [piece for x in host for piece in _three_float32(x)]
-        values = values.detach().reshape(-1).to(torch.float32)
+        values = values.detach().to(torch.float32)
         needed = len(pieces) + values.numel()
         exact = all(sum(pieces[i : i + 3]) == x for i, x in zip(range(0, len(pieces), 3), host, strict=True))
         if index < 0 or needed > self.rider_capacity or not exact:
@@ -557,15 +558,16 @@ class StepGather:
             values = values[:0]
         else:
             head = [float(index), float(len(host)), float(values.numel()), *pieces]
+        head += [0.0] * (3 + self.rider_capacity - len(head) - values.numel())
+        # from pinned memory, without waiting (as __call__'s head)
         device = values.device
         row = torch.tensor(head, dtype=torch.float32, pin_memory=device.type == "cuda")
-        row = torch.cat([row.to(device, non_blocking=True), values])
-        return torch.cat([row, row.new_zeros(3 + self.rider_capacity - row.numel())])
+        return torch.cat([row.to(device, non_blocking=True), values])
 
     def unpack(self, riders: Sequence[Sequence[float]]) -> list[tuple[Any, list[float]]] | None:
         """Every process's (layout, host values followed by values) from every process's :meth:`rider` row,
         by rank (read on the host), as :meth:`__call__` returns them; None where some process's row asks
-        for the full gather (its capacity then grows, for every process alike, to the longest asked)."""
+        for the full gather (the capacity then grows, for every process alike, to the longest asked)."""
         if any(r[0] < 0 for r in riders):
             longest = max(int(r[1]) for r in riders if r[0] < 0)
             self.rider_capacity = max(self.rider_capacity, longest)
@@ -574,8 +576,7 @@ class StepGather:
         for r in riders:
             n_host, n_values = int(r[1]), int(r[2])
             host = [r[3 + 3 * i] + r[4 + 3 * i] + r[5 + 3 * i] for i in range(n_host)]
-            start = 3 + 3 * n_host
-            out.append((self.table[int(r[0])], [*host, *r[start : start + n_values]]))
+            out.append((self.table[int(r[0])], [*host, *r[len(r) - n_values :]]))
         return out
 
     def __call__(self, layout: Any, host: Sequence[float], values: Tensor) -> list[tuple[Any, list[float]]]:

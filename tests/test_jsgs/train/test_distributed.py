@@ -480,6 +480,25 @@ def _reductions_worker(rank: int, store: str) -> None:
         for r, (_, row) in enumerate(rows):
             assert row[:3] == [0.1 * (r + 1), 1.0 / 3.0, float(2**40 + r)], row
             assert row[3:5] == [float(r), -2.5] and row[5] != row[5] and len(row) == 6, row
+    # equal shards of 40 rows, more than the rows need (1 + 2 x 15): no padding, the same buffer's size and
+    # gradients as without them
+    big = torch.nn.ParameterDict(
+        {n: torch.nn.Parameter(torch.cat([shard[n].data] * 3)[:40].clone()) for n in PARAM_NAMES}
+    )
+    grads, moved = [], []
+    dd._reduce_scatter_tensor = lambda out, t: moved.append(t.numel()) or scatter(out, t)
+    for rider in (None, values.rider(lay, host, sent_values)):
+        ex = dd.gather_gaussians(world, big, PARAM_NAMES)
+        for p in big.values():
+            p.grad = None
+        one_view(ex.params, Densifier(cfg.strategy), shared.initialize_state(scene_scale=1.0), rank)
+        assert dd.reduce_gradients(world, [big[n] for n in PARAM_NAMES], True, ex, rider=rider)
+        grads.append([big[n].grad for n in PARAM_NAMES])
+    dd._reduce_scatter_tensor = scatter
+    assert moved == [2 * 40 * (59 + 1)] * 2, moved
+    assert all(torch.equal(a, b) for a, b in zip(*grads, strict=True))
+    rows = values.unpack(ex.riders.tolist())
+    assert rows is not None and [row[3:5] for _, row in rows] == [[0.0, -2.5], [1.0, -2.5]], rows
     # both processes leave together, then skip the interpreter's teardown: with gloo's threads alive a
     # process aborts there now and then ("terminate called without an active exception": 3 in 45 runs on 2
     # cores, with or without destroy_process_group; none in 25 runs that leave this way)
