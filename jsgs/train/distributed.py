@@ -546,13 +546,14 @@ class StepGather:
         ``rider``), on ``values``' device, float32, ``3 + rider_capacity`` long: ``[layout, number of host
         values, number of values, *host values, zeros, *values]``, each host value as three float32 that
         sum to it exactly, ``values`` (1-D) as float32 (the trainer's are float32). A layout not in the
-        table yet, a row longer than the capacity or a host value three float32 do not hold gives
+        table yet, a row longer than the capacity or a host value three normal float32 do not hold gives
         ``[-1, needed length, zeros]``: every process then makes :meth:`__call__` (:meth:`unpack`)."""
         index = self.layouts.get(layout, -1)
         pieces = [piece for x in host for piece in _three_float32(x)]
         values = values.detach().to(torch.float32)
         needed = len(pieces) + values.numel()
         exact = all(sum(pieces[i : i + 3]) == x for i, x in zip(range(0, len(pieces), 3), host, strict=True))
+        exact = exact and all(p == 0.0 or abs(p) >= _FLOAT32_NORMAL for p in pieces)
         if index < 0 or needed > self.rider_capacity or not exact:
             head = [-1.0, float(needed), 0.0]
             values = values[:0]
@@ -613,6 +614,10 @@ class StepGather:
         with collective("a training step"):
             _all_gather_tensor(out, row)
         return out.view(self.world.size, width).tolist()
+
+
+#: float32's smallest normal value: a reduction may flush smaller ones to zero (CUDA's flush-to-zero)
+_FLOAT32_NORMAL = 2.0**-126
 
 
 def _three_float32(x: float) -> list[float]:

@@ -670,13 +670,14 @@ def test_a_host_value_rides_as_three_float32_exactly(x: float) -> None:
     assert all(float(torch.tensor(p, dtype=torch.float32)) == p for p in pieces)
     if x == 0.0 or abs(x) >= 1e-20:
         assert sum(pieces) == x
+        assert all(p == 0.0 or abs(p) >= dd._FLOAT32_NORMAL for p in pieces)
 
 
 def test_a_rider_row_that_cannot_ride_asks_for_the_all_gather() -> None:
-    """A rider row (:meth:`StepGather.rider`) of a layout not in the table, of a host value three float32 do
-    not hold (NaN, beyond float32's range) or longer than the capacity asks for the all-gather: unpack gives
-    None, and the capacity grows to the longest row asked for; rows that ride unpack to what the all-gather
-    gives."""
+    """A rider row (:meth:`StepGather.rider`) of a layout not in the table, of a host value three normal
+    float32 do not hold (NaN, beyond float32's range, a piece below float32's normal range, which a GPU's
+    sum may flush to zero) or longer than the capacity asks for the all-gather: unpack gives None, and the
+    capacity grows to the longest row asked for; rows that ride unpack to what the all-gather gives."""
     import math
 
     import torch
@@ -688,7 +689,7 @@ def test_a_rider_row_that_cannot_ride_asks_for_the_all_gather() -> None:
         g.layouts, g.table = {"a": 0}, ["a"]
     values = torch.tensor([1.5, float("inf")])
     assert gathers[0].rider("new", [1.0], values)[:2].tolist() == [-1.0, 5.0]
-    for host in ([math.nan], [1e300], [1.0, 2.0, 3.0]):
+    for host in ([math.nan], [1e300], [1e-40], [3e-24], [1.0, 2.0, 3.0]):
         row = gathers[0].rider("a", host, values)
         assert row[0] == -1.0 and row.numel() == 3 + 8, host
     riders = [g.rider("a", [0.1, 7.0], values).tolist() for g in gathers]
