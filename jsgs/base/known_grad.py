@@ -83,3 +83,33 @@ def with_known_gradient(
     if own_value and value.requires_grad:
         raise ValueError("own_value: value must not require grad (it is not differentiated)")
     return _KnownGradient.apply(value, scratch, own_value, *pairs)
+
+
+class _DeferredGradient(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, value: Tensor, make: Any, x: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.make = make
+        ctx.like = (tuple(x.shape), x.dtype, x.device)
+        return value.detach().clone()
+
+    @staticmethod
+    def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, ...]:
+        make, ctx.make = ctx.make, None
+        if make is None:
+            raise RuntimeError("with_deferred_gradient: a second backward through the same scalar")
+        g = make(*ctx.like)
+        return None, None, None if g is None else g.mul_(grad_out)
+
+
+def with_deferred_gradient(x: Tensor, value: Tensor, make: Any) -> Tensor:
+    """A 0-dim tensor equal to ``value`` whose gradient with respect to ``x`` is ``make(shape, dtype,
+    device)`` (``x``'s), made when the backward reaches this scalar's node (None: no gradient), then
+    multiplied in place by the upstream: :func:`with_known_gradient` for a gradient that need not exist
+    before. Made early in the forward (e.g. with the render), the node has an early place in autograd's
+    order, so the backward reaches it after the nodes made later (the losses on the render), and the
+    gradient lives only from then to where it is consumed. One backward only.
+    """
+    if value.dim() != 0:
+        raise ValueError(f"value must be 0-dim, got shape {tuple(value.shape)}")
+    return _DeferredGradient.apply(value, make, x)
+

@@ -130,6 +130,8 @@ class JsgsHook(LossHook):
         self._pending: dict[str, Any] = {}
         # λ_fro times the probe objective (jsgs.method.pooling.ProbeObjective: its map made at each call)
         self._probe_objective: Any = None
+        # this step's probe map made in the backward (render_kwargs), where the render was given it
+        self._deferred_map: Any = None
         # (n, dtype, device) -> n zeros to log (:meth:`_zeros`)
         self._kept_zeros: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
         # what the steps between the controller's leave out of the logs (:meth:`_skipped`)
@@ -249,6 +251,23 @@ class JsgsHook(LossHook):
         means = splats["means"]
         return new_probe(means.shape[0], means)
 
+    def render_kwargs(self, step: int, view: TrainingView) -> dict[str, Any]:
+        """On the deferred probe's steps, the probe's map made in the backward
+        (:class:`jsgs.method.pooling.DeferredProbeMap`, ``rasterize(..., extra_upstream=)``): its node made
+        with the render, the map made after ℓ_ph's backward instead of kept from the hook's call."""
+        self._deferred_map = None
+        if self._probe_deferred(step) and view.index in self.tables:
+            from jsgs.method.pooling import DeferredProbeMap
+
+            self._deferred_map = DeferredProbeMap(self.fro_weight)
+            return {"extra_upstream": self._deferred_map}
+        return {}
+
+    def _probe_deferred(self, step: int) -> bool:
+        """Whether the deferred controller pools through the probe at ``step``."""
+        o = self.opts
+        return o.gc and self.gc_at(step) and self.gc_route == "deferred" and o.gc_attribution == "probe"
+
     @property
     def profile(self) -> bool:
         return self.profiler.enabled
@@ -286,10 +305,12 @@ class JsgsHook(LossHook):
         graphed = None
         folded: frozenset[str] = frozenset()
         folded_loss = None
-        # the deferred controller's objective rides on the graph's node where there is one (one node and
-        # no addition for both known gradients): its (channels, gradient) pair, made from the replay's r
-        deferred = o.gc and self.gc_at(ctx.step) and self.gc_route == "deferred"
-        deferred = deferred and o.gc_attribution == "probe"
+        # the deferred controller's objective: made with the render where the render was given the hook's
+        # map (render_kwargs), its r set below; else riding on the graph's node where there is one (one node
+        # and no addition for both known gradients): its (channels, gradient) pair, made from the replay's r
+        deferred = self._probe_deferred(ctx.step)
+        in_render = self._deferred_map is not None and ctx.info.get("extra_upstream") is self._deferred_map
+        deferred = deferred and not in_render
         probe_pair: tuple[Tensor, ...] = ()
 
         def probe_upstream(r: Tensor) -> tuple[Tensor, ...]:
@@ -319,7 +340,9 @@ class JsgsHook(LossHook):
             folded, folded_loss = frozenset(terms), graphed.weighted
             # the graph keeps r_b; r(p) is made only where the controller reads it (not where the probe's
             # map rode on the graph's node, made from r_b)
-            if o.gc and self.gc_at(ctx.step) and not probe_pair:
+            if in_render:
+                self._deferred_map.r = graphed.r
+            elif o.gc and self.gc_at(ctx.step) and not probe_pair:
                 r_map = pixel_score_of(graphed.r, x.shape[2], x.shape[3])
             if self.keep_last:
                 assert graphed.obs is not None
@@ -337,11 +360,16 @@ class JsgsHook(LossHook):
                     # the one view's entries (views, no kernel; the sum of one value is that value)
                     terms["low"], terms["mid"] = sup.loss_low.view(()), sup.loss_mid.view(())
                 r_map = sup.pixel_score  # [1, H, W], detached
+                if in_render:
+                    self._deferred_map.r = r_map
                 if self.keep_last:
                     self.last["ds"] = sup
+        if in_render:  # the objective made with the render
+            obj = ctx.info["extra_objective"]
+            folded_loss = obj if folded_loss is None else folded_loss + obj
         if o.gc:
-            folded, folded_loss = self._controller_terms(ctx, r_map, bool(probe_pair), terms, stats, folded,
-                                                         folded_loss)  # fmt: skip
+            folded, folded_loss = self._controller_terms(ctx, r_map, bool(probe_pair) or in_render, terms,
+                                                         stats, folded, folded_loss)  # fmt: skip
         return HookOutput(
             terms, self.weights(), stats, folded, folded_loss, self.base_scale(tab, ctx.step),
             self._skipped(ctx.step),

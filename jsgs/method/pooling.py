@@ -161,22 +161,54 @@ class ProbeObjective:
         pixels, 0 on the rest; ``weight·r_b`` written onto each block's pixels, one kernel more where H or W
         is not a multiple of 8, which zeroes the rest first)."""
         ch = _checked_channels(info, r, blocks=True)
-        up = torch.empty(ch.shape, dtype=ch.dtype, device=ch.device)
         zero = self._zero
         if zero is None or zero.dtype != ch.dtype or zero.device != ch.device:
             self._zero = ch.new_zeros(())
-        r0 = up[..., 0]
-        C, H, W = r0.shape
-        rd = r.detach().to(ch.dtype)
-        if rd.shape[1:] != (H, W):  # r_b: each block's pixels, a strided view of the channel
-            nby, nbx = rd.shape[1:]
-            if nby * 8 != H or nbx * 8 != W:
-                r0.zero_()
-            r0 = r0[:, : nby * 8, : nbx * 8].unflatten(2, (nbx, 8)).unflatten(1, (nby, 8))
-            rd = rd[:, :, None, :, None].expand(C, nby, 8, nbx, 8)
-        torch.mul(rd, self.weight, out=r0)
-        up[..., 1].fill_(self.weight)
-        return ch, up
+        return ch, _probe_map(r, self.weight, ch.shape, ch.dtype, ch.device)
+
+
+class DeferredProbeMap:
+    """The probe channels' gradient ``weight·(r, 1)`` made in the backward: the ``extra_upstream`` of the
+    render (:func:`jsgs.render.rasterize`), whose ``info["extra_objective"]`` then stands for ``weight ·
+    probe_objective(info, r)`` in the loss with the same gradients, bit for bit (tested). ``r`` (r(p), or
+    the block scores r_b it is made of) is set after the render, once the image terms have made it; the
+    map exists only from where the backward reaches the objective's node (after the losses on the render,
+    which were made after it) to the rasteriser's backward: not at the forward's peak, not at ℓ_ph's
+    backward. Unset, it gives no gradient."""
+
+    def __init__(self, weight: float) -> None:
+        self.weight = float(weight)
+        self.r: Tensor | None = None
+
+    def __call__(self, shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> Tensor | None:
+        r, self.r = self.r, None
+        if r is None:
+            return None
+        C, H, W, E = shape
+        if E != 2 or (r.shape != (C, H, W) and r.shape != (C, H // 8, W // 8)):
+            raise ValueError(f"the probe's map: r of shape {tuple(r.shape)} for channels {shape}")
+        return _probe_map(r, self.weight, shape, dtype, device)
+
+
+def _probe_map(
+    r: Tensor, weight: float, shape: tuple[int, ...], dtype: torch.dtype, device: torch.device
+) -> Tensor:
+    """``weight·(r, 1)`` ``[C, H, W, 2]`` (a new tensor) from r(p) ``[C, H, W]`` or the block scores r_b
+    ``[C, H // 8, W // 8]`` (r_b on each 8×8 block's pixels, 0 on the rest: written blockwise, one kernel
+    more where H or W is not a multiple of 8, which zeroes the rest first)."""
+    up = torch.empty(shape, dtype=dtype, device=device)
+    r0 = up[..., 0]
+    C, H, W = r0.shape
+    rd = r.detach().to(dtype)
+    if rd.shape[1:] != (H, W):  # r_b: each block's pixels, a strided view of the channel
+        nby, nbx = rd.shape[1:]
+        if nby * 8 != H or nbx * 8 != W:
+            r0.zero_()
+        r0 = r0[:, : nby * 8, : nbx * 8].unflatten(2, (nbx, 8)).unflatten(1, (nby, 8))
+        rd = rd[:, :, None, :, None].expand(C, nby, 8, nbx, 8)
+    torch.mul(rd, weight, out=r0)
+    up[..., 1].fill_(weight)
+    return up
 
 
 def pool_from_grad(info: dict) -> PooledSums:

@@ -10,10 +10,12 @@ per-pixel maps per Gaussian (for instance ``jsgs.method.pooling``).
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
+
+from jsgs.base.known_grad import with_deferred_gradient
 
 from . import reference
 
@@ -100,6 +102,7 @@ def rasterize(
     extra: Tensor | None = None,
     distortion: Tensor | None = None,
     distributed: bool = False,
+    extra_upstream: Any = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """Rasterise N 3D Gaussians into C pinhole cameras (gsplat 1.5.3 ``rasterization`` semantics).
 
@@ -138,6 +141,7 @@ def rasterize(
             1.5.3's packed distributed path tiles with the image ids of the projection (numbered over every
             process's cameras, one per Gaussian *sent*) instead of those received, which reads past their
             end and renders with the wrong Gaussians.
+        extra_upstream: with ``extra``, ``info["extra_objective"]`` (:func:`_extras`).
 
     Returns:
         render_colors [C, H, W, D(+1 with depth)], render_alphas [C, H, W, 1], info: gsplat's meta keys
@@ -172,9 +176,23 @@ def rasterize(
             extra=feats, distributed=distributed,
         )  # fmt: skip
     info["backend"] = which
-    if extra is not None:
-        info["extra_features"] = extra
+    _extras(info, extra, extra_upstream)
     return img, alpha, info
+
+
+def _extras(info: dict, extra: Tensor | None, make: Any) -> None:
+    """``info["extra_features"]`` (``extra``), and with ``make``: ``info["extra_objective"]``, a 0-dim zero
+    whose gradient with respect to ``info["extra"]`` is ``make(shape, dtype, device)`` (or None), made when
+    the backward reaches it (:func:`jsgs.base.known_grad.with_deferred_gradient`). Made here with the
+    render, its node is reached after the losses computed on the render later, right before the
+    rasteriser's backward. ``info["extra_upstream"]`` is ``make``."""
+    if extra is None:
+        return
+    info["extra_features"] = extra
+    if make is not None:
+        ch = info["extra"]
+        info["extra_objective"] = with_deferred_gradient(ch, ch.new_zeros(()), make)
+        info["extra_upstream"] = make
 
 
 def _extra_features(extra: Tensor | None, render_mode: str, C: int, N: int) -> Tensor | None:

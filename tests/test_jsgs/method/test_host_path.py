@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 import torch
 from test_graphed import _eager_recording
-from test_jsgs_method import make_splats, make_view, new_hook, render, target_for
+from test_jsgs_method import make_splats, make_view, new_hook, render, target_for, train_step
 
 from jsgs.base.known_grad import with_known_gradient
 from jsgs.jpeg.losses import photometric_loss
@@ -209,6 +209,61 @@ def test_the_probe_objective_on_the_graphs_node_gives_the_separate_objectives_st
     assert one["stats"] == separate["stats"] and one["terms"]["fro"] > 0
     for k, g in separate["grads"].items():
         assert torch.equal(one["grads"][k], g), k
+
+
+@pytest.mark.parametrize("graph", [False, True])
+def test_the_probe_map_made_in_the_backward_gives_the_same_step(
+    monkeypatch: pytest.MonkeyPatch, graph: bool
+) -> None:
+    """The render given the hook's render_kwargs (as the trainer's is) carries the probe objective's node,
+    made with the render, and the probe's map is made in the backward, after ℓ_ph's backward has reached
+    the render (where the map made at the hook's call was alive since the hook's call): the same terms,
+    statistics and gradients, bit for bit, eager and with the image terms' graph."""
+    from jsgs.method.pooling import DeferredProbeMap
+
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    events: list[str] = []
+    make = DeferredProbeMap.__call__
+
+    def recorded(self: Any, *args: Any) -> Any:
+        events.append("map")
+        return make(self, *args)
+
+    monkeypatch.setattr(DeferredProbeMap, "__call__", recorded)
+    monkeypatch.setattr(torch.Tensor, "permute", _noting_permute(events))
+    view = make_view(50, "4:2:0")
+    steps = []
+    for in_render in (False, True):
+        hook = new_hook(view)
+        hook.keep_last = False
+        if graph:
+            w = hook.weights()
+            hook._graphed = GraphedImageTerms(weights=(w["obs"], w["low"], w["mid"]), **hook._jpeg_settings)
+        events.clear()
+        steps.append(train_step(hook, view, render_kwargs=in_render))
+        assert ("map" in events) is in_render
+        if in_render:  # every loss on the render (ℓ_ph's and the image terms' permutes) came back first
+            permutes = [i for i, e in enumerate(events) if e == "permute backward"]
+            assert len(permutes) >= 2 and max(permutes) < events.index("map"), events
+    old, new = steps
+    assert new["terms"] == old["terms"] and new["stats"] == old["stats"] and new["terms"]["fro"] > 0
+    for k, g in old["grads"].items():
+        assert torch.equal(new["grads"][k], g), k
+    assert torch.equal(new["means2d"], old["means2d"])
+
+
+def _noting_permute(events: list[str]) -> Any:
+    """``Tensor.permute`` whose result, where it is a render's [1, H, W, 3] to [1, 3, H, W] (ℓ_ph's, the
+    image terms'), notes in ``events`` when the backward passes through it."""
+    permute = torch.Tensor.permute
+
+    def noting(self: torch.Tensor, *dims: Any) -> torch.Tensor:
+        out = permute(self, *dims)
+        if out.requires_grad and dims == (0, 3, 1, 2) and self.dim() == 4 and self.shape[-1] == 3:
+            out.register_hook(lambda g: events.append("permute backward"))
+        return out
+
+    return noting
 
 
 def test_the_extra_channels_background_is_one_zero_tensor(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -240,11 +240,13 @@ def make_view(quality: int | None, sampling: str = "4:2:0", index: int = 0) -> T
     return TrainingView(index, f"v{index}", "train", Path("x.jpg"), None, jpeg, cam, c2w, viewmat)
 
 
-def render(splats: torch.nn.ParameterDict, extra: torch.Tensor | None) -> Any:
+def render(
+    splats: torch.nn.ParameterDict, extra: torch.Tensor | None, extra_kwargs: dict[str, Any] | None = None
+) -> Any:
     viewmat, K = camera()
     return render_view(
         splats, torch.tensor(viewmat, dtype=D)[None], torch.tensor(K, dtype=D)[None], WIDTH, HEIGHT, 0,
-        TrainConfig.from_preset("paper"), "torch", extra,
+        TrainConfig.from_preset("paper"), "torch", extra, extra_kwargs,
     )  # fmt: skip
 
 
@@ -283,16 +285,18 @@ def new_hook(view: TrainingView, **options: Any) -> JsgsHook:
 
 def train_step(
     hook: JsgsHook, view: TrainingView, splats: torch.nn.ParameterDict | None = None,
-    image: torch.Tensor | None = None, context_image: bool = True,
+    image: torch.Tensor | None = None, context_image: bool = True, render_kwargs: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
     """One step as the trainer takes it: render (training path), base ℓ_ph, the hook's terms, backward.
     ``image``: a uint8 [H, W, 3] training image, the target made from it as the trainer makes it, the image
-    in the step's context too with ``context_image`` (else :func:`target_for`'s target alone). Returns term
-    values (read after the backward, as the trainer does), stats, parameter gradients and the screen-space
-    means' gradient."""
+    in the step's context too with ``context_image`` (else :func:`target_for`'s target alone);
+    ``render_kwargs``: the render also takes the hook's ``render_kwargs`` (as the trainer's does). Returns
+    term values (read after the backward, as the trainer does), stats, parameter gradients and the
+    screen-space means' gradient."""
     splats = splats if splats is not None else make_splats()
     target = target_for(view) if image is None else image_target(image)
-    out = render(splats, hook.extra_channels(0, view, splats))
+    extra = hook.extra_channels(0, view, splats)
+    out = render(splats, extra, hook.render_kwargs(0, view) if render_kwargs else None)
     out.info["means2d"].retain_grad()
     ctx = StepContext(
         0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0, image if context_image else None
