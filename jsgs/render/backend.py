@@ -141,7 +141,7 @@ def rasterize(
             1.5.3's packed distributed path tiles with the image ids of the projection (numbered over every
             process's cameras, one per Gaussian *sent*) instead of those received, which reads past their
             end and renders with the wrong Gaussians.
-        extra_upstream: with ``extra``, ``info["extra_objective"]`` (:func:`_extras`).
+        extra_upstream: with ``extra``, :func:`_extras`'s ``make`` (the channels' values then not kept).
 
     Returns:
         render_colors [C, H, W, D(+1 with depth)], render_alphas [C, H, W, 1], info: gsplat's meta keys
@@ -173,7 +173,7 @@ def rasterize(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             sh_degree=sh_degree, near_plane=near_plane, far_plane=far_plane, backgrounds=backgrounds,
             eps2d=eps2d, radius_clip=radius_clip, packed=packed, absgrad=absgrad, render_mode=render_mode,
-            extra=feats, distributed=distributed,
+            extra=feats, distributed=distributed, extra_values=extra_upstream is None,
         )  # fmt: skip
     info["backend"] = which
     _extras(info, extra, extra_upstream)
@@ -182,15 +182,17 @@ def rasterize(
 
 def _extras(info: dict, extra: Tensor | None, make: Any) -> None:
     """``info["extra_features"]`` (``extra``), and with ``make``: ``info["extra_objective"]``, a 0-dim zero
-    whose gradient with respect to ``info["extra"]`` is ``make(shape, dtype, device)`` (or None), made when
+    whose gradient with respect to the extra channels is ``make(shape, dtype, device)`` (or None), made when
     the backward reaches it (:func:`jsgs.base.known_grad.with_deferred_gradient`). Made here with the
     render, its node is reached after the losses computed on the render later, right before the
-    rasteriser's backward. ``info["extra_upstream"]`` is ``make``."""
+    rasteriser's backward. ``info["extra_upstream"]`` is ``make``; the channels themselves are not kept
+    (no ``info["extra"]``: the node's edge to them is all the backward needs, and with gsplat the colours
+    are copied out of the image with them, which is then freed after the render)."""
     if extra is None:
         return
     info["extra_features"] = extra
-    if make is not None:
-        ch = info["extra"]
+    if make is not None:  # the channels' values are not kept: only the node's edge to them
+        ch = info.pop("extra")
         info["extra_objective"] = with_deferred_gradient(ch, ch.new_zeros(()), make)
         info["extra_upstream"] = make
 
@@ -247,9 +249,13 @@ def _rasterize_gsplat(
     render_mode: str,
     extra: Tensor | None,
     distributed: bool = False,
+    extra_values: bool = True,
 ) -> tuple[Tensor, Tensor, dict]:
     """gsplat.rasterization in classic mode; with extra features [C, N, E], SH are evaluated here (gsplat's
-    own CUDA op) so that the extra channels can be appended to the colour features."""
+    own CUDA op) so that the extra channels can be appended to the colour features. Without
+    ``extra_values`` the colours are copied out of the image with the extra channels (a contiguous
+    [C, H, W, D], as without extra channels), so that the caller, keeping no view of the extra channels,
+    holds none of that image after the render (8 bytes a pixel less for two channels)."""
     import gsplat  # imported lazily: the package imports on CPU, but only this path needs it
 
     kw = dict(
@@ -293,7 +299,10 @@ def _rasterize_gsplat(
     # one split (its backward is one cat of the parts' gradients); a depth channel, if any, is re-attached
     parts = img.split([n_col, E, img.shape[-1] - n_col - E], dim=-1)
     info["extra"] = parts[1]
-    img = parts[0] if parts[2].shape[-1] == 0 else torch.cat([parts[0], parts[2]], dim=-1)
+    if parts[2].shape[-1]:
+        img = torch.cat([parts[0], parts[2]], dim=-1)
+    else:
+        img = parts[0] if extra_values else parts[0].contiguous()
     return img, alpha, info
 
 

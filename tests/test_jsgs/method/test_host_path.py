@@ -303,6 +303,55 @@ def test_the_extra_channels_background_is_one_zero_tensor(monkeypatch: pytest.Mo
         assert img.shape == (c, 6, 8, 3) and info["extra"].shape == (c, 6, 8, 2)
 
 
+def test_the_image_with_the_probe_channels_is_freed_after_the_render(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With the probe's map made in the backward (``extra_upstream``) the extra channels' values are not
+    kept: gsplat's five-channel image is freed after the render (the colours copied out, contiguous, the
+    same values), ``info`` has the objective and no channels; without it the colours are a view of that
+    image and ``info["extra"]`` its other channels. The reference backend alike (its colours are a copy)."""
+    import weakref
+
+    import gsplat
+
+    from jsgs.render import backend
+
+    made: list[Any] = []
+
+    def rasterization(means: Any, quats: Any, scales: Any, opacities: Any, colors: Any, viewmats: Any,
+                      Ks: Any, width: int, height: int, **kw: Any) -> Any:  # fmt: skip
+        c = viewmats.shape[0]
+        img = torch.rand(c, height, width, colors.shape[-1]) + colors.sum() * 0.0  # on the autograd graph
+        made.append(weakref.ref(img))
+        return img, torch.zeros(c, height, width, 1), {}
+
+    monkeypatch.setattr(gsplat, "rasterization", rasterization)
+    n = 5
+    probe = torch.zeros(n, 2, requires_grad=True)
+    kw: dict[str, Any] = dict(
+        sh_degree=None, near_plane=0.01, far_plane=1e10, backgrounds=None, eps2d=0.3, radius_clip=0.0,
+        packed=False, absgrad=False, render_mode="RGB", extra=probe[None],
+    )  # fmt: skip
+    cams = (torch.eye(4)[None], torch.eye(3)[None])
+    colors = torch.rand(n, 3, requires_grad=True)
+    for keep in (True, False):
+        img, _, info = backend._rasterize_gsplat(
+            torch.rand(n, 3), torch.rand(n, 4), torch.rand(n, 3), torch.rand(n), colors, *cams, 8, 6,
+            extra_values=keep, **kw,
+        )  # fmt: skip
+        full = made[-1]()
+        assert full is not None and torch.equal(img, full[..., :3])
+        channels = info["extra"]
+        del full
+        backend._extras(info, probe, None if keep else (lambda *like: None))
+        assert ("extra" in info) is keep and ("extra_objective" in info) is not keep
+        del channels
+        assert (made[-1]() is None) is not keep and img.is_contiguous() is not keep
+    view = make_view(50, "4:2:0")
+    hook = new_hook(view)
+    splats = make_splats()
+    out = render(splats, hook.extra_channels(0, view, splats), hook.render_kwargs(0, view))
+    assert out.extra is None and "extra" not in out.info and out.info["extra_objective"].item() == 0.0
+
+
 def test_host_path_cpu_passes_on_profile_steps_options() -> None:
     """tools/diagnostics/host_path_cpu.py names the options it passes on to profile_step.py: exactly that
     script's, less ``--device`` (it sets cpu); one profile_step.py does not take is refused in one line."""
