@@ -444,7 +444,6 @@ def test_cuda_graph_auto_resolves_by_device_and_compile() -> None:
         assert "\n" not in str(e.value)
 
 
-@pytest.mark.gpu
 class _ControllerInBuffers:
     """GraphedController's contract on the CPU: the chain it records (``_run``), its outputs written into
     buffers it owns and overwrites on every call, as a graph's static outputs are."""
@@ -532,6 +531,7 @@ def _controller_inputs(n: int, seed: int, device: str) -> tuple[torch.Tensor, ..
     return tuple(t.to(device) for t in (probe, logits, log_scales, means, quats, viewmat, K))
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 def test_gpu_controller_graph_equals_eager_across_views_and_densification() -> None:
     """Replays for different probe gradients and cameras, a parameter replaced by a new tensor of the same
@@ -560,6 +560,7 @@ def test_gpu_controller_graph_equals_eager_across_views_and_densification() -> N
     assert mem[-1] <= mem[1] + (1 << 20), mem
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
 @pytest.mark.parametrize("mode", ["paper", "float", "exact"])
 def test_gpu_graph_replays_equal_eager_for_every_view(mode: str) -> None:
@@ -613,6 +614,33 @@ def test_gpu_two_orientations_replay_on_shared_buffers() -> None:
         torch.testing.assert_close(x.grad, grad, rtol=1e-5, atol=1e-8)
     a, b = graphed._graphs.values()
     assert all(s.data_ptr() == t.data_ptr() for s, t in zip(a.inputs, b.inputs, strict=True))
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA device")
+def test_gpu_the_graph_reads_each_steps_image_from_the_stack() -> None:
+    """A real graph given images of one [V, H, W, 3] stack on the device (as the trainer loads them): each
+    replay reads the image at the index written before it (a device value, not the recording's), so view
+    after view, in any order, the values, r_b and render gradient are those of the eager function on a copy
+    of that view's image; one recording for every view of the stack."""
+    w = (0.2, 0.02, 0.03)
+    graphed = GraphedImageTerms(weights=w, **SETTINGS)
+    g = torch.Generator().manual_seed(14)
+    stack = torch.randint(0, 256, (3, 40, 64, 3), generator=g, dtype=torch.uint8).cuda()
+    tables = torch.randint(1, 80, (2, 8, 8), generator=g).float().cuda()
+    for i in (2, 0, 1, 1, 2, 0):
+        render = torch.rand(1, 40, 64, 3, generator=g).cuda()
+        x, xe = (render.clone().permute(0, 3, 1, 2).requires_grad_() for _ in range(2))
+        out = graphed(x, stack[i], tables, "4:2:0")
+        values, grad, r, _ = terms_with_gradient(
+            xe, stack[i].clone(), tables, weights=w, sampling="4:2:0", r_blocks=True, **SETTINGS
+        )
+        torch.testing.assert_close(out.values, values[1:], rtol=1e-6, atol=1e-7)
+        torch.testing.assert_close(out.r, r, rtol=1e-6, atol=1e-7)
+        out.weighted.backward()
+        torch.testing.assert_close(x.grad, grad, rtol=1e-5, atol=1e-8)
+    (rec,) = graphed._graphs.values()
+    assert rec.inputs[1].dtype == torch.int64 and rec.inputs[1].numel() == 1
 
 
 def train_jsgs_variants(tmp_path: Path, variants: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:

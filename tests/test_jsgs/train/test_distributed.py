@@ -656,6 +656,67 @@ def test_a_steps_collectives_and_host_reads(scene: Path, tmp_path: Path) -> None
     mp.spawn(_collectives_worker, args=(port, str(tmp_path)), nprocs=2, join=True)
 
 
+
+def _rider_worker(rank: int, store: str, backend: str) -> None:
+    """One of two processes (gloo on the CPU, or NCCL with a GPU each): every process's step values ride in
+    the gradients' reduce-scatter, its device values including NaN, infinities, -0.0 and float32's largest,
+    and arrive at every process as sent (-0.0 as 0.0: a sum with the other processes' zeros); the gradients
+    are the mean of both processes'."""
+    import math
+
+    import torch
+    import torch.distributed as dist
+
+    from jsgs.train import distributed as dd
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.model import PARAM_NAMES, init_splats
+
+    torch.set_num_threads(1)
+    device = torch.device(f"cuda:{rank}" if backend == "nccl" else "cpu")
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    dist.init_process_group(backend, init_method=f"file://{store}", rank=rank, world_size=2)
+    world = dd.World(rank, 2, rank)
+    cfg = TrainConfig.from_preset("paper", device=device.type)
+    g = torch.Generator().manual_seed(1)
+    full = init_splats(torch.rand(31, 3, generator=g) - 0.5, torch.rand(31, 3, generator=g), cfg, 1.0, device)
+    rows = dd.shard_rows(31, world, "test")
+    shard = torch.nn.ParameterDict({n: torch.nn.Parameter(full[n].data[rows].clone()) for n in PARAM_NAMES})
+    params = [shard[n] for n in PARAM_NAMES]
+    gathers = dd.StepGather(world)
+    lay = ("a",) if rank == 0 else ("b", "c")
+    host = [0.1 * (rank + 1), 1.0 / 3.0, float(2**40 + rank)]
+    sent = [float(rank), -2.5, math.nan, math.inf, -math.inf, -0.0, 3.4028234663852886e38, 1e-30]
+    values = torch.tensor(sent, device=device)
+    gathers(lay, host, values)  # the layouts' first step: the all-gather, which registers them
+    ex = dd.gather_gaussians(world, shard, PARAM_NAMES)
+    for p in ex.params.values():
+        p.grad = torch.full_like(p, float(rank + 1))
+    assert dd.reduce_gradients(world, params, True, ex, rider=gathers.rider(lay, host, values))
+    assert all(torch.equal(p.grad, torch.full_like(p, 1.5)) for p in params)
+    got = gathers.unpack(ex.riders.tolist())
+    assert got is not None and [lay for lay, _ in got] == [("a",), ("b", "c")]
+    for r, (_, row) in enumerate(got):
+        expected = [0.1 * (r + 1), 1.0 / 3.0, float(2**40 + r), float(r), -2.5]
+        assert row[:5] == expected and math.isnan(row[5]), (r, row)
+        assert row[6:] == [math.inf, -math.inf, 0.0, 3.4028234663852886e38, torch.tensor(1e-30).item()], row
+    dist.barrier()
+    os._exit(0)  # (as _reductions_worker)
+
+
+@pytest.mark.parametrize("backend", ["gloo", pytest.param("nccl", marks=pytest.mark.gpu)])
+def test_step_values_ride_the_reduce_scatter_exactly(tmp_path: Path, backend: str) -> None:
+    """The values of a step that ride in the gradients' reduce-scatter reach every process exactly, NaN and
+    infinities included (so a non-finite value on one process stops every process), on gloo and on NCCL
+    (two GPUs; its sums are the GPU's)."""
+    import torch
+    import torch.multiprocessing as mp
+
+    if backend == "nccl" and torch.cuda.device_count() < 2:
+        pytest.skip("needs two GPUs")
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+    mp.spawn(_rider_worker, args=(str(tmp_path / "store"), backend), nprocs=2, join=True)
+
 @settings(max_examples=300, deadline=None)
 @given(st.floats(allow_nan=False, allow_infinity=False, min_value=-1e30, max_value=1e30))
 def test_a_host_value_rides_as_three_float32_exactly(x: float) -> None:
