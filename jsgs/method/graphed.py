@@ -124,11 +124,12 @@ class GraphedImageTerms:
 
     This is exact for the loss the trainer forms, Σ_k λ_k·term_k + the rest, because the weights are fixed
     for the run and the weighted sum enters the loss as one term (``HookOutput.folded_loss``). Each call
-    copies the render, the target and the tables into the graph's input buffers and the four values out.
+    copies the render, the target (or the image's index in the trainer's stack) and the tables into the
+    graph's input buffers and the four values out.
 
     The observation is an output buffer only in the graphs of calls that ask for it (``observation``; the
     hook's ``keep_last``): the others leave it in the graph's private pool, 12 bytes a pixel less of memory
-    kept for the run. Both kinds compute the same values, gradient and r(p). The gradient is written over
+    kept for the run. Both kinds compute the same values, gradient and r_b. The gradient is written over
     the render's input buffer at the end of the replay (``grad_into_x``; the next call copies the next render
     in): no output buffer of its own, 12 bytes a pixel less. Given the uint8 training image
     instead of the target (the hook does where the trainer says which it is, ``StepContext.image``), the
@@ -206,9 +207,9 @@ class GraphedImageTerms:
 
     def _buffer(self, role: str, like: Tensor, shape: tuple[int, ...] | None = None) -> Tensor:
         """A tensor of ``shape`` (default ``like``'s) and ``like``'s dtype and device, holding ``like``'s
-        values where it has that shape, on this object's flat buffer for ``role`` (render, target, tables,
-        r) of that many elements: made on first use, then shared by every recording that asks for the same
-        role and size (never by two buffers of one recording)."""
+        values where it has that shape, on this object's flat buffer for ``role`` (render, target, index,
+        tables, r) of that many elements: made on first use, then shared by every recording that asks for
+        the same role and size (never by two buffers of one recording)."""
         shape = tuple(like.shape) if shape is None else shape
         numel = 1
         for d in shape:

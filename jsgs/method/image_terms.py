@@ -144,8 +144,8 @@ def terms_with_gradient(
         settings: :func:`jpeg_terms`'s, with ``sampling``.
     Returns:
         values ``(4,)`` (the weighted sum, L_obs, L_low, L_mid), its gradient with respect to ``x`` (None when
-        ``x`` needs none), r(p) ``(1, H, W)`` and the observation ``(1, 3, H, W)`` (None without
-        ``observation``), all detached. The values do not depend on ``observation``.
+        ``x`` needs none), r(p) ``(1, H, W)`` (r_b with ``r_blocks``) and the observation ``(1, 3, H, W)``
+        (None without ``observation``), all detached. The values do not depend on ``observation``.
     """
     if y_index is not None:
         y = y.index_select(0, y_index)[0]

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from jsgs.method.pooling import (
+    DeferredProbeMap,
     footprint_sums,
     new_probe,
     pool_direct,
@@ -57,15 +58,18 @@ _KEYS = ("means", "quats", "scales", "opacities", "sh")
 
 def _run(
     s: dict, backend: str, seed: int = 1, probe: bool = False, r: torch.Tensor | None = None, mode: str = "",
-    distortion: torch.Tensor | None = None,
+    distortion: torch.Tensor | None = None, deferred: bool = False,
 ):
-    """Render with ``backend`` (absgrad on), back-propagate a fixed random loss; images, info, gradients."""
+    """Render with ``backend`` (absgrad on), back-propagate a fixed random loss; images, info, gradients.
+    With ``probe``, the loss has the probe objective of ``r`` (``deferred``: its map made in the backward,
+    ``rasterize(..., extra_upstream=DeferredProbeMap)``, as the trainer's deferred controller does)."""
     lv = {k: s[k].clone().requires_grad_(True) for k in _KEYS}
     extra = new_probe(s["means"].shape[0], s["means"], n_cameras=s["viewmats"].shape[0]) if probe else None
+    make = DeferredProbeMap(1.0) if deferred else None
     img, alpha, info = rasterize(
         lv["means"], lv["quats"], lv["scales"], lv["opacities"], lv["sh"], s["viewmats"], s["Ks"], W, H,
         sh_degree=3, backgrounds=s["bg"], backend=backend, extra=extra, absgrad=True,
-        render_mode=mode or "RGB", distortion=distortion,
+        render_mode=mode or "RGB", distortion=distortion, extra_upstream=make,
     )  # fmt: skip
     info["means2d"].retain_grad()
     info["conics"].retain_grad()  # the footprint attribution's V_i
@@ -73,7 +77,10 @@ def _run(
     wi = torch.randn(img.shape, generator=g, device="cuda")
     wa = torch.randn(alpha.shape, generator=g, device="cuda")
     loss = (img * wi).sum() + (alpha * wa).sum()
-    if probe:
+    if make is not None:
+        make.r = r
+        loss = loss + info["extra_objective"]
+    elif probe:
         loss = loss + probe_objective(info, r)
     loss.backward()
     grads = {k: v.grad for k, v in lv.items()}
@@ -216,6 +223,39 @@ def test_gsplat_probe_leaves_gradients_alone() -> None:
     for k, v in base[0][3].items():
         noise = (base[1][3][k] - v).abs().max().item()  # atomics make gsplat's backward order-dependent
         diff = (with_probe[3][k] - v).abs().max().item()
+        assert diff <= max(4 * noise, 1e-6 * v.abs().max().item()), (k, diff, noise)
+
+
+def test_gsplat_probe_map_made_in_the_backward_matches_the_objective(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The probe's map made in the backward on gsplat (``extra_upstream``, as the trainer's deferred
+    controller renders): the same image, its colours a contiguous copy; gsplat's five-channel image freed
+    after the render (no ``info["extra"]``), where the probe objective's render keeps it; the probe's and
+    every parameter's gradient within gsplat's run-to-run noise of the probe objective's."""
+    import weakref
+
+    import gsplat
+
+    s = _scene(seed=5)
+    r = torch.rand(2, H, W, device="cuda")
+    made: list = []
+    real = gsplat.rasterization
+
+    def recording(*args: object, **kwargs: object) -> object:
+        out = real(*args, **kwargs)
+        made.append(weakref.ref(out[0]))
+        return out
+
+    monkeypatch.setattr(gsplat, "rasterization", recording)
+    base = [_run(s, "gsplat", probe=True, r=r) for _ in range(2)]
+    assert made[-1]() is not None and base[1][2]["extra"].shape == (2, H, W, 2)
+    img, _, info, grads = _run(s, "gsplat", probe=True, r=r, deferred=True)
+    assert made[-1]() is None and "extra" not in info and img.is_contiguous()
+    assert torch.equal(img, base[0][0])
+    for k, v in {**base[0][3], "probe": base[0][2]["extra_features"].grad}.items():
+        other = base[1][3][k] if k != "probe" else base[1][2]["extra_features"].grad
+        got = grads[k] if k != "probe" else info["extra_features"].grad
+        noise = (other - v).abs().max().item()  # atomics make gsplat's backward order-dependent
+        diff = (got - v).abs().max().item()
         assert diff <= max(4 * noise, 1e-6 * v.abs().max().item()), (k, diff, noise)
 
 
