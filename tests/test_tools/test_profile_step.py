@@ -33,10 +33,12 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
     argv = [
         "--size", "48x32", "--views", "6", "--warmup", "3", "--settle", "1", "--steps", "2",
         "--device", "cpu", "--config", str(cfg), "--top", "5", "--workdir", str(work), "--out", str(out),
-        "--python-top", "4", "--trace", str(tmp_path / "traces"),
+        "--python-top", "4", "--trace", str(tmp_path / "traces"), "--memory-history", "3",
     ]  # fmt: skip
     assert ps.main(argv) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
+    assert "note: profile_step: --memory-history: CUDA only; not recorded" in captured.err
     header = "| method | wall ms/step (unprofiled) | the same, run not resumed | wall ms/step (profiled) |"
     assert header in printed
     assert "jsgs − gsplat: top 5 kernels by extra" in printed

@@ -96,7 +96,7 @@ def install() -> None:
 PASSED_ON = (
     "--manifest", "--size", "--views", "--methods", "--preset", "--config", "--jsgs-options", "--warmup",
     "--settle", "--steps", "--top", "--python-top", "--trace", "--pairs", "--no-fresh", "--threads",
-    "--workdir", "--out",
+    "--workdir", "--out", "--memory-history", "--memory-steps", "--memory-stacks",
 )  # fmt: skip
 
 

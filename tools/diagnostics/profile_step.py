@@ -73,6 +73,16 @@ device memory at the run's start (after :func:`release_memory`), the window's pe
 over the start (the window's own memory, whatever earlier windows left): the K values per method, their
 medians, and for the peak and the increment the median ratio to the baseline's with its interval.
 
+With ``--memory-history N`` (CUDA only), after the rest is printed and written, each method's checkpoint is
+resumed once more with the CUDA allocator's history recorded (``torch.cuda.memory._record_memory_history``,
+from before the run loads anything, so every tensor it holds has the stack that made it) over a window of
+``--memory-steps`` steps after ``--settle``: the bytes live at the window's start (what a step finds held)
+and at its peak, grouped by where they were made (the innermost Python frame outside torch and the standard
+library, and the autograd node or library frame beneath it: ``memory_history.py``), the ``N`` largest
+groups of each method, and each method's groups minus the first method's. Only that summary is kept, never
+the snapshot. ``--memory-stacks all`` records C++ frames too, which name the autograd node of a backward
+allocation (the engine's device thread has no Python frame); set ``TORCH_SYMBOLIZE_MODE=fast`` for it.
+
 Then, for every method against the first (normally jsgs − gsplat), the ``--top`` kernels by extra device
 time per step and by extra host launches per step. Kernels replayed from a CUDA graph count as runs, not as
 host launches. On the CPU the "kernels" are the counted aten ops and their time is the op's own host time.
@@ -83,12 +93,15 @@ from __future__ import annotations
 import argparse
 import cProfile
 import gc
+import inspect
 import json
 import math
+import os
 import pstats
 import shutil
 import statistics
 import sys
+import sysconfig
 import tempfile
 import time
 import weakref
@@ -103,6 +116,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import memory_history  # noqa: E402
 from bench_train_overhead import build_scene, report_header, variant_config  # noqa: E402
 
 from jsgs.apps.opcount import FREE_OPS  # noqa: E402
@@ -119,6 +133,9 @@ FORMAT = "jsgs-profile-step"
 #: The peak device memory figures of a window (:meth:`StepWindow.peak_memory`), in the order printed.
 MEMORY_KINDS = ("allocated", "reserved")
 FORMAT_VERSION = 3
+#: ``--memory-history``: the allocator history's ring buffer, in events (a step makes a few thousand; the
+#: window's start must not be overwritten before its end)
+HISTORY_MAX_ENTRIES = 2_000_000
 #: The profiler annotation around the synchronisation that closes the window (not the steps' own work).
 WINDOW_END = "profile_step: window end"
 
@@ -268,6 +285,37 @@ class PythonWindow(StepWindow):
         ]  # fmt: skip
 
 
+class HistoryWindow(StepWindow):
+    """A :class:`StepWindow` whose run records the CUDA allocator's history (:func:`history_window`): at the
+    window's start a ``torch.cuda.memory._snapshot()`` call marks it in the history (its result is dropped),
+    and at its end, after the peaks are read, a snapshot is summarised (:func:`memory_history.summarise`:
+    ``summary``) and the recording stops."""
+
+    def __init__(self, device: torch.device, settle: int, steps: int, library: Callable[[str], bool]) -> None:
+        super().__init__(device, settle, steps)
+        self.library = library
+        self.summary: memory_history.Summary | None = None
+
+    def __call__(self) -> None:
+        i = self.calls
+        if i == self.settle:
+            synchronize(self.device)
+            torch.cuda.memory._snapshot()  # records the "snapshot" event that marks the window's start
+        super().__call__()
+        if i == self.settle + self.steps:
+            snapshot = torch.cuda.memory._snapshot()
+            torch.cuda.memory._record_memory_history(enabled=None)
+            index = self.device.index if self.device.index is not None else torch.cuda.current_device()
+            self.summary = memory_history.summarise(snapshot, index, self.library)
+
+
+def library_files() -> Callable[[str], bool]:
+    """torch's package and Python's standard library: the frames :func:`memory_history.where` looks past."""
+    paths = sysconfig.get_paths()
+    here = Path(torch.__file__).parent
+    return memory_history.under({str(here), str(here.resolve()), paths["stdlib"], paths["platstdlib"]})
+
+
 class StepCallback(Callback):
     """A training callback that calls ``fn`` at the start of every step (a :class:`StepWindow`'s clock).
     ``trainer``: a weak reference to the trainer it served (None before the first step): dead once the run
@@ -355,6 +403,68 @@ def plain_window(
             file=sys.stderr,
         )
     return doc, PlainWindow(clock.ms_per_step(), start, clock.peak_memory(), released)
+
+
+def history_window(
+    manifest: Path, run: Path, device: torch.device, settle: int, steps: int, stacks: str
+) -> tuple[dict[str, Any], HistoryWindow, dict[str, int] | None]:
+    """Resume the run folder ``run`` for one window with the CUDA allocator's history recorded from before
+    the run loads anything (cleared first, so it holds this run's events only), between two
+    :func:`release_memory` calls: ``(the run's metrics document, its HistoryWindow, the device memory at the
+    start)``."""
+    record = torch.cuda.memory._record_memory_history
+    if "clear_history" not in inspect.signature(record).parameters:
+        raise JsgsError(
+            f"--memory-history: torch {torch.__version__}'s _record_memory_history cannot clear it"
+        )
+    if stacks == "all":  # torch's own C++ symboliser, seconds instead of minutes of addr2line
+        os.environ.setdefault("TORCH_SYMBOLIZE_MODE", "fast")
+    release_memory(device)
+    start = device_memory(device)
+    clock = HistoryWindow(device, settle, steps, library_files())
+    record(enabled="all", context="alloc", stacks=stacks, max_entries=HISTORY_MAX_ENTRIES, clear_history=True)
+    try:
+        doc = train(manifest, run, resume=True, progress=False, log=_quiet, callbacks=[StepCallback(clock)])
+    finally:
+        record(enabled=None)
+    release_memory(device)
+    return doc, clock, start
+
+
+def memory_histories(
+    manifest: Path, work: Path, methods: Sequence[str], device: torch.device, settle: int,
+    args: argparse.Namespace,
+) -> dict[str, Any]:  # fmt: skip
+    """``--memory-history``: each method's checkpoint (``work/METHOD/warm``) resumed once more for
+    ``--memory-steps`` steps with the history recorded (:func:`history_window`): the document's
+    ``memory_history`` object (each method's summary, the allocator's own peak over the same window, and each
+    method's groups minus the first method's at the window's start and peak)."""
+    top, steps = args.memory_history, args.memory_steps
+    summaries: dict[str, memory_history.Summary] = {}
+    out: dict[str, Any] = {"settle": settle, "steps": steps, "stacks": args.memory_stacks, "top": top}
+    out["by_method"], out["difference"] = {}, {}
+    for m in methods:
+        copy = work / m / "history"
+        shutil.copytree(work / m / "warm", copy)
+        doc, clock, start = history_window(manifest, copy, device, settle, steps, args.memory_stacks)
+        shutil.rmtree(copy)
+        if clock.summary is None:
+            raise JsgsError(f"{m}: --memory-history: the window's end was not reached")
+        summaries[m] = clock.summary
+        out["by_method"][m] = clock.summary.doc(top) | {
+            "num_gaussians": int(doc["num_gaussians"]),
+            "max_memory_allocated_bytes": clock.peak_allocated,
+            "start_memory_allocated_bytes": None if start is None else start["allocated"],
+        }
+    base = methods[0]
+    for m in methods[1:]:
+        a, b = summaries[m], summaries[base]
+        out["difference"][m] = {
+            "baseline": base,
+            "start": memory_history.difference(a.start, b.start, top),
+            "peak": memory_history.difference(a.peak, b.peak, top),
+        }
+    return out
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -885,6 +995,52 @@ def print_python(doc: dict[str, Any]) -> None:
             print(f"| {_name(row['function'], 80)} | {cells[0]:.1f} | {cells[1]:.3f} | {cells[2]:.3f} |")
 
 
+def _history_table(title: str, groups: list[dict[str, Any]], columns: Sequence[tuple[str, str]]) -> None:
+    print()
+    print(title)
+    print()
+    print("| where (innermost frame outside torch) | via (autograd node or library frame) | " + " | ".join(
+        c for c, _ in columns) + " |")  # fmt: skip
+    print("|---|---|" + "---:|" * len(columns))
+    for g in groups:
+        cells = [f"{g[k] / 2**20:.2f}" if k.endswith("bytes") else str(g[k]) for _, k in columns]
+        print(f"| {_name(g['where'], 70)} | {_name(g['via'], 50) or '–'} | " + " | ".join(cells) + " |")
+
+
+def print_memory_history(doc: dict[str, Any]) -> None:
+    """The ``--memory-history`` tables: each method's live allocations at the window's peak and start by
+    where they were made, then each method's groups minus the first method's."""
+    h = doc.get("memory_history")
+    if not h:
+        return
+    print()
+    print(
+        f"live CUDA allocations by where they were made (--memory-history: a window of {h['steps']} steps "
+        f"after {h['settle']} resumed, the allocator's history with {h['stacks']} stacks; MiB asked for, "
+        "the allocator rounds each block up to 512 B)"
+    )
+    own = (("MiB", "bytes"), ("blocks", "blocks"), ("largest MiB", "largest_bytes"))
+    for m, r in h["by_method"].items():
+        peak, start = r["peak"], r["start"]
+        print()
+        print(
+            f"{m}: {r['num_gaussians']} Gaussians; at the window's start {start['bytes'] / 2**20:.2f} MiB, "
+            f"its peak {peak['bytes'] / 2**20:.2f} MiB after event {peak['entry']} of {r['window_entries']} "
+            f"(max_memory_allocated over the window {_cell(_mib(r['max_memory_allocated_bytes']))} MiB; "
+            f"allocated before the recording {_cell(_mib(r['start_memory_allocated_bytes']))} MiB, of which "
+            f"{r['freed_unrecorded_bytes'] / 2**20:.2f} freed in the trace; {r['trace_entries']} events)"
+        )  # fmt: skip
+        _history_table(f"{m}: live at the window's peak, top {h['top']}", peak["groups"], own)
+        _history_table(
+            f"{m}: live at the window's start (held between steps), top {h['top']}", start["groups"], own
+        )
+    for m, d in h["difference"].items():
+        b = d["baseline"]
+        cols = (("extra MiB", "bytes"), (f"{m} MiB", "method_bytes"), (f"{b} MiB", "baseline_bytes"))
+        _history_table(f"{m} − {b}: live at the window's peak, the most extra bytes", d["peak"], cols)
+        _history_table(f"{m} − {b}: live at the window's start, the most extra bytes", d["start"], cols)
+
+
 def _json_arg(text: str) -> dict[str, Any]:
     try:
         value = json.loads(text)
@@ -933,6 +1089,19 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         "--no-fresh", dest="fresh", action="store_false",
         help="skip the check run trained from step 0 (it costs another --warmup steps per method)",
     )  # fmt: skip
+    ap.add_argument(
+        "--memory-history", type=int, default=0, metavar="N",
+        help="CUDA: then resume each method once more with the allocator's history recorded and list the N "
+        "largest groups of live allocations at the window's start and peak by where they were made [0: no]",
+    )  # fmt: skip
+    ap.add_argument(
+        "--memory-steps", type=int, help="steps of the --memory-history window [8, or --steps if fewer]"
+    )  # fmt: skip
+    ap.add_argument(
+        "--memory-stacks", choices=["python", "all"], default="python",
+        help="--memory-history's stacks: Python frames, or C++ too (names a backward's autograd node) "
+        "[python]",
+    )  # fmt: skip
     ap.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     ap.add_argument("--workdir", type=Path, help="the runs' temporary folder goes here [system's]")
     ap.add_argument("--out", type=Path, help="write the results as JSON here")
@@ -941,6 +1110,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         ap.error("--warmup, --settle, --steps and --top must be >= 1")
     if args.pairs < 0:
         ap.error(f"--pairs must be >= 0, got {args.pairs}")
+    if args.memory_steps is None:
+        args.memory_steps = min(8, args.steps)
+    if args.memory_history < 0 or not 1 <= args.memory_steps <= args.steps:
+        ap.error(
+            f"--memory-history must be >= 0 and --memory-steps from 1 to --steps ({args.steps}), got "
+            f"{args.memory_history} and {args.memory_steps}"
+        )
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if not methods or len(set(methods)) != len(methods):
         ap.error(f"--methods {args.methods!r}: give distinct method names")
@@ -1004,6 +1180,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                     p, s0 = peaks[m], starts[m]
                     results[m][f"paired_peak_memory_{k}_bytes"] = None if p is None else p[k]
                     results[m][f"paired_start_memory_{k}_bytes"] = None if s0 is None else s0[k]
+        doc = document(args, manifest, device, results, stats, pairs)
+        if args.memory_history > 0 and device.type != "cuda":
+            print("note: profile_step: --memory-history: CUDA only; not recorded", file=sys.stderr)
+        elif args.memory_history > 0:  # the rest first: a history that does not finish loses nothing else
+            report(doc, args)
+            doc["memory_history"] = memory_histories(manifest, work, methods, device, args.settle, args)
+    return doc
+
+
+def document(
+    args: argparse.Namespace, manifest: Path | str, device: torch.device, results: dict[str, dict[str, Any]],
+    stats: dict[str, WindowStats], pairs: dict[str, Any] | None,
+) -> dict[str, Any]:  # fmt: skip
+    """The output document of the profiles and the pairs: every method's kernels against the first's."""
+    methods = list(results)
     baseline = methods[0]
     differences = {}
     for m in methods[1:]:
@@ -1022,13 +1213,23 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     )
 
 
+def report(doc: dict[str, Any], args: argparse.Namespace) -> None:
+    """Print the profiles' tables and write the document (``--out``)."""
+    print_report(doc)
+    print_pairs(doc)
+    print_python(doc)
+    if args.out:
+        write_json_checked(args.out, doc, "profile_step")
+
+
 @reports_user_errors
 def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     doc = run(args)
-    print_report(doc)
-    print_pairs(doc)
-    print_python(doc)
+    if "memory_history" not in doc:
+        report(doc, args)
+        return 0
+    print_memory_history(doc)  # the rest was reported before the history was recorded (run)
     if args.out:
         write_json_checked(args.out, doc, "profile_step")
     return 0
