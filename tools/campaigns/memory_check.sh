@@ -28,7 +28,7 @@
 # On the CPU first (folders that .gitignore's .gpu*/ ignores): the two scenes without their sparse/ folders
 # (the manifests hold the cameras and points), 27.8 MB in .gpuMem; the half scene's manifest names its test
 # views' references, which loading it checks, so reference/ stays. With the tree (27.0 MB) and the wheels
-# (7.0 MB), 61.8 MB = 58.9 MiB of the 64 MiB a call carries (.gpuM and .gpuW whole: 62.3 MiB):
+# (7.0 MB), 61.9 MB = 59.0 MiB of the 64 MiB a call carries (.gpuM and .gpuW whole: 62.3 MiB):
 #   mkdir -p .gpuMem/jpeg_mouse .gpuMem/jpeg_mouse_half_gaussian
 #   cp -r .gpuM/jpeg_mouse/manifest.json .gpuM/jpeg_mouse/images .gpuMem/jpeg_mouse/
 #   cp -r .gpuW/jpeg_mouse_half_gaussian/{manifest.json,compress.json,images,reference} \
