@@ -152,7 +152,36 @@ def test_difference_lists_the_groups_a_method_holds_more_of() -> None:
         {"where": "method/graphed.py:120(_buffer)", "via": "", "bytes": 2500, "method_bytes": 4000,
          "baseline_bytes": 1500},
     ]  # fmt: skip
-    assert mh.difference(b.peak, a.peak, top=5) == []
+    # the other way round the same group is a negative row, not left out
+    assert [(r["where"], r["bytes"]) for r in mh.difference(b.peak, a.peak, top=5)] == [
+        ("method/graphed.py:120(_buffer)", -2500)
+    ]
+
+
+#: the device's cuBLAS workspace, made by each method's first cuBLAS call: gsplat's camera inverse, and the
+#: matrix product of JSGS's render (the same 32 MiB under two frames)
+WORKSPACE = 32 << 20
+GSPLAT_INVERSE = [py("/tmp/site/gsplat/rendering.py", 491, "rasterization")]
+JSGS_MATMUL = [py("/repo/jsgs/render/backend.py", 280, "_rasterize_gsplat")]
+
+
+def test_difference_shows_one_allocation_under_two_frames_as_rows_that_cancel() -> None:
+    """The positive rows alone counted the workspace as the method's extra (32 MiB that gsplat holds too):
+    its baseline row is listed, negative, so that the rows sum to the difference of the totals."""
+    method = mh.group([(WORKSPACE, JSGS_MATMUL), (4000, GRAPH), (3000, MUL_BACKWARD)], LIBRARY)
+    baseline = mh.group([(WORKSPACE, GSPLAT_INVERSE), (3000, MUL_BACKWARD), (700, PAD)], LIBRARY)
+    rows = mh.difference(method, baseline, top=5)
+    assert [(r["where"], r["bytes"]) for r in rows] == [
+        ("render/backend.py:280(_rasterize_gsplat)", WORKSPACE),
+        ("method/graphed.py:120(_buffer)", 4000),
+        ("gsplat/rendering.py:491(rasterization)", -WORKSPACE),
+        ("method/hook.py:77(__call__)", -700),
+    ]
+    total = sum(g.bytes for g in method.values()) - sum(g.bytes for g in baseline.values())
+    assert sum(r["bytes"] for r in rows) == total == 3300
+    assert rows[2]["method_bytes"] == 0 and rows[2]["baseline_bytes"] == WORKSPACE
+    # ``top`` applies to each side: the largest extra and the largest shortfall
+    assert [r["bytes"] for r in mh.difference(method, baseline, top=1)] == [WORKSPACE, -WORKSPACE]
 
 
 class FakeMemory:

@@ -199,13 +199,17 @@ def under(roots: Iterable[str]) -> Callable[[str], bool]:
 
 def difference(method: dict[Key, Group], baseline: dict[Key, Group], top: int) -> list[dict[str, Any]]:
     """Group by group, ``method``'s bytes minus ``baseline``'s (a group either lacks counts as 0): the
-    ``top`` groups by the most extra bytes, positive differences only."""
+    ``top`` groups with the most extra bytes (positive, largest first), then the ``top`` groups the baseline
+    holds more of (negative, most negative first). One allocation made under two different frames (the
+    first cuBLAS call of each method makes the device's cuBLAS workspace: ``gsplat/rendering.py``'s camera
+    inverse in one, ``render/backend.py``'s matrix product in the other) is a positive row and a negative
+    row of the same size, which cancel: the positive rows alone would count it as the method's extra."""
     keys = sorted(set(method) | set(baseline))
     extra = [(method.get(k, Group()).bytes - baseline.get(k, Group()).bytes, k) for k in keys]
-    ranked = sorted((d, k) for d, k in extra if d > 0)
-    ranked.sort(key=lambda dk: -dk[0])
+    more = sorted(((d, k) for d, k in extra if d > 0), key=lambda dk: -dk[0])[:top]
+    fewer = sorted(((d, k) for d, k in extra if d < 0), key=lambda dk: dk[0])[:top]
     return [
         {"where": k[0], "via": k[1], "bytes": d, "method_bytes": method.get(k, Group()).bytes,
          "baseline_bytes": baseline.get(k, Group()).bytes}
-        for d, k in ranked[:top]
+        for d, k in more + fewer
     ]  # fmt: skip

@@ -79,9 +79,11 @@ from before the run loads anything, so every tensor it holds has the stack that 
 ``--memory-steps`` steps after ``--settle``: the bytes live at the window's start (what a step finds held)
 and at its peak, grouped by where they were made (the innermost Python frame outside torch and the standard
 library, and the autograd node or library frame beneath it: ``memory_history.py``), the ``N`` largest
-groups of each method, and each method's groups minus the first method's. Only that summary is kept, never
-the snapshot. ``--memory-stacks all`` records C++ frames too, which name the autograd node of a backward
-allocation (the engine's device thread has no Python frame); set ``TORCH_SYMBOLIZE_MODE=fast`` for it.
+groups of each method, and each method's groups minus the first method's (the ``N`` most extra, then the
+``N`` most negative: one allocation made under two frames, such as the cuBLAS workspace of each method's
+first matrix call, is a row and a negative row that cancel). Only that summary is kept, never the snapshot.
+``--memory-stacks all`` records C++ frames too, which name the autograd node of a backward allocation (the
+engine's device thread has no Python frame); set ``TORCH_SYMBOLIZE_MODE=fast`` for it.
 
 Then, for every method against the first (normally jsgs − gsplat), the ``--top`` kernels by extra device
 time per step and by extra host launches per step. Kernels replayed from a CUDA graph count as runs, not as
@@ -1037,8 +1039,13 @@ def print_memory_history(doc: dict[str, Any]) -> None:
     for m, d in h["difference"].items():
         b = d["baseline"]
         cols = (("extra MiB", "bytes"), (f"{m} MiB", "method_bytes"), (f"{b} MiB", "baseline_bytes"))
-        _history_table(f"{m} − {b}: live at the window's peak, the most extra bytes", d["peak"], cols)
-        _history_table(f"{m} − {b}: live at the window's start, the most extra bytes", d["start"], cols)
+        for moment in ("peak", "start"):
+            net = (h["by_method"][m][moment]["bytes"] - h["by_method"][b][moment]["bytes"]) / 2**20
+            _history_table(
+                f"{m} − {b}: live at the window's {moment}, the most extra bytes, then the most fewer "
+                f"(negative; a row and a negative row of one size may be one allocation made under two "
+                f"frames); all groups together {net:+.2f} MiB", d[moment], cols,
+            )  # fmt: skip
 
 
 def _json_arg(text: str) -> dict[str, Any]:
