@@ -1,72 +1,73 @@
 # What the operating point (docs/results/operating_point/README.md) still lacks, on one machine of 4 GPUs
-# over three or four chained calls, in order of priority:
+# over three chained calls, in order of priority (flower's and fern's (a) benches ran: auto30/README.md):
 #   (a) the equal-time table at the retuned auto budgets (--budgets auto, 30 training pixels per Gaussian:
-#       flower 184k, fern 108k, cup 222k, mouse 107k): gsplat (trained GSPLAT_STEPS = 1.5 x the 30,000 steps,
-#       so the table interpolates), JSGS (the mcmc preset's recipe, gc_every 4) and the clean ceiling, gaussian
-#       schedule, seeds 0 and 1 (operating_point.sh PART=time): one bench per scene and seed, jobs
-#       a_<scene>_s<seed>; the cup's and the mouse's clean ceilings, whose budgets did not change, are the
-#       queued jobs ac_cup and ac_mouse;
+#       cup 222k, mouse 107k; flower 184k and fern 108k are done) for the cup and the mouse: gsplat (trained
+#       GSPLAT_STEPS = 1.5 x the 30,000 steps, so the table interpolates) and JSGS (the mcmc preset's recipe,
+#       gc_every 4), gaussian schedule, seeds 0 and 1 (operating_point.sh PART=time): one bench per scene and
+#       seed, jobs a_<scene>_s<seed>; their clean ceilings, whose budgets did not change with the rule, are
+#       the queued jobs ac_cup and ac_mouse (a_flower_s<i> and a_fern_s<i> train theirs in the bench);
 #   (b) a second seed (B_SEEDS, 1) at fixed budgets, JSGS (operating_point.sh PART=rule): b_fern (100k),
 #       b_mouse100 and b_mouse300 (custom_myhan_mouse), to tell the mouse's +0.0065 LPIPS miss from seed noise.
 #       The fixed budgets' seed 0 trained with gc_every 1; these runs, like (a)'s, with the preset's gc_every
 #       4, so the mouse's seed 1 at 100k compares with (a)'s mouse seed 1 under one recipe;
 #   (c) the uniform and descending schedules: gsplat (1.5x) and JSGS at the auto budgets, c_<scene>_s<seed>.
 # Each GPU is a lane, run detached (setsid) from a copy of the tree in /tmp/src, so it goes on between calls:
-# first its two pinned (a) benches side by side with all their runs at once, so that each gsplat run shares
-# its GPU with its JSGS pair the whole time (LANES, GPU:job,job):
-#   GPU 0: cup s0 + fern s0   GPU 1: cup s1 + fern s1   GPU 2: flower s0 + mouse s0   GPU 3: flower s1 + mouse s1
-# (5 runs per GPU; a row's runs_per_device counts its own bench's runs only), then, one at a time, the first
+# first its pinned (a) benches, side by side with all their runs at once where a lane has two, so that each
+# gsplat run shares its GPU with its JSGS pair the whole time (LANES, GPU:job,job):
+#   GPU 0: cup s0   GPU 1: cup s1   GPU 2: mouse s0   GPU 3: mouse s1
+# (2 runs per GPU; a row's runs_per_device counts its own bench's runs only), then, one at a time, the first
 # job of QUEUE (ac_cup ac_mouse b_fern b_mouse100 b_mouse300, then c_* seed 0, then 1) whose estimate fits before
 # STOP_AT (1200), the seconds after PHASE 1 began at which every bench stops (--time-limit: runs still going
 # stop at their last evaluation, which comes back), once its data has come. A lane ends when none fits.
 # What fits: a GPU trains about 230 steps/s of flower, 245 of fern, 155 of the mouse and 140 of the cup,
 # however many runs share it (the H100/H200 runs in docs/results/operating_point, 2 to 5 per GPU, at the
-# earlier rule's larger flower and fern budgets). (a) without ac_* is then 3,810 GPU-seconds, 941-965 per GPU:
-# the lanes end about 1,100 s after PHASE 1 began, about 20-21 minutes of device time with the machine's start
-# and the last call (STOP_AT caps it at about 22; GSPLAT_STEPS=1.3 would save about 70 s per GPU). No queued job
-# fits by default. STOP_AT=1600 (about 28 minutes, near the 30 that a machine is held) adds ac_cup, ac_mouse,
-# b_fern and b_mouse100, one per freed GPU. The rest needs a machine of its own, with LANES="0: 1: 2: 3:" (no
-# pinned jobs): QUEUE="b_fern b_mouse100 b_mouse300 ac_cup ac_mouse" STOP_AT=800 (about 15 minutes),
-# QUEUE="c_fern_s0 c_flower_s0 c_mouse_s0 c_cup_s0" STOP_AT=1250 ((c) at seed 0, about 23 minutes).
+# earlier rule's larger flower and fern budgets); on 2 H200s with 6 runs per GPU, flower's and fern's (a)
+# benches (about 890 s a GPU by these rates) took 711-719 s. With the lanes starting about 110 s after PHASE 1
+# began: the mouse's benches end near 600 s and take ac_cup and ac_mouse, the cup's near 650 s and take b_fern
+# and b_mouse100; b_mouse300 and (c) do not fit. The lanes end about 1,000 s after PHASE 1 began, about 20-21
+# minutes of device time with the machine's start and the last call (STOP_AT caps it at about 23). The rest
+# needs a machine of its own, with LANES="0: 1: 2: 3:" (no pinned jobs): QUEUE="b_mouse300 c_fern_s0
+# c_flower_s0 c_mouse_s0 c_cup_s0" STOP_AT=1250 (about 23 minutes).
 #
-# THE RUN, step by step (about 21 minutes of a session's 30; every call timeout_s 600; the machine goes back
-# after 30 s idle, and the lanes with it, so each call starts right after the last one's reply):
+# THE RUN, step by step (about 21 minutes of a session's 30, 23 at most; every call timeout_s 600; the machine
+# goes back after 30 s idle, and the lanes with it, so each call starts right after the last one's reply):
 #   0. On the CPU, in /work/main (the checkout the device tool sends; `git status --porcelain` prints nothing),
 #      check that each call's tree and carries stay under 64 MiB (67,108,864 bytes):
-#        t=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1); du -sb .whl .gpuOP1 .gpuOP2
-#      the first call = t + .whl + .gpuOP1, the second = t + .gpuOP2. Measured: t 26,286,500, .whl
-#      7,030,231, .gpuOP1 28,609,419 (cup, fern, the LPIPS weights), .gpuOP2 24,070,457 (flower, mouse):
-#      61,926,150 (59.1 MiB) and 50,356,957 (48.0 MiB), so the tree may grow by 5 MB at most. Should the
-#      folders be missing (they are made from ../shared):
+#        t=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1); du -sb .whl .gpuOP3 .gpuOP4
+#      the first call = t + .whl + .gpuOP3, the second = t + .gpuOP4. Measured: t 27,500,376, .whl
+#      7,030,231, .gpuOP3 29,725,804 (the cup, the mouse, the LPIPS weights), .gpuOP4 22,954,072 (fern,
+#      flower): 64,256,411 (61.3 MiB) and 50,454,448 (48.1 MiB), so the tree may grow by 2.8 MB at most.
+#      Should the folders be missing (they are made from ../shared; or copied from .gpuOP1 and .gpuOP2):
 #        bash scripts/gpu_prepare.sh      # the wheels in .whl
-#        GPU_DIR=.gpuOP1 GPU_SCENES="custom_kwrous_cup llff_fern" bash scripts/gpu_prepare.sh
-#        GPU_DIR=.gpuOP2 GPU_SCENES="llff_flower custom_myhan_mouse" bash scripts/gpu_prepare.sh && \
-#            rm .gpuOP2/alexnet_features.pth
-#   1. run kind nvidia-h100-x4, carry [".whl", ".gpuOP1"]: PHASE=1 bash tools/campaigns/operating_point_next.sh
-#      (copies the tree and the data, builds, ~80 s, starts the lanes: its reply shows lanes.log with the
-#      "start a_cup_s<i>/a_fern_s<i>" lines; "build failed" there: give the machine back, build.log says why)
-#   2. run, carry [".gpuOP2"]: PHASE=2 bash tools/campaigns/operating_point_next.sh (its data, then 480 s)
+#        GPU_DIR=.gpuOP3 GPU_SCENES="custom_kwrous_cup custom_myhan_mouse" bash scripts/gpu_prepare.sh
+#        GPU_DIR=.gpuOP4 GPU_SCENES="llff_fern llff_flower" bash scripts/gpu_prepare.sh && \
+#            rm .gpuOP4/alexnet_features.pth
+#   1. run kind nvidia-h100-x4, carry [".whl", ".gpuOP3"]: PHASE=1 bash tools/campaigns/operating_point_next.sh
+#      (copies the tree and the data, builds, ~110 s, starts the lanes: its reply shows lanes.log with the
+#      "start a_cup_s<i>/a_mouse_s<i>" lines; "build failed" there: give the machine back, build.log says why)
+#   2. run, carry [".gpuOP4"]: PHASE=2 bash tools/campaigns/operating_point_next.sh (its data, then 480 s)
 #   3. run: PHASE=3 bash tools/campaigns/operating_point_next.sh  (waits up to 540 s, until every lane is done)
 #      and again while its status.txt says "lanes done: k of 4" with k < 4 (the stop, STOP_AT, is 20 minutes
 #      after PHASE 1 began); then give_back.
 #   After each reply, copy its archive at once: cp <files_at>/opn_<PHASE>.tgz /work/main/.res/ (the last
 #   call's holds every bench as it stood). A call answered "error: no lanes on this machine" got a fresh
-#   machine (the last one went back): start again at 1 only if 21 minutes are left, else gather what came.
+#   machine (the last one went back): start again at 1 only if 23 minutes are left, else gather what came.
 #   Fewer GPUs lent (a refusal of nvidia-h100-x4): nvidia-h100-x2 (or nvidia-h200-x2) with, at step 1,
-#   LANES="0:a_fern_s0,a_flower_s0 1:a_fern_s1,a_flower_s1" PHASE=1 ... (flower and fern, both seeds, ~890 s
-#   per GPU: the same three calls); one GPU: LANES="0:a_fern_s0,a_flower_s0".
+#   LANES="0:a_cup_s0,a_mouse_s0 1:a_cup_s1,a_mouse_s1" STOP_AT=1300 PHASE=1 ... (the cup and the mouse, both
+#   seeds, 4 runs per GPU, about 1,030 s a GPU by the rates above, so the lanes end 950-1,150 s after PHASE 1
+#   began and nothing queued fits: the same three calls, the second may carry nothing, about 21-24 minutes);
+#   one GPU: LANES="0:a_cup_s0,a_mouse_s0" (seed 0).
 #   4. On the CPU, in /work/main:
-#        ARCHIVE=.res/opn_3.tgz PHASE=gather bash tools/campaigns/operating_point_next.sh
-#      puts each bench in .res/opn/<job> (GATHER, a new folder), collects the runs of a bench that the calls
-#      ended before its report (operating_point.sh REPORT_ONLY=1, the scenes from ../shared/scenes), and builds
+#        ARCHIVE=.res/opn_3.tgz GATHER=.res/opn2 PHASE=gather bash tools/campaigns/operating_point_next.sh
+#      puts each bench in GATHER/<job> (a new folder), collects the runs of a bench that the calls ended
+#      before its report (operating_point.sh REPORT_ONLY=1, the scenes from ../shared/scenes), and adds them to
 #      docs/results/operating_point/auto30 (TARGET) with tools/results/build_report.py (add STEP=auto where runs
 #      stopped early: each scene at its last common evaluation): results.csv (budget column `auto`), report.md
 #      (the equal-time table; its header names the auto budgets, the rule's 30 pixels per Gaussian and
-#      gc_every), configs.json, plots/. Then write auto30/README.md (opening with a `**Status: ...**` line, linked
-#      from operating_point/README.md: tests/test_docs.py) with the targets at the retuned budgets, saying that
-#      5 runs shared each GPU at first (a row's runs_per_device counts its own bench's: 2 or 3).
-#      A folder of its own: the parent folder's auto rows trained at the earlier rule's budgets (flower 552k,
-#      fern 242k) with gc_every 1, and build_report.py refuses one scene's auto runs of two rules.
+#      gc_every), configs.json, plots/. Then update auto30/README.md (its `**Status: ...**` line, the targets
+#      over the scenes that ran, how the GPUs were shared: a row's runs_per_device counts its own bench's).
+#      The runs of (b) at fixed budgets (budget column 100000, 300000) beside auto30's auto runs are the auto
+#      rule's check at seed 1 with gc_every 4 (operating_point/'s seed 0 ran gc_every 1).
 # A CPU dry run (about 3 minutes of 2 cores): tiny scenes (`jsgstools synth OUT --size 48x36 --views 8
 # --point-density 0.3`, then the clean base as gpu_prepare.sh makes it) in two carry folders, the LPIPS weights
 # in the first; GPU_RUN a stand-in for scripts/gpu_run.sh that puts the venv's python3 first on PATH and the
@@ -84,7 +85,7 @@ export FLOWER=${FLOWER:-llff_flower} FERN=${FERN:-llff_fern}
 export CUP=${CUP:-custom_kwrous_cup} MOUSE=${MOUSE:-custom_myhan_mouse}
 export EST_PCT=${EST_PCT:-100} OVERHEAD=${OVERHEAD:-40} POLL=${POLL:-5}
 export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-/tmp/torch_ext} JSGS_LPIPS_WEIGHTS=$D/alexnet_features.pth
-LANES=${LANES:-0:a_cup_s0,a_fern_s0 1:a_cup_s1,a_fern_s1 2:a_flower_s0,a_mouse_s0 3:a_flower_s1,a_mouse_s1}
+LANES=${LANES:-0:a_cup_s0 1:a_cup_s1 2:a_mouse_s0 3:a_mouse_s1}
 QUEUE=${QUEUE:-ac_cup ac_mouse b_fern b_mouse100 b_mouse300 c_fern_s0 c_flower_s0 c_mouse_s0 c_cup_s0 \
 c_fern_s1 c_flower_s1 c_mouse_s1 c_cup_s1}
 
@@ -150,11 +151,15 @@ lane() {  # lane GPU JOBS: the pinned JOBS (comma-separated) side by side, each 
     echo "$(date +%T) lane $g done" >> $L/lanes.log
     touch $L/lane_$g.done
 }
-carry() {  # carry FOLDER: its LPIPS weights and clean bases into $D, each scene marked ready once whole
+carry() {  # carry FOLDER: its LPIPS weights and clean bases into $D, each scene marked ready once whole (a
+    # scene already here is kept; no FOLDER: nothing this call)
+    [ -d "$1" ] || { echo "carry $1: not on this machine (not carried): no data this call"; return 0; }
     [ -f "$1/alexnet_features.pth" ] && cp "$1/alexnet_features.pth" $D/
     local s
     for s in "$1"/bench/data/*/; do
+        [ -d "$s" ] || continue
         s=$(basename "$s")
+        ready "$s" && continue
         rm -rf "$D/bench/data/.$s" && cp -r "$1/bench/data/$s" "$D/bench/data/.$s" \
             && mv "$D/bench/data/.$s" "$D/bench/data/$s" && touch "$D/bench/data/$s/.ready"
     done
@@ -190,15 +195,15 @@ case $PHASE in
     1)
         for j in $(printf '%s\n' $LANES | cut -d: -f2- | tr ',' ' ') $QUEUE; do spec "$j" || exit 2; done
         # without them every run would stop at its first evaluation (the campaign's measure is LPIPS)
-        [ -f "${CARRY1:-.gpuOP1}/alexnet_features.pth" ] || {
-            echo "error: ${CARRY1:-.gpuOP1}/alexnet_features.pth: no LPIPS weights in the first carry" >&2; exit 2; }
+        [ -f "${CARRY1:-.gpuOP3}/alexnet_features.pth" ] || {
+            echo "error: ${CARRY1:-.gpuOP3}/alexnet_features.pth: no LPIPS weights in the first carry" >&2; exit 2; }
         # lanes of an earlier PHASE 1 on this machine (each leads its own process group: setsid) would take the
         # new queue
         for p in $(cat $L/lane_pids 2> /dev/null); do kill -- -"$p" 2> /dev/null; done
         rm -rf $S $D $L $B && mkdir -p $S $D/bench/data $L $B
         echo $(($(date +%s) + ${STOP_AT:-1200})) > $L/t_stop
         tar cf - --exclude='./.gpu*' --exclude=./.res --exclude=./.torch_ext --exclude=./.venv . | tar xf - -C $S
-        carry "${CARRY1:-.gpuOP1}"
+        carry "${CARRY1:-.gpuOP3}"
         printf '%s\n' $QUEUE > $L/queue
         (cd $S && timeout 300 bash $GPU_RUN true) > $L/build.log 2>&1 || { echo "build failed:"; tail -20 $L/build.log; }
         n=0
@@ -213,7 +218,7 @@ case $PHASE in
     *) [ -f "$L/lanes_n" ] || { echo "error: no lanes on this machine ($L/lanes_n): the machine of PHASE=1 went" \
         "back (more than 30 s idle?) and this call got a fresh one; start again with PHASE=1" >&2; exit 3; } ;;&
     2)
-        carry "${CARRY2:-.gpuOP2}"
+        carry "${CARRY2:-.gpuOP4}"
         wait_lanes "${WAIT:-480}"
         ;;
     *) wait_lanes "${WAIT:-540}" ;;
