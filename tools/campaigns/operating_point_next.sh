@@ -34,9 +34,9 @@
 #   0. On the CPU, in /work/main (the checkout the device tool sends; `git status --porcelain` prints nothing),
 #      check that each call's tree and carries stay under 64 MiB (67,108,864 bytes):
 #        t=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1); du -sb .whl .gpuOP3 .gpuOP4
-#      the first call = t + .whl + .gpuOP3, the second = t + .gpuOP4. Measured: t 27,500,376, .whl
+#      the first call = t + .whl + .gpuOP3, the second = t + .gpuOP4. Measured: t 27,505,816, .whl
 #      7,030,231, .gpuOP3 29,725,804 (the cup, the mouse, the LPIPS weights), .gpuOP4 22,954,072 (fern,
-#      flower): 64,256,411 (61.3 MiB) and 50,454,448 (48.1 MiB), so the tree may grow by 2.8 MB at most.
+#      flower): 64,261,851 (61.3 MiB) and 50,459,888 (48.1 MiB), so the tree may grow by 2.8 MB at most.
 #      Should the folders be missing (they are made from ../shared; or copied from .gpuOP1 and .gpuOP2):
 #        bash scripts/gpu_prepare.sh      # the wheels in .whl
 #        GPU_DIR=.gpuOP3 GPU_SCENES="custom_kwrous_cup custom_myhan_mouse" bash scripts/gpu_prepare.sh
