@@ -440,8 +440,12 @@ def reduce_gradients(
     the count is not 0. ``rider`` (this process's :meth:`StepGather.rider` row, float32, the same length on
     every process) travels in the flag column, which holds the count in each block's first row only: each
     block's entries after it hold every process's rider at its rank's place (zeros at the others'), so the
-    sums each process receives are every process's riders, exactly (a value plus zeros), in
-    ``exchange.riders``; blocks are padded to hold them. Without ``exchange`` (gsplat's ``distributed=True``
+    sums each process receives are every process's riders, exactly (a value plus zeros: NaN and
+    infinities arrive as sent, a -0.0 as 0.0), in ``exchange.riders``; blocks are padded to hold them. The
+    gradients are summed in float32: finite views' gradients whose sum passes float32's range (only where
+    their L1 norms together do) give Inf here, which the step's finiteness check (each view's norms, before
+    the sum) does not see; the optimizer's step then makes the parameters non-finite, and the next check of
+    the parameters stops the run. Without ``exchange`` (gsplat's ``distributed=True``
     rasterisation, where every process runs the backward: its all-to-all is a collective) the shards'
     gradients already hold every view's contribution, summed by gsplat's all-to-all backward: they are
     divided, and nothing travels."""
@@ -547,7 +551,10 @@ class StepGather:
         values, number of values, *host values, zeros, *values]``, each host value as three float32 that
         sum to it exactly, ``values`` (1-D) as float32 (the trainer's are float32). A layout not in the
         table yet, a row longer than the capacity or a host value three normal float32 do not hold gives
-        ``[-1, needed length, zeros]``: every process then makes :meth:`__call__` (:meth:`unpack`)."""
+        ``[-1, needed length, zeros]``: every process then makes :meth:`__call__` (:meth:`unpack`). Three
+        normal float32 hold every float64 of magnitude 2**-74 (about 5.3e-23) to float32's largest, and 0;
+        smaller ones only where their last bits allow, none below 2**-126 (so a loss weight that small sends
+        the values by the all-gather every step, one more collective, the same values)."""
         index = self.layouts.get(layout, -1)
         pieces = [piece for x in host for piece in _three_float32(x)]
         values = values.detach().to(torch.float32)

@@ -1174,7 +1174,9 @@ class Trainer:
         each parameter's L1 norm in one tensor on the device (read in one host sync after the optimizer's
         kernels are queued). The gradients are ``grads``' (the torch exchange's gathered Gaussians, before
         the reduction: this process's view's, whose sums over the processes are the shards' gradients, so
-        that a non-finite one is non-finite in some process's view) or the shard's."""
+        that a non-finite one is non-finite in some process's view, or a sum beyond float32's range, which
+        the next check of the parameters catches: :func:`jsgs.train.distributed.reduce_gradients`) or the
+        shard's."""
         # every logged value, each gradient's L1 norm and each parameter's L1 norm (NaN/Inf wherever a value
         # is), packed on the device and read in one host sync per step, *after* the optimizer's kernels are
         # queued: the host issues the update while the device finishes the backward. A non-finite step has
