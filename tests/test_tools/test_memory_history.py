@@ -227,7 +227,10 @@ def test_profile_steps_memory_history_document_and_tables(
 
     def fake_window(manifest: Path, run: Path, device: Any, settle: int, steps: int, stacks: str) -> Any:
         graph = 4000 if "jsgs" in str(run) else 1500
-        clock = SimpleNamespace(summary=mh.summarise(snapshot(graph), 1, LIBRARY), peak_allocated=11_264)
+        recordings = 1 if "jsgs" in str(run) else 0  # a second image shape first drawn inside the window
+        clock = SimpleNamespace(
+            summary=mh.summarise(snapshot(graph), 1, LIBRARY), peak_allocated=11_264, recordings=recordings
+        )
         return {"num_gaussians": 7593}, clock, {"allocated": 0, "reserved": 0}
 
     monkeypatch.setattr(ps, "history_window", fake_window)
@@ -238,6 +241,7 @@ def test_profile_steps_memory_history_document_and_tables(
     assert not (tmp_path / "jsgs" / "history").exists()
     assert h["difference"]["jsgs"]["peak"][0]["bytes"] == 2500
     assert h["by_method"]["jsgs"]["max_memory_allocated_bytes"] == 11_264
+    assert h["by_method"]["jsgs"]["graph_recordings_in_window"] == 1
     assert len(h["by_method"]["gsplat"]["peak"]["groups"]) == 4
     schema = load_schema("profile_step")
     old = json.loads(
@@ -250,6 +254,8 @@ def test_profile_steps_memory_history_document_and_tables(
     assert "jsgs − gsplat: live at the window's peak, the most extra bytes" in out
     assert "| method/graphed.py:120(_buffer) | – | 0.00 | 0.00 | 0.00 |" in out
     assert "autograd engine | MulBackward0 |" in out
+    assert "note: jsgs: 1 CUDA graph recording(s) inside the measured window" in out
+    assert "note: gsplat:" not in out
 
 
 def test_the_history_window_fits_in_the_profiles_window(capsys: Any) -> None:

@@ -66,6 +66,7 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
         assert r["start_memory_allocated_bytes"] is None and r["start_memory_reserved_bytes"] is None
         assert 0 < len(r["kernels"]) <= 5
         assert r["num_gaussians"] == r["num_gaussians_profiled"]  # both copies trained the same Gaussians
+        assert r["graph_recordings_in_window"] == 0  # counted (no graphs on the CPU), not left out
     # JSGS adds ops to the baseline's step
     assert res["jsgs"]["kernel_launches_per_step"] > res["gsplat"]["kernel_launches_per_step"]
     diff = doc["differences"]["jsgs"]
@@ -346,6 +347,34 @@ def test_step_window_reads_peak_memory_over_the_window(monkeypatch: Any) -> None
     assert calls[-2:] == ["sync cpu", "sync cpu"]  # no torch.cuda call on the CPU
     with pytest.raises(ps.JsgsError, match="the measured window was not reached"):
         ps.StepWindow(torch.device("cuda"), settle=1, steps=1).peak_memory()
+
+
+def test_step_window_counts_the_graph_recordings_inside_it(monkeypatch: Any, capsys: Any) -> None:
+    """``graphed.record_graph`` is counted while the counter is installed (and restored after); a window
+    counts only the recordings between its start and its end: one made while settling is not the window's,
+    one of a shape first drawn inside it is, and the report says so in one line."""
+    from jsgs.method import graphed
+
+    made: list[str] = []
+    monkeypatch.setattr(graphed, "record_graph", lambda fn, *a, **k: made.append("rec") or ("graph", fn()))
+    counter = ps.GraphRecordings()
+    win = ps.StepWindow(torch.device("cpu"), settle=2, steps=3, counter=counter)
+    with counter.installed():
+        assert graphed.record_graph(lambda: 1) == ("graph", 1)  # the wrapped function's result
+        win()  # settling: the recording above (the first shape's) is before the window
+        win()
+        win()  # the window's first step
+        assert win.recordings is not None and win.recordings <= 0  # open: not a count yet
+        win()
+        graphed.record_graph(lambda: 2)  # a second shape drawn inside the window
+        win()
+        win()  # closes the window
+        graphed.record_graph(lambda: 3)  # after the window: not its
+    assert made == ["rec"] * 3 and counter.count == 3 and win.recordings == 1
+    assert graphed.record_graph(lambda: 4) == ("graph", 4) and counter.count == 3  # restored: not counted
+    assert ps.recordings_note(0, 2) == "" and ps.recordings_note(None, 2) == ""
+    assert "1 CUDA graph recording(s) inside the measured window" in ps.recordings_note(1, 2)
+    assert "a larger --settle than 2" in ps.recordings_note(1, 2)
 
 
 #: a stored version 1 profile with pairs (no peak memory)

@@ -26,7 +26,11 @@ The measured steps are the 0-based steps ``warmup + settle`` to ``warmup + settl
 densification step among them (every ``strategy.refine_every`` = 100 steps from ``refine_start_iter`` = 500)
 is averaged into the window, and so is, for JSGS with CUDA graphs, the controller graph's re-recording on the
 step after it; with the defaults the window holds none (the densification at step 600 and the re-recording
-at 601 fall on the settling steps).
+at 601 fall on the settling steps). The image terms' graph is recorded once per image shape, on the first
+step that draws it: a scene whose views come in two orientations may draw the second only after the
+settling steps. Every window counts JSGS's graph recordings inside it (``graph_recordings_in_window``; a
+``note:`` line where there are any): each runs its chain eagerly and captures it, so its time and memory
+are in the window's; a larger ``--settle`` (one epoch of the views) moves them before it.
 
 The window is delimited at step boundaries (the device is synchronised at its two ends only): each timer is a
 training callback (:class:`StepCallback`, ``on_step_begin``) passed to :func:`jsgs.train.trainer.train`.
@@ -107,7 +111,8 @@ import sysconfig
 import tempfile
 import time
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -125,6 +130,7 @@ from jsgs.apps.opcount import FREE_OPS  # noqa: E402
 from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
 from jsgs.base.io import write_json_checked  # noqa: E402
 from jsgs.bench.stats import median_interval  # noqa: E402
+from jsgs.method import graphed  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
 from jsgs.train.config import PRESETS, TrainConfig, load_config_file  # noqa: E402
 from jsgs.train.evaluate import synchronize  # noqa: E402
@@ -189,17 +195,51 @@ def _quiet(_: str) -> None:
 # Step boundaries
 
 
+class GraphRecordings:
+    """Counts JSGS's CUDA graph recordings (``jsgs.method.graphed.record_graph``: the image terms' graph, one
+    per image shape and training image stack on the first step that draws it, and the controller's graph
+    where it has one) while :meth:`installed`. A recording runs its chain eagerly (warm-ups) and captures it,
+    so one inside a measured window is in that window's time and peak memory: a resumed process records
+    again, and ``--settle`` steps may not draw every image shape (:class:`StepWindow` counts them)."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    @contextmanager
+    def installed(self) -> Iterator[GraphRecordings]:
+        """``graphed.record_graph`` wrapped to count each call (a recording that fails counts too), then
+        restored; ``graphed``'s callers look it up at each call."""
+        original = graphed.record_graph
+
+        def counted(*args: Any, **kwargs: Any) -> Any:
+            self.count += 1
+            return original(*args, **kwargs)
+
+        graphed.record_graph = counted
+        try:
+            yield self
+        finally:
+            graphed.record_graph = original
+
+
+#: the process's counter, installed by :func:`run`
+RECORDINGS = GraphRecordings()
+
+
 class StepWindow:
     """Called at the start of every step of a resumed segment of ``settle + steps + 1`` steps: synchronises
     the device and reads the clock at the start of step ``settle`` and of step ``settle + steps``, and steps
     the torch profiler (if any) at every call, whose schedule records exactly the steps in between. On CUDA
     it also resets the device's peak memory statistics at the window's start and reads them at its end
-    (:meth:`peak_memory`)."""
+    (:meth:`peak_memory`), and counts the graph recordings in between (``recordings``, from ``counter``)."""
 
     def __init__(
-        self, device: torch.device, settle: int, steps: int, prof: torch.profiler.profile | None = None
-    ) -> None:
+        self, device: torch.device, settle: int, steps: int, prof: torch.profiler.profile | None = None,
+        counter: GraphRecordings = RECORDINGS,
+    ) -> None:  # fmt: skip
         self.device = device
+        self.counter = counter
+        self.recordings: int | None = None  # JSGS's graph recordings inside the window, once it has ended
         self.settle = settle
         self.steps = steps
         self.prof = prof
@@ -219,11 +259,13 @@ class StepWindow:
                 torch.cuda.reset_peak_memory_stats(self.device)
             if self.prof is not None:
                 self.prof.step()
+            self.recordings = -self.counter.count
             self.t0 = time.perf_counter()
         elif i == self.settle + self.steps:
             with torch.profiler.record_function(WINDOW_END):  # recorded: window_stats leaves it out
                 synchronize(self.device)
             self.t1 = time.perf_counter()
+            self.recordings = self.counter.count + (self.recordings or 0)
             if cuda:
                 self.peak_allocated = int(torch.cuda.max_memory_allocated(self.device))
                 self.peak_reserved = int(torch.cuda.max_memory_reserved(self.device))
@@ -381,6 +423,7 @@ class PlainWindow:
     start: dict[str, int] | None
     peak: dict[str, int] | None
     released: bool
+    recordings: int | None = None  # JSGS's graph recordings inside the window (StepWindow.recordings)
 
 
 def plain_window(
@@ -404,7 +447,7 @@ def plain_window(
             "memory counts in the next window's start",
             file=sys.stderr,
         )
-    return doc, PlainWindow(clock.ms_per_step(), start, clock.peak_memory(), released)
+    return doc, PlainWindow(clock.ms_per_step(), start, clock.peak_memory(), released, clock.recordings)
 
 
 def history_window(
@@ -456,6 +499,7 @@ def memory_histories(
         out["by_method"][m] = clock.summary.doc(top) | {
             "num_gaussians": int(doc["num_gaussians"]),
             "max_memory_allocated_bytes": clock.peak_allocated,
+            "graph_recordings_in_window": clock.recordings,
             "start_memory_allocated_bytes": None if start is None else start["allocated"],
         }
     base = methods[0]
@@ -729,6 +773,7 @@ def profile_method(
         **{f"start_memory_{k}_bytes": None if start is None else start[k] for k in MEMORY_KINDS},
         "num_gaussians": int(doc["num_gaussians"]),
         "num_gaussians_profiled": int(pdoc["num_gaussians"]),
+        "graph_recordings_in_window": window.recordings,
         "device_name": doc["device_name"],
         "backend": doc["backend"],
     }
@@ -858,6 +903,17 @@ def _name(n: str, width: int = 60) -> str:
     return n if len(n) <= width else n[: width - 1] + "…"
 
 
+def recordings_note(count: int | None, settle: int) -> str:
+    """The line that says a window held graph recordings ("" where it held none or was not counted)."""
+    if not count:
+        return ""
+    return (
+        f"{count} CUDA graph recording(s) inside the measured window (a graph per image shape is recorded on "
+        f"the first step that draws it; its eager warm-ups and capture are in the window's time and peak "
+        f"memory): a larger --settle than {settle} moves them before the window"
+    )
+
+
 def print_report(doc: dict[str, Any]) -> None:
     res = doc["results"]
     first = next(iter(res.values()))
@@ -895,6 +951,10 @@ def print_report(doc: dict[str, Any]) -> None:
             str(r["num_gaussians"]),
         ]
         print(f"| {m} | " + " | ".join(cells) + " |")
+    for m, r in res.items():
+        note = recordings_note(r.get("graph_recordings_in_window"), doc["settle"])
+        if note:
+            print(f"note: {m}: {note}")
     unit = "device ms" if cuda else "op ms (host)"
     for m, d in doc["differences"].items():
         b = d["baseline"]
@@ -1032,6 +1092,9 @@ def print_memory_history(doc: dict[str, Any]) -> None:
             f"allocated before the recording {_cell(_mib(r['start_memory_allocated_bytes']))} MiB, of which "
             f"{r['freed_unrecorded_bytes'] / 2**20:.2f} freed in the trace; {r['trace_entries']} events)"
         )  # fmt: skip
+        note = recordings_note(r.get("graph_recordings_in_window"), h["settle"])
+        if note:
+            print(f"note: {m}: {note}")
         _history_table(f"{m}: live at the window's peak, top {h['top']}", peak["groups"], own)
         _history_table(
             f"{m}: live at the window's start (held between steps), top {h['top']}", start["groups"], own
@@ -1151,7 +1214,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         args.workdir.mkdir(parents=True, exist_ok=True)
     if args.trace:
         args.trace.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(prefix="profile_step.", dir=args.workdir) as tmp:
+    with RECORDINGS.installed(), tempfile.TemporaryDirectory(prefix="profile_step.", dir=args.workdir) as tmp:
         work = Path(tmp)
         if args.manifest is None:
             w, h = (int(v) for v in args.size.lower().split("x"))
