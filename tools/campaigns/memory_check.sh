@@ -42,12 +42,17 @@
 # jpeg_mouse_half_{9300,1500}.{json,txt}, times.txt, build.log) and prints the tests' last lines, each
 # profile's peak memory rows and the memory-history difference tables. The profiles belong in
 # docs/results/speed/equal_budget/ (`_memory` beside the names above, with the device suffix).
+# SETTLE (2): profile_step.py's --settle. jpeg_mouse's views come in two orientations, each with its image
+# terms' graph recorded on the first step that draws it: with 2 the second may be recorded inside the window
+# (at fb8623d the 300,000-Gaussian one: its peak was that recording); SETTLE=50 (one epoch of the 49 views)
+# records both before the window, at 48 more steps in each resumed run.
 # A rehearsal on the CPU (the paths, the manifests, the archive) in a copy of the tree whose
 # scripts/gpu_run.sh only runs its command: DEVICE=cpu WARMUPS="2 3" STEPS=2 MSTEPS=1 with OUT set.
 set -u
 D=${DATA:-.gpuMem} P=tools/diagnostics/profile_step.py L=${LOGS:-/tmp/memory_check_logs}
 CAM=$D/jpeg_mouse/manifest.json HALF=$D/jpeg_mouse_half_gaussian/manifest.json
 DEVICE=${DEVICE:-cuda} G0=${G0:-0} G1=${G1:-1} END=${END:-540} STEPS=${STEPS:-100} PAIRS=${PAIRS:-1}
+SETTLE=${SETTLE:-2}
 TOP=${TOP:-25} MSTEPS=${MSTEPS:-8} STACKS=${STACKS:-all}
 read -r W0 W1 <<<"${WARMUPS:-1500 9300}"
 for f in "$CAM" "$HALF"; do
@@ -66,8 +71,8 @@ CUDA_VISIBLE_DEVICES=$G0,$G1 timeout "$(left 150)" bash scripts/gpu_run.sh pytho
 stamp gpu_tests_2gpu $?
 profile() {  # profile GPU MANIFEST WARMUP NAME SECONDS: the memory profile and history after WARMUP steps
     CUDA_VISIBLE_DEVICES=$1 TORCH_SYMBOLIZE_MODE=fast timeout "$5" bash scripts/gpu_run.sh python3 $P \
-        --manifest "$2" --device "$DEVICE" --preset mcmc --warmup "$3" --steps "$STEPS" --pairs "$PAIRS" \
-        --no-fresh --jsgs-options '{}' --memory-history "$TOP" --memory-steps "$MSTEPS" \
+        --manifest "$2" --device "$DEVICE" --preset mcmc --warmup "$3" --settle "$SETTLE" --steps "$STEPS" \
+        --pairs "$PAIRS" --no-fresh --jsgs-options '{}' --memory-history "$TOP" --memory-steps "$MSTEPS" \
         --memory-stacks "$STACKS" --out "$L/$4.json" > "$L/$4.txt" 2>&1
     stamp "$4" $?
 }
