@@ -87,10 +87,13 @@ def with_known_gradient(
 
 class _DeferredGradient(torch.autograd.Function):
     @staticmethod
-    def forward(ctx: Any, value: Tensor, make: Any, x: Tensor) -> Tensor:  # type: ignore[override]
+    def forward(  # type: ignore[override]
+        ctx: Any, value: Tensor, make: Any, own_value: bool, x: Tensor
+    ) -> Tensor:
         ctx.make = make
         ctx.like = (tuple(x.shape), x.dtype, x.device)
-        return value.detach().clone()
+        # an input returned as it is becomes a view of it (autograd's rule): no copy
+        return value if own_value else value.detach().clone()
 
     @staticmethod
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, ...]:
@@ -98,18 +101,22 @@ class _DeferredGradient(torch.autograd.Function):
         if make is None:
             raise RuntimeError("with_deferred_gradient: a second backward through the same scalar")
         g = make(*ctx.like)
-        return None, None, None if g is None else g.mul_(grad_out)
+        return None, None, None, None if g is None else g.mul_(grad_out)
 
 
-def with_deferred_gradient(x: Tensor, value: Tensor, make: Any) -> Tensor:
+def with_deferred_gradient(x: Tensor, value: Tensor, make: Any, own_value: bool = False) -> Tensor:
     """A 0-dim tensor equal to ``value`` whose gradient with respect to ``x`` is ``make(shape, dtype,
     device)`` (``x``'s), made when the backward reaches this scalar's node (None: no gradient), then
     multiplied in place by the upstream: :func:`with_known_gradient` for a gradient that need not exist
     before. Made early in the forward (e.g. with the render), the node has an early place in autograd's
     order, so the backward reaches it after the nodes made later (the losses on the render), and the
-    gradient lives only from then to where it is consumed. One backward only.
+    gradient lives only from then to where it is consumed. One backward only. ``own_value``: as
+    :func:`with_known_gradient`'s (the result a view of ``value``, which the caller never writes while the
+    scalar is in use; e.g. a zero it keeps from step to step), no copy.
     """
     if value.dim() != 0:
         raise ValueError(f"value must be 0-dim, got shape {tuple(value.shape)}")
-    return _DeferredGradient.apply(value, make, x)
+    if own_value and value.requires_grad:
+        raise ValueError("own_value: value must not require grad (it is not differentiated)")
+    return _DeferredGradient.apply(value, make, own_value, x)
 

@@ -100,3 +100,33 @@ def test_an_owned_value_is_returned_as_a_view() -> None:
     assert torch.equal(grads[0], grads[1]) and grads[1].abs().sum() > 0
     with pytest.raises(ValueError, match="own_value"):
         with_known_gradient(a, torch.tensor(1.0, requires_grad=True), g, own_value=True)
+
+
+def test_the_deferred_objective_is_a_view_of_a_kept_zero() -> None:
+    """The render's deferred objective (``info["extra_objective"]``) is a view of one zero kept from render to
+    render (no kernel of its own), with the gradients of the copying form, bit for bit; ``own_value``
+    refuses a value that needs grad."""
+    from jsgs.base.known_grad import with_deferred_gradient
+    from jsgs.render.backend import _extras
+
+    grads, storages = [], []
+    for own in (False, True, True):
+        gen = torch.Generator().manual_seed(5)
+        ch = (torch.rand(1, 4, 3, 2, generator=gen) * 2.0).requires_grad_()
+        up = torch.randn(1, 4, 3, 2, generator=gen)
+        info: dict = {"extra": ch * 1.5}
+        make = lambda shape, dtype, device, up=up: up.clone()  # noqa: E731
+        if own:
+            _extras(info, torch.zeros(3, 2), make)
+            obj = info["extra_objective"]
+            storages.append(obj.untyped_storage().data_ptr())
+        else:
+            obj = with_deferred_gradient(info["extra"], torch.zeros(()), make)
+        assert obj.item() == 0.0 and obj.requires_grad
+        (0.5 * obj + ch.sum()).backward()
+        grads.append(ch.grad)
+    assert storages[0] == storages[1]  # the same zero, render after render
+    assert torch.equal(grads[0], grads[1]) and torch.equal(grads[1], grads[2])
+    assert not torch.equal(grads[0], torch.ones_like(grads[0]))  # the deferred map reached the channels
+    with pytest.raises(ValueError, match="own_value"):
+        with_deferred_gradient(ch, torch.tensor(0.0, requires_grad=True), make, own_value=True)
