@@ -161,6 +161,11 @@ class GraphedImageTerms:
         # (role, elements, dtype, device) -> the flat buffer that every recording's buffer of that role and
         # size views
         self._memory: dict[tuple[str, int, torch.dtype, torch.device], Tensor] = {}
+        # a tables buffer's address -> the tables tensor last copied into it (views with equal tables share
+        # one tensor, jsgs.method.image_terms.view_tables: consecutive such views copy nothing; the tables are
+        # only read, never written, and the reference keeps the tensor from being replaced by another at the
+        # same address)
+        self._tables_held: dict[int, Tensor] = {}
 
     @staticmethod
     def _check_device(x: Tensor) -> None:
@@ -191,7 +196,9 @@ class GraphedImageTerms:
                 y_buf.copy_(y)
             else:  # the image's index in the stack: a fill, no host-to-device copy
                 y_buf.fill_(stacked[1])
-            tables_buf.copy_(tables)
+            if self._tables_held.get(tables_buf.data_ptr()) is not tables:  # else it holds them already
+                tables_buf.copy_(tables)
+                self._tables_held[tables_buf.data_ptr()] = tables
         rec.replay()
         values, grad, r, obs = rec.outputs
         values = values.clone()  # the caller's: logged after the step, when the next replay may have run

@@ -305,6 +305,9 @@ def view_tables(
             todo.append((v, q if want_noise else None, want_block))
     measured = _from_files(todo)
     out: dict[int, ViewJpeg] = {}
+    # views with equal tables share one tensor of them (only read): the graph copies a view's tables into
+    # its input only where they are not the tensor it holds already (GraphedImageTerms)
+    shared: dict[tuple[str, bytes], Tensor] = {}
     for v, header, first, q in checked:
         j = v.jpeg
         sigma2_read, b_read = measured.get(v.index, (None, None))
@@ -313,7 +316,10 @@ def view_tables(
         else:
             sigma2 = quantization_noise_variance(q[0], q[1])
         b = (j.blockiness if j.blockiness is not None else b_read) if blocks else 1.0
-        tab = header.to(device, torch.float32).reshape(2, 8, 8)
+        key = (str(header.dtype), header.numpy().tobytes())
+        tab = shared.get(key)
+        if tab is None:
+            tab = shared[key] = header.to(device, torch.float32).reshape(2, 8, 8)
         out[v.index] = ViewJpeg(tab, j.sampling, sigma2, b, first)
     return out
 

@@ -249,6 +249,41 @@ def test_two_orientations_share_one_set_of_buffers(monkeypatch: pytest.MonkeyPat
     assert _kept_bytes(graphed) == 15 * pixels + 4 * blocks + 2 * 64 * 4 + values_bytes  # was 38 a pixel
 
 
+def test_tables_already_in_the_buffer_are_not_copied_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Views that share one tables tensor (as ``view_tables`` makes them for equal tables) copy it into the
+    graph's buffer once, until other tables (or a recording of another image size, on the same buffer)
+    come: view after view, both orientations, each call's values, gradient and r_b are the eager function's
+    bit for bit."""
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    w = (0.2, 0.02, 0.03)
+    graphed = GraphedImageTerms(weights=w, **SETTINGS)
+    g = torch.Generator().manual_seed(17)
+    shared, other = (torch.randint(1, 80, (2, 8, 8), generator=g).float() for _ in range(2))
+    copied = []
+    calls = [(shared, 24, 40), (shared, 24, 40), (other, 24, 40), (shared, 24, 40), (other, 40, 24),
+             (shared, 40, 24), (shared, 24, 40), (other, 40, 24), (other, 40, 24)]  # fmt: skip
+    for i, (tables, hh, ww) in enumerate(calls):
+        render = torch.rand(1, hh, ww, 3, generator=g)
+        image = torch.randint(0, 256, (hh, ww, 3), generator=g, dtype=torch.uint8)
+        x = render.permute(0, 3, 1, 2).requires_grad_()
+        fresh = (tuple(x.shape), x.dtype, torch.uint8, "4:2:0", True, None, False) not in graphed._graphs
+        cpu = [torch.profiler.ProfilerActivity.CPU]
+        with torch.profiler.profile(activities=cpu, record_shapes=True) as prof:
+            out = graphed(x, image, tables, "4:2:0")
+        if not fresh:  # copies of the tables into the buffer
+            events = prof.events()
+            copied.append(sum(e.name == "aten::copy_" and e.input_shapes[:1] == [[2, 8, 8]] for e in events))
+        xe = render.clone().permute(0, 3, 1, 2).requires_grad_()
+        values, grad, r, _ = terms_with_gradient(xe, image, tables, weights=w, sampling="4:2:0", **SETTINGS)
+        assert torch.equal(out.values, values[1:]) and torch.equal(out.weighted.detach(), values[0]), i
+        assert torch.equal(pixel_score_of(out.r, hh, ww), r), i
+        out.weighted.backward()
+        assert torch.equal(x.grad, grad), i
+    # calls 1..8 but the recordings (0 and 4): the tables copied where they are not the tensor the buffer
+    # holds (the recording of call 4 wrote `other` into the buffer; the call made it the held tensor)
+    assert copied == [0, 1, 1, 1, 0, 1, 0]
+
+
 def test_an_image_of_the_trainers_stack_is_read_in_place(monkeypatch: pytest.MonkeyPatch) -> None:
     """Training images loaded as the trainer loads them (one [V, H, W, 3] tensor per image size, each view's
     image a view of it): the graph reads the step's image from that tensor by index (a one-element index

@@ -1049,3 +1049,29 @@ def test_many_estimates_are_announced_and_match_one_by_one(
     monkeypatch.setattr(it, "ANNOUNCE_ESTIMATES", len(jpeg_views))
     it.view_tables(views, torch.device("cpu"), "m", noise="pixels")
     assert capsys.readouterr().err == ""
+
+
+def test_views_with_equal_tables_share_one_tensor_of_them(tmp_path: Path) -> None:
+    """``view_tables``: JPEG views saved with the same tables hold one tensor of them (the graph then copies
+    it into its input once, not view after view); a view with other tables holds its own, with its values."""
+    from _train_scene import make_scene
+
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.data import load_training_scene
+
+    manifest = make_scene(tmp_path / "scene", jpeg_train=True)  # every training view at quality 75
+    doc = json.loads(manifest.read_text())
+    odd = next(v for v in doc["views"] if v.get("jpeg"))
+    odd["jpeg"]["luma_table"] = np.minimum(np.array(odd["jpeg"]["luma_table"]) + 1, 255).tolist()
+    manifest.write_text(json.dumps(doc))
+    views = load_training_scene(manifest, TrainConfig.from_preset("paper", device="cpu")).train_views
+    tabs = view_tables(views, torch.device("cpu"), "m")
+    by_name = {v.name: tabs[v.index] for v in views if v.index in tabs}
+    mine = by_name.pop(odd["name"])
+    rest = list(by_name.values())
+    assert len(rest) >= 2 and all(t.tables is rest[0].tables for t in rest)
+    assert mine.tables is not rest[0].tables
+    assert mine.tables[0].flatten().tolist() == np.array(odd["jpeg"]["luma_table"], float).ravel().tolist()
+    assert torch.equal(mine.tables[1], rest[0].tables[1])
+    assert not torch.equal(mine.tables[0], rest[0].tables[0])
+
