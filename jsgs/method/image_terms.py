@@ -94,16 +94,19 @@ def jpeg_terms(
 
 
 def image_terms(
-    x: Tensor, y: Tensor, luma: Tensor, chroma: Tensor, **settings: Any
+    x: Tensor, y: Tensor, luma: Tensor, chroma: Tensor, blocks: bool = False, **settings: Any
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """:func:`jpeg_terms` as tensors only (what a CUDA graph can return): L_obs, L_low, L_mid (0-dim; the DS
-    terms 0 without DS), r(p) ``(1, H, W)`` detached (0 without DS and GC) and the observation, detached."""
+    terms 0 without DS), r(p) ``(1, H, W)`` detached (0 without DS and GC) and the observation, detached.
+    ``blocks``: the block scores r_b ``(1, H // 8, W // 8)`` instead of r(p) (r(p) is r_b on each block's
+    pixels), so that no map of the image's size outlives the forward."""
     obs, l_obs, sup = jpeg_terms(x, y, luma, chroma, **settings)
     zero = l_obs.new_zeros(())
     if sup is None:
-        return l_obs, zero, zero, y.new_zeros(y.shape[0], *y.shape[2:]), obs.detach()
+        r_shape = (x.shape[2] // 8, x.shape[3] // 8) if blocks else tuple(y.shape[2:])
+        return l_obs, zero, zero, y.new_zeros(y.shape[0], *r_shape), obs.detach()
     low, mid = (sup.loss_low.sum(), sup.loss_mid.sum()) if settings["ds"] else (zero, zero)
-    return l_obs, low, mid, sup.pixel_score, obs.detach()
+    return l_obs, low, mid, sup.block_score.detach() if blocks else sup.pixel_score, obs.detach()
 
 
 
@@ -151,7 +154,10 @@ def terms_with_gradient(
         y = y.index_select(0, y_index)[0]
     if y.dtype == torch.uint8:
         y = image_target(y).permute(0, 3, 1, 2)
-    l_obs, low, mid, r, obs = image_terms(x, y, tables[0], tables[1], **settings)
+    l_obs, low, mid, r, obs = image_terms(x, y, tables[0], tables[1], blocks=r_blocks, **settings)
+    # the target made here is not needed by the backward (the fused SSIM saved its own contiguous copy):
+    # freed before it, not kept beside the backward's gradients
+    del y
     w_obs, w_low, w_mid = weights
     total = w_obs * l_obs + w_low * low + w_mid * mid
     grad = torch.autograd.grad(total, x)[0] if x.requires_grad else None
@@ -159,8 +165,6 @@ def terms_with_gradient(
         with torch.no_grad():
             x.copy_(grad)
         grad = x.detach()
-    if r_blocks:  # each block's top-left pixel holds its r_b
-        r = r[:, : r.shape[1] // 8 * 8 : 8, : r.shape[2] // 8 * 8 : 8]
     if r_into is not None:
         r_into.copy_(r)
         r = r_into
