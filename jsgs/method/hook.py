@@ -324,8 +324,10 @@ class JsgsHook(LossHook):
                     more = probe_upstream if deferred else None
                     # the uint8 image the target is made from, where there is one: a smaller input buffer
                     y_in = y if ctx.image is None else ctx.image
+                    # the values are the graph's buffer, no copy: the trainer packs them (and adds the
+                    # weighted sum to the loss) within the step, before the next replay
                     graphed = self._graphed(
-                        x, y_in, tab.tables, tab.sampling, more, observation=self.keep_last
+                        x, y_in, tab.tables, tab.sampling, more, observation=self.keep_last, copy_values=False
                     )
             except GraphCaptureFailed as e:
                 # a speed-up, not a result: the run goes on with the eager chain, which computes the same

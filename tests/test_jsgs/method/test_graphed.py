@@ -284,6 +284,32 @@ def test_tables_already_in_the_buffer_are_not_copied_again(monkeypatch: pytest.M
     assert copied == [0, 1, 1, 1, 0, 1, 0]
 
 
+def test_values_without_a_copy_are_the_graphs_buffer(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``copy_values=False`` (the hook's call: the trainer reads the step's values within the step): the
+    values and the weighted sum are the graph's output buffer, with the copying call's values and gradient
+    bit for bit; the next replay writes them anew (so a caller reads them before its next call)."""
+    monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
+    w = (0.2, 0.02, 0.03)
+    plain, direct = (GraphedImageTerms(weights=w, **SETTINGS) for _ in range(2))
+    kept = None
+    for seed in (21, 22):
+        x, y, luma, chroma = _view_tensors(seed)
+        tables = torch.stack([luma, chroma])
+        xa, xb = x.clone().requires_grad_(), x.clone().requires_grad_()
+        a, b = plain(xa, y, tables, "4:2:0"), direct(xb, y, tables, "4:2:0", copy_values=False)
+        (rec,) = direct._graphs.values()
+        buffer = rec.outputs[0]
+        assert b.weighted.data_ptr() == buffer.data_ptr() and b.values.data_ptr() == buffer[1:].data_ptr()
+        assert a.weighted.data_ptr() != plain._graphs[next(iter(plain._graphs))].outputs[0].data_ptr()
+        assert torch.equal(a.values, b.values) and torch.equal(a.weighted, b.weighted), seed
+        a.weighted.backward()
+        b.weighted.backward()
+        assert torch.equal(xa.grad, xb.grad), seed
+        if kept is not None:  # the previous call's values: rewritten by this call's replay
+            assert torch.equal(kept, b.values)
+        kept = b.values
+
+
 def test_an_image_of_the_trainers_stack_is_read_in_place(monkeypatch: pytest.MonkeyPatch) -> None:
     """Training images loaded as the trainer loads them (one [V, H, W, 3] tensor per image size, each view's
     image a view of it): the graph reads the step's image from that tensor by index (a one-element index
