@@ -49,7 +49,7 @@ static, so ``torch.compile`` can trace the whole operator.
 from __future__ import annotations
 
 from functools import partial
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -108,6 +108,23 @@ def _clamp_255(x: Tensor) -> Tensor:
     return F.hardtanh(x, 0.0, 255.0)
 
 
+class _Clamp255(torch.autograd.Function):
+    """:func:`_clamp_255` that keeps a 1-byte mask for its backward instead of its input (hardtanh keeps the
+    input, 4 bytes a value in float32): same values and gradient, bit for bit."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor) -> Tensor:  # type: ignore[override]
+        # hardtanh's backward passes the gradient where 0 < x < 255 (not at NaN) and writes 0 elsewhere
+        ctx.save_for_backward((x > 0.0) & (x < 255.0))
+        return F.hardtanh(x, 0.0, 255.0)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> Tensor:  # type: ignore[override]
+        (inside,) = ctx.saved_tensors
+        return torch.where(inside, grad, 0.0)
+
+
 def _code_blocks(blocks: Tensor, q: Tensor, mode: str) -> Tensor:
     """Level shift, 8x8 DCT, quantize + dequantize, IDCT, +128 and range limit, block by block.
 
@@ -155,6 +172,24 @@ def _code_planes(
     # one split: its backward is one cat (two slices' are two zero-filled copies and their sum)
     luma_d, chroma_d = decoded.split([n_y, n_c], dim=1)
     return unblockify(luma_d.reshape(luma_b.shape)), unblockify(chroma_d.reshape(chroma_b.shape))
+
+
+def _shares_storage(a: Tensor, b: Tensor) -> bool:
+    return a.untyped_storage().data_ptr() == b.untyped_storage().data_ptr()
+
+
+def _code_fused(
+    luma: Tensor, chroma: Tensor, ycc: Tensor, tab_y: Tensor, tab_c: Tensor, mode: str
+) -> tuple[Tensor, Tensor]:
+    """:func:`_code_planes` through the fused kernels (modes "paper" and "float"). Each kernel keeps its
+    planes for the backward: a luma plane that is a view of the YCbCr image ``ycc`` would keep all of it
+    (3x its size) where the chroma planes do not, so it is coded from a copy of its own."""
+    from jsgs.kernels._triton_jo import float_code, paper_code
+
+    code = paper_code if mode == "paper" else float_code
+    if luma.requires_grad and _shares_storage(luma, ycc) and not _shares_storage(chroma, ycc):
+        luma = luma.clone()
+    return code(luma, tab_y), code(chroma, tab_c)
 
 
 def _check_arguments(rgb: Tensor, sampling: str, mode: str, kernel: str, color_kernel: str) -> None:
@@ -247,11 +282,8 @@ def jpeg_observe(
 
     # Every block of the three planes through the coding pass, each with its plane's table.
     if fused:
-        from jsgs.kernels._triton_jo import float_code, paper_code
-
-        code = paper_code if mode == "paper" else float_code
-        luma = code(luma, tab_y)[..., :height, :width]
-        chroma = code(chroma, tab_c)[..., :ch, :cw]
+        luma, chroma = _code_fused(luma, chroma, ycc, tab_y, tab_c, mode)
+        luma, chroma = luma[..., :height, :width], chroma[..., :ch, :cw]
     else:
         luma, chroma = _code_planes(luma, chroma, tab_y, tab_c, mode)
         luma, chroma = luma[..., :height, :width], chroma[..., :ch, :cw]
@@ -263,7 +295,9 @@ def jpeg_observe(
     chroma = chroma[..., :height, :width]
 
     ycc = torch.cat([luma, chroma], dim=1)
-    out = _clamp_255(to_rgb(ycc))
+    # the image-sized clamp keeps a mask, not its input, for the backward (nothing else keeps that input)
+    rgb_out = to_rgb(ycc)
+    out = _Clamp255.apply(rgb_out) if rgb_out.requires_grad else _clamp_255(rgb_out)
     if integer:
         out = _through(ycbcr_to_rgb_libjpeg(ycc), out)
     return out / 255.0

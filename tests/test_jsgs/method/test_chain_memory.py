@@ -8,11 +8,20 @@ from __future__ import annotations
 import weakref
 from typing import Any
 
+import pytest
 import torch
+import torch.nn.functional as F
 
+from jsgs.jpeg.observe import _Clamp255, jpeg_observe
+from jsgs.kernels._triton_jo import interpreting, triton_available
 from jsgs.method import image_terms as image_terms_module
 from jsgs.method.image_terms import terms_with_gradient
 from jsgs.train.data import image_target
+
+needs_interpreter = pytest.mark.skipif(
+    not (triton_available() and interpreting()),
+    reason="needs Triton and TRITON_INTERPRET=1 (the fused JO kernels on CPU tensors)",
+)
 
 SETTINGS = dict(
     mode="paper", ssim_lambda=0.2, ssim_padding="valid", ds=True, gc=True, eps_sm=1e-3, eps_loss=1e-6,
@@ -22,6 +31,63 @@ SETTINGS = dict(
 
 def _bits(t: torch.Tensor) -> torch.Tensor:
     return t.detach().contiguous().view(-1).view(torch.uint8)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_clamp_keeps_a_mask_and_is_hardtanh_bit_for_bit(dtype: torch.dtype) -> None:
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 3, 9, 11, generator=g, dtype=dtype) * 300 - 20
+    edges = [0.0, 255.0, -0.0, float("nan"), float("inf"), -float("inf"), 1e-30, 254.99]
+    x.view(-1)[:8] = torch.tensor(edges)
+    up = torch.randn(x.shape, generator=g, dtype=dtype)
+    a, b = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+    ref, out = F.hardtanh(a, 0.0, 255.0), _Clamp255.apply(b)
+    assert torch.equal(_bits(ref), _bits(out))
+    (ga,) = torch.autograd.grad(ref, a, up)
+    (gb,) = torch.autograd.grad(out, b, up)
+    assert torch.equal(_bits(ga), _bits(gb))  # zeros of the same sign, NaN's gradient passed as hardtanh does
+    (saved,) = _Clamp255.apply(x.clone().requires_grad_(True)).grad_fn.saved_tensors
+    assert saved.dtype == torch.bool and saved.shape == x.shape
+
+
+def _saved_storages(root: Any) -> dict[int, tuple[int, int]]:
+    """storage address -> (its bytes, the largest saved tensor's bytes on it) over every tensor the autograd
+    graph below ``root`` keeps for its backward."""
+    out: dict[int, tuple[int, int]] = {}
+    seen, todo = set(), [root]
+    while todo:
+        node = todo.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        saved = list(getattr(node, "saved_tensors", None) or ())
+        saved += [getattr(node, a) for a in dir(node) if a.startswith("_saved_")]
+        for t in saved:
+            if torch.is_tensor(t) and t.numel():
+                s = t.untyped_storage()
+                own = out.get(s.data_ptr(), (0, 0))[1]
+                out[s.data_ptr()] = (s.nbytes(), max(own, t.numel() * t.element_size()))
+        todo += [n for n, _ in node.next_functions]
+    return out
+
+
+@needs_interpreter
+def test_jo_keeps_no_whole_ycbcr_image_and_no_float_clamp_input_for_its_backward() -> None:
+    # 64x48, 4:2:0: no plane is padded, so the luma plane JO codes is a view of the colour map's output
+    h, w = 48, 64
+    x = torch.rand(1, h, w, 3, generator=torch.Generator().manual_seed(1)).permute(0, 3, 1, 2)
+    x.requires_grad_(True)
+    q = torch.full((8, 8), 12.0)
+    obs = jpeg_observe(x, q, q, "4:2:0", "paper", kernel="triton", color_kernel="triton")
+    saved = _saved_storages(obs.grad_fn)
+    render = x.untyped_storage().data_ptr()
+    # no saved tensor is a view that keeps a larger storage alive (the YCbCr image behind the luma plane)
+    assert all(nbytes == used for p, (nbytes, used) in saved.items() if p != render), saved
+    # what stays: the luma plane and its coded plane (4 + 4 bytes a pixel), the chroma planes and their coded
+    # planes (2 + 2), the vertically up-sampled chroma (4), the clamp's mask (3): 19 B a pixel, and the two
+    # tables; the float input of the clamp (12) or the whole YCbCr image (12 for the luma plane's 4) is more
+    kept = sum(nbytes for p, (nbytes, _) in saved.items() if p != render)
+    assert kept <= 19 * h * w + 2 * 64 * 4, kept / (h * w)
 
 
 def _chain(x: torch.Tensor, image: torch.Tensor, **kwargs: Any) -> tuple[torch.Tensor, ...]:
