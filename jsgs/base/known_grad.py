@@ -22,18 +22,21 @@ from torch import Tensor
 
 class _KnownGradient(torch.autograd.Function):
     @staticmethod
-    def forward(ctx: Any, value: Tensor, scratch: bool, own_value: bool, *pairs: Tensor) -> Tensor:
+    def forward(
+        ctx: Any, value: Tensor, scratch: bool, own_value: bool, unit_upstream: bool, *pairs: Tensor
+    ) -> Tensor:
         # (x, grad) pairs; the gradients kept as an attribute, not saved for backward: the caller may own
         # their memory (a graph's static output, rewritten by its next replay after this step's backward);
         # read in the backward
         ctx.grads = pairs[1::2]
         ctx.scratch = scratch
+        ctx.unit_upstream = unit_upstream
         # an input returned as it is becomes a view of it (autograd's rule): no copy
         return value if own_value else value.detach().clone()
 
     @staticmethod
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, ...]:
-        out: list[Tensor | None] = [None, None, None]
+        out: list[Tensor | None] = [None, None, None, None]
         if not ctx.scratch:
             for g in ctx.grads:
                 out += [grad_out * g, None]
@@ -45,13 +48,15 @@ class _KnownGradient(torch.autograd.Function):
             )
         grads, ctx.grads = ctx.grads, None
         for g in grads:  # upstream·g written over g: the same values as the product, no new tensor
-            out += [g.mul_(grad_out), None]
+            # (an upstream of exactly 1 leaves g as it is, bit for bit: no kernel)
+            out += [g if ctx.unit_upstream else g.mul_(grad_out), None]
         return tuple(out)
 
 
 def with_known_gradient(
-    x: Tensor, value: Tensor, grad: Tensor, *more: Tensor, scratch: bool = False, own_value: bool = False
-) -> Tensor:
+    x: Tensor, value: Tensor, grad: Tensor, *more: Tensor, scratch: bool = False, own_value: bool = False,
+    unit_upstream: bool = False,
+) -> Tensor:  # fmt: skip
     """A 0-dim tensor equal to ``value`` whose gradient with respect to ``x`` is ``grad`` (and with respect
     to each further ``x_k`` in ``more = (x_2, grad_2, x_3, grad_3, ...)`` its ``grad_k``): one autograd node
     for them all, where a sum of such scalars takes one per scalar and an addition.
@@ -68,6 +73,10 @@ def with_known_gradient(
             (the same values: a product of two numbers in either order). One backward only.
         own_value: ``value`` is the caller's own tensor, not written again while the scalar is in use (a
             copy the caller made): the result is a view of it instead of a copy (one kernel fewer).
+        unit_upstream: with ``scratch``, the caller guarantees that the scalar's upstream gradient is
+            exactly 1 (it enters a loss unweighted, whose backward starts from 1: the trainer's folded
+            loss, :attr:`jsgs.train.hook.StepContext.folded_upstream_one`): the gradients are handed on as
+            they are, which is ``1·grad`` bit for bit, without the product's kernel.
     Returns:
         0-dim tensor, a copy of ``value`` (with ``own_value``, a view of it); ``backward`` sends
         ``upstream * grad`` to ``x`` (and ``upstream * grad_k`` to each ``x_k``).
@@ -82,7 +91,9 @@ def with_known_gradient(
             raise ValueError(f"grad must have x's shape {tuple(xk.shape)}, got {tuple(gk.shape)}")
     if own_value and value.requires_grad:
         raise ValueError("own_value: value must not require grad (it is not differentiated)")
-    return _KnownGradient.apply(value, scratch, own_value, *pairs)
+    if unit_upstream and not scratch:
+        raise ValueError("unit_upstream hands the gradients on as they are: they must be scratch")
+    return _KnownGradient.apply(value, scratch, own_value, unit_upstream, *pairs)
 
 
 class _DeferredGradient(torch.autograd.Function):

@@ -175,14 +175,16 @@ class GraphedImageTerms:
     def __call__(
         self, x: Tensor, y: Tensor, tables: Tensor, sampling: str,
         more: Callable[[Tensor], tuple[Tensor, ...]] | None = None, observation: bool = False,
-        copy_values: bool = True,
+        copy_values: bool = True, unit_upstream: bool = False,
     ) -> ImageTerms:  # fmt: skip
         """``x``, ``y``: ``(1, 3, H, W)`` render and target; ``tables``: ``(2, 8, 8)`` luma and chroma;
         ``more``: called with r_b (``ImageTerms.r``) after the replay, further (tensor, gradient) pairs
         whose known gradients ride on ``weighted``'s node (:func:`~jsgs.base.known_grad.with_known_gradient`);
         ``observation``: also return the observation (else ``obs`` is None); ``copy_values`` off: the values
         (and the weighted sum, a view of them) are the graph's output buffer, not a copy, for a caller that
-        has read them before its next call (whose replay writes them anew). ``y`` may be the ``(H, W, 3)``
+        has read them before its next call (whose replay writes them anew); ``unit_upstream``: the caller
+        guarantees the weighted sum's upstream gradient is exactly 1 (``with_known_gradient``'s: its
+        gradients are handed on without the product by 1). ``y`` may be the ``(H, W, 3)``
         uint8 training image the target is made from (:func:`.terms_with_gradient`); where it is one image
         of a stack of them (:func:`jsgs.train.data.stacked_image`, as the trainer loads them), the graph
         reads it from the stack by index: no buffer of the image's size and no copy."""
@@ -211,7 +213,9 @@ class GraphedImageTerms:
         # upstream map is made for this call alone (jsgs.method.pooling.ProbeObjective)
         # the weighted sum: a view of the values (the caller's copy, or the buffer), no copy of its own
         weighted = (
-            with_known_gradient(pairs[0], values[0], *pairs[1:], scratch=True, own_value=True)
+            with_known_gradient(
+                pairs[0], values[0], *pairs[1:], scratch=True, own_value=True, unit_upstream=unit_upstream
+            )
             if pairs else values[0]
         )  # fmt: skip
         return ImageTerms(weighted, values[1:], r, obs)

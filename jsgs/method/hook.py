@@ -327,8 +327,9 @@ class JsgsHook(LossHook):
                     # the values are the graph's buffer, no copy: the trainer packs them (and adds the
                     # weighted sum to the loss) within the step, before the next replay
                     graphed = self._graphed(
-                        x, y_in, tab.tables, tab.sampling, more, observation=self.keep_last, copy_values=False
-                    )
+                        x, y_in, tab.tables, tab.sampling, more, observation=self.keep_last,
+                        copy_values=False, unit_upstream=ctx.folded_upstream_one,
+                    )  # fmt: skip
             except GraphCaptureFailed as e:
                 # a speed-up, not a result: the run goes on with the eager chain, which computes the same
                 self._graphed = None

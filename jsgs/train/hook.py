@@ -65,6 +65,10 @@ class StepContext:
     - ``sh_degree``: the SH degree used at this step.
     - ``image``: [H, W, 3] uint8, the training image ``target`` was made from
       (:func:`jsgs.train.data.image_target`), or None where ``target`` was not made so.
+    - ``folded_upstream_one``: the caller adds :attr:`HookOutput.folded_loss` to the loss unweighted and
+      runs the loss's backward from 1 (as the trainer does), so the folded loss's upstream gradient is
+      exactly 1: a known gradient inside it need not be multiplied by it
+      (:func:`jsgs.base.known_grad.with_known_gradient`'s ``unit_upstream``). False: any upstream.
     """
 
     step: int
@@ -78,6 +82,7 @@ class StepContext:
     base_terms: dict[str, Tensor]
     sh_degree: int
     image: Tensor | None = None
+    folded_upstream_one: bool = False
 
 
 @dataclass

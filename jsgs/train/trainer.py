@@ -1008,6 +1008,7 @@ class Trainer:
                     base_terms=dict(terms),
                     sh_degree=sh_degree,
                     image=self.train_images[view.index],
+                    folded_upstream_one=True,  # weighted_loss adds it unweighted; loss.backward() from 1
                 )
                 stats, folded, folded_loss, skipped = self._hook_terms(ctx, cfg, terms, weights)
         loss = weighted_loss(terms, weights, folded, folded_loss)

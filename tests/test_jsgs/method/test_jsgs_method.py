@@ -299,8 +299,9 @@ def train_step(
     out = render(splats, extra, hook.render_kwargs(0, view) if render_kwargs else None)
     out.info["means2d"].retain_grad()
     ctx = StepContext(
-        0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0, image if context_image else None
-    )
+        0, view, out.rgb, out.alpha, target, out.info, splats, None, {}, 0, image if context_image else None,
+        folded_upstream_one=True,  # added unweighted below, backward from 1
+    )  # fmt: skip
     h = hook.losses(ctx)
     h.check("jsgs")
     x, y = out.rgb.permute(0, 3, 1, 2), target.permute(0, 3, 1, 2)

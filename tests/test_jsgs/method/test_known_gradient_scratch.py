@@ -130,3 +130,30 @@ def test_the_deferred_objective_is_a_view_of_a_kept_zero() -> None:
     assert not torch.equal(grads[0], torch.ones_like(grads[0]))  # the deferred map reached the channels
     with pytest.raises(ValueError, match="own_value"):
         with_deferred_gradient(ch, torch.tensor(0.0, requires_grad=True), make, own_value=True)
+
+
+def test_a_unit_upstream_hands_the_scratch_gradients_on_as_they_are() -> None:
+    """``unit_upstream`` (a scalar added unweighted to a loss whose backward starts from 1, as the trainer
+    adds the folded loss): the gradients sent on are the buffers themselves, untouched, equal bit for bit to
+    what the product by the upstream 1 sends (gradients with signed zeros, subnormals and infinities
+    included); without ``scratch`` it is refused."""
+    sent: dict[bool, list[torch.Tensor]] = {}
+    for unit in (False, True):
+        gen = torch.Generator().manual_seed(4)
+        a = torch.rand(2, 3, 5, generator=gen).requires_grad_()
+        ga = torch.randn(2, 3, 5, generator=gen)
+        ga[0, 0, :4] = torch.tensor([-0.0, 1e-40, float("inf"), -float("inf")])
+        kept = ga.clone()
+        xa = a * 3.0
+        seen: list[torch.Tensor] = []
+        xa.register_hook(seen.append)
+        other = (a * 2.0).sum()
+        s = with_known_gradient(xa, torch.tensor(0.5), ga, scratch=True, unit_upstream=unit)
+        (other + s).backward()
+        sent[unit] = [seen[0].clone(), a.grad.clone()]
+        if unit:
+            assert seen[0].data_ptr() == ga.data_ptr() and torch.equal(ga, kept)
+    for got, want in zip(sent[True], sent[False], strict=True):
+        assert torch.equal(got, want) and torch.equal(got.signbit(), want.signbit())
+    with pytest.raises(ValueError, match="scratch"):
+        with_known_gradient(a, torch.tensor(0.5), ga, unit_upstream=True)
