@@ -3,12 +3,13 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
+import torch
 from torch import Tensor
 
-from ..kernels import ssim
+from ..kernels import ssim, ssim_is_fused
 from .observe import jpeg_observe
 
 LAMBDA_SSIM = 0.2
@@ -25,6 +26,27 @@ class PhotometricTerms(NamedTuple):
     loss: Tensor
     l1: Tensor
     d_ssim: Tensor
+
+
+class _MeanAbsDifference(torch.autograd.Function):
+    """``(x - y).abs().mean()`` with autograd's gradient, bit for bit, keeping nothing of its own for the
+    backward: the difference (4 bytes a value, which ``abs`` would keep) is made again there from ``x`` and
+    ``y``, which the loss's SSIM keeps anyway, and becomes the gradient in place."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, y: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(x, y)
+        return (x - y).abs_().mean()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None]:  # type: ignore[override]
+        x, y = ctx.saved_tensors
+        # autograd's chain: the mean's grad / numel, times sgn(x - y) (abs), then +/- (the subtraction)
+        g = (x - y).sgn_().mul_(grad / x.numel())
+        gx = g if ctx.needs_input_grad[0] else None
+        gy = (-g if ctx.needs_input_grad[0] else g.neg_()) if ctx.needs_input_grad[1] else None
+        return gx, gy
 
 
 def photometric_terms(
@@ -47,7 +69,12 @@ def photometric_terms(
     Returns:
         The loss and its parts (unitless).
     """
-    if reduction == "mean":
+    if reduction == "mean" and x.shape == y.shape:
+        if not channels_last and x.is_contiguous() and ssim_is_fused(x, y, ssim_kernel):
+            # the fused SSIM keeps a contiguous copy of y for its backward, L1 keeps y: one copy for both
+            y = y.contiguous()
+        l1 = _MeanAbsDifference.apply(x, y)
+    elif reduction == "mean":
         l1 = (x - y).abs().mean()
     elif reduction == "none":
         l1 = (x - y).abs().flatten(1).mean(1)

@@ -47,7 +47,14 @@ from jsgs.kernels._torch_impl import (
     quat_scale_to_covar,
     sums_from_probe_grad,
 )
-from jsgs.kernels._wrapper import SSIM_KERNELS, cpu_twins, fro_from_probe_grad_fused, ssim, ssim_map
+from jsgs.kernels._wrapper import (
+    SSIM_KERNELS,
+    cpu_twins,
+    fro_from_probe_grad_fused,
+    ssim,
+    ssim_is_fused,
+    ssim_map,
+)
 
 __all__ = [
     "C1",
@@ -75,6 +82,7 @@ __all__ = [
     "projected_rms_scale_sq",
     "quat_scale_to_covar",
     "ssim",
+    "ssim_is_fused",
     "ssim_map",
     "sums_from_probe_grad",
     "use_kernels",

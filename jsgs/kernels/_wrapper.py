@@ -91,6 +91,12 @@ def _use_fused(x: Tensor, y: Tensor, kernel: str, window_size: int) -> bool:
     return x.is_cuda and fits and not y.requires_grad and extension() is not None
 
 
+def ssim_is_fused(x: Tensor, y: Tensor, kernel: str = "auto", window_size: int = 11) -> bool:
+    """Whether :func:`ssim_map` runs the fused kernel on ``x``, ``y`` (which then keeps contiguous copies
+    of both for its backward: a caller that keeps ``y`` too saves memory by handing it over contiguous)."""
+    return _use_fused(x, y, kernel, window_size)
+
+
 def ssim_map(
     x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, padding: str = "same",
     kernel: str = "auto",

@@ -12,7 +12,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from jsgs.jpeg import losses as losses_module
+from jsgs.jpeg.losses import _MeanAbsDifference, photometric_terms
 from jsgs.jpeg.observe import _Clamp255, jpeg_observe
+from jsgs.kernels import ssim
 from jsgs.kernels._triton_jo import interpreting, triton_available
 from jsgs.method import image_terms as image_terms_module
 from jsgs.method.image_terms import terms_with_gradient
@@ -132,3 +135,93 @@ def test_the_target_made_from_the_image_is_freed_before_the_backward(monkeypatch
     x = torch.rand(1, 3, 40, 48, generator=g, requires_grad=True)
     _chain(x, image, photometric=photometric)
     assert alive_at_backward == [False]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("grads", [(True, False), (True, True), (False, True)])
+def test_the_l1_term_keeps_no_difference_and_is_autograds_bit_for_bit(
+    dtype: torch.dtype, grads: tuple[bool, bool]
+) -> None:
+    g = torch.Generator().manual_seed(5)
+    x = torch.rand(1, 29, 37, 3, generator=g, dtype=dtype).permute(0, 3, 1, 2)  # a render's layout
+    y = torch.rand(1, 3, 29, 37, generator=g, dtype=dtype)
+    y[0, 1, 2, :5] = x[0, 1, 2, :5]  # ties: sgn 0
+    inputs = [(x.detach().clone().requires_grad_(grads[0]), y.clone().requires_grad_(grads[1])) for _ in "ab"]
+    (xa, ya), (xb, yb) = inputs
+    ref, out = (xa - ya).abs().mean(), _MeanAbsDifference.apply(xb, yb)
+    assert torch.equal(_bits(ref), _bits(out))
+    up = torch.tensor(-0.37, dtype=dtype)
+    want = torch.autograd.grad(ref, [t for t in (xa, ya) if t.requires_grad], up)
+    got = torch.autograd.grad(out, [t for t in (xb, yb) if t.requires_grad], up)
+    for a, b in zip(want, got, strict=True):
+        assert torch.equal(_bits(a), _bits(b))
+    # what it keeps for the backward are its inputs themselves, no tensor of its own
+    kept = {t.untyped_storage().data_ptr() for t in _MeanAbsDifference.apply(xb, yb).grad_fn.saved_tensors}
+    assert kept <= {xb.untyped_storage().data_ptr(), yb.untyped_storage().data_ptr()}
+
+
+def test_l1_and_the_fused_ssim_keep_one_contiguous_copy_of_the_target(monkeypatch: Any) -> None:
+    """Where the fused SSIM runs (CUDA; stood in here by the torch twin) the loss hands it the target laid out
+    contiguously, the copy the kernel would make and keep, and L1 keeps that same copy: one copy for both."""
+    seen: list[torch.Tensor] = []
+
+    def ssim_spy(x: torch.Tensor, y: torch.Tensor, **kwargs: Any) -> torch.Tensor:
+        seen.append(y)
+        return ssim(x, y, **{**kwargs, "kernel": "torch"})
+
+    g = torch.Generator().manual_seed(6)
+    x = torch.rand(1, 3, 24, 32, generator=g, requires_grad=True)
+    y = torch.rand(1, 24, 32, 3, generator=g).permute(0, 3, 1, 2)  # a target's layout
+    plain = photometric_terms(x, y, 0.2, padding="valid", ssim_kernel="torch")
+    monkeypatch.setattr(losses_module, "ssim_is_fused", lambda *a: True)
+    monkeypatch.setattr(losses_module, "ssim", ssim_spy)
+    lean = photometric_terms(x, y, 0.2, padding="valid", ssim_kernel="torch")
+    assert torch.equal(_bits(plain.loss), _bits(lean.loss))
+    (g_plain,), (g_lean,) = torch.autograd.grad(plain.loss, x), torch.autograd.grad(lean.loss, x)
+    assert torch.equal(_bits(g_plain), _bits(g_lean))
+    (given,) = seen
+    assert given.is_contiguous() and not y.is_contiguous()
+    again = photometric_terms(x, y, 0.2, padding="valid", ssim_kernel="torch")  # its graph not run yet
+    kept = {t.untyped_storage().data_ptr() for t in again.l1.grad_fn.saved_tensors}
+    assert seen[1].untyped_storage().data_ptr() in kept
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_gpu_the_chains_peak_is_within_its_shape_budget() -> None:
+    """The graph's function on CUDA at 960x720 as the hook records it (fused JO, colour and DS kernels where
+    Triton runs, the fused SSIM): its peak of allocated memory above its inputs is what its pool needs. The
+    shape budget (docs/performance.md, "Peak memory") is 113.9 B a pixel; 5 % for the allocator's rounding."""
+    from jsgs.jpeg.supervision import table_weights
+    from jsgs.kernels._triton_jo import fused_jo_runs
+
+    h, w = 720, 960
+    g = torch.Generator().manual_seed(7)
+    x = torch.rand(1, h, w, 3, generator=g).permute(0, 3, 1, 2).cuda()
+    image = (torch.rand(2, h, w, 3, generator=g) * 255).to(torch.uint8).cuda()
+    tables = torch.stack([torch.full((8, 8), 9.0), torch.full((8, 8), 14.0)]).cuda()
+    kern = "triton" if fused_jo_runs(x) else "torch"
+    settings = {**SETTINGS, "jo_kernel": kern, "color_kernel": kern, "ssim_kernel": "auto",
+                "ds_weights": table_weights(tables[0], 1, torch.float32, x.device)}  # fmt: skip
+    buf = x.clone(memory_format=torch.preserve_format).requires_grad_(True)
+    r_into = torch.empty(1, h // 8, w // 8, device="cuda")
+    index = torch.tensor([1], device="cuda")
+
+    def run() -> None:
+        with torch.no_grad():
+            buf.copy_(x)
+        terms_with_gradient(
+            buf, image, tables, weights=(1.0, 0.3, 0.7), sampling="4:2:0", observation=False,
+            grad_into_x=True, r_into=r_into, r_blocks=True, y_index=index, **settings,
+        )  # fmt: skip
+
+    run()  # kernels compiled and loaded, constants made
+    torch.cuda.synchronize()
+    start = torch.cuda.memory_allocated()
+    torch.cuda.reset_peak_memory_stats()
+    run()
+    torch.cuda.synchronize()
+    per_pixel = (torch.cuda.max_memory_allocated() - start) / (h * w)
+    print(f"the chain's peak at {w}x{h}: {per_pixel:.1f} B a pixel (kernels {kern})")
+    if kern == "triton":
+        assert per_pixel <= 113.9 * 1.05, per_pixel
