@@ -112,7 +112,9 @@ class _DeferredGradient(torch.autograd.Function):
         if make is None:
             raise RuntimeError("with_deferred_gradient: a second backward through the same scalar")
         g = make(*ctx.like)
-        return None, None, None, None if g is None else g.mul_(grad_out)
+        if g is None or getattr(make, "unit_upstream", False):  # an upstream of exactly 1: g as it is
+            return None, None, None, g
+        return None, None, None, g.mul_(grad_out)
 
 
 def with_deferred_gradient(x: Tensor, value: Tensor, make: Any, own_value: bool = False) -> Tensor:
@@ -123,7 +125,10 @@ def with_deferred_gradient(x: Tensor, value: Tensor, make: Any, own_value: bool 
     order, so the backward reaches it after the nodes made later (the losses on the render), and the
     gradient lives only from then to where it is consumed. One backward only. ``own_value``: as
     :func:`with_known_gradient`'s (the result a view of ``value``, which the caller never writes while the
-    scalar is in use; e.g. a zero it keeps from step to step), no copy.
+    scalar is in use; e.g. a zero it keeps from step to step), no copy. A true ``make.unit_upstream`` when
+    the backward reaches the node: the caller guarantees the upstream is exactly 1 (as
+    :func:`with_known_gradient`'s ``unit_upstream``), and the gradient is handed on as made, without the
+    product by 1 (the same bits).
     """
     if value.dim() != 0:
         raise ValueError(f"value must be 0-dim, got shape {tuple(value.shape)}")

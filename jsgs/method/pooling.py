@@ -174,11 +174,14 @@ class DeferredProbeMap:
     the block scores r_b it is made of) is set after the render, once the image terms have made it; the
     map exists only from where the backward reaches the objective's node (after the losses on the render,
     which were made after it) to the rasteriser's backward: not at the forward's peak, not at ℓ_ph's
-    backward. Unset, it gives no gradient."""
+    backward. Unset, it gives no gradient. ``unit_upstream``, set with ``r``: the objective enters a loss
+    unweighted whose backward starts from 1, so the map is handed on without the product by the upstream
+    (:func:`jsgs.base.known_grad.with_deferred_gradient`)."""
 
     def __init__(self, weight: float) -> None:
         self.weight = float(weight)
         self.r: Tensor | None = None
+        self.unit_upstream = False
 
     def __call__(self, shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> Tensor | None:
         r, self.r = self.r, None

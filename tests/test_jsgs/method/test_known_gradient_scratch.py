@@ -157,3 +157,36 @@ def test_a_unit_upstream_hands_the_scratch_gradients_on_as_they_are() -> None:
         assert torch.equal(got, want) and torch.equal(got.signbit(), want.signbit())
     with pytest.raises(ValueError, match="scratch"):
         with_known_gradient(a, torch.tensor(0.5), ga, unit_upstream=True)
+
+
+def test_a_deferred_map_with_a_unit_upstream_is_handed_on_as_made() -> None:
+    """``make.unit_upstream`` (the probe's map when the trainer adds the objective unweighted): the map made
+    in the backward reaches the channels as it is, the very tensor, equal bit for bit to the product by the
+    upstream 1 (signed zeros, subnormals and infinities included)."""
+    from jsgs.base.known_grad import with_deferred_gradient
+
+    class Make:
+        def __init__(self, unit: bool) -> None:
+            self.unit_upstream, self.made = unit, None
+
+        def __call__(self, shape: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+            g = torch.randn(shape, generator=torch.Generator().manual_seed(6), dtype=dtype)
+            g.view(-1)[:4] = torch.tensor([-0.0, 1e-40, float("inf"), -float("inf")])
+            self.made = g
+            return g
+
+    sent, products = [], []
+    for unit in (False, True):
+        ch = torch.rand(1, 4, 3, 2, generator=torch.Generator().manual_seed(2)).requires_grad_()
+        x = ch * 1.0
+        seen: list[torch.Tensor] = []
+        x.register_hook(seen.append)
+        make = Make(unit)
+        obj = with_deferred_gradient(x, torch.zeros(()), make, own_value=True)
+        with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+            ((ch * 2.0).sum() + obj).backward()
+        products.append(sum(e.name == "aten::mul_" for e in prof.events()))
+        sent.append(seen[0].clone())
+        assert seen[0].data_ptr() == make.made.data_ptr()
+    assert products == [1, 0]  # the product by the upstream, made only without the unit upstream
+    assert torch.equal(sent[0], sent[1]) and torch.equal(sent[0].signbit(), sent[1].signbit())
