@@ -65,6 +65,28 @@ class _FusedSsimMap(torch.autograd.Function):
         return grad_x, None, None, None
 
 
+class _FusedSsimMean(torch.autograd.Function):
+    """The mean of :class:`_FusedSsimMap`'s map in one node: the same value, and a backward that hands the
+    kernel the mean's gradient as one value broadcast (all strides 0, which ``ssim_backward`` reads in place)
+    instead of the map of it that the mean's own backward makes (4 bytes a map value). The value it reads
+    is the mean's backward's, ``grad / numel``, so the gradient is the same bit for bit."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, y: Tensor, window: Tensor, same: bool) -> Tensor:  # type: ignore[override]
+        smap, d_mu, d_xx, d_xy = extension().ssim_forward(x, y, window, C1, C2, same)
+        ctx.save_for_backward(x, y, window, d_mu, d_xx, d_xy)
+        ctx.same = same
+        return smap.mean()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, None, None, None]:  # type: ignore[override]
+        x, y, window, d_mu, d_xx, d_xy = ctx.saved_tensors
+        upstream = (grad / d_mu.numel()).expand(d_mu.shape)
+        grad_x = extension().ssim_backward(upstream, x, y, window, d_mu, d_xx, d_xy, ctx.same)
+        return grad_x, None, None, None
+
+
 def _use_fused(x: Tensor, y: Tensor, kernel: str, window_size: int) -> bool:
     if kernel not in SSIM_KERNELS:
         raise ValueError(f"kernel must be one of {', '.join(SSIM_KERNELS)}, got {kernel!r}")
@@ -106,16 +128,20 @@ def ssim_map(
     ``padding="same"``: H' = H, W' = W with zero padding (3DGS / fused-ssim); ``"valid"``: H' = H - 10 etc.
     (no padded samples; needs H, W >= window_size). ``kernel``: "auto", "torch" or "cuda" (module doc).
     """
+    _check_pair(x, y, padding)
+    w = gaussian_window(window_size, sigma, x.dtype, x.device)
+    if _use_fused(x, y, kernel, window_size):
+        return _FusedSsimMap.apply(x.contiguous(), y.contiguous(), w, padding == "same")
+    return ssim_map_torch(x, y, w, padding)
+
+
+def _check_pair(x: Tensor, y: Tensor, padding: str) -> None:
     if padding not in ("same", "valid"):
         raise ValueError(f"padding must be 'same' or 'valid', got {padding!r}")
     if x.shape != y.shape or x.dim() != 4:
         raise ValueError(
             f"ssim needs two (B, C, H, W) tensors of one shape, got {tuple(x.shape)}, {tuple(y.shape)}"
         )
-    w = gaussian_window(window_size, sigma, x.dtype, x.device)
-    if _use_fused(x, y, kernel, window_size):
-        return _FusedSsimMap.apply(x.contiguous(), y.contiguous(), w, padding == "same")
-    return ssim_map_torch(x, y, w, padding)
 
 
 def ssim(x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, padding: str = "same",
@@ -132,6 +158,11 @@ def ssim(x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, paddin
     Returns:
         SSIM, 1 for identical images.
     """
+    _check_pair(x, y, padding)
+    if reduction == "mean" and _use_fused(x, y, kernel, window_size):
+        # the mean and the map in one node: no map of the mean's gradient in the backward
+        w = gaussian_window(window_size, sigma, x.dtype, x.device)
+        return _FusedSsimMean.apply(x.contiguous(), y.contiguous(), w, padding == "same")
     m = ssim_map(x, y, window_size, sigma, padding, kernel)
     if reduction == "mean":
         return m.mean()

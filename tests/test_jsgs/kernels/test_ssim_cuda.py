@@ -125,3 +125,69 @@ def test_fused_refuses_what_it_cannot_do() -> None:
     yy = y.detach().clone().requires_grad_()
     ssim(x, yy, kernel="auto").backward()
     assert yy.grad is not None
+
+
+class _TwinExtension:
+    """The fused kernels' two functions computed by the torch twin on the CPU (their arithmetic aside, what
+    they take and return), recording the upstream gradient each backward is given."""
+
+    def __init__(self) -> None:
+        self.upstreams: list[torch.Tensor] = []
+
+    def ssim_forward(self, x, y, window, c1, c2, same):  # type: ignore[no-untyped-def]
+        from jsgs.kernels._torch_impl import ssim_map_torch
+
+        m = ssim_map_torch(x, y, window, "same" if same else "valid")
+        return [m, m * 0.5, m * 0.25, m * 0.125]  # three maps of the map's shape to save
+
+    def ssim_backward(self, grad, x, y, window, d_mu, d_xx, d_xy, same):  # type: ignore[no-untyped-def]
+        from jsgs.kernels._torch_impl import ssim_map_torch
+
+        self.upstreams.append(grad)
+        with torch.enable_grad():
+            xr = x.detach().requires_grad_(True)
+            m = ssim_map_torch(xr, y, window, "same" if same else "valid")
+            return torch.autograd.grad(m, xr, grad)[0]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_fused_mean_hands_the_kernel_a_broadcast_upstream_of_the_means_value(
+    monkeypatch: pytest.MonkeyPatch, dtype: torch.dtype
+) -> None:
+    """``ssim(..., reduction="mean")`` on the fused path: one node whose backward gives the kernel the mean's
+    gradient as one value broadcast (no map of it), the value the mean's own backward would write into each
+    element; the loss and the gradient those of the map's mean, bit for bit."""
+    from jsgs.kernels import _wrapper
+
+    ext = _TwinExtension()
+    monkeypatch.setattr(_wrapper, "extension", lambda warn=True: ext)
+    monkeypatch.setattr(_wrapper, "_use_fused", lambda *a: True)
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(1, 3, 30, 41, generator=g, dtype=dtype)
+    y = torch.rand(1, 3, 30, 41, generator=g, dtype=dtype)
+    up = torch.tensor(-0.73, dtype=dtype)
+    out = []
+    for fused_mean in (False, True):
+        xa = x.clone().requires_grad_(True)
+        value = ssim(xa, y, padding="valid") if fused_mean else ssim_map(xa, y, padding="valid").mean()
+        out.append((value.detach(), torch.autograd.grad(value, xa, up)[0]))
+    (v0, g0), (v1, g1) = out
+    assert torch.equal(v0, v1) and torch.equal(g0, g1)
+    dense, broadcast = ext.upstreams
+    assert all(s == 0 for s in broadcast.stride()) and broadcast.shape == dense.shape == (1, 3, 20, 31)
+    assert torch.equal(broadcast.contiguous(), dense)
+
+
+@cuda
+@pytest.mark.gpu
+@pytest.mark.parametrize("padding", ["same", "valid"])
+def test_fused_mean_equals_the_maps_mean_bit_for_bit(padding: str) -> None:
+    x, y = _pair((1, 3, 96, 130), torch.float32, 4)
+    out = []
+    for fused_mean in (False, True):
+        xa = x.clone().requires_grad_()
+        v = ssim(xa, y, padding=padding, kernel="cuda") if fused_mean else ssim_map(
+            xa, y, padding=padding, kernel="cuda"
+        ).mean()
+        out.append((v.detach(), torch.autograd.grad(v, xa, torch.tensor(0.37, device="cuda"))[0]))
+    assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
