@@ -116,6 +116,7 @@ class DctSupervision(NamedTuple):
     pixel_score: ``(B, H, W)`` r(p) = r_b of the block holding p, **detached** (the Gaussian Controller
         only uses it under stop-gradient); 0 for pixels outside the valid blocks (the last H mod 8 rows and
         W mod 8 columns), which have no block score.
+        None where :func:`dct_supervision` was asked for none (``score_map=False``).
     """
 
     delta: Tensor
@@ -126,7 +127,7 @@ class DctSupervision(NamedTuple):
     loss_low: Tensor
     loss_mid: Tensor
     block_score: Tensor
-    pixel_score: Tensor
+    pixel_score: Tensor | None
 
 
 class TableWeights(NamedTuple):
@@ -174,6 +175,7 @@ def dct_supervision(
     eps_block: float = EPS_BLOCK,
     weights: TableWeights | None = None,
     kernel: str = "torch",
+    score_map: bool = True,
 ) -> DctSupervision:
     """DS between the JO output and the decoded training image.
 
@@ -188,6 +190,7 @@ def dct_supervision(
         kernel: ``"torch"`` or ``"triton"``: Delta as one fused Triton kernel forward and one backward
             (:func:`jsgs.kernels._triton_jo.ds_delta`; CUDA tensors, or ``TRITON_INTERPRET=1`` on CPU), where
             it can run (a target that needs no gradient, at least one valid block), else the torch code.
+        score_map: make r(p) (``pixel_score``); False: None there, for a caller that reads r_b alone.
     Returns:
         :class:`DctSupervision`. With no valid block (H < 8 or W < 8) the losses are 0 and the score map is 0.
     """
@@ -206,7 +209,7 @@ def dct_supervision(
     loss_mid = block_error.sum(dim=(1, 2)) / (n_blocks * w_sum + eps_loss)
     block_score = block_error / (w_sum[:, None, None] + eps_block)
 
-    pixel_score = pixel_score_of(block_score, height, width)
+    pixel_score = pixel_score_of(block_score, height, width) if score_map else None
     return DctSupervision(delta, pen, w, w_mid, block_error, loss_low, loss_mid, block_score, pixel_score)
 
 

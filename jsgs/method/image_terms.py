@@ -23,6 +23,7 @@ from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.observe import jpeg_observe
 from jsgs.jpeg.supervision import DctSupervision, TableWeights, dct_supervision, table_weights
 from jsgs.jpeg.tables import SAMPLING_FACTORS
+from jsgs.kernels import ssim_is_fused
 from jsgs.train.data import image_target
 
 if TYPE_CHECKING:
@@ -56,6 +57,7 @@ def jpeg_terms(
     phase: Callable[[str], AbstractContextManager[Any]] = lambda name: nullcontext(),
     first: Tensor | None = None,
     ds_weights: TableWeights | None = None,
+    score_map: bool = True,
 ) -> tuple[Tensor, Tensor, DctSupervision | None]:
     """JO, L_obs and DS for one view: the one home of that chain, for the eager hook and for the graph.
 
@@ -71,6 +73,7 @@ def jpeg_terms(
             with ``luma``/``chroma`` (the file's history), and DS weights by their luma.
         ds_weights: DS's weights of the table it weights by (:attr:`ViewJpeg.ds_weights`), made once per
             view; None: DS makes them.
+        score_map: DS makes r(p) (``DctSupervision.pixel_score``); False: only r_b.
     Returns:
         The observation ``(1, 3, H, W)``, L_obs (0-dim) and the DS terms (None without DS and GC; with GC
         alone they are computed on the detached observation, so no graph runs through DS).
@@ -88,7 +91,7 @@ def jpeg_terms(
         ds_table = first[0] if first is not None else luma
         sup = supervise(
             obs if ds else obs.detach(), y, ds_table, eps_sm, eps_loss, eps_block, ds_weights,
-            kernel=jo_kernel,
+            kernel=jo_kernel, **({} if score_map else {"score_map": False}),
         )  # fmt: skip
     return obs, l_obs, sup
 
@@ -100,7 +103,7 @@ def image_terms(
     terms 0 without DS), r(p) ``(1, H, W)`` detached (0 without DS and GC) and the observation, detached.
     ``blocks``: the block scores r_b ``(1, H // 8, W // 8)`` instead of r(p) (r(p) is r_b on each block's
     pixels), so that no map of the image's size outlives the forward."""
-    obs, l_obs, sup = jpeg_terms(x, y, luma, chroma, **settings)
+    obs, l_obs, sup = jpeg_terms(x, y, luma, chroma, score_map=not blocks, **settings)
     zero = l_obs.new_zeros(())
     if sup is None:
         r_shape = (x.shape[2] // 8, x.shape[3] // 8) if blocks else tuple(y.shape[2:])
@@ -154,6 +157,10 @@ def terms_with_gradient(
         y = y.index_select(0, y_index)[0]
     if y.dtype == torch.uint8:
         y = image_target(y).permute(0, 3, 1, 2)
+        if ssim_is_fused(x, y, settings.get("ssim_kernel", "auto")):
+            # laid out as the fused SSIM keeps it (L_obs's L1 keeps that copy too, DS reads it as it lies):
+            # the one copy of the target, not a second beside it through the forward
+            y = y.contiguous()
     l_obs, low, mid, r, obs = image_terms(x, y, tables[0], tables[1], blocks=r_blocks, **settings)
     # the target made here is not needed by the backward (the fused SSIM saved its own contiguous copy):
     # freed before it, not kept beside the backward's gradients

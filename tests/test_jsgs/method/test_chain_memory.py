@@ -225,3 +225,35 @@ def test_gpu_the_chains_peak_is_within_its_shape_budget() -> None:
     print(f"the chain's peak at {w}x{h}: {per_pixel:.1f} B a pixel (kernels {kern})")
     if kern == "triton":
         assert per_pixel <= 113.9 * 1.05, per_pixel
+
+
+def test_with_block_scores_ds_makes_no_score_map_and_the_fused_ssims_target_is_the_only_copy(
+    monkeypatch: Any,
+) -> None:
+    """``r_blocks``: DS is asked for r_b alone (no r(p), 8 B a pixel of temporaries at the forward's end);
+    where the fused SSIM runs (stood in: ``ssim_is_fused`` true) the target made from the image is laid out
+    as that kernel keeps it, the one copy L1, the SSIM and DS read. The same values and gradient."""
+    asked: list[bool] = []
+    layouts: list[bool] = []
+    real_supervise = image_terms_module.dct_supervision
+
+    def supervise(*args: Any, **kwargs: Any) -> Any:
+        asked.append(kwargs.get("score_map", True))
+        out = real_supervise(*args, **kwargs)
+        assert (out.pixel_score is None) == (not asked[-1])
+        return out
+
+    def photometric(obs: torch.Tensor, y: torch.Tensor, lam: float, **kw: Any) -> torch.Tensor:
+        layouts.append(y.is_contiguous())
+        return photometric_terms(obs, y, lam, **kw).loss
+
+    g = torch.Generator().manual_seed(8)
+    image = (torch.rand(40, 56, 3, generator=g) * 255).to(torch.uint8)
+    x = torch.rand(1, 3, 40, 56, generator=g)
+    plain = _chain(x.clone().requires_grad_(True), image, r_blocks=True)
+    monkeypatch.setattr(image_terms_module, "ssim_is_fused", lambda *a: True)
+    lean = _chain(x.clone().requires_grad_(True), image, r_blocks=True, supervise=supervise,
+                  photometric=photometric)  # fmt: skip
+    for a, b in zip(plain[:3], lean[:3], strict=True):
+        assert torch.equal(_bits(a), _bits(b))
+    assert asked == [False] and layouts == [True]
