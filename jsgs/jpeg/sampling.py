@@ -9,9 +9,37 @@ smooth relaxations (box-filter down-sampling, triangular up-sampling without rou
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+
+class _ReplicatePad(torch.autograd.Function):
+    """``F.pad(x, pad, mode="replicate")`` of a ``(B, C, H, W)`` tensor that keeps only ``x``'s shape for its
+    backward: replication_pad2d's own node keeps ``x`` itself, whose backward reads nothing of it but its
+    shape, so a view of a larger image (a plane of the colour map's output) kept the whole image alive. The
+    backward is replication_pad2d's own kernel, given a stand-in of that shape: the same gradient."""
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, pad: tuple[int, int, int, int]) -> Tensor:  # type: ignore[override]
+        ctx.pad, ctx.shape = pad, x.shape
+        return F.pad(x, pad, mode="replicate")
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        shape_only = grad.new_empty(()).expand(ctx.shape)
+        return torch.ops.aten.replication_pad2d_backward(grad, shape_only, list(ctx.pad)), None
+
+
+def replicate_pad(x: Tensor, pad: tuple[int, int, int, int]) -> Tensor:
+    """``F.pad(x, pad, mode="replicate")`` of a ``(B, C, H, W)`` tensor, keeping only ``x``'s shape for the
+    backward where it needs one (:class:`_ReplicatePad`)."""
+    if x.requires_grad and torch.is_grad_enabled() and not torch.compiler.is_compiling():
+        return _ReplicatePad.apply(x, pad)
+    return F.pad(x, pad, mode="replicate")
 
 
 def pad_replicate(x: Tensor, height: int, width: int) -> Tensor:
@@ -27,7 +55,7 @@ def pad_replicate(x: Tensor, height: int, width: int) -> Tensor:
         # a plane of the colour transform's output: the fake kernel's strides disagree (torch 2.11-2.13).
         # Eager needs no copy; compiled, inductor fuses it.
         x = x.contiguous()
-    return F.pad(x, (0, pw, 0, ph), mode="replicate")
+    return replicate_pad(x, (0, pw, 0, ph))
 
 
 def _pairs(x: Tensor, h: int, v: int) -> Tensor:
@@ -88,7 +116,7 @@ def _replicate_up(x: Tensor, h: int, v: int) -> Tensor:
 def _triangle(x: Tensor, dim: int) -> Tensor:
     """x2 along ``dim`` (-1 or -2): outputs ``3/4 x + 1/4 neighbour`` towards each side, edges repeated."""
     pad = (1, 1, 0, 0) if dim == -1 else (0, 0, 1, 1)
-    xp = F.pad(x, pad, mode="replicate")
+    xp = replicate_pad(x, pad)
     n = x.shape[dim]
     near = 0.75 * x
     # add(a, b, alpha) is one kernel: fewer launches than 0.75 x + 0.25 y written out

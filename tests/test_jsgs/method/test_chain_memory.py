@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from jsgs.jpeg import losses as losses_module
 from jsgs.jpeg.losses import _MeanAbsDifference, photometric_terms
 from jsgs.jpeg.observe import _Clamp255, jpeg_observe
+from jsgs.jpeg.sampling import replicate_pad
 from jsgs.kernels import ssim
 from jsgs.kernels._triton_jo import interpreting, triton_available
 from jsgs.method import image_terms as image_terms_module
@@ -257,3 +258,19 @@ def test_with_block_scores_ds_makes_no_score_map_and_the_fused_ssims_target_is_t
     for a, b in zip(plain[:3], lean[:3], strict=True):
         assert torch.equal(_bits(a), _bits(b))
     assert asked == [False] and layouts == [True]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("pad", [(0, 5, 0, 3), (1, 1, 0, 0), (0, 0, 1, 1)])
+def test_the_replicate_pad_keeps_only_a_shape_and_is_replication_pad_bit_for_bit(
+    dtype: torch.dtype, pad: tuple[int, int, int, int]
+) -> None:
+    g = torch.Generator().manual_seed(9)
+    image = torch.rand(2, 11, 13, 3, generator=g, dtype=dtype).permute(0, 3, 1, 2)  # channels-last planes
+    a, b = image.clone().requires_grad_(True), image.clone().requires_grad_(True)
+    ref, out = F.pad(a[:, :1], pad, mode="replicate"), replicate_pad(b[:, :1], pad)
+    assert torch.equal(_bits(ref), _bits(out))
+    up = torch.randn(ref.shape, generator=g, dtype=dtype)
+    (ga,), (gb,) = torch.autograd.grad(ref, a, up), torch.autograd.grad(out, b, up)
+    assert torch.equal(_bits(ga), _bits(gb))
+    assert replicate_pad(b[:, :1], pad).grad_fn.saved_tensors == ()  # the image behind the plane is not kept
