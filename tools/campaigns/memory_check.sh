@@ -1,11 +1,20 @@
-# The memory cuts of the image terms' graph and the probe (one buffer set for both orientations, r kept as
-# block scores, the step's image read in place, the probe's map made in the backward, the five-channel image
-# freed after the render), so far tested on the CPU only, on a GPU, in one call on a machine of 2 GPUs:
+# JSGS's step as changed since its GPU tests last passed, tested on the CPU only (CUDA parts stood in), on a
+# GPU, in one call on a machine of 2 GPUs. What changed: the image terms' chain keeps less for its backward
+# (the clamp a mask, L1 no difference image, the replicate pads only a shape, the luma plane copied out of
+# the YCbCr image for the fused coding pass, the fused SSIM's mean one node given a broadcast upstream, the
+# target laid out as the fused SSIM keeps it, r_b without r(p)); the graph's values are its output buffer
+# (no copy), a gradient with an upstream of exactly 1 is handed on without the product (the graph's and
+# the probe's deferred map), views with equal tables share one tensor that the graph copies only when it
+# changes, the probe's objective is a view of a kept zero; and the earlier memory cuts (one buffer set for
+# both orientations, r kept as block scores, the step's image read in place, the probe's map made in the
+# backward, the five-channel image freed after the render).
 #   (a) the GPU tests of the changed paths: first the 2-GPU tests (tests/test_jsgs/train/test_distributed.py
 #       -m gpu, on both GPUs, before anything else runs), then on GPU G0 the graphed image terms (the two
-#       orientations replaying on shared buffers included), the JSGS method's gsplat path (r-bar on the
-#       carried 960x720 scene: JSGS_GPU_MANIFEST), the controller's and the render's GPU tests (the probe's
-#       extra channels) and the fused kernels (Triton JO and colour, the SSIM kernels), `-m gpu`;
+#       orientations replaying on shared buffers included), the chain's cuts against the formulation they
+#       replace and the graph's calls as the hook makes them against copying ones (test_cuda_cuts.py), the
+#       chain's peak against its shape budget (test_chain_memory.py), the JSGS method's gsplat path (r-bar
+#       on the carried 960x720 scene: JSGS_GPU_MANIFEST), the controller's and the render's GPU tests (the
+#       probe's extra channels) and the fused kernels (Triton JO and colour, the SSIM kernels), `-m gpu`;
 #   (b) the peak device memory at the points measured before the cuts (docs/results/speed/equal_budget:
 #       camera_jpeg_mouse_1500_free_h200.json 811.8 / 948.9 MiB allocated, jpeg_mouse_half_1500_h200.json
 #       230.3 / 267.5, jpeg_mouse_half_9300_h200.json 576.2 / 676.7; gsplat / JSGS): profile_step.py
@@ -81,6 +90,7 @@ profile() {  # profile GPU MANIFEST WARMUP NAME SECONDS: the memory profile and 
     tests/test_jsgs/method/test_jsgs_method.py tests/test_jsgs/method/test_controller_cuda.py \
     tests/test_jsgs/render/test_render_gpu.py tests/test_jsgs/kernels/test_triton_jo.py \
     tests/test_jsgs/kernels/test_triton_color.py tests/test_jsgs/kernels/test_ssim_cuda.py \
+    tests/test_jsgs/method/test_cuda_cuts.py tests/test_jsgs/method/test_chain_memory.py \
     > "$L/gpu_tests.log" 2>&1
  stamp gpu_tests $?
  profile "$G0" "$CAM" "$W0" "camera_jpeg_mouse_$W0" "$(left 300)") &
