@@ -110,11 +110,13 @@ def _clamp_255(x: Tensor) -> Tensor:
 
 class _Clamp255(torch.autograd.Function):
     """:func:`_clamp_255` that keeps a 1-byte mask for its backward instead of its input (hardtanh keeps the
-    input, 4 bytes a value in float32): same values and gradient, bit for bit."""
+    input, 4 bytes a value in float32): same values and gradient, bit for bit, but at a NaN input, where
+    its gradient is 0 and CUDA's hardtanh passes the upstream (a NaN render fails the step anyway)."""
 
     @staticmethod
     def forward(ctx: Any, x: Tensor) -> Tensor:  # type: ignore[override]
-        # hardtanh's backward passes the gradient where 0 < x < 255 (not at NaN) and writes 0 elsewhere
+        # hardtanh's backward passes the gradient where 0 < x < 255 and writes 0 elsewhere (at NaN: 0 here
+        # and in the CPU's vectorised loop; its CUDA kernel and the CPU's scalar loop pass it)
         ctx.save_for_backward((x > 0.0) & (x < 255.0))
         return F.hardtanh(x, 0.0, 255.0)
 
