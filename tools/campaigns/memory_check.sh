@@ -14,7 +14,8 @@
 #       replace and the graph's calls as the hook makes them against copying ones (test_cuda_cuts.py), the
 #       chain's peak against its shape budget (test_chain_memory.py), the JSGS method's gsplat path (r-bar
 #       on the carried 960x720 scene: JSGS_GPU_MANIFEST), the controller's and the render's GPU tests (the
-#       probe's extra channels) and the fused kernels (Triton JO and colour, the SSIM kernels), `-m gpu`;
+#       probe's extra channels, its objective and unit-upstream map on gsplat) and the fused kernels (Triton
+#       JO and colour, the SSIM kernels), `-m gpu`;
 #   (b) the peak device memory at the points measured before the cuts (docs/results/speed/equal_budget:
 #       camera_jpeg_mouse_1500_free_h200.json 811.8 / 948.9 MiB allocated, jpeg_mouse_half_1500_h200.json
 #       230.3 / 267.5, jpeg_mouse_half_9300_h200.json 576.2 / 676.7; gsplat / JSGS): profile_step.py

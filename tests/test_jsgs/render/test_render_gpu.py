@@ -58,11 +58,12 @@ _KEYS = ("means", "quats", "scales", "opacities", "sh")
 
 def _run(
     s: dict, backend: str, seed: int = 1, probe: bool = False, r: torch.Tensor | None = None, mode: str = "",
-    distortion: torch.Tensor | None = None, deferred: bool = False,
+    distortion: torch.Tensor | None = None, deferred: bool = False, unit: bool = False,
 ):
     """Render with ``backend`` (absgrad on), back-propagate a fixed random loss; images, info, gradients.
     With ``probe``, the loss has the probe objective of ``r`` (``deferred``: its map made in the backward,
-    ``rasterize(..., extra_upstream=DeferredProbeMap)``, as the trainer's deferred controller does)."""
+    ``rasterize(..., extra_upstream=DeferredProbeMap)``, as the trainer's deferred controller does; ``unit``:
+    the map handed on as made, the loss's backward starting from 1 as the trainer's does)."""
     lv = {k: s[k].clone().requires_grad_(True) for k in _KEYS}
     extra = new_probe(s["means"].shape[0], s["means"], n_cameras=s["viewmats"].shape[0]) if probe else None
     make = DeferredProbeMap(1.0) if deferred else None
@@ -78,7 +79,7 @@ def _run(
     wa = torch.randn(alpha.shape, generator=g, device="cuda")
     loss = (img * wi).sum() + (alpha * wa).sum()
     if make is not None:
-        make.r = r
+        make.r, make.unit_upstream = r, unit
         loss = loss + info["extra_objective"]
     elif probe:
         loss = loss + probe_objective(info, r)
@@ -251,6 +252,29 @@ def test_gsplat_probe_map_made_in_the_backward_matches_the_objective(monkeypatch
     img, _, info, grads = _run(s, "gsplat", probe=True, r=r, deferred=True)
     assert made[-1]() is None and "extra" not in info and img.is_contiguous()
     assert torch.equal(img, base[0][0])
+    for k, v in {**base[0][3], "probe": base[0][2]["extra_features"].grad}.items():
+        other = base[1][3][k] if k != "probe" else base[1][2]["extra_features"].grad
+        got = grads[k] if k != "probe" else info["extra_features"].grad
+        noise = (other - v).abs().max().item()  # atomics make gsplat's backward order-dependent
+        diff = (got - v).abs().max().item()
+        assert diff <= max(4 * noise, 1e-6 * v.abs().max().item()), (k, diff, noise)
+
+
+def test_gsplat_probe_map_handed_on_as_made_and_the_objective_a_view_of_a_kept_zero() -> None:
+    """The deferred probe as the trainer runs it on gsplat: the objective a view of one zero kept from render
+    to render (no new zero, no copy), which stays 0 through the backwards; with the upstream 1 the map is
+    handed on as made (``DeferredProbeMap.unit_upstream``): the probe's and every parameter's gradient within
+    gsplat's run-to-run noise of the map multiplied by the upstream."""
+    from jsgs.render.backend import _ZEROS
+
+    s = _scene(seed=6)
+    r = torch.rand(2, H, W, device="cuda")
+    base = [_run(s, "gsplat", probe=True, r=r, deferred=True) for _ in range(2)]
+    img, _, info, grads = _run(s, "gsplat", probe=True, r=r, deferred=True, unit=True)
+    objectives = [i["extra_objective"] for i in (base[0][2], base[1][2], info)]
+    (zero,) = [z for z in _ZEROS.values() if z.data_ptr() == objectives[0].data_ptr()]
+    assert all(o.data_ptr() == zero.data_ptr() and o.item() == 0.0 for o in objectives)
+    assert zero.item() == 0.0 and torch.equal(img, base[0][0])
     for k, v in {**base[0][3], "probe": base[0][2]["extra_features"].grad}.items():
         other = base[1][3][k] if k != "probe" else base[1][2]["extra_features"].grad
         got = grads[k] if k != "probe" else info["extra_features"].grad
