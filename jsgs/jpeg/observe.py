@@ -269,6 +269,7 @@ def jpeg_observe(
     ycc = to_ycc(x)
     if integer:
         ycc = _through(rgb_to_ycbcr_libjpeg(x), ycc)
+    del x  # image-sized locals go when done with (a CUDA graph's pool holds the forward's working set)
 
     # Encoder edges and chroma down-sampling (jcprepct.c / jcsample.c).
     luma = pad_replicate(ycc[:, :1], 8 * _ceil_div(height, 8), 8 * _ceil_div(width, 8))
@@ -285,21 +286,24 @@ def jpeg_observe(
     # Every block of the three planes through the coding pass, each with its plane's table.
     if fused:
         luma, chroma = _code_fused(luma, chroma, ycc, tab_y, tab_c, mode)
-        luma, chroma = luma[..., :height, :width], chroma[..., :ch, :cw]
     else:
         luma, chroma = _code_planes(luma, chroma, tab_y, tab_c, mode)
-        luma, chroma = luma[..., :height, :width], chroma[..., :ch, :cw]
+    del ycc
+    luma, chroma = luma[..., :height, :width], chroma[..., :ch, :cw]
 
     # Decoder up-sampling (jdsample.c) from the real chroma samples only.
     if not (h == 1 and v == 1):
         big = upsample(chroma, h, v)
         chroma = _through(upsample_libjpeg(chroma, h, v), big) if integer else big
+        del big
     chroma = chroma[..., :height, :width]
 
     ycc = torch.cat([luma, chroma], dim=1)
-    # the image-sized clamp keeps a mask, not its input, for the backward (nothing else keeps that input)
-    rgb_out = to_rgb(ycc)
+    del luma, chroma
+    rgb_out = to_rgb(ycc)  # its clamp keeps a mask, not it, for the backward (nothing else keeps it)
     out = _Clamp255.apply(rgb_out) if rgb_out.requires_grad else _clamp_255(rgb_out)
+    del rgb_out
     if integer:
         out = _through(ycbcr_to_rgb_libjpeg(ycc), out)
+    del ycc
     return out / 255.0
