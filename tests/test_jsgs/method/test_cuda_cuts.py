@@ -164,14 +164,17 @@ def _probe_pair(leaf: torch.Tensor) -> Callable[[torch.Tensor], tuple[torch.Tens
     return lambda r: (leaf, r.flatten()[: leaf.numel()].reshape(leaf.shape) * 3.0 + 0.5)
 
 
-def graph_calls_against_copying_ones(device: str) -> None:
+def graph_calls_against_copying_ones(device: str, kernel: str = "torch") -> None:
     """Two graph objects fed the same views: one called as the hook calls it (``copy_values=False``,
     ``unit_upstream=True``: the values and weighted sum the output buffer, the gradients handed on as
     they are), one copying the values and multiplying the gradients by the upstream 1. Views share one
     tables tensor (as ``view_tables`` makes them) in runs, other tables come between, in both orientations:
     every call's values, weighted sum, r_b and the render's and a probe-like leaf's gradients equal between
-    the two bit for bit, and the eager function's on that view's tables (a stale tables buffer would not)."""
-    plain, direct = (GraphedImageTerms(weights=WEIGHTS, **SETTINGS) for _ in range(2))
+    the two bit for bit, and the eager function's on that view's tables (a stale tables buffer would not).
+    ``kernel``: JO's and the colour transform's ("triton": the fused kernels, recorded in the graph, the luma
+    plane copied out of the YCbCr image at these sizes)."""
+    settings = {**SETTINGS, "jo_kernel": kernel, "color_kernel": kernel}
+    plain, direct = (GraphedImageTerms(weights=WEIGHTS, **settings) for _ in range(2))
     g = torch.Generator().manual_seed(21)
     shared = torch.randint(1, 80, (2, 8, 8), generator=g).float().to(device)
     other = torch.randint(1, 80, (2, 8, 8), generator=g).float().to(device)
@@ -189,10 +192,10 @@ def graph_calls_against_copying_ones(device: str) -> None:
         assert b.weighted.data_ptr() in outputs and b.values.data_ptr() == b.weighted.data_ptr() + 4, i
         assert a.weighted.data_ptr() not in [rec.outputs[0].data_ptr() for rec in plain._graphs.values()], i
         values, grad, r, _ = terms_with_gradient(
-            xe, image, tables, weights=WEIGHTS, sampling="4:2:0", r_blocks=True, **SETTINGS
+            xe, image, tables, weights=WEIGHTS, sampling="4:2:0", r_blocks=True, **settings
         )
         again = terms_with_gradient(xe2, image, tables, weights=WEIGHTS, sampling="4:2:0", r_blocks=True,
-                                    **SETTINGS)[:3]  # fmt: skip
+                                    **settings)[:3]  # fmt: skip
         # bit for bit where the chain itself is (no atomics in its kernels' backward on this device)
         exact = all(torch.equal(u, v) for u, v in zip((values, grad, r), again, strict=True))
         same = torch.equal if exact else partial(torch.allclose, rtol=1e-6, atol=1e-8)
@@ -233,8 +236,11 @@ def test_gpu_the_chains_memory_cuts_leave_its_values_and_gradient(monkeypatch: p
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_gpu_graph_calls_as_the_hook_makes_them_equal_copying_ones() -> None:
-    graph_calls_against_copying_ones("cuda")
+@pytest.mark.parametrize("kernel", ["torch", "triton"])
+def test_gpu_graph_calls_as_the_hook_makes_them_equal_copying_ones(kernel: str) -> None:
+    if kernel == "triton" and not fused_jo_runs(torch.zeros(1, 3, 8, 8, device="cuda")):
+        pytest.skip("the fused JO kernels do not run here (Triton)")
+    graph_calls_against_copying_ones("cuda", kernel)
 
 
 def test_the_gpu_checks_run_on_the_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -249,6 +255,8 @@ def test_the_gpu_checks_run_on_the_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
     with monkeypatch.context() as m:
         m.setattr(GraphedImageTerms, "_record", _eager_recording)
         graph_calls_against_copying_ones("cpu")
+        if fused_jo_runs(torch.zeros(1, 3, 8, 8)):  # interpreted Triton
+            graph_calls_against_copying_ones("cpu", "triton")
         real_call = GraphedImageTerms.__call__
 
         def stale(self: GraphedImageTerms, x: torch.Tensor, y: torch.Tensor, tables: torch.Tensor,
