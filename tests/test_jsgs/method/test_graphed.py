@@ -279,8 +279,8 @@ def test_tables_already_in_the_buffer_are_not_copied_again(monkeypatch: pytest.M
         assert torch.equal(pixel_score_of(out.r, hh, ww), r), i
         out.weighted.backward()
         assert torch.equal(x.grad, grad), i
-    # calls 1..8 but the recordings (0 and 4): the tables copied where they are not the tensor the buffer
-    # holds (the recording of call 4 wrote `other` into the buffer; the call made it the held tensor)
+    # calls[1:] but the recordings (calls[0] and calls[4]): the tables copied where they are not the tensor
+    # the buffer holds (the recording at calls[4] wrote `other` into the buffer and made it the held tensor)
     assert copied == [0, 1, 1, 1, 0, 1, 0]
 
 

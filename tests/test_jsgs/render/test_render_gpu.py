@@ -227,6 +227,17 @@ def test_gsplat_probe_leaves_gradients_alone() -> None:
         assert diff <= max(4 * noise, 1e-6 * v.abs().max().item()), (k, diff, noise)
 
 
+def _assert_gradients_within_noise(base: list, info: dict, grads: dict) -> None:
+    """Every parameter's and the probe's gradient of a run (``info``, ``grads``) within 4x the difference of
+    two baseline runs (``base``, each ``_run``'s output): atomics make gsplat's backward order-dependent."""
+    for k, v in {**base[0][3], "probe": base[0][2]["extra_features"].grad}.items():
+        other = base[1][3][k] if k != "probe" else base[1][2]["extra_features"].grad
+        got = grads[k] if k != "probe" else info["extra_features"].grad
+        noise = (other - v).abs().max().item()
+        diff = (got - v).abs().max().item()
+        assert diff <= max(4 * noise, 1e-6 * v.abs().max().item()), (k, diff, noise)
+
+
 def test_gsplat_probe_map_made_in_the_backward_matches_the_objective(monkeypatch: pytest.MonkeyPatch) -> None:
     """The probe's map made in the backward on gsplat (``extra_upstream``, as the trainer's deferred
     controller renders): the same image, its colours a contiguous copy; gsplat's five-channel image freed
@@ -252,12 +263,7 @@ def test_gsplat_probe_map_made_in_the_backward_matches_the_objective(monkeypatch
     img, _, info, grads = _run(s, "gsplat", probe=True, r=r, deferred=True)
     assert made[-1]() is None and "extra" not in info and img.is_contiguous()
     assert torch.equal(img, base[0][0])
-    for k, v in {**base[0][3], "probe": base[0][2]["extra_features"].grad}.items():
-        other = base[1][3][k] if k != "probe" else base[1][2]["extra_features"].grad
-        got = grads[k] if k != "probe" else info["extra_features"].grad
-        noise = (other - v).abs().max().item()  # atomics make gsplat's backward order-dependent
-        diff = (got - v).abs().max().item()
-        assert diff <= max(4 * noise, 1e-6 * v.abs().max().item()), (k, diff, noise)
+    _assert_gradients_within_noise(base, info, grads)
 
 
 def test_gsplat_probe_map_handed_on_as_made_and_the_objective_a_view_of_a_kept_zero() -> None:
@@ -275,12 +281,7 @@ def test_gsplat_probe_map_handed_on_as_made_and_the_objective_a_view_of_a_kept_z
     (zero,) = [z for z in _ZEROS.values() if z.data_ptr() == objectives[0].data_ptr()]
     assert all(o.data_ptr() == zero.data_ptr() and o.item() == 0.0 for o in objectives)
     assert zero.item() == 0.0 and torch.equal(img, base[0][0])
-    for k, v in {**base[0][3], "probe": base[0][2]["extra_features"].grad}.items():
-        other = base[1][3][k] if k != "probe" else base[1][2]["extra_features"].grad
-        got = grads[k] if k != "probe" else info["extra_features"].grad
-        noise = (other - v).abs().max().item()  # atomics make gsplat's backward order-dependent
-        diff = (got - v).abs().max().item()
-        assert diff <= max(4 * noise, 1e-6 * v.abs().max().item()), (k, diff, noise)
+    _assert_gradients_within_noise(base, info, grads)
 
 
 def test_gsplat_extra_channels_match_reference() -> None:
