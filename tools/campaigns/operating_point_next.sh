@@ -57,6 +57,9 @@
 #   seeds, 4 runs per GPU, about 1,030 s a GPU by the rates above, so the lanes end 950-1,150 s after PHASE 1
 #   began and nothing queued fits: the same three calls, the second may carry nothing, about 21-24 minutes);
 #   one GPU: LANES="0:a_cup_s0,a_mouse_s0" (seed 0).
+#   A shorter call (about 15 minutes: one seed, each bench with its clean ceiling in it, nothing queued):
+#   A_CLEAN=1 LANES="0:a_cup_s0 1:a_mouse_s0" QUEUE="" STOP_AT=1000 (A_CLEAN: a_cup_s<i>/a_mouse_s<i> train the
+#   clean schedule at the seed beside gsplat and JSGS, 3 runs on the GPU, as flower's and fern's benches do).
 #   4. On the CPU, in /work/main:
 #        ARCHIVE=.res/opn_3.tgz GATHER=.res/opn2 PHASE=gather bash tools/campaigns/operating_point_next.sh
 #      puts each bench in GATHER/<job> (a new folder), collects the runs of a bench that the calls ended
@@ -86,7 +89,7 @@ export CUP=${CUP:-custom_kwrous_cup} MOUSE=${MOUSE:-custom_myhan_mouse}
 export EST_PCT=${EST_PCT:-100} OVERHEAD=${OVERHEAD:-40} POLL=${POLL:-5}
 export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-/tmp/torch_ext} JSGS_LPIPS_WEIGHTS=$D/alexnet_features.pth
 LANES=${LANES:-0:a_cup_s0 1:a_cup_s1 2:a_mouse_s0 3:a_mouse_s1}
-QUEUE=${QUEUE:-ac_cup ac_mouse b_fern b_mouse100 b_mouse300 c_fern_s0 c_flower_s0 c_mouse_s0 c_cup_s0 \
+QUEUE=${QUEUE-ac_cup ac_mouse b_fern b_mouse100 b_mouse300 c_fern_s0 c_flower_s0 c_mouse_s0 c_cup_s0 \
 c_fern_s1 c_flower_s1 c_mouse_s1 c_cup_s1}
 
 spec() {  # spec JOB: its operating_point.sh settings (J_*) and J_EST, its seconds on a GPU of its own
@@ -94,8 +97,9 @@ spec() {  # spec JOB: its operating_point.sh settings (J_*) and J_EST, its secon
     case $1 in
         a_flower_s[01]) J_SCENE=$FLOWER J_SCHED=gaussian,clean J_JOBS=3 J_EST=460 ;;
         a_fern_s[01]) J_SCENE=$FERN J_SCHED=gaussian,clean J_JOBS=3 J_EST=430 ;;
-        a_cup_s[01]) J_SCENE=$CUP J_EST=540 ;;
-        a_mouse_s[01]) J_SCENE=$MOUSE J_EST=490 ;;
+        a_cup_s[01]) J_SCENE=$CUP J_EST=540 ;;&
+        a_mouse_s[01]) J_SCENE=$MOUSE J_EST=490 ;;&
+        a_cup_s[01] | a_mouse_s[01]) [ -z "${A_CLEAN:-}" ] || { J_SCHED=gaussian,clean J_JOBS=3; J_EST=$((J_EST * 7 / 5)); } ;;
         ac_cup) J_SCENE=$CUP J_SCHED=clean J_SEEDS=0,1 J_EST=400 ;;
         ac_mouse) J_SCENE=$MOUSE J_SCHED=clean J_SEEDS=0,1 J_EST=360 ;;
         b_fern) J_PART=rule J_SCENE=$FERN J_SEEDS=$BS J_JOBS=1 J_EST=200 ;;
