@@ -7,5 +7,6 @@ but this package.
   :mod:`jsgs.base.ply`, :mod:`jsgs.base.run_files`;
 - :mod:`jsgs.base.schema` (loading the JSON Schemas that the data package :mod:`jsgs.schemas` ships, and
   validating against them);
-- small numerics: :mod:`jsgs.base.precision`, :mod:`jsgs.base.rotations`, :mod:`jsgs.base.known_grad`.
+- small numerics: :mod:`jsgs.base.precision`, :mod:`jsgs.base.rotations`, :mod:`jsgs.base.known_grad`,
+  :mod:`jsgs.base.kept_zeros`.
 """

@@ -60,6 +60,7 @@ import torch
 from torch import Tensor
 
 from jsgs.base.errors import JsgsError
+from jsgs.base.kept_zeros import kept_zeros
 from jsgs.jpeg.supervision import pixel_score_of
 from jsgs.kernels import (
     controller_matrix,
@@ -132,8 +133,6 @@ class JsgsHook(LossHook):
         self._probe_objective: Any = None
         # this step's probe map made in the backward (render_kwargs), where the render was given it
         self._deferred_map: Any = None
-        # (n, dtype, device) -> n zeros to log (:meth:`_zeros`)
-        self._kept_zeros: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
         # what the steps between the controller's leave out of the logs (:meth:`_skipped`)
         self._gc_skipped = frozenset(("fro", *STAT_NAMES))
         from jsgs.jpeg.losses import photometric_loss
@@ -291,7 +290,7 @@ class JsgsHook(LossHook):
             names = self.active_terms()
             stat_names = list(STAT_NAMES) if o.gc else []
             n = len(names) + len(stat_names)
-            values = self._zeros(n, ctx.render).unbind()
+            values = kept_zeros(ctx.render, (n,)).unbind()
             terms0 = dict(zip(names, values[: len(names)], strict=True))
             stats0: dict[str, float | Tensor] = dict(zip(stat_names, values[len(names) :], strict=True))
             return HookOutput(terms0, dict.fromkeys(names, 0.0), stats0, skipped=self._skipped(ctx.step))
@@ -389,7 +388,7 @@ class JsgsHook(LossHook):
         the controller's steps its values are the kept zeros (skipped in the logs); ``probe_rode``: the
         deferred objective already rode on the image terms' graph node."""  # fmt: skip
         if not self.gc_at(ctx.step):  # a step between the controller's: 0, skipped in the logs
-            terms["fro"], *zero_stats = self._zeros(1 + len(STAT_NAMES), ctx.render).unbind()
+            terms["fro"], *zero_stats = kept_zeros(ctx.render, (1 + len(STAT_NAMES),)).unbind()
             stats.update(zip(STAT_NAMES, zero_stats, strict=True))
             if folded_loss is not None:  # a value to log only: nothing to weight and add to the loss
                 folded = folded | {"fro"}
@@ -423,16 +422,6 @@ class JsgsHook(LossHook):
         return self._gc_skipped if self.opts.gc and not self.gc_at(step) else frozenset()
 
     # ------------------------------------------------------------------------------------------------
-    def _zeros(self, n: int, like: Tensor) -> Tensor:
-        """``n`` zeros in ``like``'s dtype and device, made once and kept: the values logged as 0 (lossless
-        views, the steps between the controller's). Only read (packed into the step's logged values), never
-        written, so every such step shares them instead of filling new ones."""
-        key = (n, like.dtype, like.device)
-        zeros = self._kept_zeros.get(key)
-        if zeros is None:
-            zeros = self._kept_zeros[key] = torch.zeros(n, dtype=like.dtype, device=like.device)
-        return zeros
-
     def _camera(self, ctx: StepContext) -> tuple[Tensor, Tensor, int, int]:
         """The view's world-to-camera [4, 4] and K [3, 3] in the parameters' dtype (the view's own
         per-device copies: a host-to-device copy inside the backward would stall the GPU queue), width,

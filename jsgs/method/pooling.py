@@ -60,6 +60,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from jsgs.base.kept_zeros import kept_zeros
 from jsgs.base.known_grad import with_known_gradient
 from jsgs.kernels import PooledSums, sums_from_probe_grad
 from jsgs.render.reference import Projected, TileBins, bin_tiles, project_gaussians
@@ -132,8 +133,9 @@ def probe_objective(info: dict, r: Tensor) -> Tensor:
 class ProbeObjective:
     """``weight · probe_objective(info, r)`` step after step, with the upstream map ``weight·(r, 1)`` made
     at each call: two kernels per step (``weight·r`` written into channel 0, ``weight`` into channel 1; the
-    zero value is made once and kept), where :func:`probe_objective` and a loss weight take five (a pad's fill
-    and copy, the zero, and the weight's multiplication forward and backward).
+    zero value is made once and kept, :func:`jsgs.base.kept_zeros.kept_zeros`), where
+    :func:`probe_objective` and a loss weight take five (a pad's fill and copy, the zero, and the weight's
+    multiplication forward and backward).
 
     The probe's gradient is ``weight·(o·S_r, ν)`` with the same rounding as ``weight * probe_objective(...)``
     in the loss (``weight·r`` rounded once; the backward multiplies by the loss's upstream 1). The map is
@@ -145,12 +147,10 @@ class ProbeObjective:
 
     def __init__(self, weight: float = 1.0) -> None:
         self.weight = float(weight)
-        self._zero: Tensor | None = None
 
     def __call__(self, info: dict, r: Tensor) -> Tensor:
         ch, up = self.upstream(info, r)
-        assert self._zero is not None
-        return with_known_gradient(ch, self._zero, up, scratch=True)
+        return with_known_gradient(ch, kept_zeros(ch), up, scratch=True)
 
     def upstream(self, info: dict, r: Tensor) -> tuple[Tensor, Tensor]:
         """The rendered probe channels and their known gradient ``weight·(r, 1)`` (a new buffer, written
@@ -161,9 +161,6 @@ class ProbeObjective:
         pixels, 0 on the rest; ``weight·r_b`` written onto each block's pixels, one kernel more where H or W
         is not a multiple of 8, which zeroes the rest first)."""
         ch = _checked_channels(info, r, blocks=True)
-        zero = self._zero
-        if zero is None or zero.dtype != ch.dtype or zero.device != ch.device:
-            self._zero = ch.new_zeros(())
         return ch, _probe_map(r, self.weight, ch.shape, ch.dtype, ch.device)
 
 

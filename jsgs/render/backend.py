@@ -15,6 +15,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from jsgs.base.kept_zeros import kept_zeros
 from jsgs.base.known_grad import with_deferred_gradient
 
 from . import reference
@@ -182,10 +183,10 @@ def rasterize(
 
 def _extras(info: dict, extra: Tensor | None, make: Any) -> None:
     """``info["extra_features"]`` (``extra``), and with ``make``: ``info["extra_objective"]``, a 0-dim zero
-    (a view of a zero kept from call to call: no kernel) whose gradient with respect to the extra channels
-    is ``make(shape, dtype, device)`` (or None), made when the backward reaches it
-    (:func:`jsgs.base.known_grad.with_deferred_gradient`). Made here with the render, its node is reached
-    after the losses computed on the render later, right before the rasteriser's backward.
+    (a view of a zero kept from call to call, :func:`jsgs.base.kept_zeros.kept_zeros`: no kernel) whose
+    gradient with respect to the extra channels is ``make(shape, dtype, device)`` (or None), made when the
+    backward reaches it (:func:`jsgs.base.known_grad.with_deferred_gradient`). Made here with the render, its
+    node is reached after the losses computed on the render later, right before the rasteriser's backward.
     ``info["extra_upstream"]`` is ``make``; the channels themselves are not kept (no ``info["extra"]``: the
     node's edge to them is all the backward needs, and with gsplat the colours are copied out of the image
     with them, which is then freed after the render)."""
@@ -194,21 +195,8 @@ def _extras(info: dict, extra: Tensor | None, make: Any) -> None:
     info["extra_features"] = extra
     if make is not None:  # the channels' values are not kept: only the node's edge to them
         ch = info.pop("extra")
-        info["extra_objective"] = with_deferred_gradient(ch, _zero(ch), make, own_value=True)
+        info["extra_objective"] = with_deferred_gradient(ch, kept_zeros(ch), make, own_value=True)
         info["extra_upstream"] = make
-
-
-#: (dtype, device) -> a 0-dim zero made once and only read: the value the extra objectives are views of
-_ZEROS: dict[tuple[torch.dtype, torch.device], Tensor] = {}
-
-
-def _zero(like: Tensor) -> Tensor:
-    """A 0-dim zero in ``like``'s dtype and device, kept from call to call (no kernel after the first)."""
-    key = (like.dtype, like.device)
-    zero = _ZEROS.get(key)
-    if zero is None:
-        zero = _ZEROS[key] = torch.zeros((), dtype=like.dtype, device=like.device)
-    return zero
 
 
 def _extra_features(extra: Tensor | None, render_mode: str, C: int, N: int) -> Tensor | None:

@@ -13,6 +13,7 @@ import torch
 from test_graphed import _eager_recording
 from test_jsgs_method import make_splats, make_view, new_hook, render, target_for, train_step
 
+from jsgs.base.kept_zeros import kept_zeros
 from jsgs.base.known_grad import with_known_gradient
 from jsgs.jpeg.losses import photometric_loss
 from jsgs.jpeg.supervision import pixel_score_of
@@ -38,9 +39,9 @@ def _probe_info(dtype: torch.dtype, shape: tuple[int, int, int], seed: int) -> t
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_weighted_probe_objective_is_the_weight_times_the_objective(dtype: torch.dtype) -> None:
     """``ProbeObjective(w)`` gives the probe the gradient of ``w * probe_objective`` in a loss, bit for bit,
-    call after call and when the image size changes; its value is 0, a new tensor each call. Between calls
-    it holds no map of the image's size (only its 0-dim zero): the map lives from the call to the
-    backward that consumes it."""
+    call after call and when the image size changes; its value is 0, a new tensor each call (a copy of the
+    kept zero, :func:`jsgs.base.kept_zeros.kept_zeros`). Between calls it holds no tensor: the map lives
+    from the call to the backward that consumes it."""
     w = 0.05 * 4  # λ_fro · gc_every, as the hook weights it
     obj = ProbeObjective(w)
     for call, shape in enumerate([(1, 6, 5), (1, 6, 5), (1, 4, 3)]):
@@ -55,8 +56,9 @@ def test_the_weighted_probe_objective_is_the_weight_times_the_objective(dtype: t
             grads.append(info["extra_features"].grad)
         assert torch.equal(grads[0], grads[1]) and grads[1].abs().sum() > 0, call
     assert obj(info, r) is not obj(info, r)
-    kept = [v for v in vars(obj).values() if isinstance(v, torch.Tensor)]
-    assert [t.dim() for t in kept] == [0]
+    zero = kept_zeros(info["extra"])
+    assert obj(info, r).untyped_storage().data_ptr() != zero.untyped_storage().data_ptr() and zero.item() == 0
+    assert not [v for v in vars(obj).values() if isinstance(v, torch.Tensor)]
     _, up = obj.upstream(info, r)
     gone = weakref.ref(up)
     del up
@@ -121,8 +123,9 @@ def test_the_folded_controller_term_gives_the_weighted_terms_step() -> None:
 
 
 def test_a_lossless_views_step_is_the_photometric_step() -> None:
-    """On a lossless view the hook's terms and statistics are zeros logged with weight 0: the step's loss and
-    gradients are those of ℓ_ph alone, bit for bit."""
+    """On a lossless view the hook's terms and statistics are zeros logged with weight 0 (views of the kept
+    zeros, :func:`jsgs.base.kept_zeros.kept_zeros`): the step's loss and gradients are those of ℓ_ph alone,
+    bit for bit."""
     view = make_view(None)
     hook = new_hook(view)
     runs = []
@@ -142,7 +145,11 @@ def test_a_lossless_views_step_is_the_photometric_step() -> None:
                 "gc_rbar",
                 "gc_damped",
             }
-            assert all(v.item() == 0.0 for v in (*h.terms.values(), *h.stats.values()))
+            logged = (*h.terms.values(), *h.stats.values())
+            assert all(v.item() == 0.0 for v in logged)
+            # views of one kept zero vector, not zeros filled anew at each step
+            kept = kept_zeros(out.rgb, (len(logged),)).untyped_storage().data_ptr()
+            assert {v.untyped_storage().data_ptr() for v in logged} == {kept}
             terms.update(h.terms)
             weights.update(h.weights)
         loss = weighted_loss(terms, weights)

@@ -9,6 +9,7 @@ import torch
 from test_graphed import SETTINGS, _eager_recording, _view_tensors
 from test_host_path import _probe_info
 
+from jsgs.base.kept_zeros import kept_zeros
 from jsgs.base.known_grad import with_known_gradient
 from jsgs.method.graphed import GraphedImageTerms
 from jsgs.method.image_terms import terms_with_gradient
@@ -125,7 +126,8 @@ def test_the_deferred_objective_is_a_view_of_a_kept_zero() -> None:
         assert obj.item() == 0.0 and obj.requires_grad
         (0.5 * obj + ch.sum()).backward()
         grads.append(ch.grad)
-    assert storages[0] == storages[1]  # the same zero, render after render
+    assert storages[0] == storages[1]  # the same zero, render after render: the kept one
+    assert storages[0] == kept_zeros(ch).untyped_storage().data_ptr()
     assert torch.equal(grads[0], grads[1]) and torch.equal(grads[1], grads[2])
     assert not torch.equal(grads[0], torch.ones_like(grads[0]))  # the deferred map reached the channels
     with pytest.raises(ValueError, match="own_value"):

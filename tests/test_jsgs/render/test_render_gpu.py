@@ -271,14 +271,14 @@ def test_gsplat_probe_map_handed_on_as_made_and_the_objective_a_view_of_a_kept_z
     to render (no new zero, no copy), which stays 0 through the backwards; with the upstream 1 the map is
     handed on as made (``DeferredProbeMap.unit_upstream``): the probe's and every parameter's gradient within
     gsplat's run-to-run noise of the map multiplied by the upstream."""
-    from jsgs.render.backend import _ZEROS
+    from jsgs.base.kept_zeros import kept_zeros
 
     s = _scene(seed=6)
     r = torch.rand(2, H, W, device="cuda")
     base = [_run(s, "gsplat", probe=True, r=r, deferred=True) for _ in range(2)]
     img, _, info, grads = _run(s, "gsplat", probe=True, r=r, deferred=True, unit=True)
     objectives = [i["extra_objective"] for i in (base[0][2], base[1][2], info)]
-    (zero,) = [z for z in _ZEROS.values() if z.data_ptr() == objectives[0].data_ptr()]
+    zero = kept_zeros(objectives[0])
     assert all(o.data_ptr() == zero.data_ptr() and o.item() == 0.0 for o in objectives)
     assert zero.item() == 0.0 and torch.equal(img, base[0][0])
     _assert_gradients_within_noise(base, info, grads)
