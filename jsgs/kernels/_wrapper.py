@@ -130,9 +130,16 @@ def ssim_map(
     """
     _check_pair(x, y, padding)
     w = gaussian_window(window_size, sigma, x.dtype, x.device)
-    if _use_fused(x, y, kernel, window_size):
-        return _FusedSsimMap.apply(x.contiguous(), y.contiguous(), w, padding == "same")
-    return ssim_map_torch(x, y, w, padding)
+    return _checked_ssim_map(x, y, w, padding, _use_fused(x, y, kernel, window_size))
+
+
+def _checked_ssim_map(x: Tensor, y: Tensor, window: Tensor, padding: str, fused: bool) -> Tensor:
+    """:func:`ssim_map` of a pair :func:`_check_pair` has passed, with its Gaussian ``window`` and
+    ``fused``, :func:`_use_fused`'s answer for it: the checks run once per call of :func:`ssim` or
+    :func:`ssim_map`, whichever the caller called."""
+    if fused:
+        return _FusedSsimMap.apply(x.contiguous(), y.contiguous(), window, padding == "same")
+    return ssim_map_torch(x, y, window, padding)
 
 
 def _check_pair(x: Tensor, y: Tensor, padding: str) -> None:
@@ -159,11 +166,12 @@ def ssim(x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, paddin
         SSIM, 1 for identical images.
     """
     _check_pair(x, y, padding)
-    if reduction == "mean" and _use_fused(x, y, kernel, window_size):
+    fused = _use_fused(x, y, kernel, window_size)
+    w = gaussian_window(window_size, sigma, x.dtype, x.device)
+    if reduction == "mean" and fused:
         # the mean and the map in one node: no map of the mean's gradient in the backward
-        w = gaussian_window(window_size, sigma, x.dtype, x.device)
         return _FusedSsimMean.apply(x.contiguous(), y.contiguous(), w, padding == "same")
-    m = ssim_map(x, y, window_size, sigma, padding, kernel)
+    m = _checked_ssim_map(x, y, w, padding, fused)
     if reduction == "mean":
         return m.mean()
     if reduction == "none":

@@ -77,3 +77,44 @@ def test_photometric_loss_formula() -> None:
     assert photometric_loss(x, y).item() == pytest.approx(expected.item(), rel=1e-12)
     per = photometric_loss(x, y, reduction="none")
     assert per.mean().item() == pytest.approx(expected.item(), rel=1e-12)
+
+
+@pytest.mark.parametrize("reduction", ["mean", "none"])
+def test_ssim_checks_its_pair_and_picks_its_kernel_once(
+    monkeypatch: pytest.MonkeyPatch, reduction: str
+) -> None:
+    """One call of ``ssim`` or ``ssim_map`` checks the pair and picks the kernel once (``ssim`` reaches the
+    map without a second round), with the same value as the map's own mean."""
+    from jsgs.kernels import _wrapper
+
+    calls: list[str] = []
+    for name in ("_check_pair", "_use_fused"):
+        real = getattr(_wrapper, name)
+        monkeypatch.setattr(_wrapper, name, lambda *a, real=real, name=name: calls.append(name) or real(*a))
+    g = torch.Generator().manual_seed(2)
+    x, y = torch.rand(2, 3, 16, 20, generator=g), torch.rand(2, 3, 16, 20, generator=g)
+    value = ssim(x, y, reduction=reduction)
+    assert calls == ["_check_pair", "_use_fused"]
+    calls.clear()
+    m = ssim_map(x, y)
+    assert calls == ["_check_pair", "_use_fused"]
+    assert torch.equal(value, m.mean() if reduction == "mean" else m.flatten(1).mean(1))
+
+
+@pytest.mark.parametrize("call", [ssim, ssim_map])
+def test_bad_arguments_are_one_line_errors(call: object) -> None:
+    """Each refusal ``ssim`` and ``ssim_map`` make is one ValueError line naming the setting."""
+    x = torch.rand(1, 3, 16, 16)
+    cases = [
+        ((x, x), {"padding": "full"}, "padding must be 'same' or 'valid', got 'full'"),
+        ((x, x[:, :2]), {}, r"one shape, got \(1, 3, 16, 16\), \(1, 2, 16, 16\)$"),
+        ((x[0], x[0]), {}, r"ssim needs two \(B, C, H, W\) tensors of one shape"),
+        ((x, x), {"kernel": "fast"}, "kernel must be one of"),
+        ((x, x), {"kernel": "cuda"}, "the fused SSIM kernel needs CUDA tensors, got cpu"),
+    ]
+    if call is ssim:
+        cases.append(((x, x), {"reduction": "sum"}, "reduction must be 'mean' or 'none', got 'sum'"))
+    for args, kwargs, message in cases:
+        with pytest.raises(ValueError, match=message) as e:
+            call(*args, **kwargs)  # type: ignore[operator]
+        assert "\n" not in str(e.value)
