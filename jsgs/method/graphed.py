@@ -45,8 +45,12 @@ class ImageTerms(NamedTuple):
     """What :class:`GraphedImageTerms` returns for one view.
 
     - ``weighted``: 0-dim, λ_obs·L_obs + λ_low·L_low + λ_mid·L_mid, differentiable with respect to the render
-      (its gradient was computed in the same replay; the backward only scales it);
-    - ``values``: ``(3,)`` L_obs, L_low, L_mid (0 without DS), detached, the caller's own copy;
+      (its gradient was computed in the same replay; the backward only scales it). Its value is the first
+      of the four values the graph writes, of which ``values`` is the rest: a view, no copy of its own;
+    - ``values``: ``(3,)`` L_obs, L_low, L_mid (0 without DS), detached. With ``copy_values`` (the default)
+      they and ``weighted``'s value are a copy made for the caller, which later calls leave as it is; with
+      ``copy_values`` off they are the graph's output buffer itself, valid only until the next call, whose
+      replay overwrites them and ``weighted``'s value;
     - ``r``: ``(1, H // 8, W // 8)`` the block scores r_b, detached (0 without DS and GC); the block-score
       map r(p) is r_b on each block's pixels (:func:`jsgs.jpeg.supervision.pixel_score_of`);
     - ``obs``: ``(1, 3, H, W)`` the observation, detached; None unless the call asks for it.

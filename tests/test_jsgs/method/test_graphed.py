@@ -287,11 +287,13 @@ def test_tables_already_in_the_buffer_are_not_copied_again(monkeypatch: pytest.M
 def test_values_without_a_copy_are_the_graphs_buffer(monkeypatch: pytest.MonkeyPatch) -> None:
     """``copy_values=False`` (the hook's call: the trainer reads the step's values within the step): the
     values and the weighted sum are the graph's output buffer, with the copying call's values and gradient
-    bit for bit; the next replay writes them anew (so a caller reads them before its next call)."""
+    bit for bit; the next replay writes them anew (so a caller reads them before its next call), where the
+    copying call's values and weighted sum stay as they were."""
     monkeypatch.setattr(GraphedImageTerms, "_record", _eager_recording)
     w = (0.2, 0.02, 0.03)
     plain, direct = (GraphedImageTerms(weights=w, **SETTINGS) for _ in range(2))
-    kept = None
+    kept: torch.Tensor | None = None
+    copied: tuple[torch.Tensor, ...] = ()
     for seed in (21, 22):
         x, y, luma, chroma = _view_tensors(seed)
         tables = torch.stack([luma, chroma])
@@ -307,7 +309,11 @@ def test_values_without_a_copy_are_the_graphs_buffer(monkeypatch: pytest.MonkeyP
         assert torch.equal(xa.grad, xb.grad), seed
         if kept is not None:  # the previous call's values: rewritten by this call's replay
             assert torch.equal(kept, b.values)
+            # the copying call's: left as they were, the weighted sum's value with them
+            assert torch.equal(copied[0], copied[1]) and not torch.equal(copied[0], a.values)
+            assert copied[2].detach() == copied[3]
         kept = b.values
+        copied = (a.values, a.values.clone(), a.weighted, a.weighted.detach().clone())
 
 
 def test_an_image_of_the_trainers_stack_is_read_in_place(monkeypatch: pytest.MonkeyPatch) -> None:
