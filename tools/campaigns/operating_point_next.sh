@@ -1,5 +1,6 @@
 # What the operating point (docs/results/operating_point/README.md) still lacks, on one machine of 4 GPUs
-# over three chained calls, in order of priority (flower's and fern's (a) benches ran: auto30/README.md):
+# over three chained calls, in order of priority (flower's and fern's (a) benches ran, and the cup's and the
+# mouse's seed 0 with A_CLEAN=1: auto30/README.md):
 #   (a) the equal-time table at the retuned auto budgets (--budgets auto, 30 training pixels per Gaussian:
 #       cup 222k, mouse 107k; flower 184k and fern 108k are done) for the cup and the mouse: gsplat (trained
 #       GSPLAT_STEPS = 1.5 x the 30,000 steps, so the table interpolates) and JSGS (the mcmc preset's recipe,
