@@ -1,5 +1,7 @@
-# JSGS's step as changed since its GPU tests last passed, tested on the CPU only (CUDA parts stood in), on a
-# GPU, in one call on a machine of 2 GPUs. What changed: the image terms' chain keeps less for its backward
+# The GPU check of JSGS's memory and host-op cuts (their CPU tests stand in for the CUDA parts), in one call
+# on a machine of 2 GPUs: the GPU tests of the paths they change and the peak device memory against gsplat's.
+# Last run at 835baed with SETTLE=50 on 2 H200s (docs/results/speed/equal_budget: `*_memory_h200`,
+# `memory_check_*_h200`; 70 + 3 tests passed). The cuts: the image terms' chain keeps less for its backward
 # (the clamp a mask, L1 no difference image, the replicate pads only a shape, the luma plane copied out of
 # the YCbCr image for the fused coding pass, the fused SSIM's mean one node given a broadcast upstream, the
 # target laid out as the fused SSIM keeps it, r_b without r(p)); the graph's values are its output buffer
@@ -34,7 +36,8 @@
 # (1,500) steps (about 120 s); GPU G1 the 960x720 scene after W1 (9,300: the 300,000 cap; about 220 s) and
 # after W0 steps (about 60 s). Every part is bounded by `timeout` to what is left of END (540) seconds, so
 # the call ends within about 9 minutes whatever hangs (a part cut short loses only itself: profile_step.py
-# prints and writes the memory figures before it records the history). Expected about 7 minutes.
+# prints and writes the memory figures before it records the history). Expected about 7 minutes; with
+# SETTLE=50 at 835baed the last part ended at 592 s, past its bound (status 124), its files written.
 # On the CPU first (folders that .gitignore's .gpu*/ ignores): the two scenes without their sparse/ folders
 # (the manifests hold the cameras and points), 27.8 MB in .gpuMem; the half scene's manifest names its test
 # views' references, which loading it checks, so reference/ stays. With the tree (27.0 MB) and the wheels
