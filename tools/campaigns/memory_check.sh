@@ -36,8 +36,10 @@
 # (1,500) steps (about 120 s); GPU G1 the 960x720 scene after W1 (9,300: the 300,000 cap; about 220 s) and
 # after W0 steps (about 60 s). Every part is bounded by `timeout` to what is left of END (540) seconds, so
 # the call ends within about 9 minutes whatever hangs (a part cut short loses only itself: profile_step.py
-# prints and writes the memory figures before it records the history). Expected about 7 minutes; with
-# SETTLE=50 at 835baed the last part ended at 592 s, past its bound (status 124), its files written.
+# prints and writes the memory figures before it records the history). Expected about 8 minutes with
+# SETTLE=50 (at 835baed the last part reached its bound, its files written). `timeout -k 15`: the trainer
+# takes SIGTERM as "stop after this step, with a checkpoint", so a bare TERM let that part run 52 s past its
+# bound; KILL follows 15 s after it.
 # On the CPU first (folders that .gitignore's .gpu*/ ignores): the two scenes without their sparse/ folders
 # (the manifests hold the cameras and points), 27.8 MB in .gpuMem; the half scene's manifest names its test
 # views' references, which loading it checks, so reference/ stays. With the tree (27.0 MB) and the wheels
@@ -55,7 +57,7 @@
 # jpeg_mouse_half_{9300,1500}.{json,txt}, times.txt, build.log) and prints the tests' last lines, each
 # profile's peak memory rows and the memory-history difference tables. The profiles belong in
 # docs/results/speed/equal_budget/ (`_memory` beside the names above, with the device suffix).
-# SETTLE (2): profile_step.py's --settle. jpeg_mouse's views come in two orientations, each with its image
+# SETTLE (50): profile_step.py's --settle. jpeg_mouse's views come in two orientations, each with its image
 # terms' graph recorded on the first step that draws it: with 2 the second may be recorded inside the window
 # (at fb8623d the 300,000-Gaussian one: its peak was that recording); SETTLE=50 (one epoch of the 49 views)
 # records both before the window, at 48 more steps in each resumed run.
@@ -65,7 +67,7 @@ set -u
 D=${DATA:-.gpuMem} P=tools/diagnostics/profile_step.py L=${LOGS:-/tmp/memory_check_logs}
 CAM=$D/jpeg_mouse/manifest.json HALF=$D/jpeg_mouse_half_gaussian/manifest.json
 DEVICE=${DEVICE:-cuda} G0=${G0:-0} G1=${G1:-1} END=${END:-540} STEPS=${STEPS:-100} PAIRS=${PAIRS:-1}
-SETTLE=${SETTLE:-2}
+SETTLE=${SETTLE:-50}
 TOP=${TOP:-25} MSTEPS=${MSTEPS:-8} STACKS=${STACKS:-all}
 read -r W0 W1 <<<"${WARMUPS:-1500 9300}"
 for f in "$CAM" "$HALF"; do
@@ -77,19 +79,19 @@ left() {  # left CAP: CAP seconds, or what is left of END if less (at least 1)
     if [ "$n" -gt "$1" ]; then echo "$1"; elif [ "$n" -gt 1 ]; then echo "$n"; else echo 1; fi
 }
 stamp() { echo "$1: exit status $2 at $SECONDS s" >> "$L/times.txt"; }
-timeout "$(left 200)" bash scripts/gpu_run.sh true > "$L/build.log" 2>&1
+timeout -k 15 "$(left 200)" bash scripts/gpu_run.sh true > "$L/build.log" 2>&1
 stamp build $?
-CUDA_VISIBLE_DEVICES=$G0,$G1 timeout "$(left 150)" bash scripts/gpu_run.sh python3 -m pytest -m gpu -rs \
+CUDA_VISIBLE_DEVICES=$G0,$G1 timeout -k 15 "$(left 150)" bash scripts/gpu_run.sh python3 -m pytest -m gpu -rs \
     -p no:cacheprovider tests/test_jsgs/train/test_distributed.py > "$L/gpu_tests_2gpu.log" 2>&1
 stamp gpu_tests_2gpu $?
 profile() {  # profile GPU MANIFEST WARMUP NAME SECONDS: the memory profile and history after WARMUP steps
-    CUDA_VISIBLE_DEVICES=$1 TORCH_SYMBOLIZE_MODE=fast timeout "$5" bash scripts/gpu_run.sh python3 $P \
+    CUDA_VISIBLE_DEVICES=$1 TORCH_SYMBOLIZE_MODE=fast timeout -k 15 "$5" bash scripts/gpu_run.sh python3 $P \
         --manifest "$2" --device "$DEVICE" --preset mcmc --warmup "$3" --settle "$SETTLE" --steps "$STEPS" \
         --pairs "$PAIRS" --no-fresh --jsgs-options '{}' --memory-history "$TOP" --memory-steps "$MSTEPS" \
         --memory-stacks "$STACKS" --out "$L/$4.json" > "$L/$4.txt" 2>&1
     stamp "$4" $?
 }
-(CUDA_VISIBLE_DEVICES=$G0 JSGS_GPU_MANIFEST=$HALF timeout "$(left 150)" bash scripts/gpu_run.sh python3 -m \
+(CUDA_VISIBLE_DEVICES=$G0 JSGS_GPU_MANIFEST=$HALF timeout -k 15 "$(left 150)" bash scripts/gpu_run.sh python3 -m \
     pytest -m gpu -rs -p no:cacheprovider tests/test_jsgs/method/test_graphed.py \
     tests/test_jsgs/method/test_jsgs_method.py tests/test_jsgs/method/test_controller_cuda.py \
     tests/test_jsgs/render/test_render_gpu.py tests/test_jsgs/kernels/test_triton_jo.py \
