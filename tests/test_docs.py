@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+
+from jsgs.base.errors import JsgsError
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
@@ -116,7 +119,8 @@ def _code(text: str) -> list[str]:
         if info.strip() == "text":
             prose += "\n" + block
             continue
-        block = block.replace("\\\n", " ")
+        # a continuation line (after a backslash, or a synopsis's indented `[--option ...]`) is its command's
+        block = re.sub(r"\n[ \t]+(?=\[)", " ", block.replace("\\\n", " "))
         code.append("\n".join(re.sub(r"(^|\s)#\s.*", "", line) for line in block.splitlines()))
     return code + [s.replace("\n", " ") for s in SPAN.findall(prose)]
 
@@ -175,6 +179,91 @@ def test_commands_in_docs_exist(page: Path) -> None:
                 if opt not in known[prog][sub]:
                     bad.append(f"{prog} {sub} {opt}")
     assert not bad, f"{page.relative_to(ROOT)}: commands that do not exist: {sorted(set(bad))}"
+
+
+# what the docs write in place of a value: `--quality Q`, `--size WxH`, `--out RUN/x`, `--path FILE.json`
+PLACEHOLDER = re.compile(r"[A-Z][A-Z0-9_]*(?:[./,][\w.]*)*|[A-Z]x[A-Z]|\.\.\.|…")
+
+
+def _text_values() -> dict[tuple[str, str, str], Callable[[str], object]]:
+    """The checks of the values of free-text options (a budget, a list of names or steps): each raises
+    JsgsError on what the command refuses."""
+    from jsgs.bench import plan
+    from jsgs.train.config import cap_max_settings
+    from jsgs.train.method import method_names
+
+    def names(known: tuple[str, ...], pattern: str = "$^") -> Callable[[str], None]:
+        def check(text: str) -> None:
+            for name in plan.parse_list(text, "a list"):
+                if name not in known and not re.fullmatch(pattern, name):
+                    raise JsgsError(f"{name!r} is not one of {known}")
+
+        return check
+
+    def ints(text: str) -> list[int]:
+        return plan.parse_list(text, "a list of integers", int)
+
+    return {
+        ("jsgs", "train", "--method"): names(tuple(method_names())),
+        ("jsgs", "train", "--cap-max"): cap_max_settings, ("jsgs", "train", "--eval-at"): ints,
+        ("jsgs", "bench", "--budgets"): plan.parse_budgets, ("jsgs", "bench", "--eval-at"): ints,
+        ("jsgs", "bench", "--seeds"): ints, ("jsgs", "bench", "--fixed"): ints,
+        ("jsgs", "bench", "--methods"): names(plan.METHODS),
+        ("jsgs", "bench", "--schedules"): names(plan.SCHEDULES, plan._TWICE.pattern),
+    }  # fmt: skip
+
+
+def _refused_values(code: str) -> list[str]:
+    """`PROG SUB --option VALUE` in ``code`` whose VALUE (each of `a|b|c`) the option refuses: not one of its
+    choices, not of its type (an integer, a number), or refused by the command's own parsing of a free-text
+    option (:func:`_text_values`); placeholders (:data:`PLACEHOLDER`, `$VAR`, `<x>`) are not values."""
+    import click
+
+    from jsgs.cli import main as jsgs_main
+    from jsgstools.cli import main as tools_main
+
+    groups, texts, bad = {"jsgs": jsgs_main, "jsgstools": tools_main}, _text_values(), []
+    for prog, sub, rest in COMMAND.findall(code):
+        command = groups[prog].commands.get(sub)
+        for opt, value in re.findall(r"(?<![\w-])(--[a-z][a-z0-9-]*)(?:=| +)([^\s\[\]]+)", rest):
+            param = next((p for p in getattr(command, "params", []) if opt in p.opts), None)
+            if param is None or getattr(param, "is_flag", False) or param.nargs != 1:
+                continue
+            for v in (v.strip("'\"") for v in value.replace("\\|", "|").split("|")):
+                if not v or v.startswith(("-", "$", "<", "~")) or PLACEHOLDER.fullmatch(v):
+                    continue
+                try:
+                    param.type.convert(v, param, None)
+                    texts.get((prog, sub, opt), str)(v)
+                except (click.BadParameter, JsgsError) as e:
+                    bad.append(f"{prog} {sub} {opt} {v}: {e}")
+    return bad
+
+
+@pytest.mark.parametrize("page", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_option_values_in_docs_are_accepted(page: Path) -> None:
+    """Every value the page's code gives a `jsgs`/`jsgstools` option (`--schedule gaussian`, `--device
+    auto|cuda|cpu`, `--cap-max auto`, `--budgets 300k,0.5x`) is one that option accepts."""
+    bad = [b for code in _code(page.read_text()) for b in _refused_values(code)]
+    assert not bad, f"{page.relative_to(ROOT)}: values the options refuse:\n" + "\n".join(bad)
+
+
+def test_the_value_check_sees_refused_values() -> None:
+    code = (
+        "jsgs train m --jpeg-mode papr --device auto|gpu --seed 4x --cap-max lots --method jsgs\\|gsplt\n"
+        "jsgs bench s --strategy mcmc --budgets 300k,half --schedules gaussian+r90,gausian --methods x\n"
+        "jsgstools compress S --out D --schedule fixed --quality Q --subsampling 411 --jobs N\n"
+    )
+    found = [b.split(":")[0] for b in _refused_values(code)]
+    assert found == [
+        "jsgs train --jpeg-mode papr", "jsgs train --device gpu", "jsgs train --seed 4x",
+        "jsgs train --cap-max lots", "jsgs train --method gsplt", "jsgs bench --budgets 300k,half",
+        "jsgs bench --schedules gaussian+r90,gausian", "jsgs bench --methods x",
+        "jsgstools compress --subsampling 411",
+    ]  # fmt: skip
+    synopsis = "```\njsgs train MANIFEST --out RUN\n           [--device gpu] [--seed 42]\n```\n"
+    found = [b.split(":")[0] for c in _code(synopsis) for b in _refused_values(c)]
+    assert found == ["jsgs train --device gpu"], "a synopsis's indented [--option] line is its command's"
 
 
 def _shown_default_is_the_code(param: object, value: str) -> bool:
