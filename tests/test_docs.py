@@ -761,6 +761,43 @@ def test_defaults_in_the_train_help_are_the_code() -> None:
     assert {"iterations", "eval_at", "seed", "method", "preset", "jpeg_mode"} <= checked, checked
 
 
+def _preset_help_differs(help_text: str) -> list[str]:
+    """What `jsgs train --preset`'s help says of the presets that their settings do not give: the mcmc
+    preset's length, evaluations, refinement and every `section.key value` it names; the paper and preview
+    presets' lengths."""
+    from jsgs.train.config import TrainConfig
+
+    text = re.sub(r"\s+", " ", help_text)
+    mcmc, bad = TrainConfig.from_preset("mcmc"), []
+    said = re.search(r"mcmc \(the defaults\): (.*?); paper: (.*?); preview: (.*)", text)
+    mcmc_steps = r"\((\d+) steps, evaluations at (\d+) and (\d+), MCMCStrategy refining until step (\d+)"
+    steps = re.search(mcmc_steps, said[1] if said else "")
+    assert said and steps, f"jsgs train --preset's help no longer reads as this check expects: {text[:200]!r}"
+    if [int(n) for n in steps.groups()] != [mcmc.iterations, *mcmc.eval_at, mcmc.strategy.refine_stop_iter]:
+        bad.append(f"mcmc: {steps[0]}")
+    flat = _flat(mcmc)
+    for key, value in re.findall(r"\b((?:init|optim|strategy|loss|render)\.\w+)(?: =)? ([\d.]+)", said[1]):
+        if key not in flat or not _same(float(value), flat[key]):
+            bad.append(f"mcmc: {key} {value}, code {flat.get(key, 'no such setting')}")
+    for name, part in (("paper", said[2]), ("preview", said[3])):
+        code, given = TrainConfig.from_preset(name).iterations, re.findall(r"(\d+) steps", part)
+        if given != [str(code)]:
+            bad.append(f"{name}: {', '.join(given)} steps, code {code}")
+    return bad
+
+
+def test_the_preset_help_is_the_code() -> None:
+    """`jsgs train --preset`'s help states each preset's settings as jsgs.train.config's presets give them
+    (the JSGS recipe part is generated from them)."""
+    from jsgs.cli import main
+
+    text = next(p for p in main.commands["train"].params if p.name == "preset").help or ""
+    assert _preset_help_differs(text) == []
+    changed = text.replace("init.opacity 0.5", "init.opacity 0.3").replace("1000 steps", "900 steps")
+    expected = ["mcmc: init.opacity 0.3, code 0.5", "preview: 900 steps, code 1000"]
+    assert _preset_help_differs(changed) == expected
+
+
 def test_the_synopsis_check_sees_other_values() -> None:
     from jsgs.cli import main as jsgs_main
     from jsgstools.cli import main as tools_main
