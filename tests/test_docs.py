@@ -853,6 +853,23 @@ def test_the_settings_check_sees_unknown_names() -> None:
         "loss.base_wieght", "method_options.tabels"]  # fmt: skip
 
 
+
+def _unknown_derived(code: str) -> list[str]:
+    """The `derived.x` values of a run's config.json that ``code`` names and its schema does not have."""
+    from jsgs.train.config import config_schema
+
+    known = config_schema()["properties"]["derived"]["properties"]
+    return [n for n in re.findall(r"(?<![\w.])derived\.([a-z_]+)", code) if n not in known]
+
+
+def test_derived_values_named_in_docs_exist() -> None:
+    """Every `derived.x` the docs name (what a run's config.json records it derived: `derived.budget`,
+    `derived.method`) is one that config.json's schema has."""
+    bad = sorted({f"{page.relative_to(ROOT)}: derived.{n}" for page in DOCS
+                  for code in _code(page.read_text()) for n in _unknown_derived(code)})  # fmt: skip
+    assert not bad, "\n".join(bad)
+    assert _unknown_derived("`derived.budget`, `derived.budgets`, `settings.derived.x`") == ["budgets"]
+
 # ---------------------------------------------------------------------------------------------------------
 # docs/results/README.md's index: every results folder reached, and each row's status its folder's own
 
