@@ -94,6 +94,10 @@ def test_every_command_help_ends_with_an_example() -> None:
             tail = out.rstrip().splitlines()[-2:]
             assert tail[0].strip() == "Example:", (name, tail)
             assert tail[1].strip().startswith(f"{prog} {name}"), (name, tail)
+            # the example runs as written: its options are the command's, their values ones it takes
+            rest = COMMAND.findall(tail[1])[0][2]
+            opts = re.findall(r"(?<![\w-])(--[a-z][a-z0-9-]*)", rest)
+            assert set(opts) <= _commands()[prog][name] and not _refused_values(tail[1]), (name, tail)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -188,6 +192,7 @@ PLACEHOLDER = re.compile(r"[A-Z][A-Z0-9_]*(?:[./,][\w.]*)*|[A-Z]x[A-Z]|\.\.\.|â€
 def _text_values() -> dict[tuple[str, str, str], Callable[[str], object]]:
     """The checks of the values of free-text options (a budget, a list of names or steps): each raises
     JsgsError on what the command refuses."""
+    from jsgs.apps.camera_path import KINDS
     from jsgs.bench import plan
     from jsgs.train.config import cap_max_settings
     from jsgs.train.method import method_names
@@ -210,6 +215,7 @@ def _text_values() -> dict[tuple[str, str, str], Callable[[str], object]]:
         ("jsgs", "bench", "--seeds"): ints, ("jsgs", "bench", "--fixed"): ints,
         ("jsgs", "bench", "--methods"): names(plan.METHODS),
         ("jsgs", "bench", "--schedules"): names(plan.SCHEDULES, plan._TWICE.pattern),
+        ("jsgs", "render", "--path"): names(KINDS, r".+\.json"),
     }  # fmt: skip
 
 
@@ -253,13 +259,14 @@ def test_the_value_check_sees_refused_values() -> None:
         "jsgs train m --jpeg-mode papr --device auto|gpu --seed 4x --cap-max lots --method jsgs\\|gsplt\n"
         "jsgs bench s --strategy mcmc --budgets 300k,half --schedules gaussian+r90,gausian --methods x\n"
         "jsgstools compress S --out D --schedule fixed --quality Q --subsampling 411 --jobs N\n"
+        "jsgs render R --out v.mp4 --path spirl --path RUN/viewer_cameras.json\n"
     )
     found = [b.split(":")[0] for b in _refused_values(code)]
     assert found == [
         "jsgs train --jpeg-mode papr", "jsgs train --device gpu", "jsgs train --seed 4x",
         "jsgs train --cap-max lots", "jsgs train --method gsplt", "jsgs bench --budgets 300k,half",
         "jsgs bench --schedules gaussian+r90,gausian", "jsgs bench --methods x",
-        "jsgstools compress --subsampling 411",
+        "jsgstools compress --subsampling 411", "jsgs render --path spirl",
     ]  # fmt: skip
     synopsis = "```\njsgs train MANIFEST --out RUN\n           [--device gpu] [--seed 42]\n```\n"
     found = [b.split(":")[0] for c in _code(synopsis) for b in _refused_values(c)]
