@@ -288,8 +288,34 @@ def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | 
         return None, None, f"exceeds the pixel limit ({e}); raise it with ${ENV_MAX_PIXELS}", 1
     except JsgsError as e:  # not a regular file
         return None, None, str(e).removeprefix(f"{path}: "), 1
-    except (UnidentifiedImageError, OSError, ValueError) as e:
+    except UnidentifiedImageError:
+        return None, None, f"cannot read image: {_unidentified(path)}", 1
+    except (OSError, ValueError) as e:
         return None, None, f"cannot read image: {e}", 1
+
+
+def _unidentified(path: Path) -> str:
+    """Why Pillow cannot identify ``path``: for a file that starts as a JPEG, what its header says that
+    Pillow's decoder does not take (12-bit samples, two components) or the header's own defect."""
+    from jsgstools.dqt import read_header
+
+    try:
+        with path.open("rb") as f:
+            is_jpeg = f.read(2) == b"\xff\xd8"
+        if is_jpeg:
+            h = read_header(path)
+            if h.sample_precision != 8:
+                return (
+                    f"a {h.sample_precision}-bit JPEG ({h.frame_name}, {h.sof}): Pillow decodes 8-bit JPEGs "
+                    "only; save it again as an 8-bit JPEG"
+                )
+            if len(h.components) == 2:
+                return "a JPEG with 2 components: Pillow decodes 1, 3 or 4"
+    except JsgsError as e:
+        return f"a damaged JPEG: {str(e).removeprefix(f'{path}: ')}"
+    except OSError:
+        pass
+    return "Pillow cannot identify its format"
 
 
 def load_colmap_scene(root: str | Path, images: str = "images") -> ColmapScene:

@@ -73,7 +73,10 @@ def _decode(path: str | Path, what: str, read: Any) -> np.ndarray:
         raise JsgsError(
             f"{path}: {what} exceeds the pixel limit ({e}); raise it with ${ENV_MAX_PIXELS}"
         ) from None
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+    except UnidentifiedImageError:
+        # Pillow's own message names the file object (``<_io.BufferedReader name=3>``), not the file
+        raise JsgsError(f"{path}: cannot decode {what} (Pillow cannot identify its format)") from None
+    except (OSError, ValueError, SyntaxError) as e:
         raise JsgsError(f"{path}: cannot decode {what} ({e})") from None
 
 

@@ -149,11 +149,17 @@ class JpegHeader:
     def manifest_state(self) -> dict[str, Any]:
         """The manifest's ``jpeg`` object (jsgs/schemas/manifest.schema.json, ``$defs/jpeg``).
 
-        ``precision`` is 16 when the luma or chroma table is 16-bit. Raises JsgsError for lossless frames.
+        ``precision`` is 16 when the luma or chroma table is 16-bit. Raises JsgsError for lossless frames and
+        for samples other than 8-bit (12-bit extended frames).
         """
         luma, chroma = self.luma_table, self.chroma_table
         if luma is None or self.quality is None:
             raise JsgsError(f"{self.path}: {self.frame_name} JPEG ({self.sof}) has no quantization tables")
+        if self.sample_precision != 8:
+            raise JsgsError(
+                f"{self.path}: {self.sample_precision}-bit samples ({self.frame_name} JPEG, {self.sof}); the "
+                "JPEG observation operator and Pillow's decoder take 8-bit JPEGs only"
+            )
         precision = max(luma.precision, chroma.precision if chroma is not None else 8)
         return {
             "luma_table": luma.values.tolist(),
