@@ -4,6 +4,7 @@ Python name (jsgs.x.y) and command (`jsgs SUBCOMMAND --option`) the docs write d
 
 from __future__ import annotations
 
+import functools
 import re
 import sys
 from collections.abc import Callable
@@ -861,12 +862,17 @@ def test_the_settings_check_sees_unknown_names() -> None:
 
 
 
-def _unknown_derived(code: str) -> list[str]:
-    """The `derived.x` values of a run's config.json that ``code`` names and its schema does not have."""
+@functools.cache
+def _derived_names() -> frozenset[str]:
+    """What a run's config.json may record in ``derived`` (its schema's names)."""
     from jsgs.train.config import config_schema
 
-    known = config_schema()["properties"]["derived"]["properties"]
-    return [n for n in re.findall(r"(?<![\w.])derived\.([a-z_]+)", code) if n not in known]
+    return frozenset(config_schema()["properties"]["derived"]["properties"])
+
+
+def _unknown_derived(code: str) -> list[str]:
+    """The `derived.x` values of a run's config.json that ``code`` names and its schema does not have."""
+    return [n for n in re.findall(r"(?<![\w.])derived\.([a-z_]+)", code) if n not in _derived_names()]
 
 
 def test_derived_values_named_in_docs_exist() -> None:
