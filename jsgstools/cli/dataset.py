@@ -110,7 +110,8 @@ def synth_cmd(
     type=click.IntRange(max=MAX_INT_SETTING),
     default=8,
     show_default=True,
-    help="View i (sorted by image name) is a test view when i % N == 0; test views are never compressed.",
+    help="View i (sorted by image name) is a test view when i % N == 0 (N at least 1); test views are never "
+    "compressed.",
 )
 @click.option(
     "--subsampling",
@@ -215,7 +216,7 @@ def compress_cmd(
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option(
     "--test-every",
-    type=click.IntRange(max=MAX_INT_SETTING),
+    type=click.IntRange(0, MAX_INT_SETTING),
     default=8,
     show_default=True,
     help="The split the summary describes (as manifest --test-every; 0: no test views).",
