@@ -160,8 +160,8 @@ class JsgsOptions:
         "probe",
         "How the Gaussian Controller attributes the block scores to Gaussians (r̄ and V_i): probe (the "
         "paper's exact pooling through two extra rendered channels); footprint (no extra channels: each "
-        "Gaussian's 2D footprint integrated over the 8x8 blocks around its mean, transmittance taken as 1, "
-        "V_i from the RGB backward's non-zero conic gradients; jsgs.method.pooling.footprint_sums). "
+        "Gaussian's 2D footprint integrated over the 3x3 8x8 blocks around its mean, transmittance taken as "
+        "1, V_i from the RGB backward's non-zero conic gradients; jsgs.method.pooling.footprint_sums). "
         "footprint needs gc_pooling deferred.",
     )
     speed: JsgsSpeed = setting(
