@@ -85,21 +85,48 @@ def _through(exact: Tensor, smooth: Tensor) -> Tensor:
 
 
 def as_tables(
-    table: Tensor | np.ndarray | list, batch: int, dtype: torch.dtype, device: torch.device
+    table: Tensor | np.ndarray | list,
+    batch: int,
+    dtype: torch.dtype,
+    device: torch.device,
+    name: str = "quantization table",
 ) -> Tensor:
     """Quantization table(s) -> ``(batch, 8, 8)`` tensor in natural order ``[v, u]``.
 
-    Accepts ``(8, 8)`` (shared by every view), ``(batch, 8, 8)``, or 64 values in natural order.
+    Accepts ``(8, 8)`` (shared by every view), ``(batch, 8, 8)``, or 64 values in natural order. Tables given
+    as arrays or lists (host values) must hold quantization steps, integers 1..65535: anything else (0, a
+    negative, fractional or non-finite entry) is a ValueError naming ``name``, the entry and its place. A
+    tensor is taken as given (checking it would read it back to the host; the manifest reader checks the
+    tables it makes).
     """
-    t = torch.as_tensor(np.asarray(table) if not isinstance(table, Tensor) else table)
-    t = t.to(dtype=dtype, device=device)
+    if not isinstance(table, Tensor):
+        table = _checked_host_table(table, name)
+    t = torch.as_tensor(table).to(dtype=dtype, device=device)
     if t.shape[-2:] != (8, 8):
+        if t.dim() == 0 or t.shape[-1] != 64:
+            raise ValueError(f"{name}: must be (8, 8), ({batch}, 8, 8) or 64 values, got {tuple(t.shape)}")
         t = t.reshape(*t.shape[:-1], 8, 8)
     if t.dim() == 2:
         t = t.expand(batch, 8, 8)
     if t.shape != (batch, 8, 8):
-        raise ValueError(f"quantization tables must be (8, 8) or ({batch}, 8, 8), got {tuple(t.shape)}")
+        raise ValueError(f"{name}: must be (8, 8) or ({batch}, 8, 8), got {tuple(t.shape)}")
     return t
+
+
+def _checked_host_table(table: np.ndarray | list, name: str) -> np.ndarray:
+    """``table`` as a float64 array of quantization steps (integers 1..65535; ValueError naming the first
+    entry that is not one)."""
+    try:
+        a = np.asarray(table, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: not an array of numbers") from None
+    bad = ~(np.isfinite(a) & (a >= 1) & (a <= 65535) & (a == np.round(a)))
+    if bad.any():
+        at = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(
+            f"{name}: entry {a[at]!r} at {list(at)} is not a quantization step (an integer 1..65535)"
+        )
+    return a
 
 
 def _clamp_255(x: Tensor) -> Tensor:
@@ -220,10 +247,11 @@ def jpeg_observe(
     """The JPEG observation of a rendered image, ``C_JPEG(rgb; T^Y, T^C)`` (paper eq. jpeg_operator).
 
     Args:
-        rgb: ``(B, 3, H, W)`` float RGB in [0, 1] (values outside are clamped). Any H, W >= 1.
+        rgb: ``(B, 3, H, W)`` float RGB in [0, 1] (values outside, ±inf included, are clamped; a NaN makes its
+            MCU and one pixel of chroma context beyond NaN in the output and the gradient). Any H, W >= 1.
         luma_table: quantization steps for Y, ``(8, 8)`` or ``(B, 8, 8)``, natural order ``[v, u]`` (as
             Pillow's ``Image.quantization[0]`` reshaped to 8x8, or the manifest's ``luma_table``). Integers
-            >= 1; 16-bit tables are accepted.
+            1..65535, checked when given as an array or a list (:func:`as_tables`).
         chroma_table: the same for Cb and Cr.
         sampling: ``"4:4:4"``, ``"4:2:2"`` (h2v1) or ``"4:2:0"`` (h2v2), as read from the file; one per call.
         mode: ``"exact"``, ``"float"`` or ``"paper"`` (module docstring).
@@ -259,8 +287,8 @@ def jpeg_observe(
         to_rgb = partial(color_convert, forward=fwd, backward=bwd)
     b, _, height, width = rgb.shape
     h, v = SAMPLING_FACTORS[sampling]
-    tab_y = as_tables(luma_table, b, rgb.dtype, rgb.device)
-    tab_c = as_tables(chroma_table, b, rgb.dtype, rgb.device)
+    tab_y = as_tables(luma_table, b, rgb.dtype, rgb.device, "luma_table")
+    tab_c = as_tables(chroma_table, b, rgb.dtype, rgb.device, "chroma_table")
     integer = mode != "paper"
 
     x = 255.0 * rgb.clamp(0.0, 1.0)

@@ -158,3 +158,58 @@ def test_rejects_bad_arguments() -> None:
         jpeg_observe(x, t, t, mode="fast")
     with pytest.raises(ValueError):
         jpeg_observe(x, np.ones((2, 8, 8)), t)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [np.zeros((8, 8)), -np.ones((8, 8)), np.full((8, 8), 2.5), np.full((8, 8), np.nan),
+     np.full((8, 8), np.inf), np.full((8, 8), 65536), [[1] * 8] * 7 + [[1] * 7 + [0]]],
+    ids=["zero", "negative", "fractional", "nan", "inf", "above_16_bits", "list_with_a_zero"],
+)
+def test_host_tables_must_hold_quantization_steps(bad: np.ndarray | list) -> None:
+    """A table given as an array or a list (host values, checked for free) that is not integers 1..65535 is a
+    ValueError naming the argument; unchecked, a 0 divides by zero (NaN output) and a negative step codes
+    garbage."""
+    x = torch.rand(1, 3, 16, 16, generator=torch.Generator().manual_seed(0))
+    good = np.ones((8, 8))
+    for mode in MODES:
+        with pytest.raises(ValueError, match=r"^luma_table: entry .* is not a quantization step"):
+            jpeg_observe(x, bad, good, "4:2:0", mode)
+        with pytest.raises(ValueError, match=r"^chroma_table: entry .* at \[\d, \d\] is not a quantization"):
+            jpeg_observe(x, good, bad, "4:2:0", mode)
+    with pytest.raises(ValueError, match=r"^luma_table: must be \(8, 8\), .* or 64 values, got \(63"):
+        jpeg_observe(x, np.ones(63), good)
+    edge = np.full((8, 8), 65535)  # the largest 16-bit step is a step
+    assert torch.isfinite(jpeg_observe(x, edge, np.ones(64), "4:2:0", "exact")).all()
+
+
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("sampling", SAMPLINGS)
+def test_non_finite_inputs(mode: str, sampling: str) -> None:
+    """±inf is clamped like any value outside [0, 1] (finite output and gradient, none through that pixel).
+    NaN is never hidden: it makes the output NaN over its MCU (8h x 8v pixels, all three channels) and at most
+    one pixel of chroma up-sampling context beyond, in its own view only, and the same view's gradient."""
+    luma, chroma = ijg_tables(75)
+    h, v = {"4:4:4": (1, 1), "4:2:2": (2, 1), "4:2:0": (2, 2)}[sampling]
+    base = torch.rand(2, 3, 32, 48, generator=torch.Generator().manual_seed(1))
+    for value, clamped in ((float("inf"), 1.0), (float("-inf"), 0.0)):
+        x = base.clone()
+        x[0, 1, 11, 21] = value
+        x.requires_grad_()
+        out = jpeg_observe(x, luma, chroma, sampling, mode)
+        (g,) = torch.autograd.grad(out.sum(), x)
+        ref = base.clone()
+        ref[0, 1, 11, 21] = clamped
+        assert torch.equal(out, jpeg_observe(ref, luma, chroma, sampling, mode))
+        assert torch.isfinite(g).all() and g[0, 1, 11, 21] == 0
+    x = base.clone()
+    x[0, 1, 11, 21] = float("nan")
+    x.requires_grad_()
+    out = jpeg_observe(x, luma, chroma, sampling, mode)
+    (g,) = torch.autograd.grad(out.sum(), x)
+    assert out[0, :, 11, 21].isnan().all() and g[0].isnan().any()
+    assert torch.isfinite(out[1]).all() and torch.isfinite(g[1]).all()
+    mcu_y, mcu_x = (11 // (8 * v)) * 8 * v, (21 // (8 * h)) * 8 * h
+    reach = torch.zeros(32, 48, dtype=torch.bool)
+    reach[max(mcu_y - 1, 0) : mcu_y + 8 * v + 1, max(mcu_x - 1, 0) : mcu_x + 8 * h + 1] = True
+    assert torch.isfinite(out[0][:, ~reach]).all()
