@@ -1,5 +1,8 @@
 """jpeg_observe against the real thing: Pillow (libjpeg-turbo) encode + decode.
 
+Progressive, restart-interval and arithmetic-coded files carry the same quantized coefficients as baseline
+ones, so "exact" must match their decode too, with the tables and sampling the header parser reads from them.
+
 Mode "exact" must reproduce Pillow's decode of Pillow's encode bit for bit for q = 1..100 (every quality at
 least once per sampling), 4:4:4 / 4:2:2 / 4:2:0, sizes from 1x1 to whole photographs that are not multiples of
 16; mode "float" must stay >= 49 dB PSNR against the same decodes. Each image is run as one batch whose views
@@ -8,6 +11,7 @@ carry different tables (Pillow's own tables, as ``Image.quantization`` reports t
 
 from __future__ import annotations
 
+import base64
 import io
 from pathlib import Path
 
@@ -17,6 +21,7 @@ import torch
 from PIL import Image
 
 from jsgs.jpeg.observe import jpeg_observe
+from jsgstools.dqt import parse_header
 
 SHARED = Path(__file__).resolve().parents[3].parent / "shared"
 SCENES = SHARED / "scenes"
@@ -194,3 +199,81 @@ def test_whole_photographs_every_quality(sampling: str) -> None:
             failures += [f"{f.name} q={q}" for q, got, ref in zip(qualities, outs, refs, strict=True)
                          if not np.array_equal(got, ref[0])]
     assert not failures, failures
+
+
+#: ``_pattern()`` saved by Pillow (quality=60, 4:2:0), then transcoded losslessly by libjpeg-turbo 2.1's
+#: ``jpegtran -arithmetic`` (SOF9) and ``jpegtran -progressive -arithmetic`` (SOF10): Pillow writes no
+#: arithmetic coding, but decodes it.
+ARITHMETIC = {
+    "extended-arithmetic": (
+        "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDAA0JCgsKCA0LCgsODg0PEyAVExISEyccHhcgLikxMC4pLSwzOko+MzZGNywtQFdBRkxO"
+        "UlNSMj5aYVpQYEpRUk//2wBDAQ4ODhMREyYVFSZPNS01T09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09P"
+        "T09PT09PT0//yQARCAARACEDASIAAhEBAxEB/8wACgAQEAUBEBEF/9oADAMBAAIRAxEAPwCTKsphz63nX+5C1b/lJUeRrGHWBEY0"
+        "xQOzqaSKth3E7SjTQcVPGrbMh5TbjcJHAWC7EbkZid56c3anSKCpYijL5ChOws+O0vQ0/wDAHEDw+ckGRdwjE3QDK/3OIKREdGul"
+        "UBjvLzufYwwABESlnu3OZ6MxoYKh2xEeOTM0w3B3cnWbrUR75pwM0/DIZ1smQGgiIUuee0XAflXyaXGTd9aZlneSs24LHLtikvGb"
+        "F/FekfT3ZSTzwvIG/bpiiHvFRs343hsVbNGlBb2SAcFbQkTNKIaR103u8jmnuULMWWB21EcWZ3bDMSJYi/SEKZLXxlpPlMQUH19Y"
+        "tFVZi+/4ohWTc7NnpejoWEcf4167Ff2OpzWfHMSqWPErQoPjuDbkxJW2QuhciynZuT8BR0lNF+QC9zEx4HadrmUAKEkSRx2WCiSc"
+        "/Pf2xq12GFgVKCBVoalFBjaH0q+zRA+kKOL0ixIImmHo/9k="
+    ),
+    "progressive-arithmetic": (
+        "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDAA0JCgsKCA0LCgsODg0PEyAVExISEyccHhcgLikxMC4pLSwzOko+MzZGNywtQFdBRkxO"
+        "UlNSMj5aYVpQYEpRUk//2wBDAQ4ODhMREyYVFSZPNS01T09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09P"
+        "T09PT09PT0//ygARCAARACEDASIAAhEBAxEB/8wABgAQARD/2gAMAwEAAhADEAAAASeJQkTIrXSpC0JSfXbBo6kez4D/zAAEEAX/"
+        "2gAIAQEAAQUCcY9YhkeVOxcWggG/YmGX/kf9mgqw/8wABBEF/9oACAEDAQE/AVUUwGP6YwRcIMOJMctW5ZKZMP/MAAQRBf/aAAgB"
+        "AgEBPwEk4OWhaXZQyMlcQjfutOvm70xD/8wABBAF/9oACAEBAAY/ApF4mhliAgFVB5lOrAHAlqzcjCl0tzTy3YVfarLXQP/MAAQQ"
+        "Bf/aAAgBAQABPyEkI8/WgOWws1qREZghtLzrN3wC6y29Siy23Ym9/mpS436cIjPGbPn5avpa2NjFUOU2IrjaM/8AD6qjyf/aAAwD"
+        "AQACAAMAAAAQOFizNv/MAAQRBf/aAAgBAwEBPxAJz00RIZFqV5hwyGVD2IqqEbF6sfR1pB2exh+SVI5vO5D/zAAEEQX/2gAIAQIB"
+        "AT8QGolnoABE/wDMuQX1rX39HRMflEmYNiWgQc1IawX/zAAEEAX/2gAIAQEAAT8Q85zGQR6lKdJRGrPC6ccPYqpAQlSKHQ1KvuQV"
+        "3jC9+o8BN+R57Bj1+spiAtMnQhkKIb356dxjMPgpcnlvUMqohXkAud4sQDSxKyDUoE+a0ShDiQMB6zQ/q3x2ZFeKiY+LF8/1s69e"
+        "grz0Nxmw54pYaR5tNRdM54bkjMlCxtEWKpbgnnxDEP/Z"
+    ),
+}
+
+
+def _pattern() -> np.ndarray:
+    """17x33 RGB texture from integer arithmetic alone (the source of ``ARITHMETIC``'s files)."""
+    yy, xx = np.mgrid[0:17, 0:33]
+    planes = [(xx * 29 + yy * 47 + c * 83 + (xx * yy % 17) * 9) % 256 for c in range(3)]
+    return np.stack(planes, -1).astype(np.uint8)
+
+
+def _exact_from_header(arr: np.ndarray, data: bytes, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(JO "exact" of ``arr`` with the tables and sampling parsed from ``data``, Pillow's decode of it)."""
+    state = parse_header(data, name).manifest_state()
+    out = jpeg_observe(to_tensor(arr, 1), np.array(state["luma_table"]), np.array(state["chroma_table"]),
+                       state["sampling"], "exact")
+    got = (out[0] * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+    with Image.open(io.BytesIO(data)) as im:
+        return got, np.asarray(im.convert("RGB"))
+
+
+@pytest.mark.parametrize("sampling", sorted(SUBSAMPLING))
+@pytest.mark.parametrize(
+    "options",
+    [{"progressive": True}, {"restart_marker_blocks": 1}, {"progressive": True, "restart_marker_rows": 1}],
+    ids=["progressive", "dri", "progressive_dri"],
+)
+def test_progressive_and_restart_files_are_bit_exact(sampling: str, options: dict[str, object]) -> None:
+    arr = _pattern()
+    for q in (5, 60, 97):
+        buf = io.BytesIO()
+        Image.fromarray(arr).save(buf, "JPEG", quality=q, subsampling=SUBSAMPLING[sampling], **options)
+        h = parse_header(buf.getvalue(), "f.jpg")
+        assert (h.frame == "progressive") == bool(options.get("progressive"))
+        assert (h.restart_interval > 0) == (options != {"progressive": True})
+        got, decoded = _exact_from_header(arr, buf.getvalue(), "f.jpg")
+        assert np.array_equal(got, decoded), (options, q)
+
+
+def test_arithmetic_coded_files_are_bit_exact() -> None:
+    arr = _pattern()
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, "JPEG", quality=60, subsampling=2)
+    with Image.open(buf) as im:
+        huffman = np.asarray(im.convert("RGB"))
+    for frame, text in ARITHMETIC.items():
+        data = base64.b64decode(text)
+        assert parse_header(data, "a.jpg").frame_name == frame
+        got, decoded = _exact_from_header(arr, data, "a.jpg")
+        assert np.array_equal(decoded, huffman), frame  # the same coefficients as Pillow's Huffman file
+        assert np.array_equal(got, decoded), frame
