@@ -46,3 +46,20 @@ def insert_after_soi(jpeg: bytes, segment: bytes) -> bytes:
     if not jpeg.startswith(b"\xff\xd8"):
         raise ValueError("not a JPEG (no SOI)")
     return jpeg[:2] + segment + jpeg[2:]
+
+
+def own_cr_table(jpeg: bytes, table: list[list[int]]) -> bytes:
+    """``jpeg`` (three components, 8-bit tables, SOF0/1/2) with its third component (Cr) quantized by a table
+    of its own: a DQT segment defining table 2 as ``table`` (natural order, 8x8, entries 1..255) is inserted
+    before the frame header, whose Cr entry then names table 2. The scan is left as it is (libjpeg decodes
+    Cr's coefficients with the new steps)."""
+    from jsgs.jpeg.tables import ZIGZAG
+
+    sof = next(jpeg.find(m) for m in (b"\xff\xc0", b"\xff\xc1", b"\xff\xc2") if jpeg.find(m) > 0)
+    if jpeg[sof + 9] != 3:
+        raise ValueError("not a three-component JPEG")
+    flat = [v for row in table for v in row]
+    payload = bytes([2]) + bytes(flat[i] for i in ZIGZAG)
+    out = bytearray(jpeg)
+    out[sof + 10 + 3 * 2 + 2] = 2  # Cr's Tq
+    return bytes(out[:sof]) + b"\xff\xdb" + struct.pack(">H", len(payload) + 2) + payload + bytes(out[sof:])

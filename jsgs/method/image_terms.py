@@ -287,6 +287,11 @@ def view_tables(
                 f"{where}: view {v.name!r} is a greyscale JPEG; the JPEG observation operator handles colour "
                 "JPEGs only (train it with --method gsplat or --no-jo --no-ds --no-gc)"
             )
+        if j.cr_table is not None:
+            raise JsgsError(
+                f"{where}: view {v.name!r} quantizes Cr with a table of its own (not Cb's); the JPEG "
+                "observation operator takes one chroma table (train it with --method gsplat, or re-encode it)"
+            )
         if j.sampling not in SUPPORTED_SAMPLING:
             raise JsgsError(
                 f"{where}: view {v.name!r} has chroma sampling {j.sampling}; the JPEG observation operator "

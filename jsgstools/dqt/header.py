@@ -149,8 +149,10 @@ class JpegHeader:
     def manifest_state(self) -> dict[str, Any]:
         """The manifest's ``jpeg`` object (jsgs/schemas/manifest.schema.json, ``$defs/jpeg``).
 
-        ``precision`` is 16 when the luma or chroma table is 16-bit. Raises JsgsError for lossless frames and
-        for samples other than 8-bit (12-bit extended frames).
+        ``precision`` is 16 when the luma or chroma table is 16-bit (that of the first and the second
+        component); ``cr_table`` is the third component's table when its values differ from the second's (a
+        file that quantizes Cr with a table of its own). Raises JsgsError for lossless frames and for samples
+        other than 8-bit (12-bit extended frames).
         """
         luma, chroma = self.luma_table, self.chroma_table
         if luma is None or self.quality is None:
@@ -161,7 +163,7 @@ class JpegHeader:
                 "JPEG observation operator and Pillow's decoder take 8-bit JPEGs only"
             )
         precision = max(luma.precision, chroma.precision if chroma is not None else 8)
-        return {
+        state: dict[str, Any] = {
             "luma_table": luma.values.tolist(),
             "chroma_table": None if chroma is None else chroma.values.tolist(),
             "sampling": self.sampling,
@@ -171,6 +173,10 @@ class JpegHeader:
             "frame": self.frame_name,
             "color_space": self.color_space,
         }
+        cr = self.tables[self.components[2].table] if len(self.components) >= 3 else None  # type: ignore[index]
+        if chroma is not None and cr is not None and not np.array_equal(cr.values, chroma.values):
+            state["cr_table"] = cr.values.tolist()
+        return state
 
 
 # Exact IJG tables -> quality, so the common case skips ``estimate_quality``'s 100-level search (~70 us, more

@@ -1,6 +1,7 @@
 """Hard JPEG inputs through dataset preparation: a 12-bit JPEG named as such in one line by every tool that
-reads it; views whose sizes are not multiples of 8 or 16 compressed, recorded in the manifest and reproduced
-bit for bit by the observation operator from the manifest's JPEG state and the view's lossless reference."""
+reads it; a view whose Cr has a table of its own recorded in the manifest and refused by JSGS; views whose
+sizes are not multiples of 8 or 16 compressed, recorded in the manifest and reproduced bit for bit by the
+observation operator from the manifest's JPEG state and the view's lossless reference."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 from click.testing import CliRunner
+from jpeg_builders import own_cr_table
 from PIL import Image
 
 from jsgs.base.errors import JsgsError
@@ -75,3 +77,24 @@ def test_odd_sizes_through_dataset_preparation_are_bit_exact(subsampling: str, t
         out = jpeg_observe(x, np.array(j["luma_table"]), np.array(j["chroma_table"]), j["sampling"], "exact")
         got = (out[0] * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
         assert np.array_equal(got, decoded), (v["name"], j["quality"])
+
+
+def test_cr_table_of_its_own_is_recorded_and_refused(compressed_scene: Path, tmp_path: Path) -> None:
+    from jsgs.cli import main as jsgs_main
+    from jsgs.jpeg.tables import ijg_tables
+
+    scene = tmp_path / "s"
+    shutil.copytree(compressed_scene, scene)
+    img = scene / "images" / "view_001.jpg"
+    img.write_bytes(own_cr_table(img.read_bytes(), ijg_tables(5)[1].tolist()))
+    r = CliRunner().invoke(tools, ["manifest", str(scene), "--out", str(tmp_path / "m.json")])
+    assert r.exit_code == 0, r.output
+    views = {v["name"]: v for v in json.loads((tmp_path / "m.json").read_text())["views"]}
+    assert views["view_001.jpg"]["jpeg"]["cr_table"] == ijg_tables(5)[1].tolist()
+    assert "cr_table" not in views["view_002.jpg"]["jpeg"]
+    args = ["train", str(tmp_path / "m.json"), "--out", str(tmp_path / "run"), "--iterations", "1",
+            "--device", "cpu", "--quiet"]
+    r = CliRunner().invoke(jsgs_main, args)
+    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    assert r.output.strip().count("\n") == 0
+    assert "view 'view_001.jpg' quantizes Cr with a table of its own" in r.output, r.output

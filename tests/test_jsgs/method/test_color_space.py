@@ -62,3 +62,10 @@ def test_jsgs_refuses_samplings_jo_cannot_represent(sampling: str, chroma: str |
                       color_space="gray" if chroma is None else "YCbCr")
     with pytest.raises(JsgsError, match=f"^m.json: {expected}"):
         view_tables([_View("v.jpg", state)], torch.device("cpu"), "m.json")  # type: ignore[list-item]
+
+
+def test_jsgs_refuses_a_cr_table_of_its_own() -> None:
+    t = np.full((8, 8), 4, dtype=np.int32)
+    state = JpegState(t, t, "4:2:0", 90, False, 8, "baseline", color_space="YCbCr", cr_table=t + 1)
+    with pytest.raises(JsgsError, match="^m.json: view 'v.jpg' quantizes Cr with a table of its own"):
+        view_tables([_View("v.jpg", state)], torch.device("cpu"), "m.json")  # type: ignore[list-item]

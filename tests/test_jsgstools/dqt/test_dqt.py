@@ -15,7 +15,7 @@ import jsonschema
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from jpeg_builders import exif_app1, insert_after_soi
+from jpeg_builders import exif_app1, insert_after_soi, own_cr_table
 from PIL import ExifTags, Image, JpegImagePlugin
 
 from jsgs.base.errors import JsgsError
@@ -480,6 +480,25 @@ def test_manifest_state(mode: str) -> None:
         assert state["chroma_table"] is None and state["sampling"] == "gray"
     else:
         assert state["chroma_table"] == ijg_tables(33)[1].tolist() and state["sampling"] == "4:2:0"
+
+
+def test_manifest_state_records_a_cr_table_of_its_own() -> None:
+    """A file whose Cr component names a third table: libjpeg decodes Cr with it, so the manifest records it
+    (``cr_table``) rather than letting Cb's table stand for both; files with one chroma table have none."""
+    base = encode(image(), quality=60, subsampling="4:2:0")
+    own = ijg_tables(5)[1]
+    data = own_cr_table(base, own.tolist())
+    h = parse_header(data, "cr.jpg")
+    assert [c.table for c in h.components] == [0, 1, 2]
+    pillow_agrees(data, h)
+    with Image.open(io.BytesIO(data)) as a, Image.open(io.BytesIO(base)) as b:  # table 2 is used
+        assert not np.array_equal(np.asarray(a.convert("RGB")), np.asarray(b.convert("RGB")))
+    state = h.manifest_state()
+    validate_manifest_jpeg(state)
+    assert state["cr_table"] == own.tolist() and state["chroma_table"] == ijg_tables(60)[1].tolist()
+    # a third table equal to Cb's in value is one chroma table
+    same = parse_header(own_cr_table(base, ijg_tables(60)[1].tolist()), "same.jpg").manifest_state()
+    assert "cr_table" not in same
 
 
 # ---------------------------------------------------------------------------------------------------------
