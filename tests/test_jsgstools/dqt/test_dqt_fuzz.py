@@ -222,10 +222,14 @@ def check_report(h: JpegHeader, data: bytes, *, thorough: bool, note: Callable[[
     else:
         assert all(c.table in h.tables for c in h.components)
         assert h.quality is not None and 1 <= h.quality.quality <= 100
-        state = h.manifest_state()
-        assert state["luma_table"] == h.tables[h.components[0].table].values.tolist()
-        if thorough:
-            MANIFEST_JPEG_VALIDATOR.validate(state)
+        if h.sample_precision != 8:  # 12-bit samples: no manifest state (neither Pillow nor JO decodes them)
+            with pytest.raises(JsgsError, match=rf"^{NAME}: {h.sample_precision}-bit samples"):
+                h.manifest_state()
+        else:
+            state = h.manifest_state()
+            assert state["luma_table"] == h.tables[h.components[0].table].values.tolist()
+            if thorough:
+                MANIFEST_JPEG_VALIDATOR.validate(state)
     if thorough:
         HEADER_VALIDATOR.validate({"ok": True, **h.to_json()})
     note("Pillow: same report" if compare_with_pillow(h, data) else "Pillow: refused the mutant")
@@ -283,6 +287,19 @@ def test_sweep_every_cut_and_byte(seed: str) -> None:
         check_outcome(data, thorough=False, note=lambda key: seen.update([key]))
     # Both outcomes occur, and Pillow accepted some mutants we reported, so the comparison did run.
     assert seen["outcome: JsgsError"] and seen["outcome: report"] and seen["Pillow: same report"], seen
+
+
+@pytest.mark.parametrize("seed", sorted(SEEDS))
+def test_twelve_bit_frames(seed: str) -> None:
+    """Each seed's frame made 12-bit (SOF0 made SOF1, where 12 bits are valid): a consistent report whose
+    manifest state is refused, or a JsgsError (a lossless or 8-bit-only frame)."""
+    data = bytearray(SEEDS[seed])
+    sof = next(i for i in range(2, len(data) - 1) if data[i] == 0xFF and data[i + 1] in (0xC0, 0xC1, 0xC2))
+    data[sof + 1] = 0xC1 if data[sof + 1] == 0xC0 else data[sof + 1]
+    data[sof + 4] = 12
+    outcomes: Counter[str] = Counter()
+    check_outcome(bytes(data), thorough=True, note=lambda key: outcomes.update([key]))
+    assert outcomes["outcome: report"], outcomes
 
 
 @settings(
