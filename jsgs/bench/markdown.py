@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from jsgs.bench import equal_time
+from jsgs.bench import equal_time, per_view
 from jsgs.bench.budget import BudgetReport, StepKey, write_budget_plots
 from jsgs.bench.plan import ABLATION_ALIAS, ABLATION_PARTS, ABLATION_SCHEDULE, MIXED_SCHEDULES
 from jsgs.bench.plots import write_plots
@@ -332,7 +332,8 @@ def write_report(
 ) -> Path:
     """Write RESULTS/report.md (and RESULTS/plots/*.png); returns the report's path. The runs of
     ``--strategy mcmc`` get the equal-budget section (:mod:`jsgs.bench.budget`; at ``budget_step``, one step
-    or one per scene or per scene and budget, default the last evaluation); the DefaultStrategy runs the
+    or one per scene or per scene and budget, default the last evaluation) and its per-test-view part
+    (:mod:`jsgs.bench.per_view`, from ``results_dir``'s runs or views.json); the DefaultStrategy runs the
     paper's tables; both compare each run up to its recipe's length (:func:`within_recipe`). Then the
     equal-time section (:mod:`jsgs.bench.equal_time`) reads every evaluation."""
     results_dir = Path(results_dir)
@@ -351,6 +352,7 @@ def write_report(
                    "above):", ""]  # fmt: skip
             md += [f"- `{sc}/{sch}/{m}/mcmc-{b}/s{seed}`: last evaluation at step {st}"
                    for (sc, sch, m, b, seed), st in late_b] + [""]  # fmt: skip
+        md += per_view.markdown(brep, per_view.load(results_dir))
     rows = [r for r in rows if r.get("strategy") in (None, "default")]
     if brep.rows and rows:
         md += ["## DefaultStrategy runs", "",

@@ -148,3 +148,39 @@ def test_a_results_folder_rebuilds_byte_for_byte(tmp_path: Path, folder: str, st
         assert (target / name).read_bytes() == (committed / name).read_bytes(), name
     assert sorted(p.name for p in (target / "plots").iterdir()) == sorted(
         p.name for p in (committed / "plots").iterdir())  # fmt: skip
+
+
+def _views_bench(folder: Path, scene: str, psnr: float) -> None:
+    """A bench of gsplat and JSGS on ``scene`` (seed 0) whose runs' metrics.json hold two test views each,
+    JSGS ``psnr`` dB above gsplat on both."""
+    rows = [_row(scene, "gaussian", m, 0, 0.2) for m in ("gsplat", "jsgs")]
+    write_csv(rows, folder / "results.csv")
+    for r in rows:
+        run = folder / "runs" / br.run_key(r)
+        run.mkdir(parents=True)
+        up = psnr if r["method"] == "jsgs" else 0.0
+        views = [{"name": f"v{i}", "psnr": 25.0 + i + up, "ssim": 0.9, "lpips": 0.2} for i in range(2)]
+        (run / "metrics.json").write_text(json.dumps({"evals": [{"step": 10000, "views": views}]}))
+
+
+def test_gathers_keep_every_runs_views(tmp_path: Path) -> None:
+    """Two gathers into one folder: views.json holds the runs of both (the run folders stay behind), the
+    report's per-view table has both scenes, and a rebuild without benches gives the same report."""
+    from jsgs.base.schema import validate
+
+    target, first, second = tmp_path / "op", tmp_path / "b1", tmp_path / "b2"
+    _views_bench(first, "a", 1.0)
+    _views_bench(second, "b", -1.0)
+    br.main(target, [first])
+    br.main(target, [second])
+    doc = json.loads((target / "views.json").read_text())
+    validate(doc, "views", "views.json")
+    assert sorted(doc["runs"]) == sorted(br.run_key(r) for r in read_csv(target / "results.csv"))
+    assert len(doc["runs"]) == 4
+    report = (target / "report.md").read_text()
+    section = report.split("## Per test view")[1].split("\n## ")[0]
+    per_view = [ln for ln in section.splitlines() if ln.startswith(("| a |", "| b |"))]
+    assert [ln.split("|")[8].strip() for ln in per_view] == ["2/2", "0/2"]
+    (target / "report.md").unlink()
+    br.main(target, [])
+    assert (target / "report.md").read_text() == report

@@ -68,8 +68,9 @@
 #      docs/results/operating_point/auto30 (TARGET) with tools/results/build_report.py (add STEP=auto where runs
 #      stopped early: each scene at its last common evaluation): results.csv (budget column `auto`), report.md
 #      (the equal-time table; its header names the auto budgets, the rule's 30 pixels per Gaussian and
-#      gc_every), configs.json, plots/. Then update auto30/README.md (its `**Status: ...**` line, the targets
-#      over the scenes that ran, how the GPUs were shared: a row's runs_per_device counts its own bench's).
+#      gc_every; "Per test view"), configs.json, views.json, plots/. Then update auto30/README.md (its
+#      `**Status: ...**` line, the targets over the scenes that ran, how the GPUs were shared: a row's
+#      runs_per_device counts its own bench's).
 #      The runs of (b) at fixed budgets (budget column 100000, 300000) beside auto30's auto runs are the auto
 #      rule's check at seed 1 with gc_every 4 (operating_point/'s seed 0 ran gc_every 1).
 # A CPU dry run (about 3 minutes of 2 cores): tiny scenes (`jsgstools synth OUT --size 48x36 --views 8

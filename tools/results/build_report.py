@@ -7,8 +7,9 @@ bench's own report code, first adding the runs of bench folders brought back fro
 
 A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``tools/campaigns/confirm.sh``
 or ``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``: settings,
-versions, command and, for the scene-sized budget, ``derived.budget``, the rule's inputs and choice); its runs
-replace the rows and settings of the same scene, schedule, method, budget and seed. Where results.csv holds
+versions, command and, for the scene-sized budget, ``derived.budget``, the rule's inputs and choice) and
+their metrics.json's per-view metrics (into ``views.json``, for report.md's "Per test view"); its runs replace
+the rows, settings and views of the same scene, schedule, method, budget and seed. Where results.csv holds
 ``auto`` rows, report.md's header names what ``auto`` was per scene and JSGS's ``gc_every`` per budget (from
 configs.json), and the auto runs of one scene that trained at different budgets (two versions of the rule)
 stop it with one line: gather those into folders of their own. The tables are computed
@@ -35,7 +36,9 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
+from jsgs.base.errors import JsgsError
 from jsgs.base.io import write_bytes_atomic
+from jsgs.bench import per_view
 from jsgs.bench.budget import common_steps
 from jsgs.bench.markdown import write_report
 from jsgs.bench.results import read_csv, write_csv
@@ -142,10 +145,13 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
     rows = budget_csv(csv) if csv.is_file() else []
     cfg = target / "configs.json"
     configs = json.loads(cfg.read_text()) if cfg.is_file() else {}
+    views = per_view.load(target)
     for f in folders:
         new = [r for r in budget_csv(f / "results.csv") if r["strategy"] == "mcmc"]
         done = {key(r) for r in new}
         rows = [r for r in rows if key(r) not in done] + new
+        views = {k: v for k, v in views.items() if k not in {run_key(r) for r in new}}
+        views.update(per_view.read_runs(f / "runs"))
         for c in sorted(f.glob("runs/*/*/*/mcmc-*/s*/config.json")):
             doc = json.loads(c.read_text())
             run = str(c.parent.relative_to(f / "runs"))
@@ -156,11 +162,15 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
         have = {key(r) for r in rows}
         rows += [r for r in extra if key(r) not in have]
         configs = {**extra_cfg, **configs}
+        views = {**per_view.load(base), **views}
     rows.sort(key=lambda r: (*key(r), int(r["step"])))
     notes = auto_notes(rows, configs)  # before anything is written: it may refuse
     target.mkdir(parents=True, exist_ok=True)
     write_csv(rows, csv)
     write_bytes_atomic(cfg, (json.dumps(dict(sorted(configs.items())), indent=1) + "\n").encode())
+    views = {k: v for k, v in views.items() if k in {run_key(r) for r in rows}}
+    if views:
+        per_view.write_file(target / per_view.VIEWS_FILE, views)
     header = [
         f"Every equal-budget run of `{target.name}` (`jsgs bench --strategy mcmc`), gathered from the GPU "
         "calls that ran them by `tools/results/build_report.py`; every run's settings and versions in "
@@ -203,4 +213,7 @@ if __name__ == "__main__":
     missing = [a for a in args[1:] if not (Path(a) / "results.csv").is_file()]
     if missing:
         sys.exit(f"build_report.py: {missing[0]}: not a bench folder (no results.csv there)")
-    main(Path(args[0]), [Path(a) for a in args[1:]], at, base)
+    try:
+        main(Path(args[0]), [Path(a) for a in args[1:]], at, base)
+    except JsgsError as e:
+        sys.exit(f"build_report.py: {e}")

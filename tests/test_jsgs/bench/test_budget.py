@@ -251,6 +251,10 @@ def test_bench_at_equal_budget_end_to_end(synth_scene: Path, tmp_path: Path) -> 
     assert "## Equal Gaussian budget" in report and f"| {cap:,} |" in report
     assert "step 4" in report.split("## Equal Gaussian budget")[1].splitlines()[0]
     assert "## Equal training time" in report and "runs per device: 2" in report
+    # "Per test view" from the runs' metrics.json, at the tables' step 4 (gsplat's evaluation at 6 is past it)
+    views = metrics["evals"][-1]["views"]  # the clean run's: the same test views
+    per_view = report.split("## Per test view")[1].split("\n## ")[0]
+    assert f"| {name} | gaussian | {cap:,} | jsgs | 0 | 4 | {len(views)} |" in per_view
     assert (out / "plots" / f"{name}_time.png").is_file()
 
 
