@@ -1,8 +1,9 @@
-"""Builders of JPEG test files (EXIF segments, segments inserted after SOI) for the header parser's tests,
-the fuzz test and benchmarks/bench_dqt.py."""
+"""Builders of JPEG test files (EXIF segments, segments inserted after SOI, a table of Cr's own, a file with
+one scan per component) for the header parser's tests, the fuzz test and benchmarks/bench_dqt.py."""
 
 from __future__ import annotations
 
+import base64
 import struct
 
 # --------------------------------------------------------------------------------------------------------
@@ -63,3 +64,22 @@ def own_cr_table(jpeg: bytes, table: list[list[int]]) -> bytes:
     out = bytearray(jpeg)
     out[sof + 10 + 3 * 2 + 2] = 2  # Cr's Tq
     return bytes(out[:sof]) + b"\xff\xdb" + struct.pack(">H", len(payload) + 2) + payload + bytes(out[sof:])
+
+
+#: A 16x16 image (``_scan_pattern()`` of tests/test_jsgstools/dqt/test_dqt.py) saved by Pillow (quality 60,
+#: 4:2:0), rewritten losslessly by libjpeg-turbo 2.1's ``jpegtran -optimize -scans`` with one sequential
+#: scan per component (Y, Cb, Cr).
+NON_INTERLEAVED = (
+    "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDAA0JCgsKCA0LCgsODg0PEyAVExISEyccHhcgLikxMC4pLSwzOko+MzZGNywtQFdBRkxO"
+    "UlNSMj5aYVpQYEpRUk//2wBDAQ4ODhMREyYVFSZPNS01T09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09PT09P"
+    "T09PT09PT0//wAARCAAQABADASIAAhEBAxEB/8QAFgABAQEAAAAAAAAAAAAAAAAAAQAC/8QAIxAAAgIBAwQDAQAAAAAAAAAAAQID"
+    "ESEEEjEAIkFRE2GBof/aAAgBAQAAPwCDxgrA8LOKFadBWe0gEYJ4GfvHkDcQAhV5TFYWmjTAcd17q8kijyOOhRqXU/CtM5O+WNSx"
+    "INZWhXNmv7no08TS7RApcbCDIyi2taUi/WPwVfv/xAAUAQEAAAAAAAAAAAAAAAAAAAAD/8QAHREAAQIHAAAAAAAAAAAAAAAAAQIR"
+    "ABIhMVGx8P/aAAgBAhEAPwA1LQHmParkuTeP/8QAFAEBAAAAAAAAAAAAAAAAAAAAAP/EABwRAAEDBQAAAAAAAAAAAAAAAAERITEA"
+    "IlFx4f/aAAgBAxEAPwAlpIDDEa4HWStf/9k="
+)
+
+
+def non_interleaved_jpeg() -> bytes:
+    """``NON_INTERLEAVED`` as bytes: a baseline JPEG whose three components have a sequential scan each."""
+    return base64.b64decode(NON_INTERLEAVED)

@@ -2,10 +2,10 @@
 
 In the style of Pillow's ``JpegImagePlugin``: it walks the marker segments from SOI to the first SOS and
 never decodes pixels. Unlike Pillow it reads only what it needs, segment by segment from the file object,
-never past the first SOS segment: APPn payloads (beyond the first 32 bytes, which name them) and other
-uninterpreted segments over 1 KiB are skipped by their length (a seek, not a read). A 4000x3000 photo with
-a 60 KB EXIF block costs about 700 bytes, and the DQT of an EXIF thumbnail (which lives *inside* APP1) is
-never seen.
+not past the first SOS segment when the first scan codes every component: APPn payloads (beyond the first
+32 bytes, which name them) and other uninterpreted segments over 1 KiB are skipped by their length (a seek,
+not a read). A 4000x3000 photo with a 60 KB EXIF block costs about 700 bytes, and the DQT of an EXIF
+thumbnail (which lives *inside* APP1) is never seen.
 
 Rules, stated once:
 
@@ -13,10 +13,15 @@ Rules, stated once:
   SOF9/10/11 the same three with arithmetic coding are reported. Hierarchical frames (SOF5-7, SOF13-15, DHP,
   EXP), JPEG-LS (SOF55) and the reserved JPG marker are refused with an "unsupported frame type" error.
   Lossless frames use no quantization tables: they get ``quality = None`` and ``manifest_state()`` refuses.
-* Tables: every table defined before the first SOS, with the definition in force at SOS (a later DQT with
-  the same id replaces an earlier one, as in libjpeg). Values are converted from the file's zigzag order to
-  natural row-major 8x8 order, entry ``[v][u]`` (v = vertical frequency). Tables may come after SOF; every
-  table a component uses must be defined before the first SOS (tables defined between scans are refused).
+* Tables: each component's table is the definition in force when the component's first scan begins (libjpeg
+  latches it then; a later DQT with the same id replaces an earlier one). For the components of the first
+  scan that is the definition at the first SOS. A first scan that leaves components out (mozjpeg's
+  progressive files code each component's DC apart; some encoders write one sequential scan per component)
+  makes the parser follow the scans, skipping their entropy-coded data by its markers, until every component
+  has begun one: a DQT between scans counts for the components not yet scanned (Pillow's ``quantization``
+  misses it). Two components with one table id that latch different tables are refused. Values are converted
+  from the file's zigzag order to natural row-major 8x8 order, entry ``[v][u]`` (v = vertical frequency).
+  Tables may come after SOF; a component's table must be defined before its first scan.
 * Colour space (libjpeg's ``default_decompress_parms``): 1 component -> gray; 3 components -> YCbCr when a
   JFIF APP0 is present, else per the Adobe APP14 transform (0 -> RGB, otherwise YCbCr), else by component
   ids (1,2,3 -> YCbCr; 'R','G','B' -> RGB; anything else -> YCbCr, libjpeg's assumption); 4 components ->

@@ -55,7 +55,8 @@ class JpegHeader:
     """Everything the header says about a JPEG file up to its first scan.
 
     Sizes are in bytes; ``header_size`` is the offset of the first entropy-coded byte (end of the first SOS
-    segment); ``bytes_read`` is how many bytes the parser actually read (skipped segments cost nothing).
+    segment), or the end of the SOS segment by which every component has begun a scan (``scans`` > 1);
+    ``bytes_read`` is how many bytes the parser actually read (skipped segments cost nothing).
     """
 
     path: str
@@ -78,6 +79,10 @@ class JpegHeader:
     adobe_transform: int | None
     app_segments: tuple[AppSegment, ...] = ()
     warnings: tuple[str, ...] = field(default=())
+    #: scan headers read: 1, unless the first scan leaves components out (their tables are the ones in force
+    #: at their own first scans, so the parser reads on to them; ``bytes_read`` may then pass ``header_size``
+    #: by the coded data read ahead)
+    scans: int = 1
 
     @property
     def frame_name(self) -> str:

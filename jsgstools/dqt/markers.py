@@ -97,5 +97,7 @@ def marker_name(code: int) -> str:
 _MARKER_NAMES = [marker_name(c) for c in range(256)]
 # Markers that begin a segment with a length field and that the parser accepts before SOS.
 _SEGMENT_MARKERS = frozenset([*SUPPORTED_SOF, *_SKIPPED, 0xDA, 0xDB, 0xDD, *range(0xE0, 0xF0)])
+# Segments that may come between two scans (T.81 B.2.4, B.5): tables, DRI, DNL, COM, APPn and the next SOS.
+_BETWEEN_SCANS = frozenset([DQT, DHT, 0xCC, DRI, 0xDC, 0xFE, SOS, *range(APP0, APP15 + 1)])
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import stat
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,6 +27,7 @@ from jsgstools.dqt.header import (
 )
 from jsgstools.dqt.markers import (
     _APP_PEEK,
+    _BETWEEN_SCANS,
     _COMPONENT_NAMES,
     _MARKER_NAMES,
     _MAX_JUNK,
@@ -38,6 +40,7 @@ from jsgstools.dqt.markers import (
     APP15,
     DQT,
     DRI,
+    EOI,
     SOS,
     SUPPORTED_SOF,
     UNSUPPORTED_FRAME,
@@ -45,6 +48,11 @@ from jsgstools.dqt.markers import (
 
 # --------------------------------------------------------------------------------------------------------
 # The parser
+
+#: bytes of a scan's entropy-coded data read at a time while looking for the next marker
+_SCAN_CHUNK = 16384
+#: a marker inside entropy-coded data: FF then a code that is not 00 (a stuffed FF), FF (fill) or RSTn
+_MARKER_IN_DATA = re.compile(rb"\xff[^\x00\xd0-\xd7\xff]")
 
 
 class _Reader:
@@ -233,6 +241,7 @@ class ParseState:
     jfif: bool = False
     adobe_transform: int | None = None
     warnings: list[str] = field(default_factory=list)
+    scans: int = 0  # scan headers (SOS) read
 
 
 #: A marker handler: (reader positioned after the length field, state, marker code, offset of the marker,
@@ -406,6 +415,10 @@ def _finish(r: _Reader, st: ParseState, sos: bytes, sos_at: int) -> JpegHeader:
     color_space = _color_space(ids, st.jfif, st.adobe_transform)
     components = _components(name, p, nf, color_space, lossless)
     _check_first_scan(name, sos, sos_at, ids)
+    st.scans = 1
+    first_scan = {sos[1 + 2 * i] for i in range(sos[0])}
+    if not lossless and len(first_scan) < nf:
+        tables = _follow_scans(r, st, components, first_scan, sos_at)
     quality = None if lossless else _quality(name, tables, warnings, components, precision)
     return JpegHeader(
         path=name,
@@ -427,6 +440,7 @@ def _finish(r: _Reader, st: ParseState, sos: bytes, sos_at: int) -> JpegHeader:
         jfif=st.jfif,
         adobe_transform=st.adobe_transform,
         app_segments=tuple(st.apps),
+        scans=st.scans,
         warnings=tuple(warnings),
     )
 
@@ -474,8 +488,8 @@ def _components(name: str, p: bytes, nf: int, color_space: str, lossless: bool) 
     return components
 
 
-def _check_first_scan(name: str, sos: bytes, sos_at: int, ids: list[int]) -> None:
-    """The first scan must fit its length and name frame components."""
+def _check_first_scan(name: str, sos: bytes, sos_at: int, ids: list[int], which: str = "first") -> None:
+    """The first (or a later, ``which``) scan must fit its length and name frame components."""
     ns = sos[0] if sos else 0
     if not 1 <= ns <= 4 or len(sos) != 4 + 2 * ns:
         raise _fail(
@@ -485,9 +499,106 @@ def _check_first_scan(name: str, sos: bytes, sos_at: int, ids: list[int]) -> Non
         if sos[1 + 2 * i] not in ids:
             raise _fail(
                 name,
-                f"the first scan (SOS at offset {sos_at}) names component id {sos[1 + 2 * i]}, "
+                f"the {which} scan (SOS at offset {sos_at}) names component id {sos[1 + 2 * i]}, "
                 "which is not in the frame",
             )
+
+
+def _follow_scans(
+    r: _Reader, st: ParseState, components: list[Component], first_scan: set[int], sos_at: int
+) -> dict[int, QuantTable]:
+    """The tables of a frame whose first scan does not code every component. libjpeg takes a component's
+    table when the component's first scan begins (``latch_quant_tables``), and a DQT between scans may
+    define or redefine it for a later component; so the scans are followed (their entropy-coded data skipped
+    by its markers) until every component has begun one. Returns table id -> the table its components
+    decode with (JsgsError when two components of one id latch different tables)."""
+    name, tables = r.name, st.tables
+    latched: dict[int, QuantTable] = {}  # component index -> its table
+
+    def latch(scan_ids: set[int], at: int) -> None:
+        for i, c in enumerate(components):
+            if c.id in scan_ids and i not in latched:
+                if c.table not in tables:
+                    raise _fail(
+                        name,
+                        f"component {c.name} uses quantization table {c.table}, which is not defined before "
+                        f"its first scan (SOS at offset {at})",
+                    )
+                latched[i] = tables[c.table]  # type: ignore[index]
+
+    latch(first_scan, sos_at)
+    ids = [c.id for c in components]
+    while len(latched) < len(components):
+        waiting = ", ".join(c.name for i, c in enumerate(components) if i not in latched)
+        code, at, n = _next_scan_segment(r, st, waiting)
+        if code == DQT:
+            _read_dqt(name, at, r.read(n), tables, st.warnings)
+        elif code == SOS:
+            payload = r.read(n)
+            st.scans += 1
+            _check_first_scan(name, payload, at, ids, "next")
+            latch({payload[1 + 2 * i] for i in range(payload[0])}, at)
+        else:
+            r.seek(r.pos + n)
+    by_id: dict[int, QuantTable] = {}
+    for i, c in enumerate(components):
+        first = by_id.setdefault(c.table, latched[i])  # type: ignore[arg-type]
+        if first is not latched[i] and not np.array_equal(first.values, latched[i].values):
+            raise _fail(
+                name,
+                f"quantization table {c.table} is redefined between the first scans of the components that "
+                "use it, which then decode with different tables (not supported)",
+            )
+    return {**tables, **by_id}
+
+
+def _next_scan_segment(r: _Reader, st: ParseState, waiting: str) -> tuple[int, int, int]:
+    """The next segment after a scan's entropy-coded data: (marker code, offset, payload size), the reader
+    after its length field. JsgsError at the end of the file or image, or at a marker that has no place
+    between scans."""
+    name = r.name
+    while True:
+        _skip_entropy_coded(r, waiting)
+        code, at = _next_marker(r, st.warnings)
+        if code in _STANDALONE:
+            continue
+        if code == EOI:
+            raise _fail(name, f"end of image (EOI) at offset {at} before any scan of component(s) {waiting}")
+        if code not in _BETWEEN_SCANS:
+            raise _fail(name, f"marker {_MARKER_NAMES[code]} at offset {at} between scans")
+        if r.pos + 2 > r.size:
+            raise _fail(name, f"truncated file: it ends inside the length field of the segment at {at}")
+        b = r.read(2)
+        length = (b[0] << 8) | b[1]
+        if length < 2:
+            raise _fail(
+                name,
+                f"the {_MARKER_NAMES[code]} segment at offset {at} has an invalid length {length} "
+                "(minimum 2)",
+            )
+        if r.pos + length - 2 > r.size:
+            raise _overrun_error(r, code, at, length)
+        return code, at, length - 2
+
+
+def _skip_entropy_coded(r: _Reader, waiting: str) -> None:
+    """Move ``r`` over entropy-coded data (bytes, stuffed FF 00, RSTn markers) to the FF of the next marker,
+    reading ``_SCAN_CHUNK`` bytes at a time (what is read past the marker stays pending)."""
+    while True:
+        if r.pos + 2 > r.size:
+            raise _fail(
+                r.name,
+                f"truncated file: it ends in a scan's coded data before any scan of component(s) {waiting}",
+            )
+        start = r.pos
+        chunk = r.read(min(_SCAN_CHUNK, r.size - start))
+        m = _MARKER_IN_DATA.search(chunk)
+        keep = m.start() if m is not None else (len(chunk) - 1 if chunk[-1] == 0xFF else len(chunk))
+        if keep < len(chunk):
+            r.pending = chunk[keep:] + r.pending
+            r.pos = start + keep
+        if m is not None:
+            return
 
 
 def _quality(

@@ -15,7 +15,7 @@ import jsonschema
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from jpeg_builders import exif_app1, insert_after_soi, own_cr_table
+from jpeg_builders import exif_app1, insert_after_soi, non_interleaved_jpeg, own_cr_table
 from PIL import ExifTags, Image, JpegImagePlugin
 
 from jsgs.base.errors import JsgsError
@@ -415,6 +415,82 @@ def test_rst_and_tem_markers_are_tolerated() -> None:
     s, _ = find(data, 0xDB, 1)
     h = parse_header(data[:s] + b"\xff\xd0\xff\x01" + data[s:], "rst.jpg")
     assert h.quality.quality == 55
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Components outside the first scan: tables latched at each component's own first scan
+
+def _scan_pattern() -> np.ndarray:
+    yy, xx = np.mgrid[0:16, 0:16]
+    planes = [(xx * 29 + yy * 47 + c * 83 + (xx * yy % 17) * 9) % 256 for c in range(3)]
+    return np.stack(planes, -1).astype(np.uint8)
+
+
+def _decode(data: bytes) -> np.ndarray:
+    with Image.open(io.BytesIO(data)) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def _sos_offsets(data: bytes) -> list[int]:
+    return [i for i in range(len(data) - 1) if data[i : i + 2] == b"\xff\xda"]  # FF is stuffed in coded data
+
+
+def test_tables_latched_at_each_components_first_scan() -> None:
+    """libjpeg takes a component's table when the component's first scan begins: a DQT between scans decides
+    the tables of the components not yet scanned. JO "exact" with the parser's tables reproduces libjpeg's
+    decode; Pillow's ``quantization`` (read before the first scan only) does not see such a table."""
+    import torch
+
+    from jsgs.jpeg.observe import jpeg_observe
+
+    data = non_interleaved_jpeg()
+    arr = torch.from_numpy(_scan_pattern()).permute(2, 0, 1)[None].float() / 255
+
+    def exact(h: JpegHeader) -> np.ndarray:
+        s = h.manifest_state()
+        luma, chroma = np.array(s["luma_table"]), np.array(s["chroma_table"])
+        out = jpeg_observe(arr, luma, chroma, s["sampling"], "exact")
+        return (out[0] * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+
+    h = parse_header(data, "n.jpg")
+    assert h.scans == 3 and (h.quality.quality, h.quality.exact) == (60, True)
+    assert np.array_equal(exact(h), _decode(data))
+    sos = _sos_offsets(data)
+    assert len(sos) == 3
+    other = ijg_tables(10)[1]
+    # the chroma table redefined before Cb's first scan: libjpeg decodes Cb and Cr with it
+    mod = data[: sos[1]] + dqt_segment((1, other, 8)) + data[sos[1] :]
+    h = parse_header(mod, "m.jpg")
+    np.testing.assert_array_equal(h.tables[1].values, other)
+    assert h.scans == 3 and not np.array_equal(_decode(mod), _decode(data))
+    # a decoy chroma table before the first scan, the file's own defined again before Cb's first scan: the
+    # decode is the file's, and so is JO's with the parser's tables (Pillow's ``quantization`` says the decoy)
+    s0, e0 = find(data, 0xDB, 1)
+    decoy = data[:s0] + dqt_segment((1, other, 8)) + data[e0 : sos[1]]
+    decoy += dqt_segment((1, ijg_tables(60)[1], 8)) + data[sos[1] :]
+    assert np.array_equal(_decode(decoy), _decode(data))
+    with Image.open(io.BytesIO(decoy)) as im:
+        assert np.array_equal(np.array(im.quantization[1]).reshape(8, 8), other)
+    h = parse_header(decoy, "decoy.jpg")
+    np.testing.assert_array_equal(h.tables[1].values, ijg_tables(60)[1])
+    assert np.array_equal(exact(h), _decode(decoy))
+    # the chroma table defined only between the scans
+    late = drop(data, 0xDB, 1)
+    at = _sos_offsets(late)[1]
+    late = late[:at] + dqt_segment((1, ijg_tables(60)[1], 8)) + late[at:]
+    h = parse_header(late, "late.jpg")
+    assert sorted(h.tables) == [0, 1] and h.quality.exact and np.array_equal(_decode(late), _decode(data))
+    # redefined between Cb's and Cr's first scans: two tables under one id, refused
+    split = data[: sos[2]] + dqt_segment((1, other, 8)) + data[sos[2] :]
+    with pytest.raises(JsgsError, match="^s.jpg: quantization table 1 is redefined between the first scans"):
+        parse_header(split, "s.jpg")
+    # a file that ends, or whose image ends, before Cb and Cr have a scan
+    with pytest.raises(JsgsError, match=r"^c.jpg: truncated file: it ends in a scan's coded data before any "
+                                        r"scan of component\(s\) Cb, Cr$"):
+        parse_header(data[: sos[0] + 20], "c.jpg")
+    with pytest.raises(JsgsError, match=r"^e.jpg: end of image \(EOI\) at offset \d+ before any scan of "
+                                        r"component\(s\) Cb, Cr$"):
+        parse_header(data[: sos[1]] + b"\xff\xd9", "e.jpg")
 
 
 # ---------------------------------------------------------------------------------------------------------
