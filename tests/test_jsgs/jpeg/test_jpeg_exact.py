@@ -160,6 +160,8 @@ def test_custom_and_16bit_tables_match_pillow() -> None:
         "all255": (np.full(64, 255), np.full(64, 255)),
         "random": (rng.integers(1, 256, 64), rng.integers(1, 256, 64)),
         "16bit": (rng.integers(1, 2000, 64), rng.integers(200, 8000, 64)),
+        # the largest step libjpeg-turbo's encoder represents (it keeps 8Q in 16 bits: 8192 wraps to 0)
+        "16bit_8191": (np.full(64, 8191), np.where(np.arange(64) % 2, 8191, 1)),
     }
     for name, (luma, chroma) in tables.items():
         for sampling in SUBSAMPLING:
