@@ -1,7 +1,8 @@
 """Hard JPEG inputs through dataset preparation: a 12-bit JPEG named as such in one line by every tool that
 reads it; a view whose Cr has a table of its own recorded in the manifest and refused by JSGS; views whose
 sizes are not multiples of 8 or 16 compressed, recorded in the manifest and reproduced bit for bit by the
-observation operator from the manifest's JPEG state and the view's lossless reference."""
+observation operator from the manifest's JPEG state and the view's lossless reference; EXIF orientations 2-8
+reported and ignored (the stored pixels everywhere); a file without its EOI named where it is decoded."""
 
 from __future__ import annotations
 
@@ -98,3 +99,61 @@ def test_cr_table_of_its_own_is_recorded_and_refused(compressed_scene: Path, tmp
     assert r.exit_code == 1 and "Traceback" not in r.output, r.output
     assert r.output.strip().count("\n") == 0
     assert "view 'view_001.jpg' quantizes Cr with a table of its own" in r.output, r.output
+
+
+def _with_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """``jpeg`` with an EXIF APP1 holding only ``Orientation`` inserted after SOI (pixels and the decoding
+    header unchanged)."""
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    payload = exif.tobytes()
+    assert payload.startswith(b"Exif\x00\x00")
+    return jpeg[:2] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload + jpeg[2:]
+
+
+def test_exif_orientations_2_to_8_keep_the_stored_pixels(compressed_scene: Path, tmp_path: Path) -> None:
+    """Every EXIF Orientation is reported (one warning line naming the photos) and ignored, as COLMAP does:
+    the manifest's camera size and JPEG state are the stored image's, and the image the trainer reads is the
+    stored pixels, not turned."""
+    scene = tmp_path / "s"
+    shutil.copytree(compressed_scene, scene)
+    names = [f"view_00{k - 1}.jpg" for k in range(2, 9)]  # view_001 .. view_007: orientations 2 .. 8
+    stored = {}
+    for k, name in zip(range(2, 9), names, strict=True):
+        p = scene / "images" / name
+        stored[name] = read_rgb8(p)
+        p.write_bytes(_with_orientation(p.read_bytes(), k))
+        with Image.open(p) as im:
+            assert im.getexif()[0x0112] == k
+    r = CliRunner().invoke(tools, ["manifest", str(scene), "--out", str(tmp_path / "m.json")])
+    assert r.exit_code == 0, r.output
+    warning = next(x for x in r.output.splitlines() if "EXIF Orientation" in x)
+    assert "7 photo(s) with an EXIF Orientation other than 1: view_001.jpg (2)" in warning, warning
+    assert "view_004.jpg (5), view_005.jpg (6) ...;" in warning
+    before = {v["name"]: v for v in json.loads((compressed_scene / "manifest.json").read_text())["views"]}
+    for v in json.loads((tmp_path / "m.json").read_text())["views"]:
+        if v["name"] in stored:
+            assert v["camera"]["width"] == 64 and v["camera"]["height"] == 48  # not swapped by 5..8
+            assert v["jpeg"] == before[v["name"]]["jpeg"]  # APP1 is not part of the decoding header
+            assert np.array_equal(read_rgb8(tmp_path / v["image"]), stored[v["name"]])
+
+
+def test_missing_eoi_is_one_line_where_pixels_are_decoded(compressed_scene: Path, tmp_path: Path) -> None:
+    """A JPEG whose last two bytes (EOI) are cut: the header parser and the manifest (header only) take it;
+    validate and the trainer, which decode it, name the file in one line (Pillow: truncated)."""
+    from jsgs.cli import main as jsgs_main
+
+    scene = tmp_path / "s"
+    shutil.copytree(compressed_scene, scene)
+    img = scene / "images" / "view_001.jpg"
+    img.write_bytes(img.read_bytes()[:-2])
+    assert parse_header(img.read_bytes(), str(img)).quality is not None
+    r = CliRunner().invoke(tools, ["validate", str(scene)])
+    assert r.exit_code == 1 and f"{img}: cannot decode image (image file is truncated" in r.output, r.output
+    r = CliRunner().invoke(tools, ["manifest", str(scene), "--out", str(tmp_path / "m.json")])
+    assert r.exit_code == 0, r.output
+    args = ["train", str(tmp_path / "m.json"), "--out", str(tmp_path / "run"), "--iterations", "1",
+            "--device", "cpu", "--quiet"]
+    r = CliRunner().invoke(jsgs_main, args)
+    assert r.exit_code == 1 and "Traceback" not in r.output and r.output.strip().count("\n") == 0, r.output
+    assert f"{img}: cannot decode training image of view 'view_001.jpg' (image file is truncated" in r.output
