@@ -6,6 +6,7 @@ reported and ignored (the stored pixels everywhere); a file without its EOI name
 
 from __future__ import annotations
 
+import io
 import json
 import shutil
 from pathlib import Path
@@ -157,3 +158,33 @@ def test_missing_eoi_is_one_line_where_pixels_are_decoded(compressed_scene: Path
     r = CliRunner().invoke(jsgs_main, args)
     assert r.exit_code == 1 and "Traceback" not in r.output and r.output.strip().count("\n") == 0, r.output
     assert f"{img}: cannot decode training image of view 'view_001.jpg' (image file is truncated" in r.output
+
+
+def _two_components(jpeg: bytes) -> bytes:
+    """A 4:4:4 Pillow JPEG's header with its third component dropped from the frame and the scan (a
+    two-component file: the header parser reads it, Pillow does not)."""
+    d = bytearray(jpeg)
+    sof = d.find(b"\xff\xc0")
+    d[sof + 3], d[sof + 9] = 14, 2
+    del d[sof + 16 : sof + 19]
+    sos = d.find(b"\xff\xda")
+    d[sos + 3], d[sos + 4] = 10, 2
+    del d[sos + 9 : sos + 11]
+    return bytes(d)
+
+
+def test_a_two_component_jpeg_is_named_in_one_line(tmp_path: Path) -> None:
+    from jsgstools.scene import _probe_image
+
+    img = tmp_path / "two.jpg"
+    buf = io.BytesIO()
+    Image.fromarray(np.full((16, 16, 3), 90, np.uint8)).save(buf, "JPEG", quality=70, subsampling=0)
+    img.write_bytes(_two_components(buf.getvalue()))
+    assert [c.name for c in parse_header(img.read_bytes(), str(img)).components] == ["C1", "C2"]
+    assert _probe_image(img)[2] == "cannot read image: a JPEG with 2 components: Pillow decodes 1, 3 or 4"
+    data = bytearray(img.read_bytes())
+    data[data.find(b"\xff\xda") + 5] = 9  # the scan names a component the frame lacks: the parser's message
+    img.write_bytes(bytes(data))
+    why = _probe_image(img)[2]
+    assert why is not None and why.startswith("cannot read image: a damaged JPEG: the first scan (SOS at")
+    assert why.endswith("names component id 9, which is not in the frame")

@@ -480,6 +480,10 @@ def test_tables_latched_at_each_components_first_scan() -> None:
     late = late[:at] + dqt_segment((1, ijg_tables(60)[1], 8)) + late[at:]
     h = parse_header(late, "late.jpg")
     assert sorted(h.tables) == [0, 1] and h.quality.exact and np.array_equal(_decode(late), _decode(data))
+    # never defined for the components outside the first scan
+    with pytest.raises(JsgsError, match=r"^u.jpg: component Cb uses quantization table 1, which is not "
+                                        r"defined before its first scan \(SOS at offset \d+\)$"):
+        parse_header(drop(data, 0xDB, 1), "u.jpg")
     # redefined between Cb's and Cr's first scans: two tables under one id, refused
     split = data[: sos[2]] + dqt_segment((1, other, 8)) + data[sos[2] :]
     with pytest.raises(JsgsError, match="^s.jpg: quantization table 1 is redefined between the first scans"):
