@@ -254,6 +254,10 @@ def analyze_planes(
     double = evidence > THRESHOLD
     p_double = 1.0 / (1.0 + np.exp(-(evidence - THRESHOLD) / SOFTNESS))
     confidence = float(p_double if double else 1.0 - p_double)
+    if count.max() == 0 and (_IJG_LUMA[:, 1:] > header[None, 1:]).any():
+        # an earlier, coarser IJG quantization was possible, but no coefficient held enough values to test
+        # one (no full 8x8 block, or flat ones): no evidence either way, undecided
+        confidence = 0.5
     eff_luma = header.reshape(8, 8)
     primary_luma = None
     primary_q = None

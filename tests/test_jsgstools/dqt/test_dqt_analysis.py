@@ -209,3 +209,20 @@ def test_cli_non_jpeg_is_one_line(tmp_path: Path, files: tuple[Path, Path]) -> N
     expected = f"error: {bad}: not a JPEG file: starts with 6E 6F 74 20, a JPEG starts with FF D8 (SOI)"
     assert err.strip().splitlines() == [expected]
     assert "single.jpg" in out
+
+
+@pytest.mark.parametrize("size", [(1, 1), (9, 7), (1000, 1), (1, 1000)])
+def test_no_full_block_is_undecided(size: tuple[int, int]) -> None:
+    """Images with no full 8x8 block (and a flat one) give the test nothing to count: "no" at confidence 0.5
+    (undecided), not the confidence of a photo with no trace; the noise estimate falls back on the tables'
+    uniform bound, finite."""
+    rng = np.random.default_rng(0)
+    tiny = Image.fromarray(rng.integers(0, 256, (size[1], size[0], 3), dtype=np.uint8))
+    flat = Image.fromarray(np.full((32, 32, 3), 128, np.uint8))
+    for im in (tiny, flat):
+        for data in (jpeg(im, 50), twice(im, 30, 90)):
+            a = analyse(data)
+            assert not a.double_compressed and a.confidence == 0.5, (im.size, a)
+            assert a.noise_variance is not None and np.isfinite(a.noise_variance)
+    a = analyse(jpeg(photo(), 50))  # a photo without a trace stays a confident "no"
+    assert not a.double_compressed and a.confidence > 0.9
