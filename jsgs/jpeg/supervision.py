@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from .dct import block_dct, blockify
+from .observe import _checked_host_table
 
 EPS_SM = 1e-3
 EPS_LOSS = 1e-6
@@ -145,7 +146,11 @@ def table_weights(
     device: torch.device | str | None = None,
 ) -> TableWeights:  # fmt: skip
     """:class:`TableWeights` of ``luma_table`` ``(8, 8)`` or ``(batch, 8, 8)``, in ``dtype`` on ``device``:
-    the operations :func:`dct_supervision` runs on them without it, so the values are bit for bit its own."""
+    the operations :func:`dct_supervision` runs on them without it, so the values are bit for bit its own.
+    A table given as an array or a list must hold quantization steps, integers 1..65535 (ValueError, as
+    :func:`jsgs.jpeg.observe.as_tables`); a tensor is taken as given."""
+    if not isinstance(luma_table, Tensor):
+        luma_table = _checked_host_table(luma_table, "luma_table")
     table = torch.as_tensor(luma_table, device=_dev(device)).to(dtype)
     table = table.expand(batch, 8, 8)
     w = omega(table)

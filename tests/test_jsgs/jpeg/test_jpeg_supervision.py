@@ -184,3 +184,14 @@ def test_gradcheck() -> None:
 
     assert torch.autograd.gradcheck(f, (obs,))
     assert torch.autograd.gradcheck(S.psi, (torch.randn(20, dtype=torch.float64, requires_grad=True) * 1e-3,))
+
+
+def test_host_tables_must_hold_quantization_steps() -> None:
+    """DS's weights from a table given as an array: integers 1..65535, else a ValueError naming it (a 0 or a
+    negative step gave weights above 1, NaN a NaN loss)."""
+    obs, target = torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16)
+    for bad in (np.zeros((8, 8)), -np.ones((8, 8)), np.full((8, 8), np.nan), np.full((8, 8), 0.5)):
+        with pytest.raises(ValueError, match=r"^luma_table: entry .* is not a quantization step"):
+            S.dct_supervision(obs, target, bad)
+    ok = S.dct_supervision(obs, target, np.full((8, 8), 65535))
+    assert torch.isfinite(ok.loss_low).all() and torch.isfinite(ok.loss_mid).all()
