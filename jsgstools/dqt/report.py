@@ -186,7 +186,7 @@ def format_table(ins: Inspection, show_tables: bool = False, analyze: bool = Fal
         (
             h.path,
             f"{h.width}x{h.height}",
-            h.frame_name,
+            h.frame_name if h.sample_precision == 8 else f"{h.frame_name} {h.sample_precision}-bit",
             h.color_space,
             h.sampling,
             _quality_text(h),

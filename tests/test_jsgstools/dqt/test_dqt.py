@@ -617,6 +617,17 @@ def test_cli_table(good_files: tuple[Path, Path]) -> None:
     assert [int(x) for x in first_row] == ijg_tables(75)[0][0].tolist()
 
 
+def test_cli_table_names_12_bit_frames(tmp_path: Path) -> None:
+    """The FRAME column says the sample precision when it is not 8 (such files have no manifest state)."""
+    data = bytearray(encode(image(), quality=75))
+    s, _ = find(bytes(data), 0xC0)
+    data[s + 1], data[s + 4] = 0xC1, 12
+    path = tmp_path / "twelve.jpg"
+    path.write_bytes(bytes(data))
+    code, out, _ = run([str(path)])
+    assert code == 0 and "  extended 12-bit  " in out.splitlines()[1], out
+
+
 def test_cli_json_validates_against_schema(good_files: tuple[Path, Path], tmp_path: Path) -> None:
     a, b = good_files
     bad = tmp_path / "bad.jpg"
