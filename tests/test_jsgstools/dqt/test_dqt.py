@@ -881,3 +881,21 @@ def test_real_photos(options: dict[str, object], tmp_path: Path) -> None:
         pillow_agrees(data, h)
         assert h.quality.quality == options["quality"] and h.quality.exact
         assert (h.width, h.height) == Image.open(png).size
+
+
+def test_camera_originals() -> None:
+    """The four unchanged camera JPEGs of ../shared/jpeg_samples (4032x3024, the camera's own tables, DRI 252,
+    EXIF with a thumbnail, XMP, IPTC, ICC): Pillow's tables, size and components; a header of under 1 KiB read
+    of a ~6 KB one, one scan; the closest IJG quality 92, not exact; a valid manifest state."""
+    originals = SHARED_SCENES.parent / "jpeg_samples" / "camera_originals"
+    files = sorted(originals.glob("*.JPG")) if originals.is_dir() else []
+    if not files:
+        pytest.skip(f"no camera JPEGs: {originals} is absent (../shared not beside the checkout)")
+    for path in files:
+        h = read_header(path)
+        pillow_agrees(path.read_bytes(), h)
+        assert (h.width, h.height, h.sampling, h.restart_interval, h.scans) == (4032, 3024, "4:2:0", 252, 1)
+        assert h.bytes_read < 1024 < h.header_size and h.frame_name == "baseline"
+        assert (h.quality.quality, h.quality.exact) == (92, False)
+        assert {"Exif", "ICC_PROFILE"} <= {a.identifier for a in h.app_segments}
+        validate_manifest_jpeg(h.manifest_state())
