@@ -129,7 +129,7 @@ def jpeg_noise_variance(ycbcr: np.ndarray, luma: np.ndarray, chroma: np.ndarray,
     """Estimated per-pixel quantisation-noise variance (8-bit units², mean over Y, Cb, Cr) of a decoded
     JPEG: ``ycbcr`` ``(H, W, 3)`` as the decoder gives it without colour conversion (chroma upsampled to full
     size), the file's tables (or the effective ones of a file saved twice) and its chroma sampling
-    (``4:4:4``, ``4:2:2``, ``4:2:0``; chroma is averaged back to its own grid first)."""
+    (``jsgs.jpeg.tables.SAMPLING_FACTORS``; chroma is averaged back to its own grid first)."""
     fx, fy = SAMPLING_FACTORS[sampling]
     total = plane_noise_variance(ycbcr[..., 0], luma)
     for ch in (1, 2):

@@ -63,7 +63,7 @@ from .sampling import downsample, downsample_libjpeg, pad_replicate, upsample, u
 from .tables import SAMPLING_FACTORS
 
 Mode = Literal["paper", "float", "exact"]
-Sampling = Literal["4:4:4", "4:2:2", "4:2:0"]
+Sampling = Literal["4:4:4", "4:2:2", "4:2:0", "4:4:0", "4:1:1"]
 
 MODES: tuple[str, ...] = ("paper", "float", "exact")
 #: how the coding pass runs: "torch" (the code below) or "triton" (modes "paper" and "float": the fused
@@ -253,7 +253,7 @@ def jpeg_observe(
             Pillow's ``Image.quantization[0]`` reshaped to 8x8, or the manifest's ``luma_table``). Integers
             1..65535, checked when given as an array or a list (:func:`as_tables`).
         chroma_table: the same for Cb and Cr.
-        sampling: ``"4:4:4"``, ``"4:2:2"`` (h2v1) or ``"4:2:0"`` (h2v2), as read from the file; one per call.
+        sampling: the file's, ``"4:4:4"``, ``"4:2:2"``, ``"4:2:0"``, ``"4:4:0"`` or ``"4:1:1"``; one per call.
         mode: ``"exact"``, ``"float"`` or ``"paper"`` (module docstring).
         kernel: ``"torch"`` or ``"triton"``: in modes "paper" and "float" the coding pass as two fused
             Triton kernels (forward, backward; :func:`jsgs.kernels._triton_jo.paper_code`,

@@ -2,7 +2,8 @@
 ``jdmainct.c``), in integer and float form.
 
 Planes are ``(B, C, H, W)`` tensors in 8-bit sample units. ``h`` and ``v`` are the horizontal and vertical
-sampling ratios between luma and chroma (2, 2 for 4:2:0; 2, 1 for 4:2:2; 1, 1 for 4:4:4). The integer
+sampling ratios between luma and chroma (2, 2 for 4:2:0; 2, 1 for 4:2:2; 1, 1 for 4:4:4; 1, 2 for 4:4:0;
+4, 1 for 4:1:1). The integer
 functions take float tensors holding integers, return the same and carry no gradient; the float ones are their
 smooth relaxations (box-filter down-sampling, triangular up-sampling without rounding).
 """
@@ -74,11 +75,15 @@ def downsample_libjpeg(x: Tensor, h: int, v: int) -> Tensor:
     """``h2v1_downsample`` / ``h2v2_downsample``, bit-exact: ``(sum + bias) >> log2(h v)``.
 
     The bias alternates along each output row, restarting on every row: 0, 1, 0, 1 ... for h2v1 and
-    1, 2, 1, 2 ... for h2v2 (so that the rounding is unbiased on average). Input ``(B, C, H, W)`` integers,
-    H and W multiples of v and h (pad with :func:`pad_replicate` first, as libjpeg does).
+    1, 2, 1, 2 ... for h2v2 (so that the rounding is unbiased on average). h1v2 (4:4:0) and h4v1 (4:1:1) go
+    through libjpeg's generic ``int_downsample``: ``(sum + h v / 2) / (h v)``. Input ``(B, C, H, W)``
+    integers, H and W multiples of v and h (pad with :func:`pad_replicate` first, as libjpeg does).
     """
     if h == 1 and v == 1:
         return x.detach()
+    if (h, v) in ((1, 2), (4, 1)):  # int_downsample: (sum + n / 2) / n, no alternating bias
+        n = h * v
+        return torch.floor((_pairs(x.detach(), h, v).sum(dim=(3, 5)) + n // 2) / n)
     if (h, v) not in ((2, 1), (2, 2)):
         raise ValueError(f"unsupported sampling h={h}, v={v}")
     s = _pairs(x.detach(), h, v).sum(dim=(3, 5))
@@ -137,6 +142,10 @@ def upsample(x: Tensor, h: int, v: int) -> Tensor:
     """
     if h == 1 and v == 1:
         return x
+    if (h, v) == (1, 2):  # h1v2: triangular in the vertical alone, whatever the width
+        return _triangle(x, -2)
+    if (h, v) == (4, 1):  # libjpeg replicates (int_upsample)
+        return _replicate_up(x, h, v)
     if not uses_fancy_upsampling(x.shape[-1]):
         return _replicate_up(x, h, v)
     if v == 2:
@@ -156,6 +165,11 @@ def upsample_libjpeg(x: Tensor, h: int, v: int) -> Tensor:
     x = x.detach()
     if h == 1 and v == 1:
         return x
+    if (h, v) == (1, 2):  # h1v2_fancy_upsample: rows (3 x + above + 1) >> 2 and (3 x + below + 2) >> 2
+        up, down = _neighbours(x, -2)
+        return _interleave(torch.floor((3 * x + up + 1) / 4), torch.floor((3 * x + down + 2) / 4), -2)
+    if (h, v) == (4, 1):  # int_upsample: replication
+        return _replicate_up(x, h, v)
     if not uses_fancy_upsampling(x.shape[-1]):
         return _replicate_up(x, h, v)
     if v == 2:

@@ -32,8 +32,8 @@ CHROMA_SAMPLINGS: dict[str, ChromaSampling] = {
     "4:4:4": ChromaSampling(1, 1, pillow=0, observable=True),
     "4:2:2": ChromaSampling(2, 1, pillow=1, observable=True),
     "4:2:0": ChromaSampling(2, 2, pillow=2, observable=True),
-    "4:4:0": ChromaSampling(1, 2),
-    "4:1:1": ChromaSampling(4, 1),
+    "4:4:0": ChromaSampling(1, 2, observable=True),
+    "4:1:1": ChromaSampling(4, 1, observable=True),
 }
 #: chroma sampling name -> (h, v), for the samplings the observation operator and the noise estimate handle.
 SAMPLING_FACTORS: dict[str, tuple[int, int]] = {

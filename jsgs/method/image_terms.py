@@ -266,7 +266,8 @@ def view_tables(
     blocks: bool = False,
 ) -> dict[int, ViewJpeg]:
     """view index -> its tables and sampling for every JPEG training view. JsgsError naming the view when
-    JO cannot represent its JPEG state (greyscale, or a chroma sampling other than 4:4:4 / 4:2:2 / 4:2:0).
+    JO cannot represent its JPEG state (greyscale, a Cr table of its own, or a chroma sampling JO does not
+    model: ``jsgs.jpeg.tables.SAMPLING_FACTORS``).
     ``tables`` effective: views the manifest's analysis finds compressed twice also get ``first`` (their
     effective tables); a JPEG view without an analysis is a JsgsError. ``noise``: how ``noise_variance`` is
     found, ``tables`` (the bound) or ``pixels`` (the estimate ``manifest --analyze`` recorded, made with the

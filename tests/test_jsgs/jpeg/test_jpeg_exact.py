@@ -232,9 +232,10 @@ ARITHMETIC = {
 }
 
 
-def _pattern() -> np.ndarray:
-    """17x33 RGB texture from integer arithmetic alone (the source of ``ARITHMETIC``'s files)."""
-    yy, xx = np.mgrid[0:17, 0:33]
+def _pattern(h: int = 17, w: int = 33) -> np.ndarray:
+    """h x w RGB texture from integer arithmetic alone (the source of ``ARITHMETIC``'s and
+    ``CJPEG_SAMPLINGS``' files)."""
+    yy, xx = np.mgrid[0:h, 0:w]
     planes = [(xx * 29 + yy * 47 + c * 83 + (xx * yy % 17) * 9) % 256 for c in range(3)]
     return np.stack(planes, -1).astype(np.uint8)
 
@@ -279,3 +280,67 @@ def test_arithmetic_coded_files_are_bit_exact() -> None:
         got, decoded = _exact_from_header(arr, data, "a.jpg")
         assert np.array_equal(decoded, huffman), frame  # the same coefficients as Pillow's Huffman file
         assert np.array_equal(got, decoded), frame
+
+
+#: ``_pattern(h, w)`` encoded by libjpeg-turbo 2.1's ``cjpeg -quality q -sample 1x2`` (4:4:0) or ``4x1``
+#: (4:1:1) ``-optimize``, which Pillow cannot write (it reads them): (sampling, h, w, q) -> the file, base64.
+CJPEG_SAMPLINGS = {
+    ('4:4:0', 17, 33, 50): (
+        "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDABALDA4MChAODQ4SERATGCgaGBYWGDEjJR0oOjM9PDkzODdASFxOQERXRTc4UG1R"
+        "V19iZ2hnPk1xeXBkeFxlZ2P/2wBDARESEhgVGC8aGi9jQjhCY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2Nj"
+        "Y2NjY2NjY2NjY2NjY2P/wAARCAARACEDARIAAhEBAxEB/8QAGgAAAgIDAAAAAAAAAAAAAAAAAAIDBAEFBv/EADUQAAIBAgIE"
+        "CQ0BAAAAAAAAAAECEQADEiExQVGBBAUTNFJxobHRFBUiMjM1YXJ0g5GSpLL/xAAaAQACAwEBAAAAAAAAAAAAAAAAAgMEBgUB"
+        "/8QALxEAAQICBwUIAwAAAAAAAAAAAQACESEDBDFBUXGBMzRhobEFEhNSkaLB0YKy4f/aAAwDAQACEQMRAD8AA6CLT2mYQIso"
+        "IzyInROgfnLYGUX2B5NYZicdxFLEg6xG/LtzpXEWk8/mZPLSKBAQEhl9CfqY5LNsAWgzm3IWGRMgw9KZ35HTqpLNs3MItKWG"
+        "AguwzOUAidmW4RSuewSdLlhEziRyM4XAoeC0FzhfG4GMrhPGMwPRRm6LTW1cNbkySgwsTEHRpAM6Iy3VIQyPA5R70w7AEgEA"
+        "iQc5O7SNudO6BtnrLhPDLWyfkWm2ZOkY8/jCSGt4HWYtKPUCyCwkTqGWzfTISvCUHIM2GZxKVABGqeufj20B5azvHhhO284c"
+        "cEPBLCXYZZWzjHC7NL55udD+keFL5Fe6Kfq3jTeHVvP7v6jv1byj3far8O5xf+W1/laKlqdup6ldGt7m/M/stja938I+nbuN"
+        "FU+0d8Zp1K4tT2rcwql3m3F33O8UU1FtqTTotHQ7xS/j0UnE/s06xRVjtjYDP4KydHaukorMqZf/2Q=="
+    ),
+    ('4:4:0', 2, 40, 75): (
+        "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDAAgGBgcGBQgHBwcJCQgKDBQNDAsLDBkSEw8UHRofHh0aHBwgJC4nICIsIxwcKDcp"
+        "LDAxNDQ0Hyc5PTgyPC4zNDL/2wBDAQkJCQwLDBgNDRgyIRwhMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIy"
+        "MjIyMjIyMjIyMjIyMjL/wAARCAACACgDARIAAhEBAxEB/8QAFwABAQEBAAAAAAAAAAAAAAAAAAQBAv/EACMQAAICAgEDBQEA"
+        "AAAAAAAAAAECAxEABAUSIUETIlFxkTH/xAAYAQEBAAMAAAAAAAAAAAAAAAADBAECBf/EACoRAAADBAcJAAAAAAAAAAAAAAAB"
+        "AgMEMoEFNXKCscHCMTM0QUJxg7Lw/9oADAMBAAIRAxEAPwDrkUSLieNijVUjkvrRRQamiqx5xljzWhfdImoWBcsxRuxxw7Gl"
+        "HEiok2uvqKooP1GS7Hm6F/WM5Ktwm9gkb8/KIOWY6ejsS6pMEg3HUPF7SAFloWPHYfgxjvkDCynMYVxTxZPAhm8BraPGPAPS"
+        "dgQWj9pIBir+fZ/TjLGu1vdwIK/QL7J9jF8aKdnm3KjrSJ3Vq7qxhskfBJ7384wmlXTPUBaxu0tI/9k="
+    ),
+    ('4:1:1', 17, 33, 50): (
+        "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDABALDA4MChAODQ4SERATGCgaGBYWGDEjJR0oOjM9PDkzODdASFxOQERXRTc4UG1R"
+        "V19iZ2hnPk1xeXBkeFxlZ2P/2wBDARESEhgVGC8aGi9jQjhCY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2NjY2Nj"
+        "Y2NjY2NjY2NjY2NjY2P/wAARCAARACEDAUEAAhEBAxEB/8QAGQABAAMBAQAAAAAAAAAAAAAAAAIDBAUG/8QANRAAAgECAgQJ"
+        "DQEAAAAAAAAAAQIRAAMSITFBUYEEBRM0UnGhsdEUFSIyMzVhcnSDkZKksv/EABkBAQACAwAAAAAAAAAAAAAAAAMABAEFBv/E"
+        "ACsRAAEBBQUHBQAAAAAAAAAAAAEAAxEUIfACMTJTgQQSYZGhwdFBcpKx4f/aAAwDAQACEQMRAD8AB0EWntMwgRZQRnkROidA"
+        "/OWwTtgC0Gc25CwyJkGHpTO/I6dVUG6LTW1cNbkySgwsTEHRpAM6Iy3VY1vA6zFpR6gWQWEidQy2b6geC8zquZUIHpVXaFPP"
+        "Nzof0jwpSlHBteHwHhJBMM4VqpKL7A8msMxOO4iliQdYjfl251GzbNzCLSlhgILsMzlAInZluEUIZHgco96YdgCQCARIOcnd"
+        "pG3OpISvCUHIM2GZxKVABGqeufj21nfsGT3OnXXjdochJ4rveXFV+RXuin6t40pSrMbsuYevhFF2sqxy/Vn4dzi/8tr/ACtd"
+        "G17v4R9O3cayXebcXfc7xVnE/s06xQnGfZ2KsNcLbT7C9JSlK51a9f/Z"
+    ),
+    ('4:1:1', 40, 2, 75): (
+        "/9j/4AAQSkZJRgABAQAAAQABAAD/2wBDAAgGBgcGBQgHBwcJCQgKDBQNDAsLDBkSEw8UHRofHh0aHBwgJC4nICIsIxwcKDcp"
+        "LDAxNDQ0Hyc5PTgyPC4zNDL/2wBDAQkJCQwLDBgNDRgyIRwhMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIyMjIy"
+        "MjIyMjIyMjIyMjIyMjL/wAARCAAoAAIDAUEAAhEBAxEB/8QAFwABAQEBAAAAAAAAAAAAAAAAAAQFA//EACIQAAICAQQCAwEA"
+        "AAAAAAAAAAECAAMRBAUSIRNBImFxFP/EABcBAQEBAQAAAAAAAAAAAAAAAAUEAgP/xAAtEQABAgMEBwkAAAAAAAAAAAABAAMC"
+        "BBEFEiHRExRBYXFy0xVCUpKToaKj4v/aAAwDAQACEQMRAD8Aqp27VtTW1Wz0eMqCudKzHGOu+Qz+4H4IiJk2xAMDOGvKOmuG"
+        "jsXwu/HNQMiWOz26MXWMctYmpdVc+yAFIAP11ERKBPECgcZ9uoq7zW2fjG67HmtyrV3ClPBt+5tTxHBv7OOV9HGDjr1ERDjJ"
+        "Q1xmma8jeSIpJ7Y4/L+1k8dsf5216qyxu2evRIysfZBGMj7iIiIlrW7rbdOMWaY7YmRhrcI3XTh9a5+S1fjVoN1asdIw3DiC"
+        "PRx3j8yYiISbMbJqZpoHhApdfZGBJ9FvNf/Z"
+    ),
+}
+
+
+@pytest.mark.parametrize("key", sorted(CJPEG_SAMPLINGS), ids=lambda k: f"{k[0]}-{k[1]}x{k[2]}-q{k[3]}")
+def test_440_and_411_files_are_bit_exact(key: tuple[str, int, int, int]) -> None:
+    """4:4:0 (h1v2: libjpeg's int_downsample, then h1v2 fancy up-sampling at any width) and 4:1:1 (h4v1:
+    int_downsample, replication): "exact" equals Pillow's decode of the cjpeg-made file, "float" >= 49 dB."""
+    sampling, h, w, q = key
+    data = base64.b64decode(CJPEG_SAMPLINGS[key])
+    arr = _pattern(h, w)
+    assert parse_header(data, "s.jpg").sampling == sampling
+    got, decoded = _exact_from_header(arr, data, "s.jpg")
+    assert np.array_equal(got, decoded), np.abs(got.astype(int) - decoded).max()
+    state = parse_header(data, "s.jpg").manifest_state()
+    out = jpeg_observe(to_tensor(arr, 1), np.array(state["luma_table"]), np.array(state["chroma_table"]),
+                       sampling, "float")
+    assert psnr((out[0] * 255).round().permute(1, 2, 0).numpy(), decoded) >= 49.0

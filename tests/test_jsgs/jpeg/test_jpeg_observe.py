@@ -12,9 +12,9 @@ from PIL import Image
 
 from jsgs.jpeg.losses import obs_loss, photometric_loss
 from jsgs.jpeg.observe import MODES, jpeg_observe
-from jsgs.jpeg.tables import ijg_tables
+from jsgs.jpeg.tables import SAMPLING_FACTORS, ijg_tables
 
-SAMPLINGS = ("4:4:4", "4:2:2", "4:2:0")
+SAMPLINGS = ("4:4:4", "4:2:2", "4:2:0", "4:4:0", "4:1:1")
 SIZES = ((1, 1), (7, 9), (17, 33), (1, 1000))
 
 
@@ -153,7 +153,7 @@ def test_rejects_bad_arguments() -> None:
     x = torch.rand(1, 3, 8, 8)
     t = np.ones((8, 8))
     with pytest.raises(ValueError):
-        jpeg_observe(x, t, t, "4:1:1")
+        jpeg_observe(x, t, t, "4:2:1")
     with pytest.raises(ValueError):
         jpeg_observe(x, t, t, mode="fast")
     with pytest.raises(ValueError):
@@ -190,7 +190,7 @@ def test_non_finite_inputs(mode: str, sampling: str) -> None:
     NaN is never hidden: it makes the output NaN over its MCU (8h x 8v pixels, all three channels) and at most
     one pixel of chroma up-sampling context beyond, in its own view only, and the same view's gradient."""
     luma, chroma = ijg_tables(75)
-    h, v = {"4:4:4": (1, 1), "4:2:2": (2, 1), "4:2:0": (2, 2)}[sampling]
+    h, v = SAMPLING_FACTORS[sampling]
     base = torch.rand(2, 3, 32, 48, generator=torch.Generator().manual_seed(1))
     for value, clamped in ((float("inf"), 1.0), (float("-inf"), 0.0)):
         x = base.clone()

@@ -205,8 +205,15 @@ def test_float_colour_is_the_unrounded_integer_one() -> None:
 
 
 def c_downsample(plane: np.ndarray, h: int, v: int) -> np.ndarray:
+    """h2v1 / h2v2_downsample, and int_downsample (jcsample.c) for the other factors."""
     rows, cols = plane.shape[0] // v, plane.shape[1] // h
     out = np.zeros((rows, cols), np.int64)
+    if (h, v) not in ((2, 1), (2, 2)):
+        numpix = h * v
+        for r in range(rows):
+            for c in range(cols):
+                out[r, c] = (int(plane[v * r : v * r + v, h * c : h * c + h].sum()) + numpix // 2) // numpix
+        return out
     for r in range(rows):
         bias = 1 if v == 2 else 0
         for c in range(cols):
@@ -217,9 +224,18 @@ def c_downsample(plane: np.ndarray, h: int, v: int) -> np.ndarray:
 
 
 def c_upsample(plane: np.ndarray, h: int, v: int) -> np.ndarray:
-    """h2v1 / h2v2 fancy up-sampling (jdsample.c) with libjpeg's edge context; replication if width <= 2."""
+    """h2v1 / h2v2 fancy up-sampling (jdsample.c) with libjpeg's edge context, replication if width <= 2;
+    h1v2_fancy_upsample (any width); int_upsample (replication) for h4v1."""
     rows, w = plane.shape
     p = plane.astype(np.int64)
+    if (h, v) == (4, 1):
+        return np.repeat(p, 4, 1)
+    if (h, v) == (1, 2):
+        out = np.zeros((2 * rows, w), np.int64)
+        for r in range(rows):
+            for k, (other, bias) in enumerate(((max(r - 1, 0), 1), (min(r + 1, rows - 1), 2))):
+                out[2 * r + k] = (3 * p[r] + p[other] + bias) >> 2
+        return out
     if w <= 2:
         return np.repeat(np.repeat(p, v, 0), h, 1)
     if v == 1:
@@ -249,7 +265,7 @@ def c_upsample(plane: np.ndarray, h: int, v: int) -> np.ndarray:
     return out
 
 
-@pytest.mark.parametrize("h,v", [(2, 1), (2, 2)])
+@pytest.mark.parametrize("h,v", [(2, 1), (2, 2), (1, 2), (4, 1)])
 @pytest.mark.parametrize("shape", [(2, 2), (4, 6), (6, 10), (1, 2), (2, 4)])
 def test_resampling_matches_c(h: int, v: int, shape: tuple[int, int]) -> None:
     rng = np.random.default_rng(shape[0] * 31 + shape[1])
