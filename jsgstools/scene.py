@@ -289,14 +289,16 @@ def _probe_image(path: Path) -> tuple[tuple[int, int] | None, str | None, str | 
     except JsgsError as e:  # not a regular file
         return None, None, str(e).removeprefix(f"{path}: "), 1
     except UnidentifiedImageError:
-        return None, None, f"cannot read image: {_unidentified(path)}", 1
+        why = _jpeg_reason(path) or "Pillow cannot identify its format"
+        return None, None, f"cannot read image: {why}", 1
     except (OSError, ValueError) as e:
-        return None, None, f"cannot read image: {e}", 1
+        return None, None, f"cannot read image: {_jpeg_reason(path) or e}", 1
 
 
-def _unidentified(path: Path) -> str:
-    """Why Pillow cannot identify ``path``: for a file that starts as a JPEG, what its header says that
-    Pillow's decoder does not take (12-bit samples, two components) or the header's own defect."""
+def _jpeg_reason(path: Path) -> str | None:
+    """Why Pillow cannot open ``path``, when it starts as a JPEG: what its header says that Pillow's decoder
+    does not take (12-bit samples, two components), or the header's own defect in the header parser's words
+    (a truncated header: Pillow says "Truncated File Read"). None otherwise."""
     from jsgstools.dqt import read_header
 
     try:
@@ -315,7 +317,7 @@ def _unidentified(path: Path) -> str:
         return f"a damaged JPEG: {str(e).removeprefix(f'{path}: ')}"
     except OSError:
         pass
-    return "Pillow cannot identify its format"
+    return None
 
 
 def load_colmap_scene(root: str | Path, images: str = "images") -> ColmapScene:

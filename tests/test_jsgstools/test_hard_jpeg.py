@@ -173,7 +173,13 @@ def _two_components(jpeg: bytes) -> bytes:
     return bytes(d)
 
 
-def test_a_two_component_jpeg_is_named_in_one_line(tmp_path: Path) -> None:
+def _segment(data: bytes, code: int) -> tuple[int, int]:
+    """(offset, length field) of the first segment with marker ``code``."""
+    at = data.find(bytes([0xFF, code]))
+    return at, int.from_bytes(data[at + 2 : at + 4], "big")
+
+
+def test_jpegs_pillow_cannot_open_are_explained(tmp_path: Path) -> None:
     from jsgstools.scene import _probe_image
 
     img = tmp_path / "two.jpg"
@@ -188,6 +194,17 @@ def test_a_two_component_jpeg_is_named_in_one_line(tmp_path: Path) -> None:
     why = _probe_image(img)[2]
     assert why is not None and why.startswith("cannot read image: a damaged JPEG: the first scan (SOS at")
     assert why.endswith("names component id 9, which is not in the frame")
+    # a header cut short (Pillow: "Truncated File Read") and one without a frame header, in the parser's words
+    img.write_bytes(buf.getvalue()[:300])
+    assert _probe_image(img)[2] == (
+        "cannot read image: a damaged JPEG: truncated file: it ends inside the DHT segment at offset 210 "
+        "(the segment needs 179 bytes, 86 are left)"
+    )
+    data = buf.getvalue()
+    sof, _ = _segment(data, 0xC0)
+    img.write_bytes(data[:sof] + data[sof + 2 + int.from_bytes(data[sof + 2 : sof + 4], "big") :])
+    why = _probe_image(img)[2]
+    assert why is not None and why.startswith("cannot read image: a damaged JPEG: start of scan (SOS) at")
 
 
 @pytest.mark.parametrize("sampling", ["4:4:0", "4:1:1"])
