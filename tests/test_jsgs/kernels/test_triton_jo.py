@@ -288,7 +288,7 @@ def test_gradcheck_float64() -> None:
 
 @needs_interpreter
 @pytest.mark.parametrize("mode", ["paper", "float"])
-@pytest.mark.parametrize("sampling", ["4:2:0", "4:2:2", "4:4:4"])
+@pytest.mark.parametrize("sampling", ["4:2:0", "4:2:2", "4:4:4", "4:4:0", "4:1:1"])
 @pytest.mark.parametrize(("height", "width"), [(37, 53), (13, 9), (16, 32)])
 def test_jpeg_observe_triton_matches_torch(mode: str, sampling: str, height: int, width: int) -> None:
     # the padding and cropping around the kernels: odd sizes, every sampling, two views with own tables
