@@ -333,26 +333,37 @@ def _parse(r: _Reader) -> JpegHeader:
                 continue
             if code not in _SEGMENT_MARKERS:
                 raise _marker_error(name, code, at)
-            if r.pos + 2 > size:
-                raise _fail(
-                    name,
-                    f"truncated file: it ends inside the length field of the {_MARKER_NAMES[code]} segment "
-                    f"at offset {at}",
-                )
-            b = r.read(2)
-            length = (b[0] << 8) | b[1]
-        if length < 2:
-            raise _fail(
-                name,
-                f"the {_MARKER_NAMES[code]} segment at offset {at} has an invalid length {length} "
-                "(minimum 2)",
-            )
-        n = length - 2
-        if r.pos + n > size:
-            raise _overrun_error(r, code, at, length)
+            length = _read_length(r, code, at)
+        n = _payload_size(r, code, at, length)
         header = handlers.get(code, skip)(r, st, code, at, n, length)
         if header is not None:
             return header
+
+
+def _read_length(r: _Reader, code: int, at: int) -> int:
+    """The length field of the segment whose marker ``code`` is at offset ``at`` (the reader just after the
+    marker, then after the field). JsgsError where the file ends inside it."""
+    if r.pos + 2 > r.size:
+        raise _fail(
+            r.name,
+            f"truncated file: it ends inside the length field of the {_MARKER_NAMES[code]} segment "
+            f"at offset {at}",
+        )
+    b = r.read(2)
+    return (b[0] << 8) | b[1]
+
+
+def _payload_size(r: _Reader, code: int, at: int, length: int) -> int:
+    """A segment's payload size in bytes (``length`` less its own 2 bytes), the reader after the length
+    field. JsgsError for a length below 2 or a payload running past the end of the file."""
+    if length < 2:
+        raise _fail(
+            r.name,
+            f"the {_MARKER_NAMES[code]} segment at offset {at} has an invalid length {length} (minimum 2)",
+        )
+    if r.pos + length - 2 > r.size:
+        raise _overrun_error(r, code, at, length)
+    return length - 2
 
 
 def _identifier(peek: bytes) -> str:
@@ -566,19 +577,7 @@ def _next_scan_segment(r: _Reader, st: ParseState, waiting: str) -> tuple[int, i
             raise _fail(name, f"end of image (EOI) at offset {at} before any scan of component(s) {waiting}")
         if code not in _BETWEEN_SCANS:
             raise _fail(name, f"marker {_MARKER_NAMES[code]} at offset {at} between scans")
-        if r.pos + 2 > r.size:
-            raise _fail(name, f"truncated file: it ends inside the length field of the segment at {at}")
-        b = r.read(2)
-        length = (b[0] << 8) | b[1]
-        if length < 2:
-            raise _fail(
-                name,
-                f"the {_MARKER_NAMES[code]} segment at offset {at} has an invalid length {length} "
-                "(minimum 2)",
-            )
-        if r.pos + length - 2 > r.size:
-            raise _overrun_error(r, code, at, length)
-        return code, at, length - 2
+        return code, at, _payload_size(r, code, at, _read_length(r, code, at))
 
 
 def _skip_entropy_coded(r: _Reader, waiting: str) -> None:
