@@ -496,8 +496,8 @@ def test_tables_latched_at_each_components_first_scan() -> None:
                                         r"component\(s\) Cb, Cr$"):
         parse_header(data[: sos[1]] + b"\xff\xd9", "e.jpg")
     # or inside the length field of the segment after the first scan, named as before the first scan
-    with pytest.raises(JsgsError, match=rf"^l.jpg: truncated file: it ends inside the length field of the SOS "
-                                        rf"segment at offset {sos[1]}$"):
+    with pytest.raises(JsgsError, match=rf"^l.jpg: truncated file: it ends inside the length field of the "
+                                        rf"SOS segment at offset {sos[1]}$"):
         parse_header(data[: sos[1] + 3], "l.jpg")
 
 
