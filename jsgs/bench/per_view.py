@@ -121,7 +121,8 @@ def collapsed(run: RunViews, step: int, drop: float = COLLAPSE_DB) -> list[tuple
         if v.get("psnr") is None or not earlier:
             continue
         best, at = max(earlier, key=lambda t: (t[0], -t[1]))
-        if best - v["psnr"] >= drop:
+        # the drop at the metrics' own decimals: 20.0037 − 15.0037 is 4.999999999999998 in binary
+        if round(best - v["psnr"], DECIMALS["psnr"]) >= drop:
             out.append((v["name"], best, at, v["psnr"]))
     return out
 
@@ -150,7 +151,7 @@ def pair_row(p: Pair, step: int, views: Mapping[str, RunViews]) -> list[str] | N
     if not g or not j:
         return None
     dp, dl = differences(g, j, "psnr"), differences(g, j, "lpips")
-    gone = [str(len(collapsed(views[r], step))) if r in views else "–" for r in runs.values()]
+    gone = [str(len(collapsed(views[r], step))) if views.get(r, {}).get(step) else "–" for r in runs.values()]
     return [
         sc, sch, label(b), v, str(s), f"{step:,}", str(len({x["name"] for x in g} & {x["name"] for x in j})),
         f"{sum(1 for x in dp if x > 0)}/{len(dp)}", f"{sum(1 for x in dl if x < 0)}/{len(dl)}",

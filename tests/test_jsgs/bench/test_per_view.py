@@ -133,3 +133,23 @@ def test_the_pairs_are_compared_at_the_equal_budget_tables_step(tmp_path: Path) 
     # 0.5 below)
     assert cells[5:9] == ["500", "7", "3/7", "5/7"] and cells[-1] == "0 / 0 / 0"
     assert "Collapsed views: none." in report
+
+
+def test_a_drop_of_exactly_five_db_at_four_decimals_is_a_collapse() -> None:
+    # 20.0037 − 15.0037 is 4.999999999999998 in binary floating point: the rule reads the difference at the
+    # metrics' 4 decimals (views.json's), where it is 5 dB
+    run = {500: [{"name": "v", "psnr": 20.0037}], 1000: [{"name": "v", "psnr": 15.0037}]}
+    assert [n for n, *_ in per_view.collapsed(run, 1000)] == ["v"]
+    run = {500: [{"name": "v", "psnr": 20.0037}], 1000: [{"name": "v", "psnr": 15.0038}]}
+    assert per_view.collapsed(run, 1000) == []
+
+
+def test_a_clean_run_without_views_at_the_compared_step_is_a_dash(tmp_path: Path) -> None:
+    rows = _bench(tmp_path)
+    clean = tmp_path / "runs" / per_view.run_key("a", "clean", "gsplat", 300, 0) / "metrics.json"
+    doc = json.loads(clean.read_text())
+    doc["evals"] = [e for e in doc["evals"] if e["step"] != 1000]  # views at step 500 only
+    clean.write_text(json.dumps(doc))
+    section = _section(write_report(rows, tmp_path, [], [], plots=False).read_text())
+    row = [ln for ln in section.splitlines() if ln.startswith("| a |")]
+    assert [c.strip() for c in row[0].strip("|").split("|")][-1] == "2 / 0 / –"
