@@ -248,8 +248,19 @@ def test_a_tiny_campaign_trains_and_gathers_into_a_report(tmp_path: Path) -> Non
         (tmp_path / f"out{phase}").mkdir()
         p = _phase(repo, {**env, "OUT": str(tmp_path / f"out{phase}")}, phase, WAIT=wait)
         assert p.returncode == 0, p.stdout + p.stderr
-    status = _archive({"OUT": str(tmp_path / "out3")}, "3")["status.txt"].decode()
+    files = _archive({"OUT": str(tmp_path / "out3")}, "3")
+    status = files["status.txt"].decode()
     assert "lanes done: 2 of 2" in status and "a_cup_s0: 2 runs complete, 2 started" in status, status
+    # each bench's test renders at its first and last evaluation, small (tools/results/thumbs.py)
+    thumbs = sorted(k for k in files if k.startswith("thumbs/a_fern_s1/") and k.endswith(".jpg"))
+    steps: dict[str, set[str]] = {}
+    for k in thumbs:
+        steps.setdefault("/".join(k.split("/")[2:7]), set()).add(k.split("/")[7])
+    assert steps == {  # gsplat on the JPEGs trains 1.5 x 40 steps: its last evaluation is at 60
+        "fern/gaussian/gsplat/mcmc-auto/s1": {"step_000020", "step_000060"},
+        "fern/gaussian/jsgs/mcmc-auto/s1": {"step_000020", "step_000040"},
+        "fern/clean/gsplat/mcmc-auto/s1": {"step_000020", "step_000040"},
+    }, thumbs
     assert "a_fern_s1: 3 runs complete" in status and "b_fern: 1 runs complete" in status, status
     archive = tmp_path / "out3" / "opn_3.tgz"
     _cut(archive, "a_cup_s0")

@@ -51,7 +51,8 @@
 #      and again while its status.txt says "lanes done: k of 4" with k < 4 (the stop, STOP_AT, is 20 minutes
 #      after PHASE 1 began); then give_back.
 #   After each reply, copy its archive at once: cp <files_at>/opn_<PHASE>.tgz /work/main/.res/ (the last
-#   call's holds every bench as it stood). A call answered "error: no lanes on this machine" got a fresh
+#   call's holds every bench as it stood, and thumbs/<job>/: each ended bench's test renders at its runs' first
+#   and last evaluation, 1/4 size, tools/results/thumbs.py). A call answered "error: no lanes on this machine" got a fresh
 #   machine (the last one went back): start again at 1 only if 23 minutes are left, else gather what came.
 #   Fewer GPUs lent (a refusal of nvidia-h100-x4): nvidia-h100-x2 (or nvidia-h200-x2) with, at step 1,
 #   LANES="0:a_cup_s0,a_mouse_s0 1:a_cup_s1,a_mouse_s1" STOP_AT=1300 PHASE=1 ... (the cup and the mouse, both
@@ -126,6 +127,8 @@ bench() {  # bench JOB GPU: operating_point.sh for JOB on GPU, with the time lef
         RULE_BUDGETS=$J_BUDGETS JOBS=$J_JOBS GSPLAT_STEPS=$GS TL=$tl GPU_DIR=$D OUT_DIR=$B/$1 OUT=$B/out_$1 \
         timeout $((tl + 150)) bash $GPU_RUN bash tools/campaigns/operating_point.sh > $L/$1.log 2>&1 < /dev/null)
     echo "$(date +%T) end $1 on GPU $2 (rc $?)" >> $L/lanes.log
+    # its test renders at the first and last evaluation, 1/4 size (tools/results/thumbs.py), in the archive
+    (cd $S && bash $GPU_RUN python3 tools/results/thumbs.py $B/$1 $L/thumbs/$1) >> $L/$1.log 2>&1
 }
 take() {  # the first queued job whose estimate fits the time left and whose data is here (taken off the
     # queue); status 3: one fits but its data has not come yet; 1: none fits
