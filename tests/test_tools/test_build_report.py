@@ -184,3 +184,20 @@ def test_gathers_keep_every_runs_views(tmp_path: Path) -> None:
     (target / "report.md").unlink()
     br.main(target, [])
     assert (target / "report.md").read_text() == report
+
+
+def test_replaced_runs_without_views_drop_their_old_views(tmp_path: Path) -> None:
+    """A gather whose bench replaces every run with runs that have no per-view metrics (their metrics.json
+    not readable yet): views.json no longer holds the replaced runs' views, and the report says the pair has
+    none (the section's skip line) instead of showing the old runs'."""
+    target, first, second = tmp_path / "op", tmp_path / "b1", tmp_path / "b2"
+    _views_bench(first, "a", 1.0)
+    _views_bench(second, "a", -1.0)
+    for m in (second / "runs").glob("*/*/*/*/*/metrics.json"):
+        m.write_text("{")  # a run still writing it
+    br.main(target, [first])
+    br.main(target, [second])
+    doc = json.loads((target / "views.json").read_text())
+    assert doc["runs"] == {}
+    section = (target / "report.md").read_text().split("## Per test view")[1].split("\n## ")[0]
+    assert "Skipped: no per-view metrics here" in section and "| a |" not in section

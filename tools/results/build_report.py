@@ -169,7 +169,7 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
     write_csv(rows, csv)
     write_bytes_atomic(cfg, (json.dumps(dict(sorted(configs.items())), indent=1) + "\n").encode())
     views = {k: v for k, v in views.items() if k in {run_key(r) for r in rows}}
-    if views:
+    if views or (target / per_view.VIEWS_FILE).is_file():  # an earlier gather's, replaced even by none
         per_view.write_file(target / per_view.VIEWS_FILE, views)
     header = [
         f"Every equal-budget run of `{target.name}` (`jsgs bench --strategy mcmc`), gathered from the GPU "
