@@ -625,10 +625,16 @@ def test_cuda_matches_twin(kind: str) -> None:
 @cuda_triton
 @pytest.mark.gpu
 @pytest.mark.parametrize(
-    ("mode", "height", "width"),
-    [(mode, h, w) for mode in ("paper", "float") for h, w in ((1440, 1920), (378, 504), (37, 53))],
+    ("mode", "height", "width", "sampling"),
+    [(mode, h, w, "4:2:0") for mode in ("paper", "float") for h, w in ((1440, 1920), (378, 504), (37, 53))]
+    + [
+        (mode, h, w, s)
+        for mode in ("paper", "float")
+        for h, w in ((378, 504), (37, 53))
+        for s in ("4:4:0", "4:1:1")
+    ],
 )
-def test_cuda_jpeg_observe_matches_twin(mode: str, height: int, width: int) -> None:
+def test_cuda_jpeg_observe_matches_twin(mode: str, height: int, width: int, sampling: str) -> None:
     g = torch.Generator().manual_seed(13)
     rgb = torch.rand(1, 3, height, width, generator=g).cuda()
     w = torch.randn(1, 3, height, width, generator=g).cuda()
@@ -636,13 +642,14 @@ def test_cuda_jpeg_observe_matches_twin(mode: str, height: int, width: int) -> N
     out = []
     for kernel in ("triton", "torch"):
         x = rgb.clone().requires_grad_()
-        o = jpeg_observe(x, luma, chroma, "4:2:0", mode, kernel=kernel)
+        o = jpeg_observe(x, luma, chroma, sampling, mode, kernel=kernel)
         (grad,) = torch.autograd.grad((o * w).sum(), x)
         out.append((o.detach(), grad))
     d_val = 255 * (out[0][0] - out[1][0]).abs()
     d_grad = (out[0][1] - out[1][1]).abs()
-    print(f"\nmode {mode}, {width}x{height} float32: max |fused - twin| {float(d_val.max()):.2e} (8-bit "
-          f"units), pixels > 0.01: {100 * float((d_val > 0.01).double().mean()):.4f} %; gradient max "
+    print(f"\nmode {mode}, {sampling}, {width}x{height} float32: max |fused - twin| "
+          f"{float(d_val.max()):.2e} (8-bit units), pixels > 0.01: "
+          f"{100 * float((d_val > 0.01).double().mean()):.4f} %; gradient max "
           f"{float(d_grad.max()):.2e} of {float(out[1][1].abs().max()):.2e}")  # fmt: skip
     assert float((d_val > 0.01).double().mean()) < 1e-3
     assert float((d_grad > 1e-3 * out[1][1].abs().max()).double().mean()) < 1e-3
