@@ -50,8 +50,8 @@ def key(r: dict) -> tuple:
 
 
 def run_key(r: dict) -> str:
-    """The run's folder under ``runs/`` (and its key in configs.json)."""
-    return f"{r['scene']}/{r['schedule']}/{r['method']}/mcmc-{r['budget']}/s{r['seed']}"
+    """The run's folder under ``runs/`` (and its key in configs.json and views.json) of a results.csv row."""
+    return per_view.run_key(r["scene"], r["schedule"], r["method"], r["budget"], r["seed"])
 
 
 def baseline(folder: Path, cells: set[tuple[str, str, str]]) -> tuple[list[dict], dict]:
@@ -150,7 +150,8 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
         new = [r for r in budget_csv(f / "results.csv") if r["strategy"] == "mcmc"]
         done = {key(r) for r in new}
         rows = [r for r in rows if key(r) not in done] + new
-        views = {k: v for k, v in views.items() if k not in {run_key(r) for r in new}}
+        replaced = {run_key(r) for r in new}
+        views = {k: v for k, v in views.items() if k not in replaced}
         views.update(per_view.read_runs(f / "runs"))
         for c in sorted(f.glob("runs/*/*/*/mcmc-*/s*/config.json")):
             doc = json.loads(c.read_text())
@@ -168,7 +169,8 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
     target.mkdir(parents=True, exist_ok=True)
     write_csv(rows, csv)
     write_bytes_atomic(cfg, (json.dumps(dict(sorted(configs.items())), indent=1) + "\n").encode())
-    views = {k: v for k, v in views.items() if k in {run_key(r) for r in rows}}
+    kept = {run_key(r) for r in rows}
+    views = {k: v for k, v in views.items() if k in kept}
     if views or (target / per_view.VIEWS_FILE).is_file():  # an earlier gather's, replaced even by none
         per_view.write_file(target / per_view.VIEWS_FILE, views)
     header = [
