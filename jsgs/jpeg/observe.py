@@ -60,7 +60,7 @@ from .color import kernel_coefficients, rgb_to_ycbcr, rgb_to_ycbcr_libjpeg, ycbc
 from .dct import block_dct, block_idct, blockify, fdct_islow, idct_islow, range_limit, unblockify
 from .rounding import quantize_libjpeg, round_soft_grad, round_ste, soft_round
 from .sampling import downsample, downsample_libjpeg, pad_replicate, upsample, upsample_libjpeg
-from .tables import SAMPLING_FACTORS
+from .tables import SAMPLING_FACTORS, checked_steps
 
 Mode = Literal["paper", "float", "exact"]
 Sampling = Literal["4:4:4", "4:2:2", "4:2:0", "4:4:0", "4:1:1"]
@@ -100,7 +100,7 @@ def as_tables(
     tables it makes).
     """
     if not isinstance(table, Tensor):
-        table = _checked_host_table(table, name)
+        table = checked_steps(table, name)
     t = torch.as_tensor(table).to(dtype=dtype, device=device)
     if t.shape[-2:] != (8, 8):
         if t.dim() == 0 or t.shape[-1] != 64:
@@ -111,22 +111,6 @@ def as_tables(
     if t.shape != (batch, 8, 8):
         raise ValueError(f"{name}: must be (8, 8) or ({batch}, 8, 8), got {tuple(t.shape)}")
     return t
-
-
-def _checked_host_table(table: np.ndarray | list, name: str) -> np.ndarray:
-    """``table`` as a float64 array of quantization steps (integers 1..65535; ValueError naming the first
-    entry that is not one)."""
-    try:
-        a = np.asarray(table, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: not an array of numbers") from None
-    bad = ~(np.isfinite(a) & (a >= 1) & (a <= 65535) & (a == np.round(a)))
-    if bad.any():
-        at = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise ValueError(
-            f"{name}: entry {a[at]!r} at {list(at)} is not a quantization step (an integer 1..65535)"
-        )
-    return a
 
 
 def _clamp_255(x: Tensor) -> Tensor:

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from .dct import block_dct, blockify
-from .observe import _checked_host_table
+from .tables import checked_steps
 
 EPS_SM = 1e-3
 EPS_LOSS = 1e-6
@@ -150,7 +150,7 @@ def table_weights(
     A table given as an array or a list must hold quantization steps, integers 1..65535 (ValueError, as
     :func:`jsgs.jpeg.observe.as_tables`); a tensor is taken as given."""
     if not isinstance(luma_table, Tensor):
-        luma_table = _checked_host_table(luma_table, "luma_table")
+        luma_table = checked_steps(luma_table, "luma_table")
     table = torch.as_tensor(luma_table, device=_dev(device)).to(dtype)
     table = table.expand(batch, 8, 8)
     w = omega(table)

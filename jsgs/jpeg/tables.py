@@ -156,3 +156,19 @@ def estimate_quality(luma: np.ndarray, chroma: np.ndarray | None = None) -> Qual
     # Highest quality among the minimisers.
     q_index = int(np.flatnonzero(err == best)[-1])
     return QualityEstimate(quality=q_index + 1, exact=bool(exact[q_index]), error=best)
+
+
+def checked_steps(table: np.ndarray | list, name: str) -> np.ndarray:
+    """``table`` as a float64 array of quantization steps (integers 1..65535; ValueError naming the first
+    entry that is not one)."""
+    try:
+        a = np.asarray(table, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: not an array of numbers") from None
+    bad = ~(np.isfinite(a) & (a >= 1) & (a <= 65535) & (a == np.round(a)))
+    if bad.any():
+        at = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(
+            f"{name}: entry {a[at]!r} at {list(at)} is not a quantization step (an integer 1..65535)"
+        )
+    return a
