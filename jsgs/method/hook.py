@@ -309,6 +309,8 @@ class JsgsHook(LossHook):
         # and no addition for both known gradients): its (channels, gradient) pair, made from the replay's r
         deferred = self._probe_deferred(ctx.step)
         in_render = self._deferred_map is not None and ctx.info.get("extra_upstream") is self._deferred_map
+        if in_render:  # its objective joins the folded loss as is where the trainer says so
+            self._deferred_map.unit_upstream = ctx.folded_upstream_one
         deferred = deferred and not in_render
         probe_pair: tuple[Tensor, ...] = ()
 
@@ -344,7 +346,6 @@ class JsgsHook(LossHook):
             # map rode on the graph's node, made from r_b)
             if in_render:
                 self._deferred_map.r = graphed.r
-                self._deferred_map.unit_upstream = ctx.folded_upstream_one  # joins the folded loss as is
             elif o.gc and self.gc_at(ctx.step) and not probe_pair:
                 r_map = pixel_score_of(graphed.r, x.shape[2], x.shape[3])
             if self.keep_last:
@@ -365,7 +366,6 @@ class JsgsHook(LossHook):
                 r_map = sup.pixel_score  # [1, H, W], detached
                 if in_render:
                     self._deferred_map.r = r_map
-                    self._deferred_map.unit_upstream = ctx.folded_upstream_one
                 if self.keep_last:
                     self.last["ds"] = sup
         if in_render:  # the objective made with the render
