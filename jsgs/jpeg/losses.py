@@ -69,8 +69,11 @@ def photometric_terms(
     Returns:
         The loss and its parts (unitless).
     """
+    fused = None  # the SSIM kernel's pick, where made here: passed to ssim, not made there again
     if reduction == "mean" and x.shape == y.shape:
-        if not channels_last and x.is_contiguous() and ssim_is_fused(x, y, ssim_kernel):
+        if not channels_last and x.is_contiguous():
+            fused = ssim_is_fused(x, y, ssim_kernel)
+        if fused:
             # the fused SSIM keeps a contiguous copy of y for its backward, L1 keeps y: one copy for both
             y = y.contiguous()
         l1 = _MeanAbsDifference.apply(x, y)
@@ -82,7 +85,7 @@ def photometric_terms(
         raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
     if channels_last:
         x, y = x.permute(0, 3, 1, 2), y.permute(0, 3, 1, 2)
-    d_ssim = 1.0 - ssim(x, y, padding=padding, reduction=reduction, kernel=ssim_kernel)
+    d_ssim = 1.0 - ssim(x, y, padding=padding, reduction=reduction, kernel=ssim_kernel, fused=fused)
     return PhotometricTerms((1.0 - lambda_ssim) * l1 + lambda_ssim * d_ssim, l1, d_ssim)
 
 

@@ -152,7 +152,7 @@ def _check_pair(x: Tensor, y: Tensor, padding: str) -> None:
 
 
 def ssim(x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, padding: str = "same",
-         reduction: str = "mean", kernel: str = "auto") -> Tensor:
+         reduction: str = "mean", kernel: str = "auto", *, fused: bool | None = None) -> Tensor:
     """Structural similarity of two image batches.
 
     Args:
@@ -162,11 +162,15 @@ def ssim(x: Tensor, y: Tensor, window_size: int = 11, sigma: float = 1.5, paddin
         reduction: "mean" -> scalar, mean over every pixel, channel and image (3DGS); "none" -> ``(B,)`` per
             image.
         kernel: "auto", "torch" or "cuda" (see the module doc).
+        fused: the kernel's pick where the caller has made it: :func:`ssim_is_fused`'s answer for ``x``,
+            ``y``, ``kernel`` and ``window_size`` (or for tensors of their dtypes, shapes, device and
+            ``requires_grad``); None: picked here.
     Returns:
         SSIM, 1 for identical images.
     """
     _check_pair(x, y, padding)
-    fused = _use_fused(x, y, kernel, window_size)
+    if fused is None:
+        fused = _use_fused(x, y, kernel, window_size)
     w = gaussian_window(window_size, sigma, x.dtype, x.device)
     if reduction == "mean" and fused:
         # the mean and the map in one node: no map of the mean's gradient in the backward

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from jsgs.jpeg.losses import photometric_loss
+from jsgs.jpeg.losses import photometric_loss, photometric_terms
 from jsgs.kernels import ssim, ssim_map
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -99,6 +99,31 @@ def test_ssim_checks_its_pair_and_picks_its_kernel_once(
     m = ssim_map(x, y)
     assert calls == ["_check_pair", "_use_fused"]
     assert torch.equal(value, m.mean() if reduction == "mean" else m.flatten(1).mean(1))
+
+
+@pytest.mark.parametrize(("reduction", "channels_last"), [("mean", False), ("mean", True), ("none", False)])
+def test_photometric_terms_picks_the_ssim_kernel_once(
+    monkeypatch: pytest.MonkeyPatch, reduction: str, channels_last: bool
+) -> None:
+    """``photometric_terms`` picks the SSIM kernel once a call (where it lays out the target for the fused
+    SSIM it hands that pick to ``ssim``), with the terms of l1 and ``ssim`` bit for bit."""
+    from jsgs.kernels import _wrapper
+
+    calls: list[tuple[int, ...]] = []
+    real = _wrapper._use_fused
+    monkeypatch.setattr(_wrapper, "_use_fused", lambda x, *a: calls.append(tuple(x.shape)) or real(x, *a))
+    g = torch.Generator().manual_seed(4)
+    x = torch.rand(2, 3, 16, 20, generator=g, requires_grad=True)
+    y = torch.rand(2, 3, 16, 20, generator=g)
+    if channels_last:
+        x, y = x.permute(0, 2, 3, 1), y.permute(0, 2, 3, 1)
+    terms = photometric_terms(x, y, 0.3, reduction, "valid", channels_last=channels_last)
+    assert calls == [(2, 3, 16, 20)]
+    xs, ys = (x.permute(0, 3, 1, 2), y.permute(0, 3, 1, 2)) if channels_last else (x, y)
+    d_ssim = 1.0 - ssim(xs, ys, padding="valid", reduction=reduction)
+    l1 = (x - y).abs().mean() if reduction == "mean" else (x - y).abs().flatten(1).mean(1)
+    assert torch.equal(terms.d_ssim, d_ssim) and torch.equal(terms.l1, l1)
+    assert torch.equal(terms.loss, 0.7 * l1 + 0.3 * d_ssim)
 
 
 @pytest.mark.parametrize("call", [ssim, ssim_map])
