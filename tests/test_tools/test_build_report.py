@@ -201,3 +201,28 @@ def test_replaced_runs_without_views_drop_their_old_views(tmp_path: Path) -> Non
     assert doc["runs"] == {}
     section = (target / "report.md").read_text().split("## Per test view")[1].split("\n## ")[0]
     assert "Skipped: no per-view metrics here" in section and "| a |" not in section
+
+
+def test_a_run_gathered_again_keeps_no_views_of_the_baselines(tmp_path: Path) -> None:
+    """--baseline: the base's views come with the runs taken from it; a run the gather brings again has
+    its gather's views alone, none where its metrics.json is not readable (not the base's old ones)."""
+    base, first, again = tmp_path / "default", tmp_path / "b1", tmp_path / "b2"
+    _views_bench(first, "a", 1.0)
+    br.main(base, [first])
+    gsplat, jsgs = (br.run_key(_row("a", "gaussian", m, 0, 0.2)) for m in ("gsplat", "jsgs"))
+    assert sorted(json.loads((base / "views.json").read_text())["runs"]) == [gsplat, jsgs]
+    _views_bench(again, "a", -1.0)
+    (again / "runs" / gsplat / "metrics.json").write_text("{")  # a run still writing it
+    only_jsgs = tmp_path / "b3"
+    _views_bench(only_jsgs, "a", -1.0)
+    write_csv([r for r in read_csv(only_jsgs / "results.csv") if r["method"] == "jsgs"],
+              only_jsgs / "results.csv")  # fmt: skip
+    for target, bench in ((tmp_path / "t1", only_jsgs), (tmp_path / "t2", again)):
+        br.main(target, [bench], None, base)
+        assert sorted(r["method"] for r in read_csv(target / "results.csv")) == ["gsplat", "jsgs"]
+        runs = json.loads((target / "views.json").read_text())["runs"]
+        assert sorted(runs) == ([gsplat, jsgs] if bench is only_jsgs else [jsgs])
+        base_runs = json.loads((base / "views.json").read_text())["runs"]
+        if bench is only_jsgs:
+            assert runs[gsplat] == base_runs[gsplat]
+        assert runs[jsgs] != base_runs[jsgs]  # the gather's

@@ -21,8 +21,9 @@ one of its runs reached (:func:`jsgs.bench.budget.common_steps`).
         .res/b100 .res/captures
 
 ``--baseline FOLDER`` also copies, from another results folder, the runs that are not JSGS (gsplat, and the
-clean runs of every scene and budget concerned) for the cells the bench folders bring, with their settings:
-a folder of JSGS runs of one recipe then holds its own comparison (what ``blockiness/`` and ``levers/`` hold).
+clean runs of every scene and budget concerned) for the cells the bench folders bring, with their settings
+and per-view metrics (a run the bench folders bring again has theirs alone): a folder of JSGS runs of one
+recipe then holds its own comparison (what ``blockiness/`` and ``levers/`` hold).
 
     .venv/bin/python tools/results/build_report.py --step auto --baseline docs/results/budget/default \
         docs/results/budget/blockiness/b0.5 .res/cb5 .res/lb5
@@ -161,9 +162,12 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
         cells = {(r["scene"], r["schedule"], str(r["budget"])) for r in rows if r["method"] == "jsgs"}
         extra, extra_cfg = baseline(base, cells)
         have = {key(r) for r in rows}
-        rows += [r for r in extra if key(r) not in have]
+        taken = [r for r in extra if key(r) not in have]
+        rows += taken
         configs = {**extra_cfg, **configs}
-        views = {**per_view.load(base), **views}
+        # the base's views of the runs taken from it alone: a run gathered again has only its gather's
+        from_base = {run_key(r) for r in taken}
+        views.update({k: v for k, v in per_view.load(base).items() if k in from_base})
     rows.sort(key=lambda r: (*key(r), int(r["step"])))
     notes = auto_notes(rows, configs)  # before anything is written: it may refuse
     target.mkdir(parents=True, exist_ok=True)
