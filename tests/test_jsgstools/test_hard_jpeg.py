@@ -100,6 +100,14 @@ def test_cr_table_of_its_own_is_recorded_and_refused(compressed_scene: Path, tmp
     assert r.exit_code == 1 and "Traceback" not in r.output, r.output
     assert r.output.strip().count("\n") == 0
     assert "view 'view_001.jpg' quantizes Cr with a table of its own" in r.output, r.output
+    # DS and GC work on JO's output (quantized with both chroma tables), so they need JO: without JO, DS or GC
+    # nothing reads the chroma tables and the view trains
+    bare = [*args[:3], str(tmp_path / "bare"), *args[4:], "--eval-at", "", "--no-jo"]
+    r = CliRunner().invoke(jsgs_main, bare)
+    assert r.exit_code == 1 and "need JO" in r.output and "view_001" not in r.output, r.output
+    r = CliRunner().invoke(jsgs_main, [*bare, "--no-ds", "--no-gc"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "bare" / "point_cloud.ply").is_file()
 
 
 def _with_orientation(jpeg: bytes, orientation: int) -> bytes:
