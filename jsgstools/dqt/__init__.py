@@ -19,7 +19,8 @@ Rules, stated once:
   progressive files code each component's DC apart; some encoders write one sequential scan per component)
   makes the parser follow the scans, skipping their entropy-coded data by its markers, until every component
   has begun one: a DQT between scans counts for the components not yet scanned (Pillow's ``quantization``
-  misses it). Two components with one table id that latch different tables are refused. Values are converted
+  misses it). Two components with one table id that latch different tables (the id redefined between their
+  first scans) each keep their own (``JpegHeader.relatched``; Cr's becomes ``cr_table``). Values are converted
   from the file's zigzag order to natural row-major 8x8 order, entry ``[v][u]`` (v = vertical frequency).
   Tables may come after SOF; a component's table must be defined before its first scan.
 * Colour space (libjpeg's ``default_decompress_parms``): 1 component -> gray; 3 components -> YCbCr when a

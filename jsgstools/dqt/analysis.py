@@ -320,7 +320,8 @@ def analyze_bytes(data: bytes, header: JpegHeader) -> Analysis:
     chroma_table = None if header.chroma_table is None else header.chroma_table.values
     chroma: list[np.ndarray] = []
     if chroma_table is not None and len(header.components) == 3:
-        same = header.components[1].table == header.components[2].table
+        cr = header.component_table(2)
+        same = cr is not None and np.array_equal(cr.values, chroma_table)
         if same and header.sampling == "4:4:4":
             chroma = [full[:, :, 1], full[:, :, 2]]
     a = analyze_planes(luma, header.luma_table.values, chroma, chroma_table)

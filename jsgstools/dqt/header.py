@@ -83,6 +83,10 @@ class JpegHeader:
     #: at their own first scans, so the parser reads on to them; ``bytes_read`` may then pass ``header_size``
     #: by the coded data read ahead)
     scans: int = 1
+    #: component index -> the table it decodes with, for a component whose table id a DQT between scans
+    #: redefined after an earlier component of that id had begun its first scan (``tables`` holds the earlier
+    #: component's); empty for almost every file
+    relatched: dict[int, QuantTable] = field(default_factory=dict)
 
     @property
     def frame_name(self) -> str:
@@ -94,25 +98,36 @@ class JpegHeader:
         """Per-component HxV factors, e.g. "2x2,1x1,1x1"."""
         return ",".join(f"{c.h}x{c.v}" for c in self.components)
 
+    def component_table(self, i: int) -> QuantTable | None:
+        """The table component ``i`` decodes with (the one in force at its first scan); None where there is
+        no such component or the frame is lossless."""
+        if i >= len(self.components) or self.components[i].table is None:
+            return None
+        return self.relatched.get(i) or self.tables[self.components[i].table]  # type: ignore[index]
+
     @property
     def luma_table(self) -> QuantTable | None:
         """Table of the first component (None in lossless frames)."""
-        t = self.components[0].table
-        return None if t is None else self.tables[t]
+        return self.component_table(0)
 
     @property
     def chroma_table(self) -> QuantTable | None:
         """Table of the second component (Cb), None for gray and lossless frames."""
-        if len(self.components) < 2 or self.components[1].table is None:
-            return None
-        return self.tables[self.components[1].table]
+        return self.component_table(1)
+
+    def table_uses(self) -> list[tuple[QuantTable, list[str]]]:
+        """Each table with the names of the components that decode with it: ``tables`` by id, then each
+        table in ``relatched`` (an id listed twice, with other values and other components)."""
+        used: dict[int, list[str]] = {t: [] for t in self.tables}
+        for i, c in enumerate(self.components):
+            if c.table is not None and i not in self.relatched:
+                used[c.table].append(c.name)
+        return [(t, used[t.id]) for t in self.tables.values()] + [
+            (t, [self.components[i].name]) for i, t in sorted(self.relatched.items())
+        ]
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready dict (the per-file object of ``jsgs/schemas/dqt_report.schema.json``)."""
-        used: dict[int, list[str]] = {t: [] for t in self.tables}
-        for c in self.components:
-            if c.table is not None:
-                used[c.table].append(c.name)
         q = self.quality
         return {
             "path": self.path,
@@ -136,8 +151,8 @@ class JpegHeader:
             "sampling_factors": self.sampling_factors,
             "restart_interval": self.restart_interval,
             "tables": [
-                {"id": t.id, "precision": t.precision, "used_by": used[t.id], "values": t.values.tolist()}
-                for t in self.tables.values()
+                {"id": t.id, "precision": t.precision, "used_by": users, "values": t.values.tolist()}
+                for t, users in self.table_uses()
             ],
             "quality": None
             if q is None
@@ -156,7 +171,8 @@ class JpegHeader:
 
         ``precision`` is 16 when the luma or chroma table is 16-bit (that of the first and the second
         component); ``cr_table`` is the third component's table when its values differ from the second's (a
-        file that quantizes Cr with a table of its own). Raises JsgsError for lossless frames and for samples
+        file that quantizes Cr with a table of its own, by another id or by the shared id redefined between
+        Cb's and Cr's first scans). Raises JsgsError for lossless frames and for samples
         other than 8-bit (12-bit extended frames).
         """
         luma, chroma = self.luma_table, self.chroma_table
@@ -178,7 +194,7 @@ class JpegHeader:
             "frame": self.frame_name,
             "color_space": self.color_space,
         }
-        cr = self.tables[self.components[2].table] if len(self.components) >= 3 else None  # type: ignore[index]
+        cr = self.component_table(2)
         if chroma is not None and cr is not None and not np.array_equal(cr.values, chroma.values):
             state["cr_table"] = cr.values.tolist()
         return state

@@ -428,9 +428,10 @@ def _finish(r: _Reader, st: ParseState, sos: bytes, sos_at: int) -> JpegHeader:
     _check_first_scan(name, sos, sos_at, ids)
     st.scans = 1
     first_scan = {sos[1 + 2 * i] for i in range(sos[0])}
+    relatched: dict[int, QuantTable] = {}
     if not lossless and len(first_scan) < nf:
-        tables = _follow_scans(r, st, components, first_scan, sos_at)
-    quality = None if lossless else _quality(name, tables, warnings, components, precision)
+        tables, relatched = _follow_scans(r, st, components, first_scan, sos_at)
+    quality = None if lossless else _quality(name, tables, warnings, components, precision, relatched)
     return JpegHeader(
         path=name,
         file_size=r.size,
@@ -453,6 +454,7 @@ def _finish(r: _Reader, st: ParseState, sos: bytes, sos_at: int) -> JpegHeader:
         app_segments=tuple(st.apps),
         scans=st.scans,
         warnings=tuple(warnings),
+        relatched=relatched,
     )
 
 
@@ -517,12 +519,13 @@ def _check_first_scan(name: str, sos: bytes, sos_at: int, ids: list[int], which:
 
 def _follow_scans(
     r: _Reader, st: ParseState, components: list[Component], first_scan: set[int], sos_at: int
-) -> dict[int, QuantTable]:
+) -> tuple[dict[int, QuantTable], dict[int, QuantTable]]:
     """The tables of a frame whose first scan does not code every component. libjpeg takes a component's
     table when the component's first scan begins (``latch_quant_tables``), and a DQT between scans may
     define or redefine it for a later component; so the scans are followed (their entropy-coded data skipped
-    by its markers) until every component has begun one. Returns table id -> the table its components
-    decode with (JsgsError when two components of one id latch different tables)."""
+    by its markers) until every component has begun one. Returns table id -> the table its first component
+    decodes with, and component index -> its table where it differs from that (the id redefined between the
+    two components' first scans: the component decodes with the new table, as libjpeg does)."""
     name, tables = r.name, st.tables
     latched: dict[int, QuantTable] = {}  # component index -> its table
 
@@ -552,15 +555,17 @@ def _follow_scans(
         else:
             r.seek(r.pos + n)
     by_id: dict[int, QuantTable] = {}
+    relatched: dict[int, QuantTable] = {}
     for i, c in enumerate(components):
         first = by_id.setdefault(c.table, latched[i])  # type: ignore[arg-type]
         if first is not latched[i] and not np.array_equal(first.values, latched[i].values):
-            raise _fail(
-                name,
+            relatched[i] = latched[i]
+            st.warnings.append(
                 f"quantization table {c.table} is redefined between the first scans of the components that "
-                "use it, which then decode with different tables (not supported)",
+                f"use it: {c.name} decodes with another table than "
+                f"{next(o.name for o in components if o.table == c.table)}"
             )
-    return {**tables, **by_id}
+    return {**tables, **by_id}, relatched
 
 
 def _next_scan_segment(r: _Reader, st: ParseState, waiting: str) -> tuple[int, int, int]:
@@ -601,10 +606,16 @@ def _skip_entropy_coded(r: _Reader, waiting: str) -> None:
 
 
 def _quality(
-    name: str, tables: dict[int, QuantTable], warnings: list[str], components: list[Component], precision: int
+    name: str,
+    tables: dict[int, QuantTable],
+    warnings: list[str],
+    components: list[Component],
+    precision: int,
+    relatched: dict[int, QuantTable],
 ) -> QualityEstimate:
-    """The quality estimate of a DCT frame from its luma (and chroma) tables, which must all be defined;
-    a warning for 16-bit tables with 8-bit samples."""
+    """The quality estimate of a DCT frame from its luma (and chroma) tables, which must all be defined
+    (``relatched``: component index -> its table where it is not ``tables``' of its id); a warning for 16-bit
+    tables with 8-bit samples."""
     if not tables:
         raise _fail(
             name,
@@ -618,10 +629,9 @@ def _quality(
                 f"component {c.name} uses quantization table {c.table}, which is not defined before "
                 "the first scan",
             )
-    luma = tables[components[0].table].values  # type: ignore[index]
-    chroma = tables[components[1].table].values if len(components) >= 2 else None  # type: ignore[index]
-    quality = quality_of(luma, chroma)
-    if precision == 8 and any(t.precision == 16 for t in tables.values()):
+    own = [relatched.get(i) or tables[c.table] for i, c in enumerate(components[:2])]  # type: ignore[index]
+    quality = quality_of(own[0].values, own[1].values if len(own) == 2 else None)
+    if precision == 8 and any(t.precision == 16 for t in [*tables.values(), *relatched.values()]):
         warnings.append("16-bit quantization tables with 8-bit samples (T.81 allows only 8-bit tables here)")
     return quality
 

@@ -137,8 +137,8 @@ def _quality_text(h: JpegHeader) -> str:
 
 def _tables_text(h: JpegHeader) -> str:
     parts = []
-    for t in h.tables.values():
-        users = ",".join(c.name for c in h.components if c.table == t.id) or "unused"
+    for t, names in h.table_uses():
+        users = ",".join(names) or "unused"
         bits = "" if t.precision == 8 else "(16-bit)"
         parts.append(f"{t.id}{bits}:{users}")
     return " ".join(parts) or "-"
@@ -235,9 +235,11 @@ def format_table(ins: Inspection, show_tables: bool = False, analyze: bool = Fal
             lines.append(f"  warning: {a}")
     if show_tables:
         for h in ins.headers:
-            for t in h.tables.values():
+            uses = h.table_uses()
+            for t, names in uses:
                 lines.append("")
-                lines.append(f"{h.path}: table {t.id} ({t.precision}-bit), natural row-major [v][u]:")
+                users = f" for {','.join(names)}" if len(uses) > len(h.tables) else ""  # an id listed twice
+                lines.append(f"{h.path}: table {t.id}{users} ({t.precision}-bit), natural row-major [v][u]:")
                 width = max(len(str(int(x))) for x in t.values.flat)
                 for row in t.values:
                     lines.append("  " + " ".join(str(int(x)).rjust(width) for x in row))

@@ -484,10 +484,6 @@ def test_tables_latched_at_each_components_first_scan() -> None:
     with pytest.raises(JsgsError, match=r"^u.jpg: component Cb uses quantization table 1, which is not "
                                         r"defined before its first scan \(SOS at offset \d+\)$"):
         parse_header(drop(data, 0xDB, 1), "u.jpg")
-    # redefined between Cb's and Cr's first scans: two tables under one id, refused
-    split = data[: sos[2]] + dqt_segment((1, other, 8)) + data[sos[2] :]
-    with pytest.raises(JsgsError, match="^s.jpg: quantization table 1 is redefined between the first scans"):
-        parse_header(split, "s.jpg")
     # a file that ends, or whose image ends, before Cb and Cr have a scan
     with pytest.raises(JsgsError, match=r"^c.jpg: truncated file: it ends in a scan's coded data before any "
                                         r"scan of component\(s\) Cb, Cr$"):
@@ -499,6 +495,38 @@ def test_tables_latched_at_each_components_first_scan() -> None:
     with pytest.raises(JsgsError, match=rf"^l.jpg: truncated file: it ends inside the length field of the "
                                         rf"SOS segment at offset {sos[1]}$"):
         parse_header(data[: sos[1] + 3], "l.jpg")
+
+
+def test_table_redefined_between_cb_and_crs_first_scans_is_crs_own(tmp_path: Path) -> None:
+    """Table 1 (Cb's and Cr's) redefined between Cb's and Cr's first scans: libjpeg decodes Cr with the new
+    table, so the file quantizes Cr with a table of its own. The header records it as ``cr_table``; libjpeg
+    decodes the file exactly as the file whose Cr names a table of its own with the recorded values (no DQT
+    between scans), and not as the file without the redefinition. The report lists table 1 twice."""
+    data = non_interleaved_jpeg()
+    sos = _sos_offsets(data)
+    other = ijg_tables(10)[1]
+    split = data[: sos[2]] + dqt_segment((1, other, 8)) + data[sos[2] :]
+    h = parse_header(split, "s.jpg")
+    s = h.manifest_state()
+    assert s["luma_table"] == ijg_tables(60)[0].tolist() and s["chroma_table"] == ijg_tables(60)[1].tolist()
+    assert s["cr_table"] == other.tolist() and (s["quality"], s["quality_exact"]) == (60, True)
+    explicit = own_cr_table(data, s["cr_table"])
+    assert np.array_equal(_decode(split), _decode(explicit))
+    assert not np.array_equal(_decode(split), _decode(data))
+    assert parse_header(explicit, "s.jpg").manifest_state() == s
+    assert any("Cr decodes with another table than Cb" in w for w in h.warnings), h.warnings
+    luma60, chroma60 = (t.tolist() for t in ijg_tables(60))
+    got = [(t["id"], t["used_by"], t["values"]) for t in h.to_json()["tables"]]
+    assert got == [(0, ["Y"], luma60), (1, ["Cb"], chroma60), (1, ["Cr"], other.tolist())]
+    (tmp_path / "s.jpg").write_bytes(split)
+    r = CliRunner().invoke(inspect_dqt, [str(tmp_path / "s.jpg"), "--json"])
+    assert r.exit_code == 0, r.output
+    jsonschema.validate(json.loads(r.output), load_schema("dqt_report"))
+    r = CliRunner().invoke(inspect_dqt, [str(tmp_path / "s.jpg")])
+    assert r.exit_code == 0 and "0:Y 1:Cb 1:Cr" in r.output, r.output
+    # redefined with the same values: one chroma table
+    same = data[: sos[2]] + dqt_segment((1, ijg_tables(60)[1], 8)) + data[sos[2] :]
+    assert "cr_table" not in parse_header(same, "same.jpg").manifest_state()
 
 
 # ---------------------------------------------------------------------------------------------------------
