@@ -130,6 +130,15 @@ def _fail(name: str, what: str) -> JsgsError:
     return JsgsError(f"{name}: {what}")
 
 
+def _undefined_table(name: str, c: Component, sos_at: int) -> JsgsError:
+    """A component whose table id has no table when its first scan (SOS at ``sos_at``) begins."""
+    return _fail(
+        name,
+        f"component {c.name} uses quantization table {c.table}, which is not defined before its first scan "
+        f"(SOS at offset {sos_at})",
+    )
+
+
 def _not_jpeg(name: str, head: bytes) -> JsgsError:
     kinds = {
         b"\x89PNG": "a PNG image",
@@ -431,7 +440,7 @@ def _finish(r: _Reader, st: ParseState, sos: bytes, sos_at: int) -> JpegHeader:
     relatched: dict[int, QuantTable] = {}
     if not lossless and len(first_scan) < nf:
         tables, relatched = _follow_scans(r, st, components, first_scan, sos_at)
-    quality = None if lossless else _quality(name, tables, warnings, components, precision, relatched)
+    quality = None if lossless else _quality(name, tables, warnings, components, precision, relatched, sos_at)
     return JpegHeader(
         path=name,
         file_size=r.size,
@@ -533,11 +542,7 @@ def _follow_scans(
         for i, c in enumerate(components):
             if c.id in scan_ids and i not in latched:
                 if c.table not in tables:
-                    raise _fail(
-                        name,
-                        f"component {c.name} uses quantization table {c.table}, which is not defined before "
-                        f"its first scan (SOS at offset {at})",
-                    )
+                    raise _undefined_table(name, c, at)
                 latched[i] = tables[c.table]  # type: ignore[index]
 
     latch(first_scan, sos_at)
@@ -612,10 +617,12 @@ def _quality(
     components: list[Component],
     precision: int,
     relatched: dict[int, QuantTable],
+    sos_at: int,
 ) -> QualityEstimate:
     """The quality estimate of a DCT frame from its luma (and chroma) tables, which must all be defined
-    (``relatched``: component index -> its table where it is not ``tables``' of its id); a warning for 16-bit
-    tables with 8-bit samples."""
+    (``relatched``: component index -> its table where it is not ``tables``' of its id; ``sos_at``: the
+    first scan's offset, every component's first where one is not defined); a warning for 16-bit tables
+    with 8-bit samples."""
     if not tables:
         raise _fail(
             name,
@@ -624,11 +631,7 @@ def _quality(
         )
     for c in components:
         if c.table not in tables:
-            raise _fail(
-                name,
-                f"component {c.name} uses quantization table {c.table}, which is not defined before "
-                "the first scan",
-            )
+            raise _undefined_table(name, c, sos_at)
     own = [relatched.get(i) or tables[c.table] for i, c in enumerate(components[:2])]  # type: ignore[index]
     quality = quality_of(own[0].values, own[1].values if len(own) == 2 else None)
     if precision == 8 and any(t.precision == 16 for t in [*tables.values(), *relatched.values()]):
