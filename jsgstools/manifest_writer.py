@@ -8,9 +8,9 @@ removed.
 Per view: the image path relative to the manifest's folder, the split, the camera scaled to the image file
 (COLMAP pixel convention, distortion parameters as COLMAP orders them), world-to-camera R and t (OpenCV axes:
 ``x_cam = R @ x_world + t``), the JPEG state read from the file header by :mod:`jsgstools.dqt` with the
-digest of that header (``header_sha256``; null for lossless images) and the lossless reference
-``SCENE/reference/<stem>.png`` when it exists. Per scene: points3D
-(xyz, RGB 0..255) and provenance. The document is validated against the schema before it is written
+digest of that header (``header_sha256`` and its ``header_digest_scheme``; null for lossless images) and the
+lossless reference ``SCENE/reference/<stem>.png`` when it exists. Per scene: points3D (xyz, RGB 0..255) and
+provenance. The document is validated against the schema before it is written
 (atomically).
 """
 
@@ -95,11 +95,12 @@ def jpeg_state(view: ColmapView, analyze: bool = False) -> dict[str, Any] | None
 def jpeg_file_state(path: str | Path, analyze: bool = False) -> dict[str, Any]:
     """The manifest's ``jpeg`` object of the JPEG file ``path`` (:func:`jpeg_state`), with the digest of its
     header (:mod:`jsgs.jpeg.header_digest`) by which the trainer tells a file changed since."""
-    from jsgs.jpeg.header_digest import header_digest
+    from jsgs.jpeg.header_digest import SCHEME, header_digest
     from jsgstools.dqt import read_header
 
     state = read_header(path).manifest_state()
-    state["header_sha256"] = header_digest(path)
+    state["header_sha256"] = header_digest(path, SCHEME)
+    state["header_digest_scheme"] = SCHEME
     if analyze:
         from jsgstools.dqt.analysis import analyze_file
 

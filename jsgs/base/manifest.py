@@ -51,6 +51,8 @@ class JpegState:
     #: SHA-256 of the file's decoding header segments (jsgs.jpeg.header_digest) when the manifest was
     #: written; None in manifests written before it was recorded
     header_sha256: str | None = None
+    #: the digest's scheme (jsgs.jpeg.header_digest.SCHEMES): 1 where the manifest records none
+    header_digest_scheme: int = 1
     #: Cr's own table (8, 8) int32 when the file quantizes Cr with another table than Cb, else None
     cr_table: np.ndarray | None = None
 
@@ -229,6 +231,7 @@ def _jpeg(d: dict[str, Any] | None) -> JpegState | None:
         frame=d.get("frame"),
         color_space=d.get("color_space"),
         header_sha256=d.get("header_sha256"),
+        header_digest_scheme=int(d.get("header_digest_scheme", 1)),
         cr_table=None if d.get("cr_table") is None else np.asarray(d["cr_table"], dtype=np.int32),
         **_analysis(d.get("analysis")),
     )

@@ -309,8 +309,9 @@ def _points_near_cameras(
 def _check_jpeg_headers(views: Sequence[ManifestView], where: str) -> list[str]:
     """The JPEG state the trainer uses is the manifest's: refuse (one line naming the file) a JPEG whose
     header is no longer the one the manifest recorded (``jpeg.header_sha256``;
-    :mod:`jsgs.jpeg.header_digest`). A manifest that records no digests (written before they existed)
-    trains unchecked: returns a note."""
+    :mod:`jsgs.jpeg.header_digest`), each made again with the scheme the manifest records (1 where it records
+    none). A manifest that records no digests (written before they existed) trains unchecked: returns a
+    note."""
     from jsgs.jpeg.header_digest import header_digest
 
     jpegs = [v for v in views if v.jpeg is not None]
@@ -319,7 +320,7 @@ def _check_jpeg_headers(views: Sequence[ManifestView], where: str) -> list[str]:
         assert v.jpeg is not None
         if v.jpeg.header_sha256 is None:
             unchecked += 1
-        elif header_digest(v.image) != v.jpeg.header_sha256:
+        elif header_digest(v.image, v.jpeg.header_digest_scheme) != v.jpeg.header_sha256:
             raise JsgsError(
                 f"{v.image}: changed since {where} was written (its JPEG header, i.e. tables, sampling or "
                 f"frame, is not the one recorded for view {v.name!r}); write the manifest again (jsgstools "
