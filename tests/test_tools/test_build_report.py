@@ -226,3 +226,81 @@ def test_a_run_gathered_again_keeps_no_views_of_the_baselines(tmp_path: Path) ->
         if bench is only_jsgs:
             assert runs[gsplat] == base_runs[gsplat]
         assert runs[jsgs] != base_runs[jsgs]  # the gather's
+
+
+def _config(run: Path, cap: int) -> None:
+    """A config.json in the run folder ``run`` (its settings name ``cap``)."""
+    doc = {"settings": {"strategy": {"cap_max": cap}}, "versions": {}, "command": "x"}
+    (run / "config.json").write_text(json.dumps(doc))
+
+
+def test_replaced_runs_without_a_config_drop_their_old_settings(tmp_path: Path) -> None:
+    """A gather that replaces runs whose config.json is missing or not readable: configs.json no longer
+    holds the replaced runs' old settings (those runs have none), and the report still builds."""
+    target, first, second = tmp_path / "op", tmp_path / "b1", tmp_path / "b2"
+    _views_bench(first, "a", 1.0)
+    _views_bench(second, "a", -1.0)
+    gsplat, jsgs = (br.run_key(_row("a", "gaussian", m, 0, 0.2)) for m in ("gsplat", "jsgs"))
+    for run in (first / "runs").glob("*/*/*/*/*"):
+        _config(run, 1)
+    br.main(target, [first])
+    assert sorted(json.loads((target / "configs.json").read_text())) == [gsplat, jsgs]
+    _config(second / "runs" / jsgs, 2)
+    br.main(target, [second])  # gsplat's run brought again without a config.json
+    configs = json.loads((target / "configs.json").read_text())
+    assert sorted(configs) == [jsgs] and configs[jsgs]["settings"]["strategy"]["cap_max"] == 2
+    third = tmp_path / "b3"
+    _views_bench(third, "a", 0.5)
+    (third / "runs" / jsgs / "config.json").write_text("{")  # not readable
+    br.main(target, [third])
+    assert json.loads((target / "configs.json").read_text()) == {}
+    assert sorted(r["method"] for r in read_csv(target / "results.csv")) == ["gsplat", "jsgs"]
+    assert (target / "report.md").is_file()
+
+
+def test_a_run_gathered_again_keeps_no_settings_of_the_baselines(tmp_path: Path) -> None:
+    """--baseline: the base's settings come with the runs taken from it; a run the gather brings again has
+    its gather's settings alone, none where it brings no readable config.json (not the base's old ones)."""
+    base, first, again = tmp_path / "default", tmp_path / "b1", tmp_path / "b2"
+    _views_bench(first, "a", 1.0)
+    for run in (first / "runs").glob("*/*/*/*/*"):
+        _config(run, 1)
+    br.main(base, [first])
+    gsplat, jsgs = (br.run_key(_row("a", "gaussian", m, 0, 0.2)) for m in ("gsplat", "jsgs"))
+    base_cfg = json.loads((base / "configs.json").read_text())
+    assert sorted(base_cfg) == [gsplat, jsgs]
+    _views_bench(again, "a", -1.0)
+    _config(again / "runs" / jsgs, 2)  # gsplat's run brought again without one
+    only_jsgs = tmp_path / "b3"
+    _views_bench(only_jsgs, "a", -1.0)
+    _config(only_jsgs / "runs" / jsgs, 2)
+    write_csv([r for r in read_csv(only_jsgs / "results.csv") if r["method"] == "jsgs"],
+              only_jsgs / "results.csv")  # fmt: skip
+    for target, bench in ((tmp_path / "t1", only_jsgs), (tmp_path / "t2", again)):
+        br.main(target, [bench], None, base)
+        assert sorted(r["method"] for r in read_csv(target / "results.csv")) == ["gsplat", "jsgs"]
+        configs = json.loads((target / "configs.json").read_text())
+        assert sorted(configs) == ([gsplat, jsgs] if bench is only_jsgs else [jsgs])
+        if bench is only_jsgs:
+            assert configs[gsplat] == base_cfg[gsplat]
+        assert configs[jsgs]["settings"]["strategy"]["cap_max"] == 2  # the gather's
+
+
+def test_auto_runs_without_settings_are_named(tmp_path: Path) -> None:
+    """A folder of auto budgets where some runs have no config.json: the header names what it knows from
+    the others, says so, and lists the runs without recorded settings instead of leaving them out."""
+    caps = {("gsplat", "auto"): (184000, 30), ("jsgs", "auto"): (184000, 30)}
+    rows = [_auto_row(m, s, 184000) for m in ("gsplat", "jsgs") for s in (0, 1)]
+    _bench(tmp_path / "new", rows, caps)
+    missing = [br.run_key(_auto_row(m, 1, 184000)) for m in ("gsplat", "jsgs")]
+    for run in missing:
+        (tmp_path / "new" / "runs" / run / "config.json").unlink()
+    br.main(tmp_path / "op", [tmp_path / "new"])
+    report = (tmp_path / "op" / "report.md").read_text()
+    rule = "a 184,000 Gaussians, the rule's choice at 30 training pixels per Gaussian (not recorded for every"
+    assert rule in report
+    assert "Controller in its 1 runs with settings recorded: gc_every 4 in 1 (budgets auto)." in report
+    listed = f"Runs without recorded settings (no readable config.json): {', '.join(sorted(missing))}."
+    assert listed in report and "of every run but those named below in configs.json" in report
+    assert sorted(json.loads((tmp_path / "op" / "configs.json").read_text())) == sorted(
+        br.run_key(r) for r in rows if br.run_key(r) not in missing)  # fmt: skip

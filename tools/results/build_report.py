@@ -9,10 +9,12 @@ A bench folder (``jsgs bench --out``, or the contents of a ``$OUT/*.tgz`` of ``t
 or ``double.sh``) contributes its results.csv rows and its runs' config.json (into ``configs.json``: settings,
 versions, command and, for the scene-sized budget, ``derived.budget``, the rule's inputs and choice) and
 their metrics.json's per-view metrics (into ``views.json``, for report.md's "Per test view"); its runs replace
-the rows, settings and views of the same scene, schedule, method, budget and seed. Where results.csv holds
-``auto`` rows, report.md's header names what ``auto`` was per scene and JSGS's ``gc_every`` per budget (from
-configs.json), and the auto runs of one scene that trained at different budgets (two versions of the rule)
-stop it with one line: gather those into folders of their own. The tables are computed
+the rows, settings and views of the same scene, schedule, method, budget and seed (a run brought again has
+its folder's settings and views alone, none where its folder has none: report.md's header lists the runs
+without a readable config.json). Where results.csv holds ``auto`` rows, report.md's header names what
+``auto`` was per scene and JSGS's ``gc_every`` per budget (from configs.json), and the auto runs of one scene
+that trained at different budgets (two versions of the rule) stop it with one line: gather those into
+folders of their own. The tables are computed
 at the last step (10,000), or at ``--step N`` (for runs that all stopped earlier); runs that stopped before
 it are listed as such; ``--step auto`` compares each scene, at each budget, at the last evaluation every
 one of its runs reached (:func:`jsgs.bench.budget.common_steps`).
@@ -22,8 +24,8 @@ one of its runs reached (:func:`jsgs.bench.budget.common_steps`).
 
 ``--baseline FOLDER`` also copies, from another results folder, the runs that are not JSGS (gsplat, and the
 clean runs of every scene and budget concerned) for the cells the bench folders bring, with their settings
-and per-view metrics (a run the bench folders bring again has theirs alone): a folder of JSGS runs of one
-recipe then holds its own comparison (what ``blockiness/`` and ``levers/`` hold).
+and per-view metrics (a run the bench folders bring again has their settings and views alone): a folder of
+JSGS runs of one recipe then holds its own comparison (what ``blockiness/`` and ``levers/`` hold).
 
     .venv/bin/python tools/results/build_report.py --step auto --baseline docs/results/budget/default \
         docs/results/budget/blockiness/b0.5 .res/cb5 .res/lb5
@@ -78,6 +80,19 @@ def run_config(doc: dict) -> dict:
     return out
 
 
+def read_configs(runs_dir: Path) -> dict[str, dict]:
+    """configs.json's entry (:func:`run_config`) of every equal-budget run under ``runs_dir`` (``runs/``), by
+    run key; a config.json that cannot be read is left out (that run has no settings), as
+    :func:`jsgs.bench.per_view.read_runs` leaves out a metrics.json."""
+    out: dict[str, dict] = {}
+    for p in sorted(runs_dir.glob("*/*/*/mcmc-*/s*/config.json")):
+        try:
+            out[p.parent.relative_to(runs_dir).as_posix()] = run_config(json.loads(p.read_text()))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
+            continue
+    return out
+
+
 def _gc_every(settings: dict) -> int:
     """JSGS's ``gc_every`` in a run's settings (not recorded: the options' default)."""
     default = {f.name: f.default for f in dataclasses.fields(JsgsOptions)}["gc_every"]
@@ -92,16 +107,23 @@ def _budgets(budgets: set[str]) -> str:
 
 def auto_notes(rows: list[dict], configs: dict) -> list[str]:
     """Header lines saying what the ``auto`` budget was per scene (the rule's choice and its pixels per
-    Gaussian, from configs.json) and JSGS's ``gc_every`` per budget; none without ``auto`` rows. SystemExit
-    (one line) where one scene's auto runs trained at different budgets."""
+    Gaussian, from configs.json) and JSGS's ``gc_every`` per budget, of the runs of ``rows`` with settings in
+    ``configs``; none without ``auto`` rows. SystemExit (one line) where one scene's auto runs trained at
+    different budgets."""
     auto_scenes = {r["scene"] for r in rows if str(r["budget"]) == "auto"}
     if not auto_scenes:
         return []
     caps: dict[str, set[int]] = defaultdict(set)
     ppg: set[int | None] = set()
     gc: dict[int, list[str]] = defaultdict(list)  # gc_every -> the budget of each JSGS run
-    for run, c in configs.items():
+    runs = {run_key(r) for r in rows}
+    for run in runs:
         scene, _, method, budget, _ = run.split("/")
+        c = configs.get(run)
+        if c is None:  # no settings: for an auto run, its rule's inputs not recorded either
+            if budget == "mcmc-auto":
+                ppg.add(None)
+            continue
         if method == "jsgs":
             gc[_gc_every(c["settings"])].append(budget.removeprefix("mcmc-"))
         if budget == "mcmc-auto" and scene in auto_scenes:
@@ -127,7 +149,8 @@ def auto_notes(rows: list[dict], configs: dict) -> list[str]:
         parts = "; ".join(
             f"gc_every {k} in {len(v)} (budgets {_budgets(set(v))})" for k, v in sorted(gc.items())
         )
-        lines.append(f"JSGS's Gaussian Controller in its {n} runs: {parts}.")
+        recorded = "" if runs <= configs.keys() else " with settings recorded"
+        lines.append(f"JSGS's Gaussian Controller in its {n} runs{recorded}: {parts}.")
     return lines
 
 
@@ -151,37 +174,49 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
         new = [r for r in budget_csv(f / "results.csv") if r["strategy"] == "mcmc"]
         done = {key(r) for r in new}
         rows = [r for r in rows if key(r) not in done] + new
+        # a run brought again has its folder's settings and views alone (none where it has none)
         replaced = {run_key(r) for r in new}
         views = {k: v for k, v in views.items() if k not in replaced}
         views.update(per_view.read_runs(f / "runs"))
-        for c in sorted(f.glob("runs/*/*/*/mcmc-*/s*/config.json")):
-            doc = json.loads(c.read_text())
-            run = str(c.parent.relative_to(f / "runs"))
-            configs[run] = run_config(doc)
+        configs = {k: v for k, v in configs.items() if k not in replaced}
+        configs.update(read_configs(f / "runs"))
     if base is not None:
         cells = {(r["scene"], r["schedule"], str(r["budget"])) for r in rows if r["method"] == "jsgs"}
         extra, extra_cfg = baseline(base, cells)
         have = {key(r) for r in rows}
         taken = [r for r in extra if key(r) not in have]
         rows += taken
-        configs = {**extra_cfg, **configs}
-        # the base's views of the runs taken from it alone: a run gathered again has only its gather's
+        # the base's settings and views of the runs taken from it alone: a run gathered again has only its
+        # gather's
         from_base = {run_key(r) for r in taken}
+        configs.update({k: v for k, v in extra_cfg.items() if k in from_base})
         views.update({k: v for k, v in per_view.load(base).items() if k in from_base})
     rows.sort(key=lambda r: (*key(r), int(r["step"])))
+    kept = {run_key(r) for r in rows}
+    configs = {k: v for k, v in configs.items() if k in kept}
     notes = auto_notes(rows, configs)  # before anything is written: it may refuse
     target.mkdir(parents=True, exist_ok=True)
     write_csv(rows, csv)
     write_bytes_atomic(cfg, (json.dumps(dict(sorted(configs.items())), indent=1) + "\n").encode())
-    kept = {run_key(r) for r in rows}
     views = {k: v for k, v in views.items() if k in kept}
     if views or (target / per_view.VIEWS_FILE).is_file():  # an earlier gather's, replaced even by none
         per_view.write_file(target / per_view.VIEWS_FILE, views)
+    unrecorded = sorted(kept - configs.keys())
+    settings = (
+        "the settings and versions of every run but those named below"
+        if unrecorded
+        else "every run's settings and versions"
+    )
     header = [
         f"Every equal-budget run of `{target.name}` (`jsgs bench --strategy mcmc`), gathered from the GPU "
-        "calls that ran them by `tools/results/build_report.py`; every run's settings and versions in "
-        "configs.json, every evaluation in results.csv.",
+        f"calls that ran them by `tools/results/build_report.py`; {settings} in configs.json, every "
+        "evaluation in results.csv.",
         *(["", *notes] if notes else []),
+        *(
+            [f"Runs without recorded settings (no readable config.json): {', '.join(unrecorded)}."]
+            if unrecorded
+            else []
+        ),
     ]
     at: int | dict[tuple[str, int], int] | None = common_steps(rows) if step == "auto" else None
     if isinstance(step, int):
