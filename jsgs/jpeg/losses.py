@@ -51,7 +51,8 @@ class _MeanAbsDifference(torch.autograd.Function):
 
 def photometric_terms(
     x: Tensor, y: Tensor, lambda_ssim: float = LAMBDA_SSIM, reduction: str = "mean",
-    padding: str = SSIM_PADDING, ssim_kernel: str = "auto", channels_last: bool = False,
+    padding: str = SSIM_PADDING, ssim_kernel: str = "auto", channels_last: bool = False, *,
+    ssim_fused: bool | None = None,
 ) -> PhotometricTerms:
     """``l_ph(X, Y) = (1 - lambda) ||X - Y||_1 / (3HW) + lambda (1 - SSIM(X, Y))`` (eq. photometric) with its
     two parts: the one l_ph of the project (the trainer's baseline term and JSGS's L_obs).
@@ -66,12 +67,16 @@ def photometric_terms(
             (gsplat's training loss, the trainer's default ``loss.ssim_padding``).
         ssim_kernel: the SSIM implementation, "auto", "torch" or "cuda" (:mod:`jsgs.kernels`; same value).
         channels_last: x and y are ``(B, H, W, 3)``.
+        ssim_fused: the SSIM kernel's pick where the caller has made it: :func:`jsgs.kernels.ssim_is_fused`'s
+            answer for ``x``, ``y`` (``(B, 3, H, W)``) and ``ssim_kernel``, or for tensors of their dtypes,
+            shapes, device and ``requires_grad``; None: picked here (or by ``ssim``).
     Returns:
         The loss and its parts (unitless).
     """
-    fused = None  # the SSIM kernel's pick, where made here: passed to ssim, not made there again
+    # the SSIM kernel's pick, the caller's or made here: passed to ssim, not made there again
+    fused = ssim_fused
     if reduction == "mean" and x.shape == y.shape:
-        if not channels_last and x.is_contiguous():
+        if fused is None and not channels_last and x.is_contiguous():
             fused = ssim_is_fused(x, y, ssim_kernel)
         if fused:
             # the fused SSIM keeps a contiguous copy of y for its backward, L1 keeps y: one copy for both
@@ -91,10 +96,10 @@ def photometric_terms(
 
 def photometric_loss(
     x: Tensor, y: Tensor, lambda_ssim: float = LAMBDA_SSIM, reduction: str = "mean",
-    padding: str = SSIM_PADDING, ssim_kernel: str = "auto",
+    padding: str = SSIM_PADDING, ssim_kernel: str = "auto", *, ssim_fused: bool | None = None,
 ) -> Tensor:
     """l_ph alone: ``photometric_terms(...).loss`` (same arguments)."""
-    return photometric_terms(x, y, lambda_ssim, reduction, padding, ssim_kernel).loss
+    return photometric_terms(x, y, lambda_ssim, reduction, padding, ssim_kernel, ssim_fused=ssim_fused).loss
 
 
 class ObservationLoss(NamedTuple):

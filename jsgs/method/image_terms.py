@@ -44,6 +44,7 @@ def jpeg_terms(
     ssim_lambda: float,
     ssim_padding: str,
     ssim_kernel: str = "auto",
+    ssim_fused: bool | None = None,
     jo_kernel: str = "torch",
     color_kernel: str = "torch",
     ds: bool,
@@ -66,7 +67,8 @@ def jpeg_terms(
         luma, chroma: ``(8, 8)`` the view's tables. The settings: as
             :class:`jsgs.method.options.JsgsOptions`; ``jo_kernel``: JO's and DS's ``kernel`` ("torch" or
             "triton": :func:`jsgs.jpeg.observe.jpeg_observe`, :func:`jsgs.jpeg.supervision.dct_supervision`);
-            ``color_kernel``: JO's ``color_kernel`` ("torch" or "triton").
+            ``color_kernel``: JO's ``color_kernel`` ("torch" or "triton"); ``ssim_fused``: L_obs's SSIM
+            kernel where the caller has picked it (``photometric``'s ``ssim_fused``; None: L_obs picks).
         observe, photometric, supervise: the three functions (the hook passes torch.compile'd ones);
         phase: a profiler's ``phase(name)`` context ("jo" around JO and L_obs, "ds" around DS);
         first: ``(2, 8, 8)`` effective tables of a view compressed twice: JO quantizes with them first, then
@@ -84,7 +86,9 @@ def jpeg_terms(
         if first is not None:
             x = observe(x, first[0], first[1], sampling, mode, **kernels)
         obs = observe(x, luma, chroma, sampling, mode, **kernels)
-        l_obs = photometric(obs, y, ssim_lambda, padding=ssim_padding, ssim_kernel=ssim_kernel)
+        # the pick passed only where made: photometric functions without that argument (tests') still work
+        fused = {} if ssim_fused is None else {"ssim_fused": ssim_fused}
+        l_obs = photometric(obs, y, ssim_lambda, padding=ssim_padding, ssim_kernel=ssim_kernel, **fused)
     if not (ds or gc):
         return obs, l_obs, None
     with phase("ds"):
@@ -157,7 +161,11 @@ def terms_with_gradient(
         y = y.index_select(0, y_index)[0]
     if y.dtype == torch.uint8:
         y = image_target(y).permute(0, 3, 1, 2)
-        if ssim_is_fused(x, y, settings.get("ssim_kernel", "auto")):
+        # L_obs's SSIM kernel, picked once: the observation has the render's dtype, shape and device, so the
+        # pick on the render is L_obs's, handed to it rather than made there again
+        fused = ssim_is_fused(x, y, settings.get("ssim_kernel", "auto"))
+        settings = {**settings, "ssim_fused": fused}
+        if fused:
             # laid out as the fused SSIM keeps it (L_obs's L1 keeps that copy too, DS reads it as it lies):
             # the one copy of the target, not a second beside it through the forward
             y = y.contiguous()

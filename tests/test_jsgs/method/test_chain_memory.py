@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from jsgs.jpeg import losses as losses_module
-from jsgs.jpeg.losses import _MeanAbsDifference, photometric_terms
+from jsgs.jpeg.losses import _MeanAbsDifference, photometric_loss, photometric_terms
 from jsgs.jpeg.observe import _Clamp255, jpeg_observe
 from jsgs.jpeg.sampling import replicate_pad
 from jsgs.kernels import ssim
@@ -234,9 +234,11 @@ def test_with_block_scores_ds_makes_no_score_map_and_the_fused_ssims_target_is_t
 ) -> None:
     """``r_blocks``: DS is asked for r_b alone (no r(p), 8 B a pixel of temporaries at the forward's end);
     where the fused SSIM runs (stood in: ``ssim_is_fused`` true) the target made from the image is laid out
-    as that kernel keeps it, the one copy L1, the SSIM and DS read. The same values and gradient."""
+    as that kernel keeps it, the one copy L1, the SSIM and DS read, and the pick is handed to L_obs. The same
+    values and gradient."""
     asked: list[bool] = []
     layouts: list[bool] = []
+    handed: list[bool | None] = []
     real_supervise = image_terms_module.dct_supervision
 
     def supervise(*args: Any, **kwargs: Any) -> Any:
@@ -247,7 +249,9 @@ def test_with_block_scores_ds_makes_no_score_map_and_the_fused_ssims_target_is_t
 
     def photometric(obs: torch.Tensor, y: torch.Tensor, lam: float, **kw: Any) -> torch.Tensor:
         layouts.append(y.is_contiguous())
-        return photometric_terms(obs, y, lam, **kw).loss
+        handed.append(kw.get("ssim_fused"))
+        # the torch twin stands in for the fused SSIM (its values up to rounding, here bit for bit)
+        return photometric_terms(obs, y, lam, **{**kw, "ssim_fused": False}).loss
 
     g = torch.Generator().manual_seed(8)
     image = (torch.rand(40, 56, 3, generator=g) * 255).to(torch.uint8)
@@ -258,7 +262,40 @@ def test_with_block_scores_ds_makes_no_score_map_and_the_fused_ssims_target_is_t
                   photometric=photometric)  # fmt: skip
     for a, b in zip(plain[:3], lean[:3], strict=True):
         assert torch.equal(_bits(a), _bits(b))
-    assert asked == [False] and layouts == [True]
+    assert asked == [False] and layouts == [True] and handed == [True]
+
+
+@pytest.mark.parametrize("ssim_kernel", ["auto", "torch"])
+def test_a_uint8_targets_ssim_kernel_is_picked_once_and_handed_to_l_obs(
+    monkeypatch: Any, ssim_kernel: str
+) -> None:
+    """For a uint8 target the chain picks the SSIM kernel once (where it lays the target out for the fused
+    SSIM) and hands the pick to L_obs (``photometric_loss``'s ``ssim_fused``, then ``ssim``'s ``fused``):
+    the pick the loss would make on the observation; the values, gradient, r_b and observation those of
+    the same target given as floats (for which the loss picks), bit for bit."""
+    from jsgs.kernels import _wrapper
+
+    calls: list[tuple[int, ...]] = []
+    real = _wrapper._use_fused
+    monkeypatch.setattr(_wrapper, "_use_fused", lambda x, *a: calls.append(tuple(x.shape)) or real(x, *a))
+    handed: list[tuple[bool | None, bool]] = []
+
+    def photometric(obs: torch.Tensor, y: torch.Tensor, lam: float, **kw: Any) -> torch.Tensor:
+        handed.append((kw.get("ssim_fused"), real(obs, y, kw["ssim_kernel"], 11)))
+        return photometric_loss(obs, y, lam, **kw)
+
+    g = torch.Generator().manual_seed(10)
+    image = (torch.rand(40, 56, 3, generator=g) * 255).to(torch.uint8)
+    x = torch.rand(1, 3, 40, 56, generator=g)
+    got = _chain(x.clone().requires_grad_(True), image, r_blocks=True, ssim_kernel=ssim_kernel,
+                 photometric=photometric)  # fmt: skip
+    assert calls == [(1, 3, 40, 56)] and handed == [(False, False)]
+    calls.clear()
+    target = image_target(image).permute(0, 3, 1, 2)
+    want = _chain(x.clone().requires_grad_(True), target, r_blocks=True, ssim_kernel=ssim_kernel)
+    assert calls == [(1, 3, 40, 56)]  # the loss's own pick
+    for a, b in zip(got, want, strict=True):
+        assert torch.equal(_bits(a), _bits(b))
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
