@@ -1,12 +1,17 @@
 """tools/results/build_report.py: the results folders rebuild byte for byte; --baseline: a folder of
 one recipe's JSGS runs gets the other folder's gsplat runs of the same cells and the clean runs of the same
 scenes and budgets, with their settings, and nothing else; a folder of scene-sized (auto) budgets names
-what auto was and JSGS's gc_every, and refuses the auto runs of two rules."""
+what auto was and JSGS's gc_every, and refuses the auto runs of two rules; configs.json against
+jsgs/schemas/configs.schema.json: the committed ones, freshly written ones, and broken ones refused in one
+line naming the file."""
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -15,6 +20,25 @@ from conftest import load_benchmark
 from jsgs.bench.results import read_csv, write_csv
 
 br = load_benchmark("build_report", "tools/results")
+ROOT = Path(__file__).resolve().parents[2]
+#: committed configs.json entries, the templates of the runs' config.json here (complete, valid settings)
+_TEMPLATES = json.loads((ROOT / "docs" / "results" / "operating_point" / "configs.json").read_text())
+
+
+def _run_doc(method: str, cap: int, opts: dict | None = None, ppg: int | None = None) -> dict:
+    """A run's config.json as build_report reads it: a committed run's settings, versions and command with
+    ``method`` (gsplat, else a JSGS variant with method options ``opts``) and the budget ``cap``; for an auto
+    run (``ppg``: the rule's pixels per Gaussian) a committed ``derived.budget`` choosing ``cap``."""
+    trained = "gsplat" if method == "gsplat" else "jsgs"
+    tpl = next(v for _, v in sorted(_TEMPLATES.items()) if v["settings"]["method"] == trained)
+    doc = copy.deepcopy({k: tpl[k] for k in ("settings", "versions", "command")})
+    doc["settings"]["strategy"]["cap_max"] = cap
+    if trained == "jsgs":
+        doc["settings"]["method_options"] = dict(opts or {})
+    if ppg is not None:
+        rule = next(v["derived"]["budget"] for _, v in sorted(_TEMPLATES.items()) if "derived" in v)
+        doc["derived"] = {"budget": {**rule, "cap_max": cap, "pixels_per_gaussian": ppg}}
+    return doc
 
 
 def _row(scene: str, schedule: str, method: str, seed: int, lpips: float, budget: int = 100000) -> dict:
@@ -33,7 +57,7 @@ def test_baseline_brings_the_cells_gsplat_and_clean_runs(tmp_path: Path) -> None
     rows += [_row(sc, "clean", "gsplat", s, 0.1) for sc in ("a", "b") for s in (0, 1)]
     rows += [_row("a", "uniform", "gsplat", 0, 0.3, budget=300000)]  # another budget: not brought
     write_csv(rows, base / "results.csv")
-    (base / "configs.json").write_text(json.dumps({br.run_key(r): {"settings": {"k": br.run_key(r)}}
+    (base / "configs.json").write_text(json.dumps({br.run_key(r): _run_doc(r["method"], r["budget"])
                                                    for r in rows}))  # fmt: skip
     # the bench trained one recipe on scene a, uniform, seeds 0-1
     write_csv([_row("a", "uniform", "jsgs", s, 0.15) for s in (0, 1)], bench / "results.csv")
@@ -58,10 +82,8 @@ def _bench(folder: Path, rows: list[dict], caps: dict[tuple[str, str], tuple[int
     for r in rows:
         cap, ppg = caps[(r["method"], str(r["budget"]))]
         opts = {"gc_every": 4} if r["method"] == "jsgs" and r["budget"] == "auto" else {}
-        settings = {"strategy": {"cap_max": cap}, "method_options": opts}
-        doc = {"settings": settings, "versions": {}, "command": "x", "derived": {"device": "cuda"}}
-        if ppg is not None:
-            doc["derived"]["budget"] = {"cap_max": cap, "pixels_per_gaussian": ppg}
+        doc = _run_doc(r["method"], cap, opts, ppg)
+        doc["derived"] = {"device": "cuda", **doc.get("derived", {})}  # configs.json keeps budget alone
         run = folder / "runs" / br.run_key(r)
         run.mkdir(parents=True, exist_ok=True)
         (run / "config.json").write_text(json.dumps(doc))
@@ -72,6 +94,8 @@ def _auto_row(method: str, seed: int, cap: int) -> dict:
 
 
 def test_auto_budgets_are_named_and_two_rules_refused(tmp_path: Path) -> None:
+    from jsgs.base.schema import validate
+
     target = tmp_path / "op"
     new = {
         ("gsplat", "auto"): (184000, 30),
@@ -89,8 +113,10 @@ def test_auto_budgets_are_named_and_two_rules_refused(tmp_path: Path) -> None:
     gc = "Controller in its 3 runs: gc_every 1 in 1 (budgets 100,000); gc_every 4 in 2 (budgets auto)."
     assert gc in report
     configs = json.loads((target / "configs.json").read_text())
+    validate(configs, "configs", "configs.json")
     recorded = configs["a/gaussian/jsgs/mcmc-auto/s0"]["derived"]
-    assert recorded == {"budget": {"cap_max": 184000, "pixels_per_gaussian": 30}}
+    assert recorded == {"budget": _run_doc("jsgs", 184000, ppg=30)["derived"]["budget"]}
+    assert recorded["budget"]["cap_max"] == 184000 and recorded["budget"]["pixels_per_gaussian"] == 30
     assert "derived" not in configs["a/gaussian/jsgs/mcmc-100000/s1"]
     # seed 2 trained under another rule (552,000 for the same scene): refused, the folder left as it was
     before = {p.name: p.read_bytes() for p in target.iterdir() if p.is_file()}
@@ -229,9 +255,9 @@ def test_a_run_gathered_again_keeps_no_views_of_the_baselines(tmp_path: Path) ->
 
 
 def _config(run: Path, cap: int) -> None:
-    """A config.json in the run folder ``run`` (its settings name ``cap``)."""
-    doc = {"settings": {"strategy": {"cap_max": cap}}, "versions": {}, "command": "x"}
-    (run / "config.json").write_text(json.dumps(doc))
+    """A config.json in the run folder ``run`` (``runs/<scene>/<schedule>/<method>/...``; its settings name
+    ``cap``)."""
+    (run / "config.json").write_text(json.dumps(_run_doc(run.parts[-3], cap)))
 
 
 def test_replaced_runs_without_a_config_drop_their_old_settings(tmp_path: Path) -> None:
@@ -304,3 +330,90 @@ def test_auto_runs_without_settings_are_named(tmp_path: Path) -> None:
     assert listed in report and "of every run but those named below in configs.json" in report
     assert sorted(json.loads((tmp_path / "op" / "configs.json").read_text())) == sorted(
         br.run_key(r) for r in rows if br.run_key(r) not in missing)  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------------------
+# configs.json and its schema
+
+
+def test_every_committed_configs_json_is_valid() -> None:
+    """Every configs.json of a results folder build_report.py gathers validates as it is committed; the only
+    others are beside a results.csv it refuses (the first probes' record in docs/results/budget, keyed by
+    run name, from before the bench's strategy and budget columns)."""
+    checked, others = [], []
+    for path in sorted((ROOT / "docs" / "results").glob("**/configs.json")):
+        with (path.parent / "results.csv").open(newline="") as f:
+            columns = next(csv.reader(f))
+        if {"strategy", "budget"} <= set(columns):
+            assert br.read_configs_file(path), path  # raises (one line naming it) where it is not valid
+            checked.append(path)
+        else:
+            with pytest.raises(SystemExit, match="no strategy and budget columns"):
+                br.budget_csv(path.parent / "results.csv")
+            others.append(path.relative_to(ROOT).as_posix())
+    assert len(checked) >= 20 and others == ["docs/results/budget/configs.json"]
+
+
+def _gathered(tmp_path: Path) -> tuple[Path, dict[str, bytes]]:
+    """A results folder gathered from one bench of gsplat and JSGS with their config.json, and its files."""
+    target, bench = tmp_path / "op", tmp_path / "b1"
+    _views_bench(bench, "a", 1.0)
+    for run in (bench / "runs").glob("*/*/*/*/*"):
+        _config(run, 100000)
+    br.main(target, [bench])
+    return target, {p.name: p.read_bytes() for p in target.iterdir() if p.is_file()}
+
+
+def test_configs_json_written_is_valid_and_broken_ones_refused(tmp_path: Path) -> None:
+    """The configs.json a gather writes validates; one that is not JSON, has a key that is not a run key, a
+    setting this version does not know or a run without versions is refused in one line naming it (the
+    schema's references into config.schema.json hold), and nothing in the folder is written."""
+    from jsgs.base.errors import JsgsError
+    from jsgs.base.schema import validate
+
+    target, files = _gathered(tmp_path)
+    good = json.loads(files["configs.json"])
+    validate(good, "configs", "configs.json")
+    assert len(good) == 2
+    run = next(iter(good))
+    broken = {
+        "not JSON": (b'{"a": ', "not JSON: Expecting value"),
+        "not a run key": ({"a/gaussian/gsplat/s0": good[run]}, "does not match"),
+        "unknown setting": ({run: {**good[run], "settings": {**good[run]["settings"], "speedy": True}}},
+                            f"at {run}/settings: Additional properties are not allowed"),
+        "no versions": ({run: {k: v for k, v in good[run].items() if k != "versions"}},
+                        f"at {run}: 'versions' is a required property"),
+    }  # fmt: skip
+    for why, (doc, says) in broken.items():
+        data = doc if isinstance(doc, bytes) else json.dumps(doc).encode()
+        (target / "configs.json").write_bytes(data)
+        (target / "report.md").unlink()
+        with pytest.raises(JsgsError) as e:
+            br.main(target, [])
+        msg = str(e.value)
+        assert msg.startswith(f"{target / 'configs.json'}: ") and says in msg and "\n" not in msg, why
+        assert not (target / "report.md").exists(), why
+        assert (target / "results.csv").read_bytes() == files["results.csv"], why
+        (target / "report.md").write_bytes(files["report.md"])
+
+
+def test_a_runs_config_json_that_is_no_valid_entry_is_named(tmp_path: Path) -> None:
+    """A bench run whose config.json reads but holds a setting this version does not know stops the gather
+    in one line naming that config.json, nothing written; from the command line: that line, exit status 1,
+    no traceback."""
+    target, files = _gathered(tmp_path)
+    bench = tmp_path / "b2"
+    _views_bench(bench, "a", -1.0)
+    runs = sorted((bench / "runs").glob("*/*/*/*/*"))
+    for run in runs:
+        _config(run, 100000)
+    doc = json.loads((runs[0] / "config.json").read_text())
+    doc["settings"]["strategy"]["speedy"] = True
+    (runs[0] / "config.json").write_text(json.dumps(doc))
+    script = ROOT / "tools" / "results" / "build_report.py"
+    r = subprocess.run([sys.executable, str(script), str(target), str(bench)], capture_output=True, text=True)
+    assert r.returncode == 1 and r.stdout == ""
+    err = r.stderr.strip()
+    assert "\n" not in err and err.startswith(f"build_report.py: {runs[0] / 'config.json'} (as an entry of ")
+    assert "settings/strategy: Additional properties are not allowed ('speedy' was unexpected)" in err
+    assert {p.name: p.read_bytes() for p in target.iterdir() if p.is_file()} == files

@@ -14,10 +14,12 @@ its folder's settings and views alone, none where its folder has none: report.md
 without a readable config.json). Where results.csv holds ``auto`` rows, report.md's header names what
 ``auto`` was per scene and JSGS's ``gc_every`` per budget (from configs.json), and the auto runs of one scene
 that trained at different budgets (two versions of the rule) stop it with one line: gather those into
-folders of their own. The tables are computed
-at the last step (10,000), or at ``--step N`` (for runs that all stopped earlier); runs that stopped before
-it are listed as such; ``--step auto`` compares each scene, at each budget, at the last evaluation every
-one of its runs reached (:func:`jsgs.bench.budget.common_steps`).
+folders of their own. configs.json (schema ``jsgs/schemas/configs.schema.json``) is checked when read and
+before it is written: one that is not valid, or a run's config.json that would not be a valid entry, stops
+it with one line naming the file, nothing written. The tables are computed at the last step (10,000), or at
+``--step N`` (for runs that all stopped earlier); runs that stopped before it are listed as such;
+``--step auto`` compares each scene, at each budget, at the last evaluation every one of its runs reached
+(:func:`jsgs.bench.budget.common_steps`).
 
     .venv/bin/python tools/results/build_report.py --step auto docs/results/budget/default \
         .res/b100 .res/captures
@@ -33,6 +35,7 @@ JSGS runs of one recipe then holds its own comparison (what ``blockiness/`` and 
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 import sys
@@ -40,7 +43,9 @@ from collections import defaultdict
 from pathlib import Path
 
 from jsgs.base.errors import JsgsError
-from jsgs.base.io import write_bytes_atomic
+from jsgs.base.io import write_json_atomic
+from jsgs.base.limits import read_json
+from jsgs.base.schema import validate
 from jsgs.bench import per_view
 from jsgs.bench.budget import common_steps
 from jsgs.bench.markdown import write_report
@@ -65,9 +70,22 @@ def baseline(folder: Path, cells: set[tuple[str, str, str]]) -> tuple[list[dict]
             if r["strategy"] == "mcmc" and r["method"] != "jsgs"
             and ((r["scene"], r["schedule"], str(r["budget"])) in cells
                  or (r["schedule"] == "clean" and (r["scene"], str(r["budget"])) in scenes))]  # fmt: skip
-    cfg = folder / "configs.json"
-    known = json.loads(cfg.read_text()) if cfg.is_file() else {}
+    known = read_configs_file(folder / CONFIGS_FILE)
     return rows, {k: known[k] for k in {run_key(r) for r in rows} if k in known}
+
+
+#: the runs' settings of a results folder, schema ``jsgs/schemas/configs.schema.json``
+CONFIGS_FILE = "configs.json"
+
+
+def read_configs_file(path: Path) -> dict[str, dict]:
+    """A results folder's configs.json (none there: no runs); JsgsError (one line naming ``path``) where it is
+    not one."""
+    if not path.is_file():
+        return {}
+    doc = read_json(path, "JSON")
+    validate(doc, "configs", str(path))
+    return doc
 
 
 def run_config(doc: dict) -> dict:
@@ -83,13 +101,17 @@ def run_config(doc: dict) -> dict:
 def read_configs(runs_dir: Path) -> dict[str, dict]:
     """configs.json's entry (:func:`run_config`) of every equal-budget run under ``runs_dir`` (``runs/``), by
     run key; a config.json that cannot be read is left out (that run has no settings), as
-    :func:`jsgs.bench.per_view.read_runs` leaves out a metrics.json."""
+    :func:`jsgs.bench.per_view.read_runs` leaves out a metrics.json. JsgsError (one line naming it) for one
+    that reads but whose entry would not be valid in configs.json (a setting this version does not know)."""
     out: dict[str, dict] = {}
     for p in sorted(runs_dir.glob("*/*/*/mcmc-*/s*/config.json")):
+        run = p.parent.relative_to(runs_dir).as_posix()
         try:
-            out[p.parent.relative_to(runs_dir).as_posix()] = run_config(json.loads(p.read_text()))
+            entry = run_config(json.loads(p.read_text()))
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
             continue
+        validate({run: entry}, "configs", f"{p} (as an entry of configs.json)")
+        out[run] = entry
     return out
 
 
@@ -156,19 +178,21 @@ def auto_notes(rows: list[dict], configs: dict) -> list[str]:
 
 def budget_csv(path: Path) -> list[dict]:
     """``path``'s rows; SystemExit (one line) where it is not an equal-budget bench's results.csv (one made
-    before the ``strategy`` and ``budget`` columns, e.g. ``paper_protocol/``'s DefaultStrategy runs)."""
-    rows = read_csv(path)
-    if rows and not {"strategy", "budget"} <= rows[0].keys():
+    before the ``strategy`` and ``budget`` columns, e.g. ``paper_protocol/``'s DefaultStrategy runs, or a
+    probe's table of other columns, which are not read)."""
+    with path.open(newline="") as f:
+        columns = next(csv.reader(f), None)
+    if columns is not None and not {"strategy", "budget"} <= set(columns):
         sys.exit(f"build_report.py: {path}: no strategy and budget columns; it rebuilds the results of "
                  "`jsgs bench --strategy mcmc` only")  # fmt: skip
-    return rows
+    return read_csv(path)
 
 
 def main(target: Path, folders: list[Path], step: int | str | None = None, base: Path | None = None) -> None:
     csv = target / "results.csv"
     rows = budget_csv(csv) if csv.is_file() else []
-    cfg = target / "configs.json"
-    configs = json.loads(cfg.read_text()) if cfg.is_file() else {}
+    cfg = target / CONFIGS_FILE
+    configs = read_configs_file(cfg)
     views = per_view.load(target)
     for f in folders:
         new = [r for r in budget_csv(f / "results.csv") if r["strategy"] == "mcmc"]
@@ -194,10 +218,12 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
     rows.sort(key=lambda r: (*key(r), int(r["step"])))
     kept = {run_key(r) for r in rows}
     configs = {k: v for k, v in configs.items() if k in kept}
-    notes = auto_notes(rows, configs)  # before anything is written: it may refuse
+    configs = dict(sorted(configs.items()))
+    validate(configs, "configs", str(cfg))  # before anything is written, as is the next
+    notes = auto_notes(rows, configs)  # it may refuse
     target.mkdir(parents=True, exist_ok=True)
     write_csv(rows, csv)
-    write_bytes_atomic(cfg, (json.dumps(dict(sorted(configs.items())), indent=1) + "\n").encode())
+    write_json_atomic(cfg, configs)
     views = {k: v for k, v in views.items() if k in kept}
     if views or (target / per_view.VIEWS_FILE).is_file():  # an earlier gather's, replaced even by none
         per_view.write_file(target / per_view.VIEWS_FILE, views)
