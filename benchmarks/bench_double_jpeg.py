@@ -1,7 +1,8 @@
 """Double JPEG compression: a labelled corpus from the shared clean scenes, and how well
 ``jsgstools.dqt.analysis`` detects it, estimates the primary quality, and how fast it runs.
 
-Corpus (built in memory with Pillow, or written with ``--write DIR``), from ``--per-scene`` PNGs of each
+Corpus (built in memory with Pillow, or written with ``--write DIR``: the JPEGs and ``labels.json``, schema
+``jsgs/schemas/double_jpeg_corpus.schema.json``, each file's truth), from ``--per-scene`` PNGs of each
 clean scene (``../shared/scenes/{llff_flower,llff_fern,custom_kwrous_cup,custom_myhan_mouse}/images``, every
 k-th in name order), in 4:2:0 and 4:4:4:
 
@@ -28,8 +29,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import io  # noqa: E402
-import json  # noqa: E402
 import platform  # noqa: E402
+import shlex  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections import Counter, defaultdict  # noqa: E402
@@ -42,6 +43,8 @@ from PIL import Image  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from jsgs.base.io import write_bytes_atomic, write_json_atomic  # noqa: E402
+from jsgs.base.schema import validate  # noqa: E402
 from jsgstools.dqt.analysis import Analysis, analyze_bytes  # noqa: E402
 from jsgstools.dqt.parser import read_header_from  # noqa: E402
 
@@ -50,6 +53,8 @@ CLEAN_SCENES = ("llff_flower", "llff_fern", "custom_kwrous_cup", "custom_myhan_m
 SUBSAMPLINGS = {"4:2:0": 2, "4:4:4": 0}
 NEG_QUALITIES = tuple(range(10, 100, 5))
 Q1S = tuple(range(20, 90, 10))
+#: labels.json's ``format``
+CORPUS_FORMAT = "jsgs-double-jpeg-corpus"
 
 
 @dataclass
@@ -104,6 +109,33 @@ def corpus(per_scene: int) -> list[Item]:
             size = im.size
         items.append(Item(f"camera/{f.name}", f.read_bytes(), "camera", "4:2:0", None, None, size))
     return items
+
+
+def file_name(item: Item) -> str:
+    """The item's file in a written corpus: its name with ``/`` as ``_``, ending in ``.jpg``."""
+    return item.name.replace("/", "_") + ("" if item.name.lower().endswith(".jpg") else ".jpg")
+
+
+def labels_doc(items: list[Item], per_scene: int, command: str | None) -> dict:
+    """labels.json of a written corpus: the version, command and settings that made it, each file's truth."""
+    import jsgs
+
+    files = [{"file": file_name(it), "scene": it.scene, "subsampling": it.subsampling, "q1": it.q1,
+              "q2": it.q2, "width": it.size[0], "height": it.size[1]} for it in items]  # fmt: skip
+    settings = {"per_scene": per_scene, "encoder": f"Pillow {Image.__version__}, optimize off"}
+    return {"format": CORPUS_FORMAT, "format_version": 1, "version": jsgs.__version__, "command": command,
+            "settings": settings, "files": files}  # fmt: skip
+
+
+def write_corpus(items: list[Item], folder: Path, per_scene: int, command: str | None = None) -> None:
+    """The corpus's JPEGs and labels.json into ``folder``, each file atomically; labels.json is checked
+    against its schema first (JsgsError, one line naming it, and nothing written when it is not valid)."""
+    doc = labels_doc(items, per_scene, command)
+    validate(doc, "double_jpeg_corpus", str(folder / "labels.json"))
+    folder.mkdir(parents=True, exist_ok=True)
+    for it in items:
+        write_bytes_atomic(folder / file_name(it), it.data)
+    write_json_atomic(folder / "labels.json", doc)
 
 
 def analyse(item: Item) -> Analysis:
@@ -164,15 +196,8 @@ def main() -> None:
     t0 = time.perf_counter()
     items = corpus(args.per_scene)
     if args.write:
-        args.write.mkdir(parents=True, exist_ok=True)
-        labels = []
-        for it in items:
-            name = it.name.replace("/", "_") + ("" if it.name.lower().endswith(".jpg") else ".jpg")
-            (args.write / name).write_bytes(it.data)
-            labels.append(
-                {"file": name, "scene": it.scene, "subsampling": it.subsampling, "q1": it.q1, "q2": it.q2}
-            )
-        (args.write / "labels.json").write_text(json.dumps(labels, indent=1) + "\n")
+        command = shlex.join(["python", "benchmarks/bench_double_jpeg.py", *sys.argv[1:]])
+        write_corpus(items, args.write, args.per_scene, command)
     print(f"corpus: {len(items)} files in {time.perf_counter() - t0:.1f} s", flush=True)
 
     results = [(it, analyse(it)) for it in items]
@@ -261,7 +286,7 @@ def main() -> None:
     text = "\n".join(out)
     print(text)
     if args.md:
-        args.md.write_text(text + "\n")
+        write_bytes_atomic(args.md, (text + "\n").encode())
 
 
 if __name__ == "__main__":
