@@ -214,6 +214,7 @@ def test_a_tiny_campaign_trains_and_gathers_into_a_report(tmp_path: Path) -> Non
     """PHASE 1 and 3 with real benches (40 steps, two 48x36 synthetic scenes, one lane each and a queued fixed
     budget), then PHASE=gather on the last archive with one bench cut before its report: the folder has the
     equal-time table, the auto budget, and each run's settings with the rule and JSGS's gc_every."""
+    from jsgs.base.schema import validate
     from jsgstools.compress import compress
     from jsgstools.synth import synth
 
@@ -279,5 +280,6 @@ def test_a_tiny_campaign_trains_and_gathers_into_a_report(tmp_path: Path) -> Non
     assert rows[0].startswith("scene,schedule,method,seed,strategy,budget,step,")
     assert {r.split(",")[5] for r in rows[1:]} == {"auto", "100000"}
     configs = json.loads((target / "configs.json").read_text())
+    validate(configs, "configs", "configs.json")  # real runs' settings, versions and auto budgets
     assert configs["cup/gaussian/jsgs/mcmc-auto/s0"]["settings"]["method_options"]["gc_every"] == 4
     assert configs["fern/clean/gsplat/mcmc-auto/s1"]["derived"]["budget"]["pixels_per_gaussian"] == 30
