@@ -645,7 +645,8 @@ def test_training_presets_are_the_code() -> None:
     assert s.type == "mcmc" and "MCMCStrategy" in row
     assert _numbers(r"refining from ([\d,]+) to ([\d,]+) every ([\d,]+) steps", row) == [
         s.refine_start_iter, s.refine_stop_iter, s.refine_every]  # fmt: skip
-    assert _numbers(r"`strategy.cap_max` = ([\d,]+) Gaussians", row) == [s.cap_max]
+    assert s.cap_max_auto and "budget sized to the scene (`strategy.cap_max_auto`" in row
+    assert _numbers(r"`strategy.cap_max` = ([\d,]+) Gaussians when `cap_max_auto` is off", row) == [s.cap_max]
     assert _numbers(r"init opacity ([\d.]+) and scale ([\d.]+)", row) == [mcmc.init.opacity, mcmc.init.scale]
     assert _numbers(r"opacity and scale regularisation ([\d.]+)", row) * 2 == [
         mcmc.loss.opacity_reg, mcmc.loss.scale_reg]  # fmt: skip
@@ -758,6 +759,8 @@ def test_defaults_in_the_train_help_are_the_code() -> None:
             code = jsgs[flags[opt]]
         elif p.name == "preset":
             code = DEFAULT_PRESET
+        elif p.name == "cap_max":  # auto (strategy.cap_max_auto) or the fixed strategy.cap_max
+            code = "auto" if train["strategy.cap_max_auto"] else train["strategy.cap_max"]
         else:
             keys = [k for k in (p.name, f"strategy.{p.name}") if k in train]
             assert keys, f"{opt}: [default: {m[1]}] of no setting"

@@ -16,7 +16,8 @@ scene x schedule x seed trains on the same files.
 
 With ``--strategy mcmc`` every method and the clean ceiling train once per budget (a Gaussian count, a
 multiple of the scene's clean DefaultStrategy run's final count: those reference runs train first, or
-``auto``: each run sizes it to its scene, in ``runs/.../mcmc-auto/``).
+``auto``: each run sizes it to its scene, in ``runs/.../mcmc-auto/``; without ``--budgets``, the mcmc
+preset's own budget, ``auto``).
 """
 
 from __future__ import annotations
@@ -171,6 +172,14 @@ _SUFFIX = {"": 1, "k": 1_000, "m": 1_000_000}
 AUTO = "auto"
 
 
+def preset_budget() -> Budget:
+    """The mcmc preset's budget as a bench budget: ``auto`` (sized to each scene) or its fixed count."""
+    from jsgs.train.config import TrainConfig
+
+    strategy = TrainConfig.from_preset("mcmc").strategy
+    return Budget(AUTO) if strategy.cap_max_auto else Budget(str(strategy.cap_max), count=strategy.cap_max)
+
+
 def parse_budgets(text: str | None) -> list[Budget]:
     """``"300k,0.5x,1x,250000,auto"`` -> budgets (JsgsError, one line, on anything else)."""
     out: list[Budget] = []
@@ -248,7 +257,8 @@ class BenchSettings:
     as tuples (lists given are converted). ``iterations``, ``eval_at``, ``device`` and ``lpips_weights``
     left None are filled by the harness: the strategy's preset length (mcmc: 30,000 steps; default: the
     paper's 10,000, :meth:`with_run_length`), :func:`default_eval_at`, the device there is, the weights
-    found (``$JSGS_LPIPS_WEIGHTS``, else ``../shared/lpips``).
+    found (``$JSGS_LPIPS_WEIGHTS``, else ``../shared/lpips``); mcmc without ``budgets``: the mcmc preset's
+    budget, ``auto`` (:meth:`with_run_length`).
 
     ``time_limit`` (seconds from the call): no run starts after it (nor one that runs like it took longer
     than what is left) and runs still going are stopped (they resume on a rerun). ``compile_backend``:
@@ -294,13 +304,17 @@ class BenchSettings:
 
     def with_run_length(self) -> BenchSettings:
         """These settings with ``iterations`` (the strategy's preset length) and ``eval_at``
-        (:func:`default_eval_at`) filled in where they are None."""
+        (:func:`default_eval_at`) filled in where they are None, and, with mcmc, ``budgets`` where none are
+        given: the mcmc preset's, the budget sized to the scene (``auto``)."""
         iterations = self.iterations
         if iterations is None:
             from jsgs.train.config import preset_iterations
 
             iterations = preset_iterations("mcmc" if self.strategy == "mcmc" else "paper")
-        return replace(self, iterations=iterations, eval_at=self.eval_at or default_eval_at(iterations))
+        budgets = self.budgets or ((preset_budget(),) if self.strategy == "mcmc" else ())
+        return replace(
+            self, iterations=iterations, eval_at=self.eval_at or default_eval_at(iterations), budgets=budgets
+        )
 
 
 def build_plan(settings: BenchSettings) -> BenchPlan:
@@ -343,8 +357,6 @@ def _check_plan_settings(s: BenchSettings) -> None:
     step the plan cannot be made of."""
     if s.strategy not in STRATEGIES:
         raise JsgsError(f"--strategy: unknown strategy {s.strategy!r} (choose from {', '.join(STRATEGIES)})")
-    if s.strategy == "mcmc" and not s.budgets:
-        raise JsgsError("--strategy mcmc needs --budgets (counts such as 300k, or multiples such as 0.5x)")
     if s.strategy == "default" and s.budgets:
         raise JsgsError("--budgets needs --strategy mcmc (DefaultStrategy has no Gaussian cap)")
     if s.strategy == "mcmc" and (s.fixed or s.ablation is not None):

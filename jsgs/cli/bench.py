@@ -50,14 +50,14 @@ from jsgs.base.commands import CONTEXT, EXAMPLE, FINITE, WORKERS, invocation, us
     default="default",
     show_default=True,
     help="Densification of every run: gsplat's DefaultStrategy (the paper's protocol) or MCMCStrategy at "
-    "each of --budgets (jsgs train --preset mcmc --cap-max N).",
+    "each of --budgets (jsgs train --preset mcmc --cap-max N or auto).",
 )
 @click.option(
     "--budgets",
     default=None,
     help="--strategy mcmc: Gaussian budgets, counts (300k, 1.5m, 250000), multiples of each scene's clean "
     "DefaultStrategy run's final count (0.5x, 1x; those runs train first), or auto (each run sizes it to its "
-    "scene: jsgs train --cap-max auto).",
+    "scene: jsgs train --cap-max auto) [default with --strategy mcmc: auto, the mcmc preset's].",
 )
 @click.option(
     "--jsgs-config",

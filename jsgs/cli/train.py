@@ -10,7 +10,7 @@ import click
 
 from jsgs.base.commands import CONTEXT, EXAMPLE, MAX_PROCESSES, PORT, invocation, user_errors
 from jsgs.base.errors import JsgsError
-from jsgs.train.config import PRESETS
+from jsgs.train.config import MCMC_CAP_MAX, PRESETS
 from jsgs.train.method import method_flags, method_names, method_recipe
 
 
@@ -106,7 +106,7 @@ def _parse_steps(text: str) -> list[int]:
     default=None,
     help="Starting settings under --config and the options. mcmc (the defaults): gsplat simple_trainer's "
     "mcmc recipe (30000 steps, evaluations at 7000 and 30000, MCMCStrategy refining until step 25000 with a "
-    "budget of strategy.cap_max = 300000 Gaussians, init.opacity 0.5, init.scale 0.1, "
+    "Gaussian budget sized to the scene, --cap-max auto, init.opacity 0.5, init.scale 0.1, "
     f"loss.opacity_reg 0.01, loss.scale_reg 0.01{recipes_text('mcmc')}); "
     "paper: the paper's protocol (gsplat's DefaultStrategy and default recipe, JSGS at the paper's "
     "weights, 10000 steps); preview: a quick CPU look at photos downscaled by 2 (the baseline, --method "
@@ -116,9 +116,10 @@ def _parse_steps(text: str) -> list[int]:
     "--cap-max",
     "cap_max",
     default=None,
-    help="The Gaussian budget of strategy.type mcmc (strategy.cap_max), or auto: chosen from the scene's SfM "
-    "points and training pixels when the run starts (strategy.cap_max_auto; the choice and its inputs in "
-    "config.json derived.budget) [default: 300000].",
+    help="The Gaussian budget of strategy.type mcmc: a fixed number (strategy.cap_max), or auto: chosen from "
+    "the scene's SfM points and training pixels when the run starts (strategy.cap_max_auto; the choice and "
+    f"its inputs in config.json derived.budget; a manifest without SfM points gets at most {MCMC_CAP_MAX}) "
+    "[default: auto].",
 )
 @click.option(
     "--device",

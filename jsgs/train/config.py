@@ -1,6 +1,7 @@
 """Every setting of a training run. The defaults are the default preset's, :data:`DEFAULT_PRESET` (``mcmc``:
-gsplat 1.5.3 ``examples/simple_trainer.py``'s ``mcmc`` recipe with a budget of 300,000 Gaussians, and JSGS's
-recipe for it): ``TrainConfig()`` and ``jsgs train`` without options give the same settings.
+gsplat 1.5.3 ``examples/simple_trainer.py``'s ``mcmc`` recipe with a Gaussian budget sized to the scene,
+:mod:`jsgs.train.budget`, and JSGS's recipe for it): ``TrainConfig()`` and ``jsgs train`` without options
+give the same settings.
 :data:`PRESETS` holds the others (``TrainConfig.from_preset("paper")``: simple_trainer's default recipe with
 DefaultStrategy, the paper's protocol).
 
@@ -43,7 +44,9 @@ from jsgs.base.limits import MAX_INT_SETTING, MAX_SETTING, read_json
 RUN_CONFIG_FORMAT = "jsgs-run-config"
 RUN_CONFIG_VERSION = 1
 T = TypeVar("T")
-#: The default Gaussian budget (``strategy.cap_max`` of the mcmc preset, the defaults).
+#: The fixed Gaussian budget: ``strategy.cap_max``'s default, what an mcmc run trains with
+#: ``strategy.cap_max_auto`` off and no ``cap_max`` given, and the most the scene-sized budget gives a scene
+#: without SfM points (:func:`jsgs.train.budget.auto_budget`).
 MCMC_CAP_MAX = 300_000
 
 
@@ -176,15 +179,17 @@ class StrategyConfig:
     )
     cap_max: int = _f(
         MCMC_CAP_MAX,
-        "mcmc: the budget, the largest number of Gaussians (gsplat's MCMCStrategy: 1000000, which --preset "
-        "paper records).",
+        "mcmc: the budget, the largest number of Gaussians, when cap_max_auto is off (gsplat's "
+        "MCMCStrategy: 1000000, which --preset paper records). Settings that give cap_max without "
+        "cap_max_auto (a config file, --cap-max N) mean this fixed budget.",
         ge=1,
     )
     cap_max_auto: bool = _f(
-        False,
+        True,
         "mcmc: choose cap_max from the scene when the run starts (jsgs.train.budget: 24 Gaussians per SfM "
-        "point, at most one per 30 training pixels; --cap-max auto); cap_max then holds the choice and "
-        "config.json derived.budget its inputs.",
+        f"point, at most one per 30 training pixels; a manifest without SfM points: at most {MCMC_CAP_MAX}; "
+        "--cap-max auto, the mcmc preset's default); cap_max then holds the choice and config.json "
+        "derived.budget its inputs. A run's config.json without this key trained with cap_max.",
     )
     noise_lr: float = _f(
         5e5,
@@ -534,15 +539,27 @@ def parse_method_options(name: str, raw: dict[str, Any], where: str = "config") 
     return opts
 
 
+def fixed_budget_given(doc: Any) -> Any:
+    """A settings object whose ``strategy`` gives ``cap_max`` without ``cap_max_auto``, with ``cap_max_auto``
+    false (a copy): whoever writes a budget means that budget, not the one the scene would get (a config
+    file's ``cap_max: 300000``; a run's config.json written before ``cap_max_auto`` existed). Anything else
+    is returned as it is."""
+    strategy = doc.get("strategy") if isinstance(doc, dict) else None
+    if not isinstance(strategy, dict) or "cap_max" not in strategy or "cap_max_auto" in strategy:
+        return doc
+    return {**doc, "strategy": {**strategy, "cap_max_auto": False}}
+
+
 def from_dict(doc: dict[str, Any], where: str = "config", base: TrainConfig | None = None) -> TrainConfig:
     """Settings from a (possibly partial) nested dict over ``base`` (defaults when None). ``method_options``,
     when given, is taken whole; a ``method`` other than the base's without it starts from that method's
-    default options."""
+    default options; a ``strategy.cap_max`` without ``strategy.cap_max_auto`` is a fixed budget
+    (:func:`fixed_budget_given`)."""
     if not isinstance(doc, dict):
         raise JsgsError(f"{where}: settings must be a JSON object")
     base = from_dict(to_dict(base), where) if base is not None else TrainConfig()
     method = base.method
-    cfg = _from_dict(TrainConfig, doc, where, prefix="", base=base)
+    cfg = _from_dict(TrainConfig, fixed_budget_given(doc), where, prefix="", base=base)
     if cfg.method != method and "method_options" not in doc:
         # the options of another method: the new one starts from its defaults
         cfg.method_options = method_defaults(cfg.method)
@@ -571,30 +588,31 @@ def current_values(settings: Any) -> Any:
 def recorded_settings(settings: Any, where: str) -> TrainConfig:
     """The complete settings a run recorded (``RUN/config.json`` or a checkpoint's ``settings``). A key that a
     file written before the key existed lacks takes the value of that time: the ``paper`` preset's, which
-    were then the defaults; a value that a setting has under another name today is read as that
-    (:func:`current_values`)."""
+    were then the defaults (``strategy.cap_max_auto`` off: the run trained with the ``cap_max`` it
+    records); a value that a setting has under another name today is read as that (:func:`current_values`)."""
     return from_dict(current_values(settings), where, base=TrainConfig.from_preset("paper"))
 
 
 #: The preview preset's training length (steps).
 PREVIEW_ITERATIONS = 1_000
 #: The paper's protocol over the defaults: gsplat simple_trainer's default recipe with DefaultStrategy,
-#: trained 10,000 steps with evaluations at 3,000, 7,000 and 10,000 (``cap_max``: MCMCStrategy's own,
-#: unused by DefaultStrategy, recorded as before).
+#: trained 10,000 steps with evaluations at 3,000, 7,000 and 10,000 (``cap_max``: MCMCStrategy's own, a
+#: fixed budget, unused by DefaultStrategy, recorded as before).
 _PAPER: dict[str, Any] = {
     "iterations": 10_000,
     "eval_at": [3000, 7000, 10_000],
     "init": {"opacity": 0.1, "scale": 1.0},
     "loss": {"opacity_reg": 0.0, "scale_reg": 0.0},
-    "strategy": {"type": "default", "refine_stop_iter": 15_000, "cap_max": 1_000_000},
+    "strategy": {"type": "default", "refine_stop_iter": 15_000, "cap_max": 1_000_000, "cap_max_auto": False},
 }
 #: Named starting points for the settings (``jsgs train --preset NAME``, :meth:`TrainConfig.from_preset`),
 #: each over the defaults; a config file and the command line apply over them, and each method's recipe for
 #: the preset (:func:`jsgs.train.method.method_recipe`: JSGS's in :mod:`jsgs.method.recipes`) gives its
 #: ``method_options``. ``mcmc``, the defaults (:data:`DEFAULT_PRESET`): simple_trainer's ``mcmc`` recipe at
 #: its full length (``max_steps`` 30,000, evaluations at 7,000 and 30,000, the means' learning rate decaying
-#: over the 30,000 steps, MCMCStrategy refining until 25,000) with a budget of :data:`MCMC_CAP_MAX`
-#: Gaussians, measured better than DefaultStrategy for gsplat on all four shared scenes (docs/results/budget).
+#: over the 30,000 steps, MCMCStrategy refining until 25,000), measured better than DefaultStrategy for
+#: gsplat on all four shared scenes (docs/results/budget), with a Gaussian budget sized to the scene
+#: (``strategy.cap_max_auto``, :mod:`jsgs.train.budget`; docs/training.md, "A budget sized to the scene").
 #: ``paper``: the paper's protocol (:data:`_PAPER`). ``preview``: a quick look at a capture on a CPU
 #: (docs/training.md, "A preview on a CPU"): the baseline (``method`` gsplat) with the paper's
 #: DefaultStrategy, :data:`PREVIEW_ITERATIONS` steps and one evaluation at the end, meant for a copy of the

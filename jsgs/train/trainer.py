@@ -669,11 +669,7 @@ class Trainer:
 
         budget = scene_budget(scene)
         cfg.strategy.cap_max = budget.cap_max
-        self.say(
-            f"note: budget from the scene: strategy.cap_max = {budget.cap_max} (the smaller of "
-            f"{budget.gaussians_per_point} x {budget.sfm_points} SfM points = {budget.by_points} and "
-            f"{budget.train_pixels} training pixels / {budget.pixels_per_gaussian} = {budget.by_pixels})"
-        )
+        self.say(f"note: budget from the scene: {budget.describe()}")
         return budget
 
     def _make_strategy(self, cfg: TrainConfig) -> None:

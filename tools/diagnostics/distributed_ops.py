@@ -55,7 +55,7 @@ def _worker(rank: int, world: int, port: int, args: argparse.Namespace, out: str
     from jsgs.train.trainer import Trainer
 
     cfg = TrainConfig.from_preset("mcmc", device="cpu", method=args.method, iterations=args.steps, eval_at=[])
-    cfg.strategy.cap_max = args.cap
+    cfg.strategy.cap_max, cfg.strategy.cap_max_auto = args.cap, False
     cfg.render.sh_degree_interval = 1
     trainer = Trainer(Path(args.manifest), Path(out) / f"run{world}", cfg, log=lambda s: None)
     trainer.setup()

@@ -14,12 +14,21 @@ from click.testing import CliRunner
 from jsgs.base.errors import JsgsError
 from jsgs.train.budget import (
     GAUSSIANS_PER_POINT,
+    NO_POINTS_RULE,
     PIXELS_PER_GAUSSIAN,
+    RULE,
     auto_budget,
     scene_budget,
     three_digits,
 )
-from jsgs.train.config import TrainConfig, cap_max_settings, command_settings
+from jsgs.train.config import (
+    MCMC_CAP_MAX,
+    TrainConfig,
+    cap_max_settings,
+    command_settings,
+    fixed_budget_given,
+    to_dict,
+)
 
 
 def test_the_rule_on_hand_made_numbers() -> None:
@@ -39,6 +48,11 @@ def test_the_rule_on_hand_made_numbers() -> None:
     assert small.by_points == 2451 * GAUSSIANS_PER_POINT
     assert small.cap_max == three_digits(21 * 3072 / 30) == 2150
     assert auto_budget(0, []).cap_max == 100  # the floor
+    # no SfM points (a manifest trained from random points): the fixed budget within the pixels bound
+    none = auto_budget(0, [(480, 640)] * 49)
+    assert (none.cap_max, none.rule) == (MCMC_CAP_MAX, NO_POINTS_RULE) and mouse.rule == RULE
+    assert auto_budget(0, [(64, 48)] * 21).cap_max == 2150
+    assert "no SfM points" in none.describe() and "the smaller of 24 x 4443 SfM points" in mouse.describe()
     assert small.to_json()["rule"].startswith("min(") and small.to_json()["pixels_per_gaussian"] == 30
 
 
@@ -73,30 +87,71 @@ def test_smaller_or_simpler_scenes_get_fewer_gaussians(tmp_path: Path) -> None:
     assert budgets["plain"].cap_max == three_digits(GAUSSIANS_PER_POINT * budgets["plain"].sfm_points)
 
 
-def test_cap_max_auto_on_the_command_line() -> None:
+def test_the_scene_sized_budget_is_the_mcmc_presets_default() -> None:
+    """The defaults (the mcmc preset) size the budget to the scene; --cap-max N is a fixed budget, --cap-max
+    auto the default again; the paper and preview presets keep DefaultStrategy with MCMCStrategy's fixed
+    1,000,000 recorded, as they always did."""
     assert cap_max_settings("auto") == {"cap_max_auto": True}
     assert cap_max_settings("2000") == {"cap_max": 2000, "cap_max_auto": False}
     with pytest.raises(JsgsError, match="--cap-max: expected a number of Gaussians or auto"):
         cap_max_settings("lots")
-    cfg = command_settings(overrides={"strategy": cap_max_settings("auto")})
-    assert cfg.strategy.cap_max_auto and cfg.strategy.type == "mcmc"
-    # not the preset's default: 300,000 (the rule misses its target on the mouse at 30,000 steps)
-    assert not command_settings().strategy.cap_max_auto and command_settings().strategy.cap_max == 300_000
+    assert TrainConfig().strategy.cap_max_auto and TrainConfig.from_preset("mcmc").strategy.cap_max_auto
+    cfg = command_settings()
+    assert cfg.strategy.type == "mcmc" and cfg.strategy.cap_max_auto
+    assert command_settings(overrides={"strategy": cap_max_settings("auto")}).strategy.cap_max_auto
+    fixed = command_settings(overrides={"strategy": cap_max_settings("5000")}).strategy
+    assert (fixed.cap_max, fixed.cap_max_auto) == (5000, False)
+    for preset in ("paper", "preview"):
+        s = to_dict(TrainConfig.from_preset(preset))["strategy"]
+        assert (s["type"], s["cap_max"], s["cap_max_auto"]) == ("default", 1_000_000, False), preset
+        assert not command_settings(preset_name=preset).strategy.cap_max_auto
+
+
+def test_a_budget_written_in_settings_is_that_budget(tmp_path: Path) -> None:
+    """A config file (or any settings object) that gives strategy.cap_max without cap_max_auto means that
+    fixed budget; one that gives both, or neither, is taken as it says (neither: the preset's auto)."""
+    def over_preset(doc: dict[str, object]) -> tuple[int, bool]:
+        path = tmp_path / "settings.json"
+        path.write_text(json.dumps(doc))
+        s = command_settings(config_file=path).strategy
+        return s.cap_max, s.cap_max_auto
+
+    assert over_preset({"strategy": {"cap_max": 300_000}}) == (300_000, False)
+    assert over_preset({"strategy": {"cap_max": 1234, "noise_lr": 1.0}}) == (1234, False)
+    assert over_preset({"strategy": {"cap_max": 1234, "cap_max_auto": True}}) == (1234, True)
+    assert over_preset({"strategy": {"noise_lr": 1.0}}) == (MCMC_CAP_MAX, True)
+    assert over_preset({"iterations": 10}) == (MCMC_CAP_MAX, True)
+    assert over_preset({"strategy": {"cap_max_auto": False}}) == (MCMC_CAP_MAX, False)
+    fixed = {"strategy": {"cap_max": 7, "cap_max_auto": False}}
+    assert fixed_budget_given({"strategy": {"cap_max": 7}}) == fixed and fixed_budget_given(fixed) == fixed
+    # the command line over a file's fixed budget
+    path = tmp_path / "settings.json"
+    path.write_text(json.dumps({"strategy": {"cap_max": 300_000}}))
+    auto = {"strategy": cap_max_settings("auto")}
+    assert command_settings(config_file=path, overrides=auto).strategy.cap_max_auto
+
+
+def _tiny_settings(tmp_path: Path) -> Path:
+    cfg = tmp_path / "tiny.json"
+    cfg.write_text(json.dumps({"eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False}}))
+    return cfg
 
 
 def test_a_run_records_its_budget_and_resumes_with_it(compressed_scene: Path, tmp_path: Path) -> None:
+    """``jsgs train`` without --cap-max (the default) sizes the budget to the scene: a few thousand on the
+    tiny synthetic scene, not 300,000, said in one line of the log and recorded in config.json."""
     from jsgs.base.schema import validate
     from jsgs.cli import main
 
-    cfg = tmp_path / "tiny.json"
-    cfg.write_text(json.dumps({"eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False}}))
     run = tmp_path / "run"
     args = ["train", str(compressed_scene / "manifest.json"), "--out", str(run), "--method", "gsplat",
-            "--cap-max", "auto", "--config", str(cfg), "--iterations", "4", "--eval-at", "2,4",
+            "--config", str(_tiny_settings(tmp_path)), "--iterations", "4", "--eval-at", "2,4",
             "--device", "cpu", "--quiet", "--stop-at", "2"]  # fmt: skip
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
     doc = json.loads((run / "config.json").read_text())
+    notes = [ln for ln in r.output.splitlines() if ln.startswith("note: budget from the scene")]
+    assert notes == [f"note: budget from the scene: {scene_budget_line(doc)}"], r.output
     validate(doc, "config", "config.json")
     b = doc["derived"]["budget"]
     assert doc["settings"]["strategy"]["cap_max_auto"] is True
@@ -110,6 +165,88 @@ def test_a_run_records_its_budget_and_resumes_with_it(compressed_scene: Path, tm
     assert r.exit_code == 0, r.output
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["status"] == "complete" and metrics["num_gaussians"] <= b["cap_max"]
+    assert "budget from the scene" not in r.output  # a resumed run keeps its budget: nothing is chosen again
+    assert json.loads((run / "config.json").read_text())["settings"] == doc["settings"]
+
+
+def scene_budget_line(doc: dict) -> str:  # type: ignore[type-arg]
+    """The log's words for the budget config.json records."""
+    from jsgs.train.budget import AutoBudget
+
+    return AutoBudget(**doc["derived"]["budget"]).describe()
+
+
+def test_a_fixed_budget_run_keeps_its_budget_however_its_config_was_written(
+    compressed_scene: Path, tmp_path: Path
+) -> None:
+    """``--cap-max 900`` records 900 and cap_max_auto false. The same run's config.json as written before
+    cap_max_auto existed (the key removed) reads back, resumes and reproduces (``--config RUN/config.json``)
+    at 900 fixed, never at the scene's budget (1,020 here): the 2,451 SfM points start as 900 of them."""
+    from jsgs.base.schema import validate
+    from jsgs.cli import main
+    from jsgs.train.config import read_run_config
+
+    manifest = str(compressed_scene / "manifest.json")
+    run, again = tmp_path / "run", tmp_path / "again"
+    args = ["train", manifest, "--out", str(run), "--method", "gsplat", "--cap-max", "900", "--config",
+            str(_tiny_settings(tmp_path)), "--iterations", "4", "--eval-at", "2,4", "--device", "cpu",
+            "--quiet", "--stop-at", "2"]  # fmt: skip
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    assert "budget from the scene" not in r.output
+    doc = json.loads((run / "config.json").read_text())
+    strategy = doc["settings"]["strategy"]
+    assert (strategy["cap_max"], strategy["cap_max_auto"]) == (900, False) and "budget" not in doc["derived"]
+    assert doc["derived"]["initial_gaussians"] == 900
+    assert read_run_config(run).settings.strategy.cap_max_auto is False
+    del strategy["cap_max_auto"]  # as written before the setting existed
+    (run / "config.json").write_text(json.dumps(doc))
+    validate(doc, "config", "config.json")
+    back = read_run_config(run).settings.strategy  # what jsgs render / export / view read
+    assert (back.cap_max, back.cap_max_auto) == (900, False)
+    r = CliRunner().invoke(main, ["train", manifest, "--out", str(run), "--resume", "--quiet"])
+    assert r.exit_code == 0, r.output
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "complete" and metrics["num_gaussians"] <= 900
+    assert "budget from the scene" not in r.output
+    redo_args = ["train", manifest, "--out", str(again), "--config", str(run / "config.json"), "--quiet",
+                 "--stop-at", "1"]  # fmt: skip
+    r = CliRunner().invoke(main, redo_args)
+    assert r.exit_code == 0, r.output
+    redo = json.loads((again / "config.json").read_text())
+    strategy = redo["settings"]["strategy"]
+    assert (strategy["cap_max"], strategy["cap_max_auto"]) == (900, False)
+    assert redo["derived"]["initial_gaussians"] == 900 and "budget" not in redo["derived"]
+
+
+def test_a_scene_without_sfm_points_gets_the_fixed_budget_within_its_pixels(tmp_path: Path) -> None:
+    """The default on a manifest without SfM points (random initial points): the rule has nothing to size
+    the budget by; the run takes the fixed budget within the pixels bound, says so in one line and records
+    it (derived.budget's rule), and trains."""
+    from _train_scene import make_scene
+
+    from jsgs.cli import main
+
+    manifest = make_scene(tmp_path / "scene", n_views=4, width=32, height=24)
+    doc = json.loads(manifest.read_text())
+    doc["points"] = {"count": 0, "xyz": [], "rgb": []}
+    manifest.write_text(json.dumps(doc))
+    settings = tmp_path / "random.json"
+    settings.write_text(json.dumps({"init": {"type": "random", "num_points": 50},
+                                    "eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False}}))
+    run = tmp_path / "run"
+    r = CliRunner().invoke(main, ["train", str(manifest), "--out", str(run), "--method", "gsplat", "--config",
+                                  str(settings), "--iterations", "2", "--eval-at", "2", "--device", "cpu",
+                                  "--quiet"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    config = json.loads((run / "config.json").read_text())
+    b = config["derived"]["budget"]
+    pixels = 2 * 32 * 24  # views 1 and 2 train (0 and 3 are test views)
+    assert (b["sfm_points"], b["train_pixels"], b["rule"]) == (0, pixels, NO_POINTS_RULE)
+    assert b["cap_max"] == config["settings"]["strategy"]["cap_max"] == max(100, pixels // 30) == 100
+    notes = [ln for ln in r.output.splitlines() if ln.startswith("note: budget from the scene")]
+    assert len(notes) == 1 and "the manifest has no SfM points" in notes[0], r.output
+    assert json.loads((run / "metrics.json").read_text())["status"] == "complete"
 
 
 def test_the_bench_budget_auto(synth_scene: Path, tmp_path: Path) -> None:
@@ -127,6 +264,17 @@ def test_the_bench_budget_auto(synth_scene: Path, tmp_path: Path) -> None:
     argv = plan_mod.train_argv(auto[0], "cpu", None, False)
     assert argv[argv.index("--cap-max") + 1] == "auto"
     assert plan_mod.resolve_caps(plan, tmp_path, {}) == []
+    # --strategy mcmc without --budgets: the mcmc preset's budget, auto
+    assert plan_mod.preset_budget() == plan_mod.Budget("auto")
+    settings = plan_mod.BenchSettings(
+        scenes=[synth_scene], out=tmp_path, schedules=["gaussian"], fixed=[], methods=["jsgs"], seeds=[0],
+        iterations=10, eval_at=[10], strategy="mcmc",
+    )  # fmt: skip
+    assert [b.label for b in settings.with_run_length().budgets] == ["auto"]
+    assert [(r.budget, r.cap) for r in plan_mod.build_plan(settings).runs] == [("auto", None)]
+    paper = plan_mod.BenchSettings(scenes=[synth_scene], out=tmp_path, schedules=["gaussian"], fixed=[],
+                                   methods=["jsgs"], seeds=[0], iterations=10, eval_at=[10])  # fmt: skip
+    assert paper.with_run_length().budgets == () and plan_mod.build_plan(paper).runs[0].strategy == "default"
 
 
 def test_the_auto_rule_table_on_hand_made_numbers(tmp_path: Path) -> None:
@@ -163,3 +311,17 @@ def test_the_auto_rule_table_on_hand_made_numbers(tmp_path: Path) -> None:
             r["lpips"] = None
     lines = BudgetReport(back).auto_rule()
     assert len(lines) == 3 and "| a |" in lines[2]
+
+
+def test_a_recorded_run_without_cap_max_auto_is_its_fixed_budget() -> None:
+    """A real config.json written before cap_max_auto existed (the mouse's mcmc run at 300,000): read as a
+    run's settings (--config RUN/config.json, a resume, jsgs render / export) it is that fixed budget."""
+    from jsgs.train.config import load_config_file, recorded_settings
+
+    root = Path(__file__).resolve().parents[3]
+    path = root / "docs" / "results" / "real" / "jpeg_mouse" / "jsgs" / "config.json"
+    doc = json.loads(path.read_text())
+    assert doc["settings"]["strategy"]["type"] == "mcmc" and "cap_max_auto" not in doc["settings"]["strategy"]
+    cfg = load_config_file(path)
+    assert (cfg.strategy.cap_max, cfg.strategy.cap_max_auto) == (300_000, False)
+    assert recorded_settings(doc["settings"], "checkpoint") == cfg

@@ -94,7 +94,7 @@ def test_paper_preset_is_gsplat_simple_trainer() -> None:
     for f in dataclasses.fields(cfg.strategy):
         if f.name in ("cap_max", "noise_lr", "min_opacity"):
             assert getattr(cfg.strategy, f.name) == getattr(mcmc, f.name), f.name
-        elif f.name == "cap_max_auto":  # ours: the budget sized to the scene (off unless asked)
+        elif f.name == "cap_max_auto":  # ours: the budget sized to the scene (the paper's: off)
             assert cfg.strategy.cap_max_auto is False
         elif f.name != "type":
             assert getattr(cfg.strategy, f.name) == getattr(ref, f.name), f.name
