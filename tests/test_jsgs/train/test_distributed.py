@@ -231,6 +231,32 @@ def test_mcmc_and_jsgs_on_two_processes(tmp_path: Path) -> None:
     assert {"obs", "low", "mid", "fro"} <= set(terms), terms  # the per-view terms of every view
 
 
+def test_the_scene_sized_budget_is_one_budget_on_two_processes(tmp_path: Path) -> None:
+    """The default budget (sized to the scene) on two processes: each process reads it from the same
+    manifest, so the run records one budget (the scene's 102: 4 training views of 32x24 / 30) and its two
+    shards grow to their equal shares of it and no further."""
+    import torch
+
+    from jsgs.train.budget import scene_budget
+    from jsgs.train.checkpoint import list_checkpoints
+    from jsgs.train.config import TrainConfig
+    from jsgs.train.data import load_training_scene
+
+    manifest = make_scene(tmp_path / "scene", n_views=6)
+    expected = scene_budget(load_training_scene(manifest, TrainConfig(device="cpu"))).cap_max
+    assert expected == 102
+    cfg = _settings(tmp_path, refine_start_iter=1, refine_every=2)
+    run = tmp_path / "run"
+    r = _train(manifest, run, "--config", str(cfg), "--iterations", "16", "--eval-at", "16", processes=2)
+    _ok(r)
+    assert r.stderr.count("note: budget from the scene: strategy.cap_max = 102 ") == 1, r.stderr
+    doc = json.loads((run / "config.json").read_text())
+    assert doc["settings"]["strategy"]["cap_max"] == doc["derived"]["budget"]["cap_max"] == expected
+    assert json.loads((run / "metrics.json").read_text())["num_gaussians"] == expected
+    (_, last), *_ = reversed(list_checkpoints(run / "checkpoints"))
+    assert torch.load(last, weights_only=True)["shards"] == [51, 51]
+
+
 def test_setup_error_on_one_process_is_one_line(scene: Path, tmp_path: Path) -> None:
     """A bad RUN found by rank 0 stops both processes, with rank 0's one line."""
     out = tmp_path / "taken"

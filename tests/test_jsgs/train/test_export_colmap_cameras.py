@@ -50,7 +50,7 @@ def moved_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
             "cpu", "--quiet"]  # fmt: skip
     r = CliRunner().invoke(main, args, catch_exceptions=False)
     assert r.exit_code == 0, r.output
-    assert "point_cloud.ply, point_cloud_colmap.ply" in r.output.splitlines()[-1]  # the outputs line names it
+    assert "point_cloud.ply, point_cloud_colmap.ply" in r.stdout.splitlines()[-1]  # the outputs line names it
     return manifest, run
 
 
