@@ -5,7 +5,8 @@ Two of gsplat 1.5.3's strategies, chosen by ``strategy.type`` in the run's setti
 - ``default``: ``gsplat.strategy.DefaultStrategy`` (the original 3DGS heuristics: duplicate / split by the
   screen-space gradient, prune by opacity and size, opacity resets). The number of Gaussians is whatever the
   heuristics grow, and a loss that is larger grows more.
-- ``mcmc``: ``gsplat.strategy.MCMCStrategy`` (Kheradmand et al. 2024): a fixed budget ``strategy.cap_max``;
+- ``mcmc``: ``gsplat.strategy.MCMCStrategy`` (Kheradmand et al. 2024): a budget ``strategy.cap_max``, fixed
+  for the run (by default chosen from the scene when it starts: ``strategy.cap_max_auto``);
   every ``refine_every`` steps low-opacity Gaussians are relocated onto high-opacity ones and 5 % more are
   added until the cap is reached; positions get noise scaled by the means' learning rate times ``noise_lr``.
   Runs with equal caps have equal model sizes, which is what a fair comparison of losses needs.
