@@ -27,8 +27,9 @@ training pixels) gets a budget in the thousands up to 64.5: 30 is taken. That wi
 fitted on the runs that judge it. Trained at the rule's own choices (flower 184k, fern 108k; the cup's
 222k and the mouse's 107k come from the points bound either way) it meets the target at seed 0 on flower,
 fern and the cup; on the mouse it misses at seed 0 (0.0065 worse than its 100k run) and meets it at seed 1
-(0.0191 better), and over the two seeds (0.0063 better than 100k, the best): it meets the target on every
-scene and is the mcmc preset's default (``strategy.cap_max_auto``).
+(0.0191 better; docs/results/operating_point/auto30/, the preset's recipe) and on the two seeds' mean (0.0063
+better than 100k, the best). On the seed mean it meets the target on every scene: it is the mcmc preset's
+default (``strategy.cap_max_auto``).
 """
 
 from __future__ import annotations
