@@ -945,11 +945,11 @@ def test_the_status_check_reads_statuses() -> None:
 def test_auto_budget_in_training_md_is_the_code() -> None:
     """docs/training.md's `--cap-max auto` formula names the rule's constants, and each row of its table
     (views × W×H, SfM points, budget) is what jsgs.train.budget.auto_budget gives for that scene."""
-    from jsgs.train.budget import GAUSSIANS_PER_POINT, PIXELS_PER_GAUSSIAN, auto_budget
+    from jsgs.train.budget import GAUSSIANS_PER_POINT, MAX_BUDGET, PIXELS_PER_GAUSSIAN, auto_budget
 
     text = (ROOT / "docs" / "training.md").read_text()
-    assert _numbers(r"cap_max = min\((\d+) × SfM points, training pixels / (\d+)\)", text) == [
-        GAUSSIANS_PER_POINT, PIXELS_PER_GAUSSIAN]  # fmt: skip
+    formula = r"cap_max = min\((\d+) × SfM points, training pixels / (\d+), ([\d,]+)\)"
+    assert _numbers(formula, text) == [GAUSSIANS_PER_POINT, PIXELS_PER_GAUSSIAN, MAX_BUDGET]
     rows = re.findall(r"^\| [^|]*\((\d+) × (\d+)×(\d+)\) \| ([\d,]+) \|[^\n]*\| ([\d,]+) \|$", text, re.M)
     assert len(rows) >= 4, "docs/training.md: the auto budget's table is no longer found"
     bad = []

@@ -9,8 +9,12 @@ The budget is read from what the scene's manifest says, before training:
   about one Gaussian per :data:`PIXELS_PER_GAUSSIAN` training pixels. That bound decides on small captures
   (the demo's 64×48 views: about two thousand).
 
-``cap_max = min(GAUSSIANS_PER_POINT × P, training pixels / PIXELS_PER_GAUSSIAN)``, rounded to three
-significant digits (at least :data:`MIN_BUDGET`). A manifest without SfM points (trained from random
+``cap_max = min(GAUSSIANS_PER_POINT × P, training pixels / PIXELS_PER_GAUSSIAN, MAX_BUDGET)``, rounded to
+three significant digits (at least :data:`MIN_BUDGET`). :data:`MAX_BUDGET` is gsplat's own MCMC budget
+(simple_trainer's ``cap_max``) and the largest budget measured: at 30,000 steps 1,000,000 was never clearly
+better than 300,000 on the shared scenes, so past it the two bounds would be extrapolation, and a large
+capture (a COLMAP model of 300,000 points would ask for 7.2 M) would get a model several times the size of
+what the recipe it copies trains, and its memory. A manifest without SfM points (trained from random
 points) says nothing of its detail: the budget is then the fixed one,
 :data:`jsgs.train.config.MCMC_CAP_MAX`, within the pixels bound (:attr:`AutoBudget.rule` says which applied).
 
@@ -49,8 +53,10 @@ GAUSSIANS_PER_POINT = 24
 PIXELS_PER_GAUSSIAN = 30
 #: the smallest budget the rule gives
 MIN_BUDGET = 100
+#: the largest budget the rule gives: gsplat's MCMCStrategy budget in simple_trainer (module docstring)
+MAX_BUDGET = 1_000_000
 #: :attr:`AutoBudget.rule` of a scene with SfM points, and of one without
-RULE = "min(gaussians_per_point x sfm_points, train_pixels / pixels_per_gaussian)"
+RULE = "min(gaussians_per_point x sfm_points, train_pixels / pixels_per_gaussian, max_budget)"
 NO_POINTS_RULE = "min(fixed_budget, train_pixels / pixels_per_gaussian): no SfM points to size it by"
 
 
@@ -75,6 +81,7 @@ class AutoBudget:
     gaussians_per_point: int = GAUSSIANS_PER_POINT
     pixels_per_gaussian: int = PIXELS_PER_GAUSSIAN
     rule: str = RULE
+    max_budget: int = MAX_BUDGET
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
@@ -86,6 +93,11 @@ class AutoBudget:
             return (
                 f"strategy.cap_max = {self.cap_max}: the manifest has no SfM points to size it by, so the "
                 f"smaller of the fixed budget {MCMC_CAP_MAX} and {pixels}"
+            )
+        if min(self.by_points, self.by_pixels) > self.max_budget:
+            return (
+                f"strategy.cap_max = {self.cap_max}: the largest the rule gives (gsplat's MCMC budget), "
+                f"below {self.gaussians_per_point} x {self.sfm_points} SfM points = {self.by_points} and {pixels}"
             )
         return (
             f"strategy.cap_max = {self.cap_max} (the smaller of {self.gaussians_per_point} x "
@@ -100,7 +112,8 @@ def auto_budget(sfm_points: int, view_sizes: list[tuple[int, int]]) -> AutoBudge
     by_points = GAUSSIANS_PER_POINT * sfm_points
     by_pixels = pixels // PIXELS_PER_GAUSSIAN
     rule = RULE if sfm_points > 0 else NO_POINTS_RULE
-    cap = max(MIN_BUDGET, three_digits(min(by_points if sfm_points > 0 else MCMC_CAP_MAX, by_pixels)))
+    bound = by_points if sfm_points > 0 else MCMC_CAP_MAX
+    cap = max(MIN_BUDGET, three_digits(min(bound, by_pixels, MAX_BUDGET)))
     return AutoBudget(cap, sfm_points, len(view_sizes), pixels, by_points, by_pixels, rule=rule)
 
 

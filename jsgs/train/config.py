@@ -187,7 +187,8 @@ class StrategyConfig:
     cap_max_auto: bool = _f(
         True,
         "mcmc: choose cap_max from the scene when the run starts (jsgs.train.budget: 24 Gaussians per SfM "
-        f"point, at most one per 30 training pixels; a manifest without SfM points: at most {MCMC_CAP_MAX}; "
+        f"point, at most one per 30 training pixels and 1000000 in all; a manifest without SfM points: at most "
+        f"{MCMC_CAP_MAX}; "
         "--cap-max auto, the mcmc preset's default); cap_max then holds the choice and config.json "
         "derived.budget its inputs. A run's config.json without this key trained with cap_max.",
     )
@@ -1036,6 +1037,11 @@ def _derived_schema() -> dict[str, Any]:
                     "gaussians_per_point": {"type": "integer", "minimum": 1},
                     "pixels_per_gaussian": {"type": "integer", "minimum": 1},
                     "rule": {"type": "string"},
+                    "max_budget": {
+                        "type": "integer", "minimum": 1,
+                        "description": "The largest budget the rule gives (absent: written before the rule "
+                        "had one).",
+                    },
                 },
             },
             "method": {

@@ -56,6 +56,29 @@ def test_the_rule_on_hand_made_numbers() -> None:
     assert small.to_json()["rule"].startswith("min(") and small.to_json()["pixels_per_gaussian"] == 30
 
 
+def test_a_large_capture_gets_at_most_gsplats_mcmc_budget() -> None:
+    """A COLMAP model of 300,000 points over 200 views of 1600x1200 asks for 7.2 M by its points and 12.8 M
+    by its pixels: the rule gives MAX_BUDGET (gsplat's MCMC cap_max), says so, and records the ceiling;
+    a derived.budget written before the ceiling (no max_budget) still validates."""
+    import jsonschema
+
+    from jsgs.train.budget import MAX_BUDGET
+    from jsgs.train.config import config_schema
+
+    big = auto_budget(300_000, [(1600, 1200)] * 200)
+    assert (big.by_points, big.by_pixels) == (7_200_000, 12_800_000)
+    assert big.cap_max == MAX_BUDGET == 1_000_000 and big.to_json()["max_budget"] == MAX_BUDGET
+    assert "the largest the rule gives" in big.describe()
+    # just under the ceiling the bounds decide, and the words say which
+    under = auto_budget(41_000, [(1600, 1200)] * 200)
+    assert under.cap_max == 984_000 and "the smaller of" in under.describe()
+    budget = jsonschema.Draft202012Validator(config_schema()["properties"]["derived"]["properties"]["budget"])
+    budget.validate(big.to_json())
+    budget.validate({k: v for k, v in big.to_json().items() if k != "max_budget"})
+    with pytest.raises(jsonschema.ValidationError):
+        budget.validate({**big.to_json(), "max_budget": 0})
+
+
 def _scene(tmp: Path, size: tuple[int, int], views: int, density: float = 1.0):  # noqa: ANN202
     from jsgs.train.data import load_training_scene
     from jsgstools.manifest_writer import manifest
