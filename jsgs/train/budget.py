@@ -97,7 +97,8 @@ class AutoBudget:
         if min(self.by_points, self.by_pixels) > self.max_budget:
             return (
                 f"strategy.cap_max = {self.cap_max}: the largest the rule gives (gsplat's MCMC budget), "
-                f"below {self.gaussians_per_point} x {self.sfm_points} SfM points = {self.by_points} and {pixels}"
+                f"below {self.gaussians_per_point} x {self.sfm_points} SfM points = {self.by_points} "
+                f"and {pixels}"
             )
         return (
             f"strategy.cap_max = {self.cap_max} (the smaller of {self.gaussians_per_point} x "

@@ -187,9 +187,9 @@ class StrategyConfig:
     cap_max_auto: bool = _f(
         True,
         "mcmc: choose cap_max from the scene when the run starts (jsgs.train.budget: 24 Gaussians per SfM "
-        f"point, at most one per 30 training pixels and 1000000 in all; a manifest without SfM points: at most "
-        f"{MCMC_CAP_MAX}; "
-        "--cap-max auto, the mcmc preset's default); cap_max then holds the choice and config.json "
+        "point, at most one per 30 training pixels and 1000000 in all; a manifest without SfM points: at "
+        f"most {MCMC_CAP_MAX}; --cap-max auto, the mcmc preset's default); cap_max then holds the choice and "
+        "config.json "
         "derived.budget its inputs. A run's config.json without this key trained with cap_max.",
     )
     noise_lr: float = _f(
