@@ -49,7 +49,10 @@ def test_cpu_end_to_end(tmp_path: Path, capsys: Any) -> None:
     doc = json.loads(out.read_text())
     validate(doc, "profile_step", str(out))
     assert doc["format"] == "jsgs-profile-step" and doc["steps"] == 2 and doc["warmup"] == 3
-    assert doc["format_version"] == 3
+    assert doc["format_version"] == 4
+    # the default paper preset: DefaultStrategy, no budget
+    assert doc["budget"] == {"strategy": "default", "cap_max": None, "cap_max_auto": False}
+    assert all(r["cap_max"] is None and r["budget_rule"] is None for r in doc["results"].values())
     res = doc["results"]
     assert list(res) == ["gsplat", "jsgs"]
     for r in res.values():
@@ -243,6 +246,95 @@ def test_preset_mcmc_is_the_equal_budget_protocol(tmp_path: Path) -> None:
     over = tmp_path / "over.json"
     over.write_text(json.dumps({"strategy": {"cap_max": 1234}}))
     assert ps.base_config(ps.parse_args(["--preset", "mcmc", "--config", str(over)])).strategy.cap_max == 1234
+
+
+def test_cap_max_is_read_as_jsgs_trains_and_over_preset_and_config(tmp_path: Path, capsys: Any) -> None:
+    """``--cap-max``: jsgs train's reading (a number or auto), over ``--preset mcmc`` and ``--config``;
+    without it the fixed 300,000 of the published profiles, unless ``--config`` gives a budget; refused (one
+    line) with another strategy or an unreadable value."""
+
+    def strategy(*argv: str) -> tuple[int, bool]:
+        s = ps.base_config(ps.parse_args(list(argv))).strategy
+        return s.cap_max, s.cap_max_auto
+
+    over = tmp_path / "over.json"
+    over.write_text(json.dumps({"strategy": {"cap_max": 1234}}))
+    auto = tmp_path / "auto.json"
+    auto.write_text(json.dumps({"strategy": {"cap_max_auto": True}}))
+    assert ps.TrainConfig.from_preset("mcmc").strategy.cap_max_auto  # the preset's own default: the scene's
+    assert strategy("--preset", "mcmc") == (300_000, False)
+    assert strategy("--preset", "mcmc", "--config", str(over)) == (1234, False)
+    assert strategy("--preset", "mcmc", "--config", str(auto))[1] is True
+    assert strategy("--preset", "mcmc", "--cap-max", "auto")[1] is True
+    assert strategy("--preset", "mcmc", "--config", str(over), "--cap-max", "AUTO")[1] is True
+    assert strategy("--preset", "mcmc", "--config", str(auto), "--cap-max", "5000") == (5000, False)
+    for argv, message in (
+        (["--cap-max", "300000"], "--cap-max applies to strategy.type mcmc (--preset mcmc); it is 'default'"),
+        (["--preset", "mcmc", "--cap-max", "lots"], "--cap-max: expected a number of Gaussians or auto"),
+        (["--preset", "mcmc", "--cap-max", "0"], "cap_max"),
+    ):
+        assert ps.main([*argv, "--device", "cpu"]) != 0
+        err = capsys.readouterr().err.strip()
+        assert message in err and "\n" not in err and "Traceback" not in err
+
+
+def _budget_profile(tmp_path: Path, cap_max: str) -> dict[str, Any]:
+    """gsplat alone profiled on a tiny synthetic scene under the mcmc preset with ``--cap-max``."""
+    cfg = tmp_path / "tiny.json"
+    cfg.write_text(json.dumps({"eval": TINY["eval"]}))
+    out = tmp_path / f"profile_{cap_max}.json"
+    argv = [
+        "--size", "48x32", "--views", "6", "--warmup", "2", "--settle", "1", "--steps", "1", "--top", "2",
+        "--device", "cpu", "--preset", "mcmc", "--config", str(cfg), "--methods", "gsplat", "--no-fresh",
+        "--cap-max", cap_max, "--workdir", str(tmp_path / "work"), "--out", str(out),
+    ]  # fmt: skip
+    assert ps.main(argv) == 0
+    return json.loads(out.read_text())
+
+
+def test_cap_max_reaches_the_profiled_runs_and_the_json(tmp_path: Path, capsys: Any) -> None:
+    """``--cap-max 300000`` profiles at that fixed budget, ``--cap-max auto`` at the scene-sized rule's choice
+    for the scene (jsgs.train.budget.auto_budget of its SfM points and training views): in the runs'
+    settings (the JSON's per-method cap_max, read from the run's config.json), the JSON's budget and the
+    header line."""
+    from jsgs.base.schema import validate
+    from jsgs.train.budget import auto_budget
+
+    fixed = _budget_profile(tmp_path, "300000")
+    validate(fixed, "profile_step", "fixed.json")
+    assert fixed["format_version"] == 4 and fixed["settings"]["cap_max"] == "300000"
+    assert fixed["budget"] == {"strategy": "mcmc", "cap_max": 300_000, "cap_max_auto": False}
+    assert fixed["results"]["gsplat"]["cap_max"] == 300_000
+    assert fixed["results"]["gsplat"]["budget_rule"] is None
+    assert "; strategy mcmc, a fixed budget of 300000 Gaussians" in capsys.readouterr().out
+
+    auto = _budget_profile(tmp_path, "auto")
+    validate(auto, "profile_step", "auto.json")
+    assert auto["budget"] == {"strategy": "mcmc", "cap_max": None, "cap_max_auto": True}
+    r = auto["results"]["gsplat"]
+    rule = r["budget_rule"]
+    pixels_per_view = 48 * 32
+    expected = auto_budget(rule["sfm_points"], [(48, 32)] * rule["train_views"])
+    assert rule["train_pixels"] == pixels_per_view * rule["train_views"] and 0 < rule["train_views"] < 6
+    assert r["cap_max"] == rule["cap_max"] == expected.cap_max < 300_000
+    assert r["num_gaussians"] <= r["cap_max"]
+    printed = capsys.readouterr().out
+    assert f"; strategy mcmc, the budget sized to the scene (--cap-max auto): {expected.cap_max}" in printed
+
+
+def test_committed_profiles_validate() -> None:
+    """Every profile_step JSON under docs/results/speed validates against today's schema (its versions before
+    the budget was recorded included)."""
+    from jsgs.base.schema import validate
+
+    root = Path(__file__).resolve().parents[2] / "docs" / "results" / "speed"
+    profiles = []
+    for path in sorted(root.rglob("*.json")):
+        doc = json.loads(path.read_text())
+        if isinstance(doc, dict) and doc.get("format") == ps.FORMAT:
+            validate(doc, "profile_step", str(path))
+            profiles.append(doc["format_version"])
+    assert len(profiles) > 10 and {1, 3} <= set(profiles)
 
 
 def test_pairs_doc_on_hand_made_numbers(capsys: Any) -> None:

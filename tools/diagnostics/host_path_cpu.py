@@ -94,9 +94,9 @@ def install() -> None:
 
 #: profile_step.py's options, passed on as they are (its ``--device`` is set to cpu here)
 PASSED_ON = (
-    "--manifest", "--size", "--views", "--methods", "--preset", "--config", "--jsgs-options", "--warmup",
-    "--settle", "--steps", "--top", "--python-top", "--trace", "--pairs", "--no-fresh", "--threads",
-    "--workdir", "--out", "--memory-history", "--memory-steps", "--memory-stacks",
+    "--manifest", "--size", "--views", "--methods", "--preset", "--config", "--cap-max", "--jsgs-options",
+    "--warmup", "--settle", "--steps", "--top", "--python-top", "--trace", "--pairs", "--no-fresh",
+    "--threads", "--workdir", "--out", "--memory-history", "--memory-steps", "--memory-stacks",
 )  # fmt: skip
 
 

@@ -12,6 +12,20 @@ builds it (``--size``, ``--views``). Every method runs the same settings (``--pr
 JSON over the preset; no evaluation, no intermediate checkpoints; ``--jsgs-options`` over ``method_options``
 for jsgs) from the same seed.
 
+The budget (``strategy.type mcmc``): ``--cap-max N`` or ``--cap-max auto``, read as ``jsgs train --cap-max``
+reads it (:func:`jsgs.train.config.cap_max_settings`), applies over ``--preset`` and ``--config`` for every
+method. Without it the budget is the fixed :data:`jsgs.train.config.MCMC_CAP_MAX` = 300,000 Gaussians, under
+``--config`` (a config file or run's config.json that gives a budget keeps it), not the mcmc preset's
+scene-sized default: the published step profiles (docs/performance.md, docs/results/speed/) all ran at
+300,000 ("the full budget" there is 300,000, and their ``--warmup`` points, 6,000 steps on flower and 9,300
+on jpeg_mouse ÷2, are where the runs reach it), so a documented command run again measures the same model
+size, and both methods always get one fixed budget whatever the scene. ``--cap-max auto`` profiles at the
+budget ``jsgs train`` would choose for the scene (:mod:`jsgs.train.budget`; the same for every method).
+The budget is printed in the header line and recorded in the JSON (``budget``: the settings' ``cap_max``
+and ``cap_max_auto``; per method ``cap_max``, what its run trained with, and under auto ``budget_rule``,
+the choice and its inputs). ``--cap-max`` with another strategy (``--preset paper``, the default) is an
+error, as for ``jsgs train``.
+
 Per method:
 
 1. train ``--warmup`` steps and stop there with a checkpoint (600 by default: densification has begun, the
@@ -132,7 +146,15 @@ from jsgs.base.io import write_json_checked  # noqa: E402
 from jsgs.bench.stats import median_interval  # noqa: E402
 from jsgs.method import graphed  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
-from jsgs.train.config import PRESETS, TrainConfig, load_config_file  # noqa: E402
+from jsgs.train.config import (  # noqa: E402
+    MCMC_CAP_MAX,
+    PRESETS,
+    TrainConfig,
+    cap_max_settings,
+    from_dict,
+    load_config_file,
+    read_run_config,
+)
 from jsgs.train.evaluate import synchronize  # noqa: E402
 from jsgs.train.render_view import resolve_device  # noqa: E402
 from jsgs.train.trainer import Trainer, train  # noqa: E402
@@ -140,7 +162,7 @@ from jsgs.train.trainer import Trainer, train  # noqa: E402
 FORMAT = "jsgs-profile-step"
 #: The peak device memory figures of a window (:meth:`StepWindow.peak_memory`), in the order printed.
 MEMORY_KINDS = ("allocated", "reserved")
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 #: ``--memory-history``: the allocator history's ring buffer, in events (a step makes a few thousand; the
 #: window's start must not be overwritten before its end)
 HISTORY_MAX_ENTRIES = 2_000_000
@@ -713,6 +735,7 @@ def profile_method(
     release_memory(device)
     train(manifest, warm, cfg, force=True, stop_at=warmup, progress=False, log=_quiet)
     cuda = device.type == "cuda"
+    trained = run_budget(warm)
 
     plain = work / "plain"
     shutil.copytree(warm, plain)
@@ -776,6 +799,7 @@ def profile_method(
         "graph_recordings_in_window": window.recordings,
         "device_name": doc["device_name"],
         "backend": doc["backend"],
+        **trained,
     }
     if wall_fresh is not None:
         result["wall_ms_per_step_fresh"] = wall_fresh
@@ -788,6 +812,17 @@ def profile_method(
         result["python_wall_ms_per_step"] = pywin.ms_per_step()
         result["python_top"] = pywin.top(python_top)
     return result, stats
+
+
+def run_budget(run: Path) -> dict[str, Any]:
+    """What the run in folder ``run`` trained with, from its config.json: ``cap_max`` (null for a strategy
+    other than mcmc) and ``budget_rule``, the scene-sized choice and its inputs (null with a fixed budget)."""
+    recorded = read_run_config(run)
+    strategy = recorded.settings.strategy
+    return {
+        "cap_max": strategy.cap_max if strategy.type == "mcmc" else None,
+        "budget_rule": recorded.doc["derived"].get("budget"),
+    }
 
 
 def pair_order(methods: Sequence[str], pairs: int) -> list[list[str]]:
@@ -924,7 +959,7 @@ def print_report(doc: dict[str, Any]) -> None:
     )
     print(
         f"scene {doc['manifest']}: {doc['warmup']} warm-up steps, {doc['settle']} settling steps, "
-        f"{doc['steps']} measured steps"
+        f"{doc['steps']} measured steps{describe_budget(doc)}"
         + ("" if cuda else "; CPU: kernels are aten ops, their time is host time; peak memory: CUDA only")
     )
     print()
@@ -1133,6 +1168,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     )  # fmt: skip
     ap.add_argument("--config", type=Path, help="JSON settings over the preset, for every method")
     ap.add_argument(
+        "--cap-max", metavar="N|auto",
+        help="strategy.type mcmc: the Gaussian budget of every method, over --preset and --config: a fixed "
+        "number, or auto (the budget jsgs train chooses for the scene) [300000, under --config: the "
+        "published profiles' budget]",
+    )  # fmt: skip
+    ap.add_argument(
         "--jsgs-options",
         type=_json_arg,
         default={},
@@ -1195,9 +1236,47 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def base_config(args: argparse.Namespace) -> TrainConfig:
-    """The settings every method starts from: ``--preset`` with ``--config`` over it."""
-    preset = TrainConfig.from_preset(args.preset)
-    return load_config_file(args.config, preset) if args.config else preset
+    """The settings every method starts from: ``--preset``, with an mcmc strategy the fixed budget of
+    :data:`MCMC_CAP_MAX` over it, ``--config`` over that and ``--cap-max`` over all (module docstring, "The
+    budget"). JsgsError (one line) for a ``--cap-max`` that is neither a number nor auto, or given with
+    another strategy."""
+    cfg = TrainConfig.from_preset(args.preset)
+    if cfg.strategy.type == "mcmc":
+        cfg = from_dict({"strategy": cap_max_settings(str(MCMC_CAP_MAX))}, "profile_step", base=cfg)
+    if args.config:
+        cfg = load_config_file(args.config, cfg)
+    if args.cap_max is None:
+        return cfg
+    if cfg.strategy.type != "mcmc":
+        raise JsgsError(
+            f"--cap-max applies to strategy.type mcmc (--preset mcmc); it is {cfg.strategy.type!r}"
+        )
+    return from_dict({"strategy": cap_max_settings(args.cap_max)}, "--cap-max", base=cfg)
+
+
+def budget_doc(cfg: TrainConfig) -> dict[str, Any]:
+    """The JSON's ``budget``: the strategy every method starts from and, for mcmc, its budget settings
+    (``cap_max`` null where ``cap_max_auto`` chooses it per run, or another strategy has none)."""
+    mcmc = cfg.strategy.type == "mcmc"
+    auto = mcmc and cfg.strategy.cap_max_auto
+    return {
+        "strategy": cfg.strategy.type,
+        "cap_max": cfg.strategy.cap_max if mcmc and not auto else None,
+        "cap_max_auto": auto,
+    }
+
+
+def describe_budget(doc: dict[str, Any]) -> str:
+    """The header's words for the budget the methods trained with (empty for a file without it)."""
+    budget = doc.get("budget")
+    if budget is None:
+        return ""
+    if budget["strategy"] != "mcmc":
+        return f"; strategy {budget['strategy']}"
+    if not budget["cap_max_auto"]:
+        return f"; strategy mcmc, a fixed budget of {budget['cap_max']} Gaussians"
+    chosen = sorted({r["cap_max"] for r in doc["results"].values()})
+    return f"; strategy mcmc, the budget sized to the scene (--cap-max auto): {', '.join(map(str, chosen))}"
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -1276,6 +1355,7 @@ def document(
             "warmup": args.warmup,
             "settle": args.settle,
             "steps": args.steps,
+            "budget": budget_doc(base_config(args)),
             "results": results,
             "differences": differences,
         }
