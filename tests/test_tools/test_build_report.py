@@ -417,3 +417,28 @@ def test_a_runs_config_json_that_is_no_valid_entry_is_named(tmp_path: Path) -> N
     assert "\n" not in err and err.startswith(f"build_report.py: {runs[0] / 'config.json'} (as an entry of ")
     assert "settings/strategy: Additional properties are not allowed ('speedy' was unexpected)" in err
     assert {p.name: p.read_bytes() for p in target.iterdir() if p.is_file()} == files
+
+
+def test_settings_recorded_under_an_earlier_name_gather(tmp_path: Path) -> None:
+    """A bench run's config.json (and a results folder's configs.json) written when ``speed.exchange`` was
+    ``auto`` reads as jsgs reads it (``gsplat``, :func:`jsgs.train.config.current_values`): the gather
+    goes through and configs.json records today's value, valid against its schema."""
+    from jsgs.base.schema import validate
+
+    target, bench = tmp_path / "op", tmp_path / "b1"
+    _views_bench(bench, "a", 1.0)
+    runs = sorted((bench / "runs").glob("*/*/*/*/*"))
+    for run in runs:
+        doc = _run_doc(run.parts[-3], 100000)
+        doc["settings"]["speed"] = {**doc["settings"].get("speed", {}), "exchange": "auto"}
+        (run / "config.json").write_text(json.dumps(doc))
+    br.main(target, [bench])
+    configs = json.loads((target / "configs.json").read_text())
+    validate(configs, "configs", "configs.json")
+    assert len(configs) == len(runs) == 2
+    assert {c["settings"]["speed"]["exchange"] for c in configs.values()} == {"gsplat"}
+    # a configs.json gathered before: its old value reads too
+    old = {k: {**v, "settings": {**v["settings"], "speed": {"exchange": "auto"}}} for k, v in configs.items()}
+    (target / "configs.json").write_text(json.dumps(old))
+    back = br.read_configs_file(target / "configs.json")
+    assert {c["settings"]["speed"]["exchange"] for c in back.values()} == {"gsplat"}

@@ -51,6 +51,7 @@ from jsgs.bench.budget import common_steps
 from jsgs.bench.markdown import write_report
 from jsgs.bench.results import read_csv, write_csv
 from jsgs.method.options import JsgsOptions
+from jsgs.train.config import current_values
 
 
 def key(r: dict) -> tuple:
@@ -84,14 +85,27 @@ def read_configs_file(path: Path) -> dict[str, dict]:
     if not path.is_file():
         return {}
     doc = read_json(path, "JSON")
+    if isinstance(doc, dict):  # settings values recorded under an earlier name read as today's
+        doc = {k: _current(v) for k, v in doc.items()}
     validate(doc, "configs", str(path))
     return doc
 
 
+def _current(entry: object) -> object:
+    """A configs.json entry (or a run's config.json) with its settings' values recorded under an earlier
+    name replaced by today's (:func:`jsgs.train.config.current_values`, as jsgs reads a run's config.json:
+    ``speed.exchange: auto`` is ``gsplat``); anything else as it is."""
+    if not (isinstance(entry, dict) and isinstance(entry.get("settings"), dict)):
+        return entry
+    return {**entry, "settings": current_values(entry["settings"])}
+
+
 def run_config(doc: dict) -> dict:
     """What configs.json keeps of a run's config.json: settings, versions, command and, where the run chose
-    its budget from the scene (``--cap-max auto``), the rule's inputs and choice (``derived.budget``)."""
+    its budget from the scene (``--cap-max auto``), the rule's inputs and choice (``derived.budget``); the
+    settings with today's names for values recorded under earlier ones (:func:`_current`)."""
     out = {k: doc[k] for k in ("settings", "versions", "command")}
+    out["settings"] = current_values(out["settings"])
     rule = doc.get("derived", {}).get("budget")
     if rule is not None:
         out["derived"] = {"budget": rule}
