@@ -65,14 +65,23 @@ def test_it_is_sha256_of_the_segments_it_keeps() -> None:
     import hashlib
 
     data = insert_after_soi(_jpeg(_img(2), quality=60, comment=b"c"), exif_app1())
-    end = _sos_end(data)
+    assert header_digest_bytes(data) == hashlib.sha256(_kept_segments(data, _sos_end(data))).hexdigest()
+
+
+def _kept_segments(data: bytes, end: int) -> bytes:
+    """An independent walk of a well-formed ``data`` up to offset ``end``: the segments after SOI but the
+    APPn (n != 0, 14) and COM ones, each scan's coded data (up to the next FF that is not 00, FF or RSTn)
+    left out."""
     kept, p = b"", 2
     while p < end:
         code, length = data[p + 1], int.from_bytes(data[p + 2 : p + 4], "big")
         if not (0xE1 <= code <= 0xED or code in (0xEF, 0xFE)):
             kept += data[p : p + 2 + length]
         p += 2 + length
-    assert header_digest_bytes(data) == hashlib.sha256(kept).hexdigest()
+        if code == 0xDA and p < end:
+            while not (data[p] == 0xFF and data[p + 1] not in (0x00, 0xFF, *range(0xD0, 0xD8))):
+                p += 1
+    return kept
 
 
 def test_bad_files_are_one_line(tmp_path: Path) -> None:
@@ -164,17 +173,8 @@ def test_scheme_2_covers_a_dqt_between_scans() -> None:
     assert len(sos) == 3 and parse_header(data, "n.jpg").scans == 3
     end = _sos_end(data)
     assert end > sos[2]
-    # independently: the segments from SOI on, each scan's coded data (up to the next FF that is not 00) cut
-    kept, p = b"", 2
-    while p < end:
-        code, length = data[p + 1], int.from_bytes(data[p + 2 : p + 4], "big")
-        if not (0xE1 <= code <= 0xED or code in (0xEF, 0xFE)):
-            kept += data[p : p + 2 + length]
-        p += 2 + length
-        if code == 0xDA and p < end:
-            while not (data[p] == 0xFF and data[p + 1] not in (0x00, 0xFF, *range(0xD0, 0xD8))):
-                p += 1
-    assert header_digest_bytes(data) == hashlib.sha256(kept).hexdigest()
+    # independently: the segments from SOI on, each scan's coded data cut
+    assert header_digest_bytes(data) == hashlib.sha256(_kept_segments(data, end)).hexdigest()
     first = header_digest_bytes(data, scheme=1)
     assert first != header_digest_bytes(data) and first == header_digest_bytes(data[: sos[0] + 12], scheme=1)
     # a chroma table redefined before Cr's first scan, or before Cb's: only scheme 2 sees it
