@@ -442,3 +442,24 @@ def test_settings_recorded_under_an_earlier_name_gather(tmp_path: Path) -> None:
     (target / "configs.json").write_text(json.dumps(old))
     back = br.read_configs_file(target / "configs.json")
     assert {c["settings"]["speed"]["exchange"] for c in back.values()} == {"gsplat"}
+
+
+def test_views_that_would_not_be_valid_stop_the_gather_before_anything_is_written(tmp_path: Path) -> None:
+    """A bench run whose metrics.json reads but whose views would not make a valid views.json (an
+    evaluation at step 0) stops the gather in one line naming views.json, and the folder's files are left
+    as they were (results.csv and configs.json not rewritten before the refusal)."""
+    from jsgs.base.errors import JsgsError
+
+    target, files = _gathered(tmp_path)
+    bench = tmp_path / "b2"
+    _views_bench(bench, "a", -1.0)
+    write_csv([_row("a", "gaussian", m, 0, 0.3) for m in ("gsplat", "jsgs")], bench / "results.csv")
+    for run in sorted((bench / "runs").glob("*/*/*/*/*")):
+        _config(run, 2)
+        metrics = json.loads((run / "metrics.json").read_text())
+        metrics["evals"][0]["step"] = 0
+        (run / "metrics.json").write_text(json.dumps(metrics))
+    with pytest.raises(JsgsError) as e:
+        br.main(target, [bench])
+    assert str(e.value).startswith(f"{target / 'views.json'}: ") and "\n" not in str(e.value)
+    assert {p.name: p.read_bytes() for p in target.iterdir() if p.is_file()} == files

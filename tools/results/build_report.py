@@ -16,7 +16,7 @@ without a readable config.json). Where results.csv holds ``auto`` rows, report.m
 that trained at different budgets (two versions of the rule) stop it with one line: gather those into
 folders of their own. configs.json (schema ``jsgs/schemas/configs.schema.json``) is checked when read and
 before it is written: one that is not valid, or a run's config.json that would not be a valid entry, stops
-it with one line naming the file, nothing written. The tables are computed at the last step (10,000), or at
+it with one line naming the file, nothing written; so do views that would not make a valid views.json. The tables are computed at the last step (10,000), or at
 ``--step N`` (for runs that all stopped earlier); runs that stopped before it are listed as such;
 ``--step auto`` compares each scene, at each budget, at the last evaluation every one of its runs reached
 (:func:`jsgs.bench.budget.common_steps`).
@@ -233,12 +233,14 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
     kept = {run_key(r) for r in rows}
     configs = {k: v for k, v in configs.items() if k in kept}
     configs = dict(sorted(configs.items()))
-    validate(configs, "configs", str(cfg))  # before anything is written, as is the next
-    notes = auto_notes(rows, configs)  # it may refuse
+    views = {k: v for k, v in views.items() if k in kept}
+    # before anything is written: configs.json and views.json checked, the notes (they may refuse)
+    validate(configs, "configs", str(cfg))
+    validate(per_view.to_doc(views), "views", str(target / per_view.VIEWS_FILE))
+    notes = auto_notes(rows, configs)
     target.mkdir(parents=True, exist_ok=True)
     write_csv(rows, csv)
     write_json_atomic(cfg, configs)
-    views = {k: v for k, v in views.items() if k in kept}
     if views or (target / per_view.VIEWS_FILE).is_file():  # an earlier gather's, replaced even by none
         per_view.write_file(target / per_view.VIEWS_FILE, views)
     unrecorded = sorted(kept - configs.keys())
