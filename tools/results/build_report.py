@@ -16,10 +16,10 @@ without a readable config.json). Where results.csv holds ``auto`` rows, report.m
 that trained at different budgets (two versions of the rule) stop it with one line: gather those into
 folders of their own. configs.json (schema ``jsgs/schemas/configs.schema.json``) is checked when read and
 before it is written: one that is not valid, or a run's config.json that would not be a valid entry, stops
-it with one line naming the file, nothing written; so do views that would not make a valid views.json. The tables are computed at the last step (10,000), or at
-``--step N`` (for runs that all stopped earlier); runs that stopped before it are listed as such;
-``--step auto`` compares each scene, at each budget, at the last evaluation every one of its runs reached
-(:func:`jsgs.bench.budget.common_steps`).
+it with one line naming the file, nothing written; so do views that would not make a valid views.json. The
+tables are computed at the last step (10,000), or at ``--step N`` (for runs that all stopped earlier); runs
+that stopped before it are listed as such; ``--step auto`` compares each scene, at each budget, at the last
+evaluation every one of its runs reached (:func:`jsgs.bench.budget.common_steps`).
 
     .venv/bin/python tools/results/build_report.py --step auto docs/results/budget/default \
         .res/b100 .res/captures
