@@ -31,3 +31,15 @@ def test_parts_of_a_tiny_window(capsys: Any) -> None:
     # rgb -> YCbCr and YCbCr -> RGB, [H W, 3] x [3, 3] with the offset; DS's Y8 of observation and target
     assert "| JO | aten::addmm | [[3], [1536, 3], [3, 3]] | 2.0 |" in printed
     assert "| DS | aten::mm | [[1536, 3], [3, 1]] | 2.0 |" in printed
+
+
+def test_cap_max_is_refused_in_one_line_where_it_means_nothing(capsys: Any) -> None:
+    """``--cap-max`` with the default paper preset (DefaultStrategy, no budget) or an unreadable value: one
+    line, exit status 1, before anything trains."""
+    assert ops.main(["--cap-max", "300000"]) == 1
+    assert ops.main(["--preset", "mcmc", "--cap-max", "lots"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "error: --cap-max applies to strategy.type mcmc (--preset mcmc); it is 'default'",
+        "error: --cap-max: expected a number of Gaussians or auto (got 'lots')",
+    ]

@@ -107,5 +107,26 @@ def test_bad_settings_are_one_line(tmp_path: Path, capsys: Any) -> None:
     assert sm.main(["--methods", "gsplat,nope"]) == 1
     assert sm.main(["--manifest", str(tmp_path / "missing.json")]) == 1
     assert sm.main(["--size", "big"]) == 1
+    assert sm.main(["--preset", "paper", "--cap-max", "5000"]) == 1  # DefaultStrategy has no budget
+    assert sm.main(["--cap-max", "many"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 3 and all(line.startswith("error: ") for line in err)
+    assert len(err) == 5 and all(line.startswith("error: ") for line in err)
+    assert "--cap-max applies to strategy.type mcmc" in err[3] and "--cap-max: expected a number" in err[4]
+
+
+def test_budget_is_the_published_fixed_one_unless_given(tmp_path: Path) -> None:
+    """The mcmc preset's budget here is the fixed 300,000 of the published figures (not the preset's
+    scene-sized default), a config file's budget over it and ``--cap-max`` over both."""
+    over = tmp_path / "over.json"
+    over.write_text(json.dumps({"strategy": {"cap_max": 777}}))
+    budget = [
+        (c.strategy.cap_max, c.strategy.cap_max_auto)
+        for c in (
+            sm.start_config("mcmc", None, None),
+            sm.start_config("mcmc", over, None),
+            sm.start_config("mcmc", over, "300000"),
+        )
+    ]
+    assert budget == [(300_000, False), (777, False), (300_000, False)]
+    assert sm.start_config("mcmc", None, "auto").strategy.cap_max_auto
+    assert sm.parse_args(["--cap-max", "auto"]).cap_max == "auto"

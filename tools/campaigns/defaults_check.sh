@@ -52,7 +52,7 @@ rule() {  # rule NAME GPU SCENE BUDGET: JSGS seeds 0,1 at BUDGET, 30,000 steps
 }
 profile() {  # profile MANIFEST WARMUP NAME OPTIONS [TIMEOUT]: 6 interleaved pairs, --preset mcmc, GPU 3
     CUDA_VISIBLE_DEVICES=3 timeout "${5:-190}" bash scripts/gpu_run.sh python3 tools/diagnostics/profile_step.py \
-        --manifest "$1" --device cuda --preset mcmc --warmup "$2" --steps 100 --pairs 6 --no-fresh \
+        --manifest "$1" --device cuda --preset mcmc --cap-max 300000 --warmup "$2" --steps 100 --pairs 6 --no-fresh \
         --jsgs-options "$4" --out $L/$3.json > $L/$3.txt 2>&1
 }
 F=$D/flower_gaussian/manifest.json M=$D/jpeg_mouse/manifest.json

@@ -30,11 +30,12 @@ mkdir -p $L $T
 bash scripts/gpu_run.sh true > $L/build.log 2>&1
 profile() {  # profile GPU WARMUP SECONDS: the profile after WARMUP steps on GPU
     CUDA_VISIBLE_DEVICES=$1 timeout "$3" bash scripts/gpu_run.sh python3 $P --manifest "$F" --device cuda \
-        --preset mcmc --warmup "$2" --steps 100 --pairs "$PAIRS" --no-fresh --jsgs-options '{}' \
+        --preset mcmc --cap-max 300000 --warmup "$2" --steps 100 --pairs "$PAIRS" --no-fresh --jsgs-options '{}' \
         --out $L/flower_$2.json > $L/flower_$2.txt 2>&1
 }
 (profile $G0 1500 "$TL"; CUDA_VISIBLE_DEVICES=$G0 timeout 170 bash scripts/gpu_run.sh python3 $P --manifest "$F" \
-    --device cuda --preset mcmc --warmup 1500 --steps 40 --python-top 40 --trace $T --out $L/trace_1500.json \
+    --device cuda --preset mcmc --cap-max 300000 --warmup 1500 --steps 40 --python-top 40 --trace $T \
+    --out $L/trace_1500.json \
     > $L/trace_1500.txt 2>&1; timeout 60 python3 tools/diagnostics/trace_gaps.py $T/gsplat.trace.json \
     $T/jsgs.trace.json --steps 40 --top 30 > $L/gaps_1500.txt 2>&1
  if [ "${CHECKS:-0}" = 1 ]; then

@@ -76,7 +76,7 @@ elif [ "${PART:-speed}" = cpu_speed ]; then
     export OMP_NUM_THREADS=1
     T=.res/gc_attribution_cpu; mkdir -p $T
     for a in probe footprint; do
-        $PY tools/diagnostics/profile_step.py --device cpu --threads 1 --preset mcmc \
+        $PY tools/diagnostics/profile_step.py --device cpu --threads 1 --preset mcmc --cap-max 300000 \
             --jsgs-options "{$R,\"gc_attribution\":\"$a\"}" --warmup 600 --steps 50 --pairs 5 --no-fresh \
             --out $T/cpu_$a.json > $T/cpu_$a.txt 2>&1
     done
@@ -89,7 +89,8 @@ elif [ "${PART:-speed}" = speed ]; then
         for job in flower_gaussian:.gpu4:1500 jpeg_mouse:.gpu3:1500; do
             s=${job%%:*}; rest=${job#*:}; d=${rest%%:*}; w=${rest#*:}
             timeout 560 bash scripts/gpu_run.sh python3 $P --manifest $d/$s/manifest.json --device cuda \
-                --preset mcmc --jsgs-options "{$R,\"gc_attribution\":\"$a\"}" --warmup $w --steps 100 \
+                --preset mcmc --cap-max 300000 --jsgs-options "{$R,\"gc_attribution\":\"$a\"}" --warmup $w \
+                --steps 100 \
                 --pairs 6 --no-fresh --out $OUT/speed_${a}_${s}_$w.json > $OUT/speed_${a}_${s}_$w.txt 2>&1
         done
     done

@@ -49,7 +49,7 @@ elif [ "${PART:-speed}" = speed ]; then
         for job in flower_gaussian:.gpu4:1500 flower_gaussian:.gpu4:6000 jpeg_mouse:.gpu3:1500; do
             s=${job%%:*}; rest=${job#*:}; d=${rest%%:*}; w=${rest#*:}
             timeout 560 bash scripts/gpu_run.sh python3 $P --manifest $d/$s/manifest.json --device cuda \
-                --preset mcmc --jsgs-options "{$R,\"gc_every\":$k}" --warmup $w --steps 100 \
+                --preset mcmc --cap-max 300000 --jsgs-options "{$R,\"gc_every\":$k}" --warmup $w --steps 100 \
                 --pairs 6 --no-fresh --out $OUT/speed_K${k}_${s}_$w.json > $OUT/speed_K${k}_${s}_$w.txt 2>&1
         done
     done

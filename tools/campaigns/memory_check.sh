@@ -86,7 +86,8 @@ CUDA_VISIBLE_DEVICES=$G0,$G1 timeout -k 15 "$(left 150)" bash scripts/gpu_run.sh
 stamp gpu_tests_2gpu $?
 profile() {  # profile GPU MANIFEST WARMUP NAME SECONDS: the memory profile and history after WARMUP steps
     CUDA_VISIBLE_DEVICES=$1 TORCH_SYMBOLIZE_MODE=fast timeout -k 15 "$5" bash scripts/gpu_run.sh python3 $P \
-        --manifest "$2" --device "$DEVICE" --preset mcmc --warmup "$3" --settle "$SETTLE" --steps "$STEPS" \
+        --manifest "$2" --device "$DEVICE" --preset mcmc --cap-max 300000 --warmup "$3" --settle "$SETTLE" \
+        --steps "$STEPS" \
         --pairs "$PAIRS" --no-fresh --jsgs-options '{}' --memory-history "$TOP" --memory-steps "$MSTEPS" \
         --memory-stacks "$STACKS" --out "$L/$4.json" > "$L/$4.txt" 2>&1
     stamp "$4" $?

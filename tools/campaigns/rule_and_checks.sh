@@ -30,7 +30,7 @@ rule() {  # rule NAME "SCENES": bench NAME (/tmp/op_rule_NAME) detached on GPUs 
 }
 profile() {  # profile MANIFEST WARMUP NAME OPTIONS: 6 interleaved pairs, --preset mcmc, on GPU 3
     CUDA_VISIBLE_DEVICES=3 timeout "${PT:-190}" bash scripts/gpu_run.sh python3 tools/diagnostics/profile_step.py \
-        --manifest "$1" --device cuda --preset mcmc --warmup "$2" --steps 100 --pairs 6 --no-fresh \
+        --manifest "$1" --device cuda --preset mcmc --cap-max 300000 --warmup "$2" --steps 100 --pairs 6 --no-fresh \
         --jsgs-options "$4" --out $L/$3.json > $L/$3.txt 2>&1
 }
 case $PHASE in

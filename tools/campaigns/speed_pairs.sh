@@ -12,9 +12,9 @@ P=tools/diagnostics/profile_step.py; M=.gpu4/flower_gaussian/manifest.json
 O='{"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0,"base_noise_exponent":2.0}'
 bash scripts/gpu_run.sh true
 CUDA_VISIBLE_DEVICES=1 timeout 560 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda \
-    --preset mcmc --jsgs-options "$O" --warmup 6000 --steps 50 --pairs 3 \
+    --preset mcmc --cap-max 300000 --jsgs-options "$O" --warmup 6000 --steps 50 --pairs 3 \
     --out $OUT/pairs_6000.json > $OUT/pairs_6000.txt 2>&1 &
 CUDA_VISIBLE_DEVICES=0 timeout 400 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda \
-    --preset mcmc --jsgs-options "$O" --warmup 1500 --steps 50 --pairs 3 \
+    --preset mcmc --cap-max 300000 --jsgs-options "$O" --warmup 1500 --steps 50 --pairs 3 \
     --out $OUT/pairs_1500.json > $OUT/pairs_1500.txt 2>&1
 wait

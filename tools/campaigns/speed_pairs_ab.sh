@@ -26,7 +26,7 @@ for job in "$@"; do
     if [ $v = a ]; then d=.; e=$TORCH_EXTENSIONS_DIR; else d=.gpu4/base; e=$B; fi
     (cd $d && TORCH_EXTENSIONS_DIR=$e timeout 240 bash scripts/gpu_run.sh python3 \
         tools/diagnostics/profile_step.py --manifest "$R/.gpu4/flower_gaussian/manifest.json" --device cuda \
-        --preset mcmc --jsgs-options "$O" --warmup $w --steps 100 --pairs ${PAIRS:-5} \
+        --preset mcmc --cap-max 300000 --jsgs-options "$O" --warmup $w --steps 100 --pairs ${PAIRS:-5} \
         --no-fresh --out $OUT/${v}_pairs_$w.json > $OUT/${v}_pairs_$w.txt 2>&1)
 done
 if [ -n "${GPU_TESTS:-}" ]; then

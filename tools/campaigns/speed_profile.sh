@@ -11,9 +11,9 @@ P=tools/diagnostics/profile_step.py; M=.gpu4/flower_gaussian/manifest.json
 O='{"lambda_obs":1.0,"base_by_view":true,"base_noise_ref":4.0}'
 bash scripts/gpu_run.sh true
 CUDA_VISIBLE_DEVICES=1 timeout 480 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --preset mcmc \
-    --jsgs-options "$O" --warmup 6000 --steps 50 --out $OUT/prof_6000.json > $OUT/prof_6000.txt 2>&1 &
+    --cap-max 300000 --jsgs-options "$O" --warmup 6000 --steps 50 --out $OUT/prof_6000.json > $OUT/prof_6000.txt 2>&1 &
 CUDA_VISIBLE_DEVICES=0 timeout 250 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --preset mcmc \
-    --jsgs-options "$O" --warmup 1500 --steps 50 --python-top 30 --out $OUT/prof_1500.json > $OUT/prof_1500.txt 2>&1
+    --cap-max 300000 --jsgs-options "$O" --warmup 1500 --steps 50 --python-top 30 --out $OUT/prof_1500.json > $OUT/prof_1500.txt 2>&1
 CUDA_VISIBLE_DEVICES=0 timeout 200 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --preset mcmc \
-    --warmup 1500 --steps 50 --out $OUT/prof_1500_paper.json > $OUT/prof_1500_paper.txt 2>&1
+    --cap-max 300000 --warmup 1500 --steps 50 --out $OUT/prof_1500_paper.json > $OUT/prof_1500_paper.txt 2>&1
 wait

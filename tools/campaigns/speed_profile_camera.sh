@@ -13,10 +13,10 @@ P=tools/diagnostics/profile_step.py; M=.gpu3/jpeg_mouse/manifest.json
 O='{"lambda_obs":1.0,"base_by_view":true,"base_noise":"pixels","base_noise_ref":2.0,"base_noise_exponent":2.0}'
 export CUDA_VISIBLE_DEVICES=0
 bash scripts/gpu_run.sh true
-timeout 200 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --preset mcmc \
+timeout 200 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --preset mcmc --cap-max 300000 \
     --jsgs-options "$O" --warmup 1500 --steps 30 --top 25 --pairs 3 --no-fresh \
     --out $OUT/cam_1500.json > $OUT/cam_1500.txt 2>&1
-timeout 300 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --preset mcmc \
+timeout 300 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda --preset mcmc --cap-max 300000 \
     --jsgs-options "$O" --warmup 4000 --steps 30 --top 25 --pairs 3 --no-fresh \
     --out $OUT/cam_4000.json > $OUT/cam_4000.txt 2>&1
 tail -n 4 $OUT/cam_*.txt

@@ -13,7 +13,7 @@ O='{"lambda_obs":1.0,"base_by_view":true,"base_noise_ref":4.0}'
 bash scripts/gpu_run.sh true
 g=0
 for s in ${STRATEGIES:-mcmc default}; do
-  c="--preset mcmc"; [ $s = default ] && c=""
+  c="--preset mcmc --cap-max 300000"; [ $s = default ] && c=""
   CUDA_VISIBLE_DEVICES=$g timeout 420 bash scripts/gpu_run.sh python3 $P --manifest $M --device cuda $c \
       --jsgs-options "$O" --warmup 1500 --steps 40 --python-top 40 --trace $T/$s --out $OUT/trace_$s.json \
       > $OUT/trace_$s.txt 2>&1 &

@@ -26,7 +26,7 @@ WARMUP=${WARMUP:-1500} PAIRS=${PAIRS:-3} TL=${TL:-190}
 bash scripts/gpu_run.sh true > "$OUT/build.log" 2>&1
 for v in free:true keep:false; do
     name=camera_jpeg_mouse_${WARMUP}_${v%%:*}
-    timeout "$TL" bash scripts/gpu_run.sh python3 $P --manifest "$M" --device cuda --preset mcmc \
+    timeout "$TL" bash scripts/gpu_run.sh python3 $P --manifest "$M" --device cuda --preset mcmc --cap-max 300000 \
         --warmup "$WARMUP" --steps 100 --pairs "$PAIRS" --no-fresh \
         --jsgs-options "{\"speed\": {\"cuda_graph_free_warmup\": ${v#*:}}}" \
         --out "$OUT/$name.json" > "$OUT/$name.txt" 2>&1 &
@@ -43,7 +43,8 @@ for v in gsplat:gsplat:none jsgs:jsgs:none jsgs_gc1:jsgs:gc1; do
     IFS=: read -r name method cfg <<< "$v"
     extra=(); [ "$cfg" = none ] || extra=(--config "$R/$cfg.json")
     timeout "$TL" bash scripts/gpu_run.sh python3 -m jsgs.cli train "$M" --out "$R/$name" --method "$method" \
-        --preset mcmc --device cuda --iterations "$STEPS" --eval-at '' --profile --quiet ${extra[@]+"${extra[@]}"} \
+        --preset mcmc --cap-max 300000 --device cuda --iterations "$STEPS" --eval-at '' --profile --quiet \
+        ${extra[@]+"${extra[@]}"} \
         > "$R/$name.log" 2>&1 || { echo "== $name failed:"; tail -3 "$R/$name.log"; }
 done
 python3 - "$R" > "$OUT/phase_peaks.txt" <<'PY'

@@ -33,7 +33,7 @@ rm -rf $L && mkdir -p $L
 timeout 200 bash scripts/gpu_run.sh true > $L/build.log 2>&1
 profile() {  # profile GPU WARMUP SECONDS: the profile after WARMUP steps on GPU
     CUDA_VISIBLE_DEVICES=$1 timeout "$3" bash scripts/gpu_run.sh python3 $P --manifest "$F" --device "$DEVICE" \
-        --preset mcmc --warmup "$2" --steps "$STEPS" --pairs "$PAIRS" --no-fresh --jsgs-options '{}' \
+        --preset mcmc --cap-max 300000 --warmup "$2" --steps "$STEPS" --pairs "$PAIRS" --no-fresh --jsgs-options '{}' \
         --out $L/jpeg_mouse_half_$2.json > $L/jpeg_mouse_half_$2.txt 2>&1
     echo "exit status $? after $SECONDS s" >> $L/jpeg_mouse_half_$2.txt
 }

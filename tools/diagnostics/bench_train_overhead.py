@@ -40,7 +40,15 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from jsgs.train.config import TrainConfig, from_dict, load_config_file, to_dict  # noqa: E402
+from jsgs.base.errors import JsgsError  # noqa: E402
+from jsgs.train.config import (  # noqa: E402
+    MCMC_CAP_MAX,
+    TrainConfig,
+    cap_max_settings,
+    from_dict,
+    load_config_file,
+    to_dict,
+)
 from jsgs.train.data import load_training_scene  # noqa: E402
 from jsgs.train.hook import make_hook  # noqa: E402
 from jsgs.train.render_view import resolve_device  # noqa: E402
@@ -75,6 +83,33 @@ def report_header(
         "device": device,
         "torch": torch.__version__,
     }
+
+
+#: ``--cap-max``'s help in the diagnostics that take it (:func:`start_config`)
+CAP_MAX_HELP = (
+    "strategy.type mcmc: the Gaussian budget of every method, over --preset and --config, read as jsgs "
+    "train reads it: a fixed number, or auto (the budget jsgs train chooses for the scene) [300000 unless "
+    "--config gives one: the published profiles' budget]"
+)
+
+
+def start_config(preset: str, config: Path | None, cap_max: str | None) -> TrainConfig:
+    """The settings every method of a diagnostic starts from: ``preset``; with an mcmc strategy the fixed
+    budget of :data:`MCMC_CAP_MAX` over it, the one the published step profiles ran at (not the mcmc
+    preset's scene-sized default); the ``config`` file over that; ``cap_max`` (``--cap-max N|auto``, read by
+    :func:`jsgs.train.config.cap_max_settings`, as ``jsgs train`` reads it) over all. JsgsError (one line)
+    for a ``cap_max`` that is neither a number of at least 1 nor auto, or given with another strategy."""
+    cfg = TrainConfig.from_preset(preset)
+    if cfg.strategy.type == "mcmc":
+        cfg = from_dict({"strategy": cap_max_settings(str(MCMC_CAP_MAX))}, preset, base=cfg)
+    if config is not None:
+        cfg = load_config_file(config, cfg)
+    if cap_max is None:
+        return cfg
+    if cfg.strategy.type != "mcmc":
+        kind = cfg.strategy.type
+        raise JsgsError(f"--cap-max applies to strategy.type mcmc (--preset mcmc); it is {kind!r}")
+    return from_dict({"strategy": cap_max_settings(cap_max)}, "--cap-max", base=cfg)
 
 
 def variant_config(

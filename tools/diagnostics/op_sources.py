@@ -4,7 +4,8 @@ any load): JO, DS, the SSIMs, L_obs, the Gaussian Controller, the rasteriser, th
     .venv/bin/python tools/diagnostics/op_sources.py                    # synthetic 160x120, 16 views, jsgs
     .venv/bin/python tools/diagnostics/op_sources.py --method gsplat --steps 8 --detail
 
-Trains ``--warmup`` steps of the ``--preset`` (``paper``) on a synthetic scene (``profile_step.py``'s), then
+Trains ``--warmup`` steps of the ``--preset`` (``paper``; ``mcmc`` at the fixed 300,000 Gaussians unless
+``--cap-max N|auto`` says otherwise, as in ``profile_step.py``) on a synthetic scene (its scene), then
 records ``--steps`` resumed steps under ``torch.profiler`` with Python stacks. Ops are counted by
 ``profile_step.py``'s rule (views and allocations free, a composite op counted as the ops it runs). A
 forward op is charged to the first part of :data:`PARTS` that a Python frame above it names; a backward op
@@ -33,9 +34,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import profile_step as ps  # noqa: E402
-from bench_train_overhead import build_scene, variant_config  # noqa: E402
+from bench_train_overhead import CAP_MAX_HELP, build_scene, start_config, variant_config  # noqa: E402
 
-from jsgs.train.config import PRESETS, TrainConfig  # noqa: E402
+from jsgs.base.errors import reports_user_errors  # noqa: E402
+from jsgs.train.config import PRESETS  # noqa: E402
 from jsgs.train.trainer import train  # noqa: E402
 
 #: (substring of a Python frame's name, part): an op belongs to the first part any of its frames names
@@ -124,15 +126,16 @@ def run(method: str, size: tuple[int, int], views: int, warmup: int, steps: int)
 
 def record_events(
     method: str, size: tuple[int, int], views: int, warmup: int, steps: int, preset: str = "paper",
-    shapes: bool = False,
+    shapes: bool = False, cap_max: str | None = None,
 ) -> list[Any]:  # fmt: skip
-    """The host events of ``steps`` steps resumed after ``warmup`` steps of ``preset`` on a synthetic scene
-    (``shapes``: with the ops' input shapes)."""
+    """The host events of ``steps`` steps resumed after ``warmup`` steps of ``preset`` (its budget
+    ``cap_max``: :func:`bench_train_overhead.start_config`) on a synthetic scene (``shapes``: with the ops'
+    input shapes)."""
     settle = 2
     work = Path(tempfile.mkdtemp(prefix="op_sources."))
     try:
         manifest = build_scene(work / "synthetic", size, views)
-        base = TrainConfig.from_preset(preset)
+        base = start_config(preset, None, cap_max)
         cfg = variant_config(base, method, dict(base.method_options), warmup + settle + steps + 1, "cpu")
         cfg.checkpoint_every = 0
         train(manifest, work / "run", cfg, force=True, stop_at=warmup, progress=False, log=ps._quiet)
@@ -150,6 +153,7 @@ def record_events(
         shutil.rmtree(work, ignore_errors=True)
 
 
+@reports_user_errors
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--method", default="jsgs", choices=["jsgs", "gsplat"])
@@ -159,6 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=8)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--preset", default="paper", choices=sorted(PRESETS))
+    ap.add_argument("--cap-max", metavar="N|auto", help=CAP_MAX_HELP)
     ap.add_argument("--detail", action="store_true", help="also the op names per part")
     ap.add_argument("--products", action="store_true", help="also the matrix products and their shapes")
     args = ap.parse_args(argv)
@@ -167,7 +172,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     w, h = (int(v) for v in args.size.lower().split("x"))
     events = record_events(args.method, (w, h), args.views, args.warmup, args.steps, args.preset,
-                           shapes=args.products)  # fmt: skip
+                           shapes=args.products, cap_max=args.cap_max)  # fmt: skip
     ops, reads = attribute(events)
     n = args.steps
     parts: collections.Counter[str] = collections.Counter()

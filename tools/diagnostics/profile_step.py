@@ -138,7 +138,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import memory_history  # noqa: E402
-from bench_train_overhead import build_scene, report_header, variant_config  # noqa: E402
+from bench_train_overhead import CAP_MAX_HELP, build_scene, report_header, start_config, variant_config  # noqa: E402
 
 from jsgs.apps.opcount import FREE_OPS  # noqa: E402
 from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
@@ -146,15 +146,7 @@ from jsgs.base.io import write_json_checked  # noqa: E402
 from jsgs.bench.stats import median_interval  # noqa: E402
 from jsgs.method import graphed  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
-from jsgs.train.config import (  # noqa: E402
-    MCMC_CAP_MAX,
-    PRESETS,
-    TrainConfig,
-    cap_max_settings,
-    from_dict,
-    load_config_file,
-    read_run_config,
-)
+from jsgs.train.config import PRESETS, TrainConfig, read_run_config  # noqa: E402
 from jsgs.train.evaluate import synchronize  # noqa: E402
 from jsgs.train.render_view import resolve_device  # noqa: E402
 from jsgs.train.trainer import Trainer, train  # noqa: E402
@@ -1167,12 +1159,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         help="the preset every method starts from (mcmc: the equal-budget protocol) [paper]",
     )  # fmt: skip
     ap.add_argument("--config", type=Path, help="JSON settings over the preset, for every method")
-    ap.add_argument(
-        "--cap-max", metavar="N|auto",
-        help="strategy.type mcmc: the Gaussian budget of every method, over --preset and --config: a fixed "
-        "number, or auto (the budget jsgs train chooses for the scene) [300000, under --config: the "
-        "published profiles' budget]",
-    )  # fmt: skip
+    ap.add_argument("--cap-max", metavar="N|auto", help=CAP_MAX_HELP)
     ap.add_argument(
         "--jsgs-options",
         type=_json_arg,
@@ -1237,21 +1224,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 def base_config(args: argparse.Namespace) -> TrainConfig:
     """The settings every method starts from: ``--preset``, with an mcmc strategy the fixed budget of
-    :data:`MCMC_CAP_MAX` over it, ``--config`` over that and ``--cap-max`` over all (module docstring, "The
-    budget"). JsgsError (one line) for a ``--cap-max`` that is neither a number nor auto, or given with
-    another strategy."""
-    cfg = TrainConfig.from_preset(args.preset)
-    if cfg.strategy.type == "mcmc":
-        cfg = from_dict({"strategy": cap_max_settings(str(MCMC_CAP_MAX))}, "profile_step", base=cfg)
-    if args.config:
-        cfg = load_config_file(args.config, cfg)
-    if args.cap_max is None:
-        return cfg
-    if cfg.strategy.type != "mcmc":
-        raise JsgsError(
-            f"--cap-max applies to strategy.type mcmc (--preset mcmc); it is {cfg.strategy.type!r}"
-        )
-    return from_dict({"strategy": cap_max_settings(args.cap_max)}, "--cap-max", base=cfg)
+    :data:`jsgs.train.config.MCMC_CAP_MAX` over it, ``--config`` over that and ``--cap-max`` over all
+    (module docstring, "The budget"; :func:`bench_train_overhead.start_config`)."""
+    return start_config(args.preset, args.config, args.cap_max)
 
 
 def budget_doc(cfg: TrainConfig) -> dict[str, Any]:

@@ -4,8 +4,10 @@ the tensors alive at that peak (shape, dtype, the op that made each, where in th
     .venv/bin/python tools/diagnostics/step_memory.py                       # synthetic 504x378, mcmc preset
     .venv/bin/python tools/diagnostics/step_memory.py --manifest DATA/manifest.json --out step_memory.json
 
-Each method (``--methods``) trains ``--warmup`` steps of ``--preset`` (``mcmc``, the equal-budget protocol;
-``--config`` JSON over it; ``--jsgs-options`` over JSGS's ``method_options``) on the CPU from the same seed
+Each method (``--methods``) trains ``--warmup`` steps of ``--preset`` (``mcmc``, the equal-budget protocol,
+at the fixed 300,000 Gaussians of the published figures unless ``--config`` or ``--cap-max N|auto`` say
+otherwise, as in ``profile_step.py``; ``--config`` JSON over it; ``--cap-max`` over both; ``--jsgs-options``
+over JSGS's ``method_options``) on the CPU from the same seed
 on a synthetic scene (``profile_step.py``'s, ``--size``, ``--views``) or ``--manifest``, and the next step is
 measured. The methods: ``gsplat``; ``jsgs`` (on the CPU its image terms run eagerly); ``jsgs-graph-layout``,
 JSGS with its image terms arranged as on CUDA with ``method_options.speed.cuda_graph`` (:class:`GraphLayout`).
@@ -66,14 +68,14 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_train_overhead import build_scene, report_header, variant_config  # noqa: E402
+from bench_train_overhead import CAP_MAX_HELP, build_scene, report_header, start_config, variant_config  # noqa: E402
 from op_sources import PARTS as OP_PARTS  # noqa: E402
 
 from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
 from jsgs.base.io import write_json_checked  # noqa: E402
 from jsgs.method.graphed import GraphedImageTerms, _Recording  # noqa: E402
 from jsgs.train.callbacks import Callback  # noqa: E402
-from jsgs.train.config import PRESETS, TrainConfig, load_config_file  # noqa: E402
+from jsgs.train.config import PRESETS, TrainConfig  # noqa: E402
 from jsgs.train.trainer import train  # noqa: E402
 
 FORMAT = "jsgs-step-memory"
@@ -427,9 +429,7 @@ def _graph_layout_hook(manifest: Path, cfg: TrainConfig) -> Any:
 
 def measure(manifest: Path, work: Path, method: str, args: argparse.Namespace) -> dict[str, Any]:
     """Train ``args.warmup`` steps of ``method`` and measure the next (:class:`MeasureStep`)."""
-    base = TrainConfig.from_preset(args.preset)
-    if args.config is not None:
-        base = load_config_file(args.config, base)
+    base = start_config(args.preset, args.config, args.cap_max)
     name = "jsgs" if method == "jsgs-graph-layout" else method
     extra = args.jsgs_options if name == "jsgs" else {}
     cfg = variant_config(base, name, {**base.method_options, **extra}, args.warmup + 1, "cpu")
@@ -519,6 +519,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     )
     ap.add_argument("--preset", default="mcmc", choices=sorted(PRESETS))
     ap.add_argument("--config", type=Path, help="JSON settings over the preset, for every method")
+    ap.add_argument("--cap-max", metavar="N|auto", help=CAP_MAX_HELP)
     ap.add_argument("--warmup", type=int, default=2, help="steps before the measured one [2]")
     ap.add_argument("--jsgs-options", type=json.loads, default={}, help="JSON over JSGS's method_options")
     ap.add_argument("--top", type=int, default=15, help="tensors and origins listed at the peak [15]")
