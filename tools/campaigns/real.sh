@@ -18,6 +18,7 @@ for e in ${RUNS:-jpeg_cup:gsplat:0 jpeg_cup:jsgs:1}; do
     mkdir -p $R/$scene
     again=--force
     ls $R/$scene/$method/checkpoints/*.pt >/dev/null 2>&1 && again=--resume
+    [ $again = --force ] && extra+=(--cap-max 300000)  # the published runs' fixed budget; a resumed run keeps its own
     if [ "$m" = jsgs ] && [ "${PAPER:-1}" = 1 ] && [ $again = --force ]; then  # a resumed run keeps its own
         echo '{"method_options": {"lambda_obs": 0.2, "base_by_view": false}}' > $R/PAPER.json
         extra+=(--config $R/PAPER.json)
