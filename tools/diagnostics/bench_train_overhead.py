@@ -87,9 +87,9 @@ def report_header(
 
 #: ``--cap-max``'s help in the diagnostics that take it (:func:`start_config`)
 CAP_MAX_HELP = (
-    "strategy.type mcmc: the Gaussian budget of every method, over --preset and --config, read as jsgs "
-    "train reads it: a fixed number, or auto (the budget jsgs train chooses for the scene) [300000 unless "
-    "--config gives one: the published profiles' budget]"
+    "strategy.type mcmc: the Gaussian budget of every method, over the preset (and --config where the tool "
+    "takes one), read as jsgs train reads it: a fixed number, or auto (the budget jsgs train chooses for the "
+    "scene) [300000 unless a --config gives one: the published profiles' budget]"
 )
 
 

@@ -5,8 +5,8 @@ any load): JO, DS, the SSIMs, L_obs, the Gaussian Controller, the rasteriser, th
     .venv/bin/python tools/diagnostics/op_sources.py --method gsplat --steps 8 --detail
 
 Trains ``--warmup`` steps of the ``--preset`` (``paper``; ``mcmc`` at the fixed 300,000 Gaussians unless
-``--cap-max N|auto`` says otherwise, as in ``profile_step.py``) on a synthetic scene (its scene), then
-records ``--steps`` resumed steps under ``torch.profiler`` with Python stacks. Ops are counted by
+``--cap-max N|auto`` says otherwise, as in ``profile_step.py``) on a synthetic scene (``profile_step.py``'s),
+then records ``--steps`` resumed steps under ``torch.profiler`` with Python stacks. Ops are counted by
 ``profile_step.py``'s rule (views and allocations free, a composite op counted as the ops it runs). A
 forward op is charged to the first part of :data:`PARTS` that a Python frame above it names; a backward op
 to the part whose forward op made its autograd node (matched by the node's sequence number); an op with
