@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
 import types
 import typing
 from dataclasses import dataclass, field
@@ -55,17 +56,15 @@ _BOUNDS = {"ge": "minimum", "gt": "exclusiveMinimum", "le": "maximum", "lt": "ex
 _BOUND_WORDS = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<"}
 
 
-def setting(default: Any = dataclasses.MISSING, help: str = "", *, required: bool = True, **kw: Any) -> Any:
+def setting(default: Any = dataclasses.MISSING, help: str = "", **kw: Any) -> Any:
     """A dataclass field with a ``help`` text (used for the JSON Schema and the docs): every setting of a
     config section, the methods' option sections included (:func:`section_from_dict`). Numeric settings may
     carry bounds ``ge``, ``gt``, ``le``, ``lt``: checked when settings are read (a one-line error naming the
     key) and written into the JSON Schema. A side left open is bounded by :data:`jsgs.base.limits.MAX_SETTING`
-    (numbers) or :data:`jsgs.base.limits.MAX_INT_SETTING` (integers). ``required=False``: a top-level setting
-    that a ``RUN/config.json`` written before it existed lacks (it then takes its default) and that does not
-    change the trained model."""
+    (numbers) or :data:`jsgs.base.limits.MAX_INT_SETTING` (integers). A ``RUN/config.json`` holds every
+    setting; one written before a setting existed is read with the value that does what that version did
+    (:func:`settings_of_today`)."""
     meta: dict[str, Any] = {"help": help}
-    if not required:
-        meta["required"] = False
     for b in _BOUNDS:
         if b in kw:
             meta[b] = kw.pop(b)
@@ -337,7 +336,6 @@ class TrainConfig:
         "Keep the newest this many checkpoints, deleting older ones as new ones are written (0: keep every "
         "one). The default keeps one per evaluation of the presets' eval_at.",
         ge=0,
-        required=False,
     )
     seed: int = _f(42, "Seed of every random number generator.", ge=0)
     device: Literal["auto", "cpu", "cuda"] = _f("auto", "auto: cuda when available, else cpu.")
@@ -586,12 +584,119 @@ def current_values(settings: Any) -> Any:
     return out
 
 
+#: Settings recorded under another name by earlier versions: the earlier key -> today's (dotted).
+_RECORDED_NAMES: dict[str, str] = {
+    "loss.ssim_kernel": "speed.ssim_kernel",
+    **{f"method_options.{k}": f"method_options.speed.{k}" for k in ("compile", "cuda_graph", "cuda_graph_gc",
+                                                                   "gc_kernel")},
+}
+#: In :data:`_EARLIER_VALUES`: the ``paper`` preset's value.
+_AS_PAPER = object()
+#: Settings that a run's config.json written before they existed lacks, and the value that does what jsgs
+#: did then (none of them changes what a run trains but the strategy's, whose earlier value is known): every
+#: checkpoint was kept; the SSIM was the torch one before the fused kernel; several processes used gsplat's
+#: distributed rasterisation where it rendered every view (as a recorded ``speed.exchange: auto``);
+#: DefaultStrategy was the only strategy (:data:`_AS_PAPER`: the ``paper`` preset's value, which is that; the
+#: MCMC settings unused), the means' learning rate decayed over the run. A setting of today that such a file
+#: lacks and that is not here is refused (:func:`settings_of_today`).
+_EARLIER_VALUES: dict[str, Any] = {
+    "checkpoint_keep": 0,
+    "speed.ssim_kernel": "torch",
+    "speed.exchange": "gsplat",
+    "optim.means_lr_decay_steps": 0,
+    "strategy.type": "default",
+    "strategy.cap_max": _AS_PAPER,
+    "strategy.cap_max_auto": False,
+    "strategy.noise_lr": _AS_PAPER,
+    "strategy.min_opacity": _AS_PAPER,
+}
+
+
+def _renamed(settings: dict[str, Any]) -> dict[str, Any]:
+    """``settings`` (a copy) with the keys of :data:`_RECORDED_NAMES` moved to today's names (where today's
+    is not also given)."""
+    out = json.loads(json.dumps(settings))
+    for old, new in _RECORDED_NAMES.items():
+        *head, key = old.split(".")
+        part = _part(out, head)
+        if part is None or key not in part:
+            continue
+        *new_head, new_key = new.split(".")
+        target = _part(out, new_head, make=True)
+        if target is not None and new_key not in target:
+            target[new_key] = part.pop(key)
+    return out
+
+
+def _part(doc: dict[str, Any], keys: list[str], make: bool = False) -> dict[str, Any] | None:
+    """The nested object of ``doc`` at ``keys`` (created where ``make``); None where one is not an object."""
+    for k in keys:
+        if make and k not in doc:
+            doc[k] = {}
+        doc = doc.get(k)  # type: ignore[assignment]
+        if not isinstance(doc, dict):
+            return None
+    return doc
+
+
+def settings_of_today(settings: Any, where: str) -> tuple[Any, list[str]]:
+    """A run's recorded ``settings`` (``RUN/config.json``, a checkpoint's, a configs.json entry) as today's
+    code reads them, whichever version wrote them: values and keys recorded under earlier names read as
+    today's (:func:`current_values`, :data:`_RECORDED_NAMES`), and each setting the file was written before
+    given the value that does what that version did (:data:`_EARLIER_VALUES`); with those settings, as
+    ``key value`` texts (empty for a file of today). ``method_options`` take their options' defaults, as in
+    every file. JsgsError (one line naming ``where`` and the setting) for a missing setting whose earlier
+    value is not known. Anything not an object is returned as it is (the schema refuses it)."""
+    if not isinstance(settings, dict):
+        return settings, []
+    out = _renamed(current_values(settings))
+    assumed: list[str] = []
+    paper = to_dict(TrainConfig.from_preset("paper"))
+    for section, value in paper.items():
+        if section == "method_options":
+            continue
+        keys = [f"{section}.{k}" for k in value] if isinstance(value, dict) else [section]
+        if isinstance(value, dict) and section in out and not isinstance(out[section], dict):
+            continue  # the schema names it
+        for key in keys:
+            *head, name = key.split(".")
+            part = _part(out, head, make=True)
+            if part is None or name in part:
+                continue
+            if key not in _EARLIER_VALUES:
+                raise JsgsError(
+                    f"{where}: lacks the setting {key}, which changes what the run trains and whose value "
+                    "there is not known"
+                )
+            earlier = _EARLIER_VALUES[key]
+            part[name] = _part(paper, head)[name] if earlier is _AS_PAPER else earlier  # type: ignore[index]
+            assumed.append(f"{key} {json.dumps(part[name])}")
+    return out, assumed
+
+
+_said: set[tuple[str, str]] = set()
+
+
+def say_assumed(where: str, assumed: list[str]) -> None:
+    """The note (stderr, once per file and process) that ``where`` was read with the settings ``assumed``
+    (:func:`settings_of_today`); nothing when there are none."""
+    if not assumed:
+        return
+    line = (
+        f"note: {where} was written before some settings existed; read with the values that do what "
+        f"that version did: {', '.join(assumed)}"
+    )
+    if (where, line) not in _said:
+        _said.add((where, line))
+        print(line, file=sys.stderr, flush=True)
+
+
 def recorded_settings(settings: Any, where: str) -> TrainConfig:
-    """The complete settings a run recorded (``RUN/config.json`` or a checkpoint's ``settings``). A key that a
-    file written before the key existed lacks takes the value of that time: the ``paper`` preset's, which
-    were then the defaults (``strategy.cap_max_auto`` off: the run trained with the ``cap_max`` it
-    records); a value that a setting has under another name today is read as that (:func:`current_values`)."""
-    return from_dict(current_values(settings), where, base=TrainConfig.from_preset("paper"))
+    """The complete settings a run recorded (``RUN/config.json`` or a checkpoint's ``settings``), read as
+    today's code reads them (:func:`settings_of_today`: a setting the file was written before takes the
+    value that does what that version did, e.g. ``strategy.cap_max_auto`` off: the run trained with the
+    ``cap_max`` it records)."""
+    return from_dict(settings_of_today(settings, where)[0], where, base=TrainConfig.from_preset("paper"))
 
 
 #: The preview preset's training length (steps).
@@ -753,9 +858,12 @@ def config_from_document(doc: Any, path: str | Path, base: TrainConfig | None = 
 
     whole = is_run_config(doc)
     if whole:
-        if "settings" in doc:
-            doc = {**doc, "settings": current_values(doc["settings"])}
+        assumed: list[str] = []
+        if "settings" in doc:  # a file of an earlier version: its settings as today's, then validated
+            settings, assumed = settings_of_today(doc["settings"], str(path))
+            doc = {**doc, "settings": settings}
         validate(doc, "config", str(path))
+        say_assumed(str(path), assumed)
         settings = doc["settings"]
     else:
         # a bare settings object: from_dict checks names, types and choices with one-line messages
@@ -1056,7 +1164,7 @@ def _derived_schema() -> dict[str, Any]:
 
 
 def _all_names() -> list[str]:
-    return [f.name for f in dataclasses.fields(TrainConfig) if f.metadata.get("required", True)]
+    return [f.name for f in dataclasses.fields(TrainConfig)]
 
 
 def main() -> None:  # pragma: no cover - a one-line generator

@@ -444,6 +444,38 @@ def test_settings_recorded_under_an_earlier_name_gather(tmp_path: Path) -> None:
     assert {c["settings"]["speed"]["exchange"] for c in back.values()} == {"gsplat"}
 
 
+def test_runs_written_before_a_setting_existed_gather(tmp_path: Path) -> None:
+    """A bench run's config.json written before ``speed`` and ``checkpoint_keep`` existed gathers (read as
+    jsgs reads it, :func:`jsgs.train.config.settings_of_today`); configs.json keeps its settings as recorded
+    and reads back; one lacking a setting whose earlier value is not known stops the gather in one line
+    naming that config.json, nothing written."""
+    from jsgs.base.errors import JsgsError
+
+    target, bench = tmp_path / "op", tmp_path / "b1"
+    _views_bench(bench, "a", 1.0)
+    runs = sorted((bench / "runs").glob("*/*/*/*/*"))
+    for run in runs:
+        doc = _run_doc(run.parts[-3], 100000)
+        del doc["settings"]["speed"], doc["settings"]["checkpoint_keep"]
+        (run / "config.json").write_text(json.dumps(doc))
+    br.main(target, [bench])
+    configs = json.loads((target / "configs.json").read_text())
+    assert len(configs) == len(runs) == 2
+    assert all("speed" not in c["settings"] for c in configs.values())
+    assert br.read_configs_file(target / "configs.json") == configs
+    files = {p.name: p.read_bytes() for p in target.iterdir() if p.is_file()}
+    again = tmp_path / "b2"
+    _views_bench(again, "a", -1.0)
+    for run in sorted((again / "runs").glob("*/*/*/*/*")):
+        doc = _run_doc(run.parts[-3], 100000)
+        del doc["settings"]["loss"]["ssim_lambda"]
+        (run / "config.json").write_text(json.dumps(doc))
+    says = r"config.json \(as an entry of configs.json\) \(.*\): lacks the setting loss.ssim_lambda"
+    with pytest.raises(JsgsError, match=says):
+        br.main(target, [again])
+    assert {p.name: p.read_bytes() for p in target.iterdir() if p.is_file()} == files
+
+
 def test_views_that_would_not_be_valid_stop_the_gather_before_anything_is_written(tmp_path: Path) -> None:
     """A bench run whose metrics.json reads but whose views would not make a valid views.json (an
     evaluation at step 0) stops the gather in one line naming views.json, and the folder's files are left

@@ -51,7 +51,7 @@ from jsgs.bench.budget import common_steps
 from jsgs.bench.markdown import write_report
 from jsgs.bench.results import read_csv, write_csv
 from jsgs.method.options import JsgsOptions
-from jsgs.train.config import current_values
+from jsgs.train.config import current_values, settings_of_today
 
 
 def key(r: dict) -> tuple:
@@ -87,7 +87,7 @@ def read_configs_file(path: Path) -> dict[str, dict]:
     doc = read_json(path, "JSON")
     if isinstance(doc, dict):  # settings values recorded under an earlier name read as today's
         doc = {k: _current(v) for k, v in doc.items()}
-    validate(doc, "configs", str(path))
+    validate_configs(doc, str(path))
     return doc
 
 
@@ -98,6 +98,22 @@ def _current(entry: object) -> object:
     if not (isinstance(entry, dict) and isinstance(entry.get("settings"), dict)):
         return entry
     return {**entry, "settings": current_values(entry["settings"])}
+
+
+def validate_configs(configs: object, where: str) -> None:
+    """``configs`` (a configs.json map) checked against configs.schema.json with each entry's settings as jsgs
+    reads a run's config.json (:func:`jsgs.train.config.settings_of_today`: a run's config.json written before
+    a setting existed lacks it and is read with the value that does what that version did); the settings
+    are kept as the run recorded them. JsgsError (one line naming ``where``) where not valid."""
+    if isinstance(configs, dict):
+        configs = {k: _read_as_today(v, f"{where} ({k})") for k, v in configs.items()}
+    validate(configs, "configs", where)
+
+
+def _read_as_today(entry: object, where: str) -> object:
+    if not (isinstance(entry, dict) and isinstance(entry.get("settings"), dict)):
+        return entry
+    return {**entry, "settings": settings_of_today(entry["settings"], where)[0]}
 
 
 def run_config(doc: dict) -> dict:
@@ -124,7 +140,7 @@ def read_configs(runs_dir: Path) -> dict[str, dict]:
             entry = run_config(json.loads(p.read_text()))
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
             continue
-        validate({run: entry}, "configs", f"{p} (as an entry of configs.json)")
+        validate_configs({run: entry}, f"{p} (as an entry of configs.json)")
         out[run] = entry
     return out
 
@@ -235,7 +251,7 @@ def main(target: Path, folders: list[Path], step: int | str | None = None, base:
     configs = dict(sorted(configs.items()))
     views = {k: v for k, v in views.items() if k in kept}
     # before anything is written: configs.json and views.json checked, the notes (they may refuse)
-    validate(configs, "configs", str(cfg))
+    validate_configs(configs, str(cfg))
     validate(per_view.to_doc(views), "views", str(target / per_view.VIEWS_FILE))
     notes = auto_notes(rows, configs)
     target.mkdir(parents=True, exist_ok=True)

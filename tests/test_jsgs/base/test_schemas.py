@@ -45,8 +45,8 @@ def test_a_reference_into_another_schema_is_checked() -> None:
     assert "configs" in NAMES and "config.schema.json#/properties/settings" in refs
     sections = config["properties"]["settings"]["allOf"][1]["required"]
     settings: dict[str, Any] = {k: {} for k in sections}
-    settings.update(method="gsplat", iterations=10, eval_at=[10], checkpoint_every=0, seed=0, device="cpu",
-                    log_every=1)  # fmt: skip
+    settings.update(method="gsplat", iterations=10, eval_at=[10], checkpoint_every=0, checkpoint_keep=0,
+                    seed=0, device="cpu", log_every=1)  # fmt: skip
     versions = {"jsgs": "0", "torch": "2", "gsplat": None, "python": "3"}
     entry = {"settings": settings, "versions": versions, "command": "jsgs train m --out r"}
     key = "scene/clean/gsplat/mcmc-1000/s0"

@@ -184,14 +184,19 @@ def test_the_api_and_the_command_line_share_one_default() -> None:
 
 
 def test_a_recorded_run_missing_a_newer_key_reads_it_as_the_paper_value(tmp_path: Path) -> None:
-    """A config.json written before a setting existed lacks it: it meant the default of that time, the paper
-    preset's, not the mcmc default of today."""
+    """A config.json written before a setting existed lacks it: it meant the value of that time (the strategy:
+    the paper preset's DefaultStrategy, not the mcmc default of today). A setting every version recorded
+    that changes what a run trains is not guessed: one line names the file and the setting."""
     from jsgs.train.config import recorded_settings
 
     settings = to_dict(TrainConfig.from_preset("paper"))
-    del settings["loss"]["opacity_reg"], settings["strategy"]["type"]
+    del settings["strategy"]["type"], settings["strategy"]["cap_max_auto"]
+    del settings["optim"]["means_lr_decay_steps"]
     cfg = recorded_settings(settings, "old/config.json")
-    assert cfg == TrainConfig.from_preset("paper") and cfg.loss.opacity_reg == 0.0
+    assert cfg == TrainConfig.from_preset("paper") and cfg.strategy.type == "default"
+    del settings["loss"]["opacity_reg"]
+    with pytest.raises(JsgsError, match=r"^old/config.json: lacks the setting loss.opacity_reg, which chan"):
+        recorded_settings(settings, "old/config.json")
 
 
 def test_the_mcmc_preset_trains_simple_trainers_length() -> None:

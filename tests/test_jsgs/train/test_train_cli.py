@@ -226,7 +226,8 @@ def test_cli_other_one_line_errors(scene: Path, tmp_path: Path) -> None:
 
 def test_checkpoints_rotate_and_the_setting_is_recorded(scene: Path, tmp_path: Path) -> None:
     """checkpoint_keep K keeps the newest K checkpoints (0: all), is recorded in config.json, and a
-    config.json written before the setting existed still resumes (with the default)."""
+    config.json written before the setting existed still resumes, keeping every checkpoint as jsgs then
+    did."""
     from jsgs.train import checkpoint as ckpt
 
     for keep, expected in ((2, [8, 10]), (0, [2, 4, 6, 8, 10])):
@@ -238,12 +239,12 @@ def test_checkpoints_rotate_and_the_setting_is_recorded(scene: Path, tmp_path: P
         assert r.exit_code == 0, r.output + r.stderr
         assert [s for s, _ in ckpt.list_checkpoints(out / "checkpoints")] == expected
         assert json.loads((out / "config.json").read_text())["settings"]["checkpoint_keep"] == keep
-    # a run stopped at 4 whose config.json and checkpoint predate checkpoint_keep
+    # a run stopped at 8 whose config.json and checkpoints predate checkpoint_keep
     cfg = tmp_path / "old.json"
     cfg.write_text(json.dumps({**FAST, "checkpoint_every": 2}))
     out = tmp_path / "old"
-    r = run(str(scene), "--out", str(out), "--device", "cpu", "--config", str(cfg), "--iterations", "6",
-            "--eval-at", "6", "--stop-at", "4", "--quiet")  # fmt: skip
+    r = run(str(scene), "--out", str(out), "--device", "cpu", "--config", str(cfg), "--iterations", "10",
+            "--eval-at", "10", "--stop-at", "8", "--quiet")  # fmt: skip
     assert r.exit_code == 0, r.output + r.stderr
     conf = json.loads((out / "config.json").read_text())
     del conf["settings"]["checkpoint_keep"]
@@ -256,8 +257,9 @@ def test_checkpoints_rotate_and_the_setting_is_recorded(scene: Path, tmp_path: P
         torch.save(doc, p)
     r = run(str(scene), "--out", str(out), "--resume", "--quiet")
     assert r.exit_code == 0, r.output + r.stderr
-    assert "complete: 6/6" in r.output
-    assert [s for s, _ in ckpt.list_checkpoints(out / "checkpoints")] == [2, 4, 6]
+    assert "complete: 10/10" in r.output and "checkpoint_keep 0" in r.stderr
+    # step 2 went while the run kept 3; resumed as an earlier version's run none goes (3 would keep 6-10)
+    assert [s for s, _ in ckpt.list_checkpoints(out / "checkpoints")] == [4, 6, 8, 10]
 
 
 def test_what_a_killed_run_leaves_is_cleaned_up(scene: Path, tmp_path: Path, fast_config: Path) -> None:
