@@ -4,4 +4,4 @@ The trainer side of the project. Importable with torch (and gsplat for CUDA rend
 imports pycolmap or OpenCV, so a GPU machine needs only torch, gsplat and a few small wheels.
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
