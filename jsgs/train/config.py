@@ -677,6 +677,13 @@ def settings_of_today(settings: Any, where: str) -> tuple[Any, list[str]]:
 _said: set[tuple[str, str]] = set()
 
 
+def _say_once(where: str, line: str) -> None:
+    """Print the note ``line`` about ``where`` on stderr, once per process."""
+    if (where, line) not in _said:
+        _said.add((where, line))
+        print(line, file=sys.stderr, flush=True)
+
+
 def say_assumed(where: str, assumed: list[str]) -> None:
     """The note (stderr, once per file and process) that ``where`` was read with the settings ``assumed``
     (:func:`settings_of_today`); nothing when there are none."""
@@ -686,9 +693,24 @@ def say_assumed(where: str, assumed: list[str]) -> None:
         f"note: {where} was written before some settings existed; read with the values that do what "
         f"that version did: {', '.join(assumed)}"
     )
-    if (where, line) not in _said:
-        _said.add((where, line))
-        print(line, file=sys.stderr, flush=True)
+    _say_once(where, line)
+
+
+def say_unused_budget(settings: Any, cfg: TrainConfig, where: str) -> None:
+    """The note (stderr, once per file and process) that the ``strategy.cap_max`` which the settings
+    ``settings`` read from ``where`` give is not used because they also turn ``strategy.cap_max_auto`` on
+    in the settings ``cfg`` finally used (the explicit choice wins); nothing otherwise. For settings a user
+    gives (a ``--config`` file of partial settings), not a run's config.json, which records the budget auto
+    chose as ``cap_max``."""
+    strategy = settings.get("strategy") if isinstance(settings, dict) else None
+    given = isinstance(strategy, dict) and "cap_max" in strategy and strategy.get("cap_max_auto") is True
+    if not given or cfg.strategy.type != "mcmc" or not cfg.strategy.cap_max_auto:
+        return
+    line = (
+        f"note: {where}: strategy.cap_max {strategy['cap_max']} is not used: strategy.cap_max_auto is on "
+        "(the budget comes from the scene; give --cap-max N for a fixed one)"
+    )
+    _say_once(where, line)
 
 
 def recorded_settings(settings: Any, where: str) -> TrainConfig:
@@ -808,6 +830,8 @@ def command_settings(
         cfg.method_options = _merged(cfg.method_options, _switch_options(cfg.method, switches))
     if "iterations" in overrides and not eval_at_given and cfg.eval_at and cfg.eval_at[-1] != cfg.iterations:
         cfg.eval_at = cut_eval_at(cfg.eval_at, cfg.iterations)
+    if config_file is not None and not whole:  # a run's config.json records auto's choice as cap_max
+        say_unused_budget(doc, cfg, str(config_file))
     return cfg
 
 
@@ -877,7 +901,11 @@ def load_config_file(path: str | Path, base: TrainConfig | None = None) -> Train
     """Read ``--config FILE``: either a ``RUN/config.json`` of an earlier run (validated against the schema;
     its ``settings`` are taken whole) or a JSON object of (partial) settings over ``base`` (default: the
     defaults)."""
-    return config_from_document(read_config_document(path), path, base)
+    doc = read_config_document(path)
+    cfg = config_from_document(doc, path, base)
+    if not is_run_config(doc):
+        say_unused_budget(doc, cfg, str(path))
+    return cfg
 
 
 # ---------------------------------------------------------------------------------------------------------

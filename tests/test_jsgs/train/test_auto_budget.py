@@ -154,24 +154,64 @@ def test_a_budget_written_in_settings_is_that_budget(tmp_path: Path) -> None:
     assert command_settings(config_file=path, overrides=auto).strategy.cap_max_auto
 
 
-def _tiny_settings(tmp_path: Path) -> Path:
+def test_a_budget_that_auto_overrides_is_said(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Settings a user gives with both strategy.cap_max N and cap_max_auto on: auto wins (it is explicit),
+    and one note names the file and the N not used; nothing when N is the budget used, or not a budget at
+    all (DefaultStrategy), or given alone."""
+    from jsgs.train import config
+
+    def notes(doc: dict[str, object]) -> tuple[bool, list[str]]:
+        config._said.clear()
+        path = tmp_path / "settings.json"
+        path.write_text(json.dumps(doc))
+        auto = command_settings(config_file=path).strategy.cap_max_auto
+        return auto, capsys.readouterr().err.splitlines()
+
+    path = tmp_path / "settings.json"
+    assert notes({"strategy": {"cap_max": 300_000, "cap_max_auto": True}}) == (True, [
+        f"note: {path}: strategy.cap_max 300000 is not used: strategy.cap_max_auto is on (the budget comes "
+        "from the scene; give --cap-max N for a fixed one)"])  # fmt: skip
+    assert notes({"strategy": {"cap_max": 300_000}}) == (False, [])
+    assert notes({"strategy": {"cap_max": 300_000, "cap_max_auto": False}}) == (False, [])
+    assert notes({"strategy": {"cap_max_auto": True}}) == (True, [])
+    assert notes({"strategy": {"type": "default", "cap_max": 300_000, "cap_max_auto": True}}) == (True, [])
+    # the command line over the file: --cap-max N is used, so nothing is said
+    path.write_text(json.dumps({"strategy": {"cap_max": 300_000, "cap_max_auto": True}}))
+    config._said.clear()
+    fixed = {"strategy": cap_max_settings("2000")}
+    assert not command_settings(config_file=path, overrides=fixed).strategy.cap_max_auto
+    assert capsys.readouterr().err == ""
+
+
+def _tiny_settings(tmp_path: Path, **strategy: object) -> Path:
     cfg = tmp_path / "tiny.json"
-    cfg.write_text(json.dumps({"eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False}}))
+    doc = {"eval": {"fps_passes": 1, "fps_warmup": 0, "save_renders": False}}
+    cfg.write_text(json.dumps({**doc, "strategy": strategy} if strategy else doc))
     return cfg
 
 
-def test_a_run_records_its_budget_and_resumes_with_it(compressed_scene: Path, tmp_path: Path) -> None:
+def test_a_run_records_its_budget_and_resumes_with_it(
+    compressed_scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """``jsgs train`` without --cap-max (the default) sizes the budget to the scene: a few thousand on the
-    tiny synthetic scene, not 300,000, said in one line of the log and recorded in config.json."""
+    tiny synthetic scene, not 300,000, said in one line of the log and recorded in config.json. A settings
+    file's cap_max beside cap_max_auto on is said to be unused; the run's own config.json, which records the
+    chosen cap_max beside cap_max_auto, is read (resume, export, --config) without that note."""
     from jsgs.base.schema import validate
     from jsgs.cli import main
+    from jsgs.train import config
 
     run = tmp_path / "run"
+    settings = _tiny_settings(tmp_path, cap_max=300_000, cap_max_auto=True)
     args = ["train", str(compressed_scene / "manifest.json"), "--out", str(run), "--method", "gsplat",
-            "--config", str(_tiny_settings(tmp_path)), "--iterations", "4", "--eval-at", "2,4",
+            "--config", str(settings), "--iterations", "4", "--eval-at", "2,4",
             "--device", "cpu", "--quiet", "--stop-at", "2"]  # fmt: skip
+    config._said.clear()
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
+    unused = [ln for ln in r.stderr.splitlines() if "is not used" in ln]
+    assert unused == [f"note: {settings}: strategy.cap_max 300000 is not used: strategy.cap_max_auto is on "
+                      "(the budget comes from the scene; give --cap-max N for a fixed one)"], r.stderr
     doc = json.loads((run / "config.json").read_text())
     notes = [ln for ln in r.output.splitlines() if ln.startswith("note: budget from the scene")]
     assert notes == [f"note: budget from the scene: {scene_budget_line(doc)}"], r.output
@@ -183,13 +223,21 @@ def test_a_run_records_its_budget_and_resumes_with_it(compressed_scene: Path, tm
     assert 1000 <= b["cap_max"] < 10_000
     # the scene's 2,451 SfM points exceed its 1,020 (10 training views of 64x48 / 30): a subset starts
     assert doc["derived"]["initial_gaussians"] == min(b["sfm_points"], b["cap_max"])
-    r = CliRunner().invoke(main, ["train", str(compressed_scene / "manifest.json"), "--out", str(run),
-                                  "--resume", "--quiet"])  # fmt: skip
+    config._said.clear()
+    r = resumed = CliRunner().invoke(main, ["train", str(compressed_scene / "manifest.json"), "--out",
+                                            str(run), "--resume", "--quiet"])  # fmt: skip
     assert r.exit_code == 0, r.output
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["status"] == "complete" and metrics["num_gaussians"] <= b["cap_max"]
     assert "budget from the scene" not in r.output  # a resumed run keeps its budget: nothing is chosen again
     assert json.loads((run / "config.json").read_text())["settings"] == doc["settings"]
+    config._said.clear()
+    r = CliRunner().invoke(main, ["export", str(run), "--out", str(tmp_path / "m.ply")])
+    assert r.exit_code == 0, r.output
+    assert "is not used" not in r.stderr and "is not used" not in resumed.stderr
+    again = command_settings(config_file=run / "config.json").strategy
+    assert (again.cap_max, again.cap_max_auto) == (b["cap_max"], True)
+    assert "is not used" not in capsys.readouterr().err
 
 
 def scene_budget_line(doc: dict) -> str:  # type: ignore[type-arg]
