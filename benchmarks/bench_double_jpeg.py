@@ -43,7 +43,8 @@ from PIL import Image  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from jsgs.base.io import write_bytes_atomic, write_json_atomic  # noqa: E402
+from jsgs.base.errors import JsgsError, reports_user_errors  # noqa: E402
+from jsgs.base.io import LOCK_NAME, OutputLock, load_json_record, write_bytes_atomic, write_json_atomic  # noqa: E402
 from jsgs.base.schema import validate  # noqa: E402
 from jsgstools.dqt.analysis import Analysis, analyze_bytes  # noqa: E402
 from jsgstools.dqt.parser import read_header_from  # noqa: E402
@@ -127,15 +128,57 @@ def labels_doc(items: list[Item], per_scene: int, command: str | None) -> dict:
             "settings": settings, "files": files}  # fmt: skip
 
 
+def earlier_corpus(folder: Path) -> set[str]:
+    """The entries of ``folder`` that an earlier ``--write`` made (its labels.json and the files it lists),
+    when the folder holds nothing else; an empty set for a new or empty folder. JsgsError (one line) for a
+    folder this tool did not make, or that holds anything besides such a corpus: it is never written into."""
+    if folder.exists() and not folder.is_dir():
+        raise JsgsError(f"{folder}: exists and is not a folder")
+    entries = {p.name for p in folder.iterdir()} - {LOCK_NAME} if folder.is_dir() else set()
+    if not entries:
+        return set()
+    labels = load_json_record(folder / "labels.json", "double_jpeg_corpus", str(folder / "labels.json"))
+    if isinstance(labels, str):
+        raise JsgsError(
+            f"{folder}: not empty and not a corpus of this tool ({labels}); choose an empty or new folder"
+        )
+    ours = {"labels.json", *(f["file"] for f in labels["files"])}
+    if others := sorted(entries - ours):
+        raise JsgsError(
+            f"{folder}: holds {others[0]}{f' and {len(others) - 1} more' if len(others) > 1 else ''}, not "
+            "part of the corpus its labels.json lists, so it is left alone; choose an empty or new folder"
+        )
+    return entries
+
+
 def write_corpus(items: list[Item], folder: Path, per_scene: int, command: str | None = None) -> None:
-    """The corpus's JPEGs and labels.json into ``folder``, each file atomically; labels.json is checked
-    against its schema first (JsgsError, one line naming it, and nothing written when it is not valid)."""
+    """The corpus's JPEGs and labels.json into ``folder``, each file atomically, one writer at a time (its
+    output lock); labels.json is checked against its schema first (JsgsError, one line naming it, and nothing
+    written when it is not valid). Only a new or empty folder, or one holding nothing but a corpus an earlier
+    ``--write`` made (:func:`earlier_corpus`), is written: that corpus is replaced whole (its labels.json goes
+    first, so a cut-short rewrite leaves a folder refused again rather than mislabelled)."""
     doc = labels_doc(items, per_scene, command)
     validate(doc, "double_jpeg_corpus", str(folder / "labels.json"))
-    folder.mkdir(parents=True, exist_ok=True)
-    for it in items:
-        write_bytes_atomic(folder / file_name(it), it.data)
-    write_json_atomic(folder / "labels.json", doc)
+    with OutputLock(folder, f"bench_double_jpeg.py --write (into {folder})"):
+        earlier = earlier_corpus(folder)
+        (folder / "labels.json").unlink(missing_ok=True)
+        for it in items:
+            write_bytes_atomic(folder / file_name(it), it.data)
+        for name in sorted(earlier - {file_name(it) for it in items} - {"labels.json"}):
+            (folder / name).unlink()
+        write_json_atomic(folder / "labels.json", doc)
+
+
+def check_output_file(path: Path) -> None:
+    """Refuse at once (JsgsError, one line) an output file that could not be written at the end: a folder
+    at ``path``, or a file where one of its folders would go (missing folders are made)."""
+    if path.is_dir():
+        raise JsgsError(f"{path}: is a folder; --md takes a file name")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise JsgsError(f"{path}: cannot be written: {parent} is not a folder")
 
 
 def analyse(item: Item) -> Analysis:
@@ -184,19 +227,32 @@ def real_scenes() -> list[str]:
     return lines
 
 
-def main() -> None:
+@reports_user_errors
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--per-scene", type=int, default=6, help="source PNGs per clean scene")
     ap.add_argument("--rounds", type=int, default=3, help="timing passes over the 504x378 files")
-    ap.add_argument("--write", type=Path, help="also write the corpus (JPEGs + labels.json) into this folder")
+    ap.add_argument(
+        "--write",
+        type=Path,
+        help="also write the corpus (JPEGs + labels.json) into this folder: a new or empty one, or one "
+        "holding only a corpus an earlier --write made (replaced whole)",
+    )
     ap.add_argument("--md", type=Path, help="write the results table (markdown) to this file")
     ap.add_argument("--real", action="store_true", help="also analyse jpeg_cup and jpeg_mouse")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.per_scene < 1:
+        raise JsgsError(f"--per-scene: at least 1 source PNG per scene (got {args.per_scene})")
+    if args.md:
+        check_output_file(args.md)
+    if args.write:
+        earlier_corpus(args.write)  # refused now rather than after the corpus is built
 
     t0 = time.perf_counter()
     items = corpus(args.per_scene)
     if args.write:
-        command = shlex.join(["python", "benchmarks/bench_double_jpeg.py", *sys.argv[1:]])
+        given = sys.argv[1:] if argv is None else argv
+        command = shlex.join(["python", "benchmarks/bench_double_jpeg.py", *given])
         write_corpus(items, args.write, args.per_scene, command)
     print(f"corpus: {len(items)} files in {time.perf_counter() - t0:.1f} s", flush=True)
 
@@ -287,7 +343,8 @@ def main() -> None:
     print(text)
     if args.md:
         write_bytes_atomic(args.md, (text + "\n").encode())
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
