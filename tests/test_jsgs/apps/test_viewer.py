@@ -162,6 +162,31 @@ def test_server_answers_and_cameras_are_saved(finished_run: Path) -> None:
     np.testing.assert_allclose(np.array(doc["cameras"][0]["camtoworld"]), v.camtoworld, atol=1e-12)
 
 
+def test_a_run_of_an_earlier_version_opens(
+    finished_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``jsgs view``'s loading of a run whose config.json was written before ``speed`` existed: read with the
+    values that version used (one note naming them, as render and export say it) and drawn as the run
+    written today is."""
+    from jsgs.train import config
+
+    run = tmp_path / "old"
+    shutil.copytree(finished_run, run)
+    doc = json.loads((run / "config.json").read_text())
+    del doc["settings"]["speed"]
+    (run / "config.json").write_text(json.dumps(doc))
+    config._said.clear()  # the note is said once per file and process
+    old = load_run_model(run, "cpu")
+    (note,) = capsys.readouterr().err.splitlines()
+    assert note.startswith(f"note: {run / 'config.json'} was written before some settings existed"), note
+    assert note.endswith('speed.ssim_kernel "torch", speed.exchange "gsplat"'), note
+    assert (old.cfg.speed.ssim_kernel, old.cfg.speed.exchange) == ("torch", "gsplat")
+    today = load_run_model(finished_run, "cpu")
+    v = today.scene.test_views[0]
+    drawn = [render_rgb(m, v.viewmat, v.K, v.width, v.height) for m in (old, today)]
+    assert np.array_equal(*drawn) and drawn[0].std() > 5
+
+
 def test_view_errors_are_one_line(tmp_path: Path, finished_run: Path) -> None:
     from jsgs.cli import main
 
