@@ -183,3 +183,20 @@ def short_jsgs_runs(
         checkpoint = tmp_path / name / "checkpoints" / f"step_{iterations:06d}.pt"
         runs[name] = (ev, ckpt.load_checkpoint(checkpoint)["splats"])
     return runs
+
+
+def train_tiny_run(root: Path, *options: str, iterations: int = 20, eval_at: str = "20",
+                   manifest: Path | None = None) -> Any:  # fmt: skip
+    """``jsgs train`` on the CPU for ``iterations`` steps (evaluations at ``eval_at``) into ``root/run``, on
+    ``manifest`` or a new 32×24 :func:`make_scene` in ``root/scene``, with more ``options``; asserts it
+    succeeded and returns click's result (the run folder is ``root / "run"``)."""
+    from click.testing import CliRunner
+
+    from jsgs.cli import main
+
+    manifest = manifest or make_scene(root / "scene", width=32, height=24)
+    args = ["train", str(manifest), "--out", str(root / "run"), "--iterations", str(iterations), "--eval-at",
+            eval_at, "--device", "cpu", "--quiet", *options]  # fmt: skip
+    r = CliRunner().invoke(main, args, catch_exceptions=False)
+    assert r.exit_code == 0, r.output + r.stderr
+    return r

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _train_scene import make_scene
+from _train_scene import train_tiny_run
 from click.testing import CliRunner
 
 from jsgs.cli import main as jsgs_main
@@ -45,13 +45,8 @@ def _one_line(output: str, code: int) -> str:
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("writes")
-    manifest = make_scene(root / "scene", width=32, height=24)
-    out = root / "run"
-    args = ["train", str(manifest), "--out", str(out), "--iterations", "3", "--eval-at", "3", "--device",
-            "cpu", "--quiet"]  # fmt: skip
-    r = CliRunner().invoke(jsgs_main, args, catch_exceptions=False)
-    assert r.exit_code == 0, r.output
-    return out
+    train_tiny_run(root, iterations=3, eval_at="3")
+    return root / "run"
 
 
 def _rewrite_ply(run: Path, change: str) -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _train_scene import edit_manifest, make_scene
+from _train_scene import edit_manifest, train_tiny_run
 from click.testing import CliRunner
 from PIL import Image
 
@@ -74,16 +74,10 @@ def test_scaled_intrinsics_keep_the_field_of_view() -> None:
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from jsgs.cli import main
 
     root = tmp_path_factory.mktemp("render")
-    manifest = make_scene(root / "scene", width=32, height=24)
-    out = root / "run"
-    args = ["train", str(manifest), "--out", str(out), "--iterations", "20", "--eval-at", "20", "--device",
-            "cpu", "--quiet"]  # fmt: skip
-    r = CliRunner().invoke(main, args, catch_exceptions=False)
-    assert r.exit_code == 0, r.output
-    return out
+    train_tiny_run(root)
+    return root / "run"
 
 
 def test_video_frames_and_path_round_trip(run: Path, tmp_path: Path) -> None:

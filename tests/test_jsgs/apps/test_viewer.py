@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from _train_scene import make_scene
+from _train_scene import make_scene, train_tiny_run
 from click.testing import CliRunner
 from PIL import Image
 
@@ -106,16 +106,10 @@ def test_frustums_are_thin_and_skip_the_start_camera() -> None:
 
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from jsgs.cli import main
 
     root = tmp_path_factory.mktemp("viewer")
-    manifest = make_scene(root / "scene", width=32, height=24)
-    run = root / "run"
-    args = ["train", str(manifest), "--out", str(run), "--iterations", "20", "--eval-at", "20",
-            "--device", "cpu", "--quiet"]  # fmt: skip
-    r = CliRunner().invoke(main, args, catch_exceptions=False)
-    assert r.exit_code == 0, r.output
-    return run
+    train_tiny_run(root)
+    return root / "run"
 
 
 def test_viewer_renders_what_the_trainer_rendered(finished_run: Path) -> None:

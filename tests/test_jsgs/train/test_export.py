@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from _train_scene import make_scene
+from _train_scene import train_tiny_run
 from click.testing import CliRunner
 
 from jsgs.train.export import quat_multiply, sh_band_rotations, split_similarity, to_colmap_frame
@@ -53,17 +53,12 @@ def test_similarity_and_quaternions() -> None:
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from jsgs.cli import main
 
     root = tmp_path_factory.mktemp("export")
-    manifest = make_scene(root / "scene", width=32, height=24)
     out = root / "run"
     cfg = root / "cfg.json"
     cfg.write_text(json.dumps({"render": {"sh_degree_interval": 5}}))  # SH bands in use within 20 steps
-    args = ["train", str(manifest), "--out", str(out), "--iterations", "20", "--eval-at", "20", "--device",
-            "cpu", "--quiet", "--config", str(cfg)]  # fmt: skip
-    r = CliRunner().invoke(main, args, catch_exceptions=False)
-    assert r.exit_code == 0, r.output
+    train_tiny_run(root, "--config", str(cfg))
     return out
 
 

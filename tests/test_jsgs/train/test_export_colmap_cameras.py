@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from _train_scene import make_scene
+from _train_scene import make_scene, train_tiny_run
 from click.testing import CliRunner
 
 from jsgs.cli import main
@@ -46,10 +46,7 @@ def moved_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     manifest = make_scene(root / "scene", width=32, height=24)
     _move_world(manifest, SCALE, _rotation(1), SHIFT)
     run = root / "run"
-    args = ["train", str(manifest), "--out", str(run), "--iterations", "20", "--eval-at", "", "--device",
-            "cpu", "--quiet"]  # fmt: skip
-    r = CliRunner().invoke(main, args, catch_exceptions=False)
-    assert r.exit_code == 0, r.output
+    r = train_tiny_run(root, eval_at="", manifest=manifest)
     assert "point_cloud.ply, point_cloud_colmap.ply" in r.stdout.splitlines()[-1]  # the outputs line names it
     return manifest, run
 

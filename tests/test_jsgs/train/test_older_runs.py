@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _train_scene import make_scene
+from _train_scene import train_tiny_run
 from click.testing import CliRunner
 
 from jsgs.base.errors import JsgsError
@@ -91,13 +91,8 @@ def test_what_older_files_get() -> None:
 def stopped(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A tiny CPU run stopped at step 2 of 4 (a checkpoint at 2), as jsgs writes it today."""
     root = tmp_path_factory.mktemp("older")
-    manifest = make_scene(root / "scene", width=32, height=24)
-    out = root / "run"
-    args = ["train", str(manifest), "--out", str(out), "--iterations", "4", "--eval-at", "2,4", "--stop-at",
-            "2", "--device", "cpu", "--quiet"]  # fmt: skip
-    r = CliRunner().invoke(main, args, catch_exceptions=False)
-    assert r.exit_code == 0, r.output + r.stderr
-    return out
+    train_tiny_run(root, "--stop-at", "2", iterations=4, eval_at="2,4")
+    return root / "run"
 
 
 def _without_speed(run: Path, checkpoints: bool) -> dict[str, Any]:
