@@ -9,10 +9,17 @@ A checkpoint is checked before anything of it is used (:func:`check_structure`, 
 key present, every tensor of the dtype and shape the run's settings and the fresh optimizers, scheduler and
 strategy give, every number finite, the step non-negative and the one in the file's name. Any defect is one
 JsgsError naming the file and the key.
+
+A checkpoint written by an earlier version reads as today's (:func:`fields_of_today`): a field added since
+takes the value that does what the code before it did (:data:`EARLIER_FIELDS`), named in one note; the
+settings it holds read as a run's config.json does (:func:`jsgs.train.config.settings_of_today`). A field
+missing that no earlier version lacked is refused by the checks, in one line naming the file and the field.
 """
 
 from __future__ import annotations
 
+import copy
+import json
 import math
 import random
 import re
@@ -121,6 +128,57 @@ def to_device(obj: Any, device: torch.device) -> Any:
     if isinstance(obj, (list, tuple)):
         return type(obj)(to_device(v, device) for v in obj)
     return obj
+
+
+# ---------------------------------------------------------------------------------------------------------
+# checkpoints of earlier versions
+
+#: Fields of a checkpoint added after its first version (dotted; ``*``: each key of the dict above), and the
+#: value that does what the code before them did: the log kept no per-view sums of the interval, then
+#: per-view sums of the loss and terms only (no statistics, which metrics.json does not report per view), and
+#: counted no skipped terms (the Gaussian Controller's fro term was logged on every step); so those start
+#: empty. Nothing of what the run trains depends on them.
+EARLIER_FIELDS: dict[str, Any] = {
+    "log.per_view": {},
+    "log.skipped": {},
+    "log.per_view.*.stats": {},
+    "log.per_view.*.per_view": {},
+    "log.per_view.*.skipped": {},
+}
+
+
+def fields_of_today(doc: Any) -> list[str]:
+    """Give ``doc`` (a loaded checkpoint, changed in place) each field of :data:`EARLIER_FIELDS` it lacks,
+    with that value; returns them as ``field value`` texts (empty for a checkpoint of today). Parts that are
+    not dicts are left for the checks to name."""
+    filled: list[str] = []
+
+    def fill(part: Any, keys: list[str], where: str, value: Any) -> None:
+        if not isinstance(part, dict):
+            return
+        head, rest = keys[0], keys[1:]
+        if head == "*":
+            for k in part:
+                fill(part[k], rest, where, value)
+        elif not rest:
+            if head not in part:
+                part[head] = copy.deepcopy(value)
+                if where not in filled:
+                    filled.append(where)
+        elif head in part:
+            fill(part[head], rest, where, value)
+
+    for field, value in EARLIER_FIELDS.items():
+        fill(doc, field.split("."), field, value)
+    return [f"{f} {json.dumps(EARLIER_FIELDS[f])}" for f in filled]
+
+
+def earlier_note(path: Path, filled: list[str]) -> str:
+    """The note that the checkpoint ``path`` was read with the fields ``filled`` (:func:`fields_of_today`)."""
+    return (
+        f"note: {path} was written before some checkpoint fields existed; read with the values that do what "
+        f"that version did: {', '.join(filled)}"
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -407,12 +465,12 @@ def _check_log(value: Any, where: str) -> None:
         d = value[part]
         if not isinstance(d, Mapping) or not all(isinstance(k, str) and _is_num(v) for k, v in d.items()):
             raise _Bad(f"{where}.{part}", "expected names with finite numbers")
-    skipped = value.get("skipped", {})
+    skipped = value.get("skipped")
     if not isinstance(skipped, Mapping) or not all(
         isinstance(k, str) and _is_int(v) and 0 <= v <= value["steps"] for k, v in skipped.items()
     ):
         raise _Bad(f"{where}.skipped", "expected names with step counts")
-    per_view = value.get("per_view", {})
+    per_view = value.get("per_view")
     if not isinstance(per_view, Mapping):
         raise _Bad(f"{where}.per_view", "not a dict")
     for name, acc in per_view.items():

@@ -677,7 +677,7 @@ def settings_of_today(settings: Any, where: str) -> tuple[Any, list[str]]:
 _said: set[tuple[str, str]] = set()
 
 
-def _say_once(where: str, line: str) -> None:
+def say_once(where: str, line: str) -> None:
     """Print the note ``line`` about ``where`` on stderr, once per process."""
     if (where, line) not in _said:
         _said.add((where, line))
@@ -693,7 +693,7 @@ def say_assumed(where: str, assumed: list[str]) -> None:
         f"note: {where} was written before some settings existed; read with the values that do what "
         f"that version did: {', '.join(assumed)}"
     )
-    _say_once(where, line)
+    say_once(where, line)
 
 
 def say_unused_budget(settings: Any, cfg: TrainConfig, where: str) -> None:
@@ -710,7 +710,7 @@ def say_unused_budget(settings: Any, cfg: TrainConfig, where: str) -> None:
         f"note: {where}: strategy.cap_max {strategy['cap_max']} is not used: strategy.cap_max_auto is on "
         "(the budget comes from the scene; give --cap-max N for a fixed one)"
     )
-    _say_once(where, line)
+    say_once(where, line)
 
 
 def recorded_settings(settings: Any, where: str) -> TrainConfig:

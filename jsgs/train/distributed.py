@@ -801,6 +801,12 @@ def split_checkpoint(doc: dict[str, Any], world: World, path: str) -> dict[str, 
     sizes = doc.get("shards")
     n = int(doc["splats"]["means"].shape[0])
     ranks = doc.get("rng_ranks")
+    if sizes is None and ranks is None:  # several processes' before the Gaussians were sharded
+        raise JsgsError(
+            f"{path}: lacks shards and rng_ranks (each process's rows and generators): written before the "
+            f"Gaussians were sharded across processes, {world.size} processes cannot resume it; start over "
+            "with --force"
+        )
     if (
         not isinstance(sizes, list)
         or len(sizes) != world.size

@@ -52,6 +52,7 @@ from jsgs.train.config import (
     TrainConfig,
     holds_run_config,
     read_run_config,
+    say_once,
     to_dict,
 )
 from jsgs.train.data import (
@@ -902,8 +903,10 @@ class Trainer:
         self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene.scene_scale)
 
     def read_checkpoint(self, cfg: TrainConfig) -> dict[str, Any]:
-        """The last checkpoint in RUN/checkpoints, read and checked against the run folder (its structure,
-        its step, the settings of config.json, the manifest config.json names); ``_path``: the file."""
+        """The last checkpoint in RUN/checkpoints, read (one written by an earlier version as today's, with
+        one note: :func:`jsgs.train.checkpoint.fields_of_today`) and checked against the run folder (its
+        structure, its step, the settings of config.json, the manifest config.json names); ``_path``: the
+        file."""
         found = ckpt.list_checkpoints(self.paths.checkpoints)
         if not found:
             raise JsgsError(
@@ -911,6 +914,9 @@ class Trainer:
             )
         ckpt_step, ckpt_path = found[-1]
         doc = ckpt.load_checkpoint(ckpt_path)
+        filled = ckpt.fields_of_today(doc)  # a checkpoint of an earlier version
+        if filled:
+            say_once(str(ckpt_path), ckpt.earlier_note(ckpt_path, filled))
         ckpt.check_structure(doc, ckpt_path, ckpt_step)
         run = self.recorded if self.recorded is not None else read_run_config(self.paths.root)
         _checkpoint_agrees(doc, ckpt_path, run, cfg)
