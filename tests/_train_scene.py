@@ -200,3 +200,15 @@ def train_tiny_run(root: Path, *options: str, iterations: int = 20, eval_at: str
     r = CliRunner().invoke(main, args, catch_exceptions=False)
     assert r.exit_code == 0, r.output + r.stderr
     return r
+
+
+def invoke_afresh(args: list[str]) -> Any:
+    """``jsgs ARGS`` as a command of its own: the notes said once per process (``jsgs.train.config``'s)
+    start afresh, as in a new process; click's result."""
+    from click.testing import CliRunner
+
+    from jsgs.cli import main
+    from jsgs.train import config
+
+    config._said.clear()
+    return CliRunner().invoke(main, args)

@@ -14,12 +14,11 @@ from typing import Any
 import numpy as np
 import pytest
 import torch
+from _train_scene import invoke_afresh as invoke
 from _train_scene import train_tiny_run
-from click.testing import CliRunner
 
 from jsgs.base.errors import JsgsError
 from jsgs.base.ply import load_ply
-from jsgs.cli import main
 from jsgs.train import checkpoint as ckpt
 
 
@@ -41,14 +40,6 @@ def finished_today(stopped: Path, tmp_path_factory: pytest.TempPathFactory) -> P
     assert r.exit_code == 0, r.stderr
     assert _notes(r.stderr) == []
     return run
-
-
-def invoke(args: list[str]) -> Any:
-    """``jsgs ARGS`` as a command of its own (the notes said once per process start afresh)."""
-    from jsgs.train import config
-
-    config._said.clear()
-    return CliRunner().invoke(main, args)
 
 
 def _notes(stderr: str) -> list[str]:

@@ -12,11 +12,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _train_scene import invoke_afresh as invoke
 from _train_scene import train_tiny_run
-from click.testing import CliRunner
 
 from jsgs.base.errors import JsgsError
-from jsgs.cli import main
 
 ROOT = Path(__file__).resolve().parents[3]
 COMMITTED = sorted((ROOT / "docs" / "results").glob("**/config.json"))
@@ -110,14 +109,6 @@ def _without_speed(run: Path, checkpoints: bool) -> dict[str, Any]:
         del state["settings"]["speed"]
         torch.save(state, p)
     return doc
-
-
-def invoke(args: list[str]) -> Any:
-    """``jsgs ARGS`` as a command of its own (the notes said once per process start afresh)."""
-    from jsgs.train import config
-
-    config._said.clear()
-    return CliRunner().invoke(main, args)
 
 
 def _notes(stderr: str) -> list[str]:
