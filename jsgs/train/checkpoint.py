@@ -173,14 +173,6 @@ def fields_of_today(doc: Any) -> list[str]:
     return [f"{f} {json.dumps(EARLIER_FIELDS[f])}" for f in filled]
 
 
-def earlier_note(path: Path, filled: list[str]) -> str:
-    """The note that the checkpoint ``path`` was read with the fields ``filled`` (:func:`fields_of_today`)."""
-    return (
-        f"note: {path} was written before some checkpoint fields existed; read with the values that do what "
-        f"that version did: {', '.join(filled)}"
-    )
-
-
 # ---------------------------------------------------------------------------------------------------------
 # checks before use
 

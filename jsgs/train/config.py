@@ -684,13 +684,14 @@ def say_once(where: str, line: str) -> None:
         print(line, file=sys.stderr, flush=True)
 
 
-def say_assumed(where: str, assumed: list[str]) -> None:
-    """The note (stderr, once per file and process) that ``where`` was read with the settings ``assumed``
-    (:func:`settings_of_today`); nothing when there are none."""
+def say_assumed(where: str, assumed: list[str], what: str = "settings") -> None:
+    """The note (stderr, once per file and process) that ``where`` was read with the ``what`` ``assumed``
+    (settings: :func:`settings_of_today`; a checkpoint's fields:
+    :func:`jsgs.train.checkpoint.fields_of_today`); nothing when there are none."""
     if not assumed:
         return
     line = (
-        f"note: {where} was written before some settings existed; read with the values that do what "
+        f"note: {where} was written before some {what} existed; read with the values that do what "
         f"that version did: {', '.join(assumed)}"
     )
     say_once(where, line)

@@ -52,7 +52,7 @@ from jsgs.train.config import (
     TrainConfig,
     holds_run_config,
     read_run_config,
-    say_once,
+    say_assumed,
     to_dict,
 )
 from jsgs.train.data import (
@@ -914,9 +914,8 @@ class Trainer:
             )
         ckpt_step, ckpt_path = found[-1]
         doc = ckpt.load_checkpoint(ckpt_path)
-        filled = ckpt.fields_of_today(doc)  # a checkpoint of an earlier version
-        if filled:
-            say_once(str(ckpt_path), ckpt.earlier_note(ckpt_path, filled))
+        # a checkpoint of an earlier version
+        say_assumed(str(ckpt_path), ckpt.fields_of_today(doc), "checkpoint fields")
         ckpt.check_structure(doc, ckpt_path, ckpt_step)
         run = self.recorded if self.recorded is not None else read_run_config(self.paths.root)
         _checkpoint_agrees(doc, ckpt_path, run, cfg)
