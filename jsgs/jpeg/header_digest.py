@@ -53,6 +53,17 @@ MARKER_IN_DATA = re.compile(rb"\xff[^\x00\xd0-\xd7\xff]")
 SCAN_CHUNK = 16384
 
 
+def coded_data_end(chunk: bytes) -> tuple[int, bool]:
+    """Where a scan's entropy-coded data in ``chunk`` (read from inside it) ends: the offset of the FF of the
+    first marker in it and True; with no marker, the bytes that are surely coded data (all but a last FF,
+    which may begin a marker the next read completes) and False. The toolkit's header parser and
+    :class:`_Reader` both move over coded data with it."""
+    m = MARKER_IN_DATA.search(chunk)
+    if m is not None:
+        return m.start(), True
+    return len(chunk) - (chunk[-1:] == b"\xff"), False
+
+
 class _Reader:
     """``f`` read forward with its offset; ``where`` names the part of the file being read, for the
     truncation message."""
@@ -95,13 +106,12 @@ class _Reader:
         while True:
             start = self.pos
             chunk = self.f.read(SCAN_CHUNK)
-            m = MARKER_IN_DATA.search(chunk)
-            if m is None and len(chunk) < SCAN_CHUNK:
+            keep, found = coded_data_end(chunk)
+            if not found and len(chunk) < SCAN_CHUNK:
                 raise JsgsError(f"{self.name}: truncated JPEG (the file ends before {self.where})")
-            keep = m.start() if m is not None else len(chunk) - (chunk[-1] == 0xFF)
             self.pos = start + keep
             self.f.seek(self.pos)
-            if m is not None:
+            if found:
                 return
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import os
-import re
 import stat
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -14,6 +13,7 @@ from typing import BinaryIO
 import numpy as np
 
 from jsgs.base.errors import JsgsError
+from jsgs.jpeg.header_digest import SCAN_CHUNK, coded_data_end
 from jsgs.jpeg.tables import QualityEstimate, zigzag_to_natural
 from jsgstools.dqt.cache import _CACHE_MAX, _TABLE_CACHE
 from jsgstools.dqt.header import (
@@ -49,10 +49,6 @@ from jsgstools.dqt.markers import (
 # --------------------------------------------------------------------------------------------------------
 # The parser
 
-#: bytes of a scan's entropy-coded data read at a time while looking for the next marker
-_SCAN_CHUNK = 16384
-#: a marker inside entropy-coded data: FF then a code that is not 00 (a stuffed FF), FF (fill) or RSTn
-_MARKER_IN_DATA = re.compile(rb"\xff[^\x00\xd0-\xd7\xff]")
 
 
 class _Reader:
@@ -592,7 +588,8 @@ def _next_scan_segment(r: _Reader, st: ParseState, waiting: str) -> tuple[int, i
 
 def _skip_entropy_coded(r: _Reader, waiting: str) -> None:
     """Move ``r`` over entropy-coded data (bytes, stuffed FF 00, RSTn markers) to the FF of the next marker,
-    reading ``_SCAN_CHUNK`` bytes at a time (what is read past the marker stays pending)."""
+    reading ``SCAN_CHUNK`` bytes at a time (what is read past the marker stays pending;
+    :func:`jsgs.jpeg.header_digest.coded_data_end` finds it)."""
     while True:
         if r.pos + 2 > r.size:
             raise _fail(
@@ -600,13 +597,12 @@ def _skip_entropy_coded(r: _Reader, waiting: str) -> None:
                 f"truncated file: it ends in a scan's coded data before any scan of component(s) {waiting}",
             )
         start = r.pos
-        chunk = r.read(min(_SCAN_CHUNK, r.size - start))
-        m = _MARKER_IN_DATA.search(chunk)
-        keep = m.start() if m is not None else (len(chunk) - 1 if chunk[-1] == 0xFF else len(chunk))
+        chunk = r.read(min(SCAN_CHUNK, r.size - start))
+        keep, found = coded_data_end(chunk)
         if keep < len(chunk):
             r.pending = chunk[keep:] + r.pending
             r.pos = start + keep
-        if m is not None:
+        if found:
             return
 
 
