@@ -120,8 +120,7 @@ def run_config(doc: dict) -> dict:
     """What configs.json keeps of a run's config.json: settings, versions, command and, where the run chose
     its budget from the scene (``--cap-max auto``), the rule's inputs and choice (``derived.budget``); the
     settings with today's names for values recorded under earlier ones (:func:`_current`)."""
-    out = {k: doc[k] for k in ("settings", "versions", "command")}
-    out["settings"] = current_values(out["settings"])
+    out = _current({k: doc[k] for k in ("settings", "versions", "command")})
     rule = doc.get("derived", {}).get("budget")
     if rule is not None:
         out["derived"] = {"budget": rule}
